@@ -1,0 +1,284 @@
+"""The scene model: one typed, validated description of a whole run.
+
+A scene is a TOML file. Units are SI (metres, seconds, kilograms, kg/m³) and
+**z is up**, as in Blender and DualSPHysics. Every field documents its unit;
+every field has a default that works, so a scene only names what differs.
+
+    from whitecap.config import load_scene
+    scene = load_scene("scenes/dam_break.toml")
+
+Errors are raised as :class:`whitecap.errors.InputError` with one line naming
+the file, the dotted key and what was expected, plus a did-you-mean for
+unknown keys.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import InputError
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _finite(cls, v: Any) -> Any:
+        vals = v if isinstance(v, list) else [v]
+        for x in vals:
+            if isinstance(x, float) and not math.isfinite(x):
+                raise ValueError("must be a finite number")
+        return v
+
+
+# --------------------------------------------------------------------------- domain
+class Domain(_Section):
+    """The simulation box. Particles are kept inside it by the walls."""
+
+    lower: Vec3 = Field([0.0, 0.0, 0.0], description="lower corner of the box [m]")
+    upper: Vec3 = Field([1.0, 0.5, 0.8], description="upper corner of the box [m]")
+    gravity: Vec3 = Field([0.0, 0.0, -9.81], description="gravitational acceleration [m/s²], z up")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Domain":
+        if any(u <= lo for lo, u in zip(self.lower, self.upper)):
+            raise ValueError("domain.upper must be greater than domain.lower on every axis")
+        return self
+
+
+# --------------------------------------------------------------------------- solver
+class Solver(_Section):
+    """Position Based Fluids (Macklin & Müller 2013) parameters."""
+
+    particle_radius: float = Field(0.01, gt=0, description="particle radius r [m]; spacing is 2r")
+    rest_density: float = Field(1000.0, gt=0, description="rest density ρ0 [kg/m³]")
+    kernel_support: float = Field(4.0, ge=2.5, le=6.0, description="kernel support h as a multiple of r [-]")
+    frame_rate: float = Field(30.0, gt=0, description="output frames per second [1/s]")
+    substeps: int | None = Field(
+        None, ge=1, le=1000, description="fixed substeps per frame; unset = CFL-limited dt [-]"
+    )
+    cfl: float = Field(0.4, gt=0, le=1.0, description="CFL number: dt ≤ cfl·2r/v_max [-]")
+    max_substeps: int = Field(40, ge=1, le=10000, description="upper bound on CFL substeps per frame [-]")
+    min_substeps: int = Field(2, ge=1, le=10000, description="lower bound on CFL substeps per frame [-]")
+    iterations: int = Field(4, ge=1, le=100, description="density-constraint iterations per step [-]")
+    relaxation: float = Field(
+        1e-6, gt=0, description="constraint-force mixing ε added to Σ|∇C|² [-] (scaled by h² internally... see docs)"
+    )
+    xsph_c: float = Field(0.01, ge=0, le=1, description="XSPH viscosity c [-]")
+    vorticity_epsilon: float = Field(0.05, ge=0, description="vorticity confinement ε [m/s²·m] (scaled by h)")
+    scorr_k: float = Field(0.0001, ge=0, description="artificial pressure strength k [-]")
+    scorr_n: int = Field(4, ge=1, le=8, description="artificial pressure exponent n [-]")
+    scorr_dq: float = Field(0.2, ge=0, lt=1, description="artificial pressure Δq as a fraction of h [-]")
+    max_neighbors: int = Field(96, ge=16, le=512, description="fixed neighbour-list capacity per particle [-]")
+    reorder_interval: int = Field(32, ge=0, description="steps between cell reorders of particle data; 0 = never [-]")
+    wall_friction: float = Field(0.0, ge=0, le=1, description="tangential velocity damping at domain walls [-]")
+    max_speed: float = Field(
+        100.0, gt=0, description="a particle faster than this is a blow-up and stops the run [m/s]"
+    )
+
+
+# --------------------------------------------------------------------------- fluid blocks
+class FluidBlock(_Section):
+    """An initial block of fluid, filled with a cubic lattice of spacing 2r."""
+
+    shape: Literal["box", "sphere"] = Field("box", description="box or sphere")
+    lower: Vec3 | None = Field(None, description="box lower corner [m]")
+    upper: Vec3 | None = Field(None, description="box upper corner [m]")
+    center: Vec3 | None = Field(None, description="sphere centre [m]")
+    radius: float | None = Field(None, gt=0, description="sphere radius [m]")
+    velocity: Vec3 = Field([0.0, 0.0, 0.0], description="initial velocity [m/s]")
+
+    @model_validator(mode="after")
+    def _shape_fields(self) -> "FluidBlock":
+        if self.shape == "box":
+            if self.lower is None or self.upper is None:
+                raise ValueError("a box needs 'lower' and 'upper'")
+            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
+                raise ValueError("box upper must be greater than lower on every axis")
+        else:
+            if self.center is None or self.radius is None:
+                raise ValueError("a sphere needs 'center' and 'radius'")
+        return self
+
+    def bounds(self) -> tuple[list[float], list[float]]:
+        if self.shape == "box":
+            return list(self.lower), list(self.upper)  # type: ignore[arg-type]
+        c, r = self.center, self.radius
+        return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]  # type: ignore[index,operator]
+
+
+# --------------------------------------------------------------------------- obstacles
+class Obstacle(_Section):
+    """A static rigid obstacle from a watertight triangle mesh (OBJ/STL/PLY)."""
+
+    mesh: str = Field(..., description="collision mesh file, relative to the scene file")
+    render_mesh: str | None = Field(None, description="high-poly mesh for rendering; default: the collision mesh")
+    translate: Vec3 = Field([0.0, 0.0, 0.0], description="translation [m]")
+    rotate: Vec3 = Field([0.0, 0.0, 0.0], description="rotation about x, y, z, applied in that order [deg]")
+    scale: float = Field(1.0, gt=0, description="uniform scale [-]")
+    friction: float = Field(0.1, ge=0, le=1, description="Coulomb-like tangential damping at contact [-]")
+    repair: bool = Field(False, description="try to repair a mesh that is not watertight")
+    stiffness: float = Field(5.0e4, ge=0, description="penalty stiffness k in F = k·n·(−sdf) [1/s²]")
+    sdf_resolution: float = Field(1.0, gt=0, le=4.0, description="SDF grid spacing as a multiple of r [-]")
+    material: str = Field("stone", description="render material preset: stone, clay, metal, plastic")
+    color: Vec3 = Field([0.8, 0.78, 0.72], description="render base colour, linear RGB [0-1]")
+
+
+# --------------------------------------------------------------------------- foam
+class Foam(_Section):
+    """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
+
+    enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
+    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "auto"] = Field(
+        "ihmsen2012", description="parameter preset; every value below overrides it"
+    )
+
+
+# --------------------------------------------------------------------------- mesh
+class Mesh(_Section):
+    """Surface reconstruction with splashsurf."""
+
+
+# --------------------------------------------------------------------------- view
+class View(_Section):
+    """Real-time GGUI viewer."""
+
+
+# --------------------------------------------------------------------------- render
+class Render(_Section):
+    """Offline rendering in Blender (Cycles)."""
+
+
+# --------------------------------------------------------------------------- output
+class Output(_Section):
+    """What `simulate` writes."""
+
+    frames: int = Field(60, ge=1, le=1_000_000, description="number of frames after frame 0 [-]")
+    formats: list[Literal["ply", "npz"]] = Field(["ply"], description="particle file formats to write")
+    checkpoint_interval: int = Field(1, ge=1, description="frames between resume checkpoints [-]")
+
+
+# --------------------------------------------------------------------------- scene
+class Scene(_Section):
+    """A whole run. Sections: domain, solver, fluid, obstacle, foam, mesh, view, render, output."""
+
+    name: str = Field("scene", description="a label for the run")
+    seed: int = Field(0, ge=0, lt=2**32, description="random seed for everything stochastic")
+    domain: Domain = Field(default_factory=Domain)
+    solver: Solver = Field(default_factory=Solver)
+    fluid: list[FluidBlock] = Field(default_factory=list, description="initial fluid blocks")
+    obstacle: list[Obstacle] = Field(default_factory=list, description="static obstacles")
+    foam: Foam = Field(default_factory=Foam)
+    mesh: Mesh = Field(default_factory=Mesh)
+    view: View = Field(default_factory=View)
+    render: Render = Field(default_factory=Render)
+    output: Output = Field(default_factory=Output)
+
+    # Where relative paths in the scene (meshes) are resolved; not part of the TOML.
+    base_dir: str = Field(".", exclude=True, description="directory of the scene file (internal)")
+
+    @model_validator(mode="after")
+    def _blocks_inside(self) -> "Scene":
+        lo, hi = self.domain.lower, self.domain.upper
+        for k, b in enumerate(self.fluid):
+            blo, bhi = b.bounds()
+            if any(blo[i] < lo[i] - 1e-9 or bhi[i] > hi[i] + 1e-9 for i in range(3)):
+                raise ValueError(
+                    f"fluid[{k}] spans {blo}..{bhi}, outside the domain {lo}..{hi}"
+                )
+        return self
+
+    def resolve(self, path: str) -> Path:
+        """A path from the scene file, resolved against the scene's directory."""
+        p = Path(path)
+        return p if p.is_absolute() else Path(self.base_dir) / p
+
+    def to_toml(self) -> str:
+        import tomli_w
+
+        return tomli_w.dumps(_drop_none(self.model_dump(exclude={"base_dir"})))
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _drop_none(v) for k, v in d.items() if v is not None}
+    if isinstance(d, list):
+        return [_drop_none(v) for v in d]
+    return d
+
+
+# --------------------------------------------------------------------------- loading
+def _model_at(loc: tuple, model: type[BaseModel] = Scene) -> type[BaseModel] | None:
+    """Walk a validation-error location to the model class that owns it."""
+    m: Any = model
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        fld = m.model_fields.get(part) if hasattr(m, "model_fields") else None
+        if fld is None:
+            return m
+        ann = fld.annotation
+        inner = getattr(ann, "__args__", None)
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            m = ann
+        elif inner:
+            sub = [a for a in inner if isinstance(a, type) and issubclass(a, BaseModel)]
+            if not sub:
+                return m
+            m = sub[0]
+        else:
+            return m
+    return m
+
+
+def _format_error(err: dict, source: str) -> str:
+    loc = tuple(err["loc"])
+    key = ".".join(str(p) if not isinstance(p, int) else f"[{p}]" for p in loc).replace(".[", "[")
+    if err["type"] == "extra_forbidden":
+        owner = _model_at(loc[:-1])
+        hint = ""
+        if owner is not None:
+            close = difflib.get_close_matches(str(loc[-1]), list(owner.model_fields), n=1)
+            if close:
+                hint = f"; did you mean '{close[0]}'?"
+        return f"{source}: {key}: unknown key{hint}"
+    msg = err["msg"].removeprefix("Value error, ")
+    got = err.get("input")
+    got_s = "" if isinstance(got, dict) or got is None else f" (got {got!r})"
+    return f"{source}: {key or '<top level>'}: {msg}{got_s}"
+
+
+def scene_from_dict(data: dict, source: str = "<scene>", base_dir: str | Path = ".") -> Scene:
+    """Validate a parsed TOML table into a :class:`Scene`."""
+    try:
+        scene = Scene.model_validate(data)
+    except ValidationError as exc:
+        raise InputError(_format_error(exc.errors()[0], source)) from None
+    scene.base_dir = str(base_dir)
+    return scene
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene file. Raises InputError with file and key."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: scene file not found")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{p}: malformed TOML: {exc}") from None
+    return scene_from_dict(data, str(p), p.parent.resolve())
+
+
+def default_scene() -> Scene:
+    """The fully defaulted scene: a small dam break."""
+    return Scene(fluid=[FluidBlock(lower=[0.02, 0.02, 0.02], upper=[0.32, 0.48, 0.5])])

@@ -1,0 +1,61 @@
+"""The in-memory particle frame every reader returns and every writer takes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+
+
+@dataclass
+class ParticleFrame:
+    """One frame of particles, SI units, z up.
+
+    ``positions`` and ``velocities`` are (N, 3) float32; ``ids`` is (N,) uint32
+    and stays with a particle across frames; ``density`` is (N,) float32 or
+    None when the source has none. ``arrays`` holds any other per-particle
+    arrays by name (``type``, ``lifetime``, ``radius`` for diffuse particles).
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    density: np.ndarray | None = None
+    time: float | None = None
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32).reshape(-1, 3)
+        n = len(self.positions)
+        if self.velocities is not None:
+            self.velocities = np.ascontiguousarray(self.velocities, dtype=np.float32).reshape(-1, 3)
+            self._check_len("velocity", self.velocities)
+        if self.ids is None:
+            self.ids = np.arange(n, dtype=np.uint32)
+        else:
+            self.ids = np.ascontiguousarray(self.ids, dtype=np.uint32).reshape(-1)
+            self._check_len("id", self.ids)
+        if self.density is not None:
+            self.density = np.ascontiguousarray(self.density, dtype=np.float32).reshape(-1)
+            self._check_len("density", self.density)
+        for k, a in self.arrays.items():
+            self._check_len(k, a)
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def _check_len(self, name: str, a: np.ndarray) -> None:
+        if len(a) != len(self.positions):
+            raise InputError(
+                f"{self.source}: array '{name}' has {len(a)} entries but there are {len(self.positions)} positions"
+            )
+
+    def check_finite(self) -> None:
+        """Raise InputError naming the file if any position or velocity is NaN/inf."""
+        for name, a in (("positions", self.positions), ("velocities", self.velocities)):
+            if a is not None and not np.isfinite(a).all():
+                bad = int((~np.isfinite(a).all(axis=1)).sum())
+                raise InputError(f"{self.source}: {name}: {bad} particles are NaN or infinite")

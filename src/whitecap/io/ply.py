@@ -1,0 +1,79 @@
+"""Binary little-endian PLY particle files (plyfile).
+
+Fluid frames carry ``x y z vx vy vz density id``; diffuse frames add
+``type lifetime radius``. Any extra float/int vertex property is read into
+``ParticleFrame.arrays``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from plyfile import PlyData, PlyElement
+
+from ..errors import InputError
+from .atomic import atomic_path
+from .frame import ParticleFrame
+from .registry import register
+
+_CORE = ("x", "y", "z", "vx", "vy", "vz", "density", "id")
+_DTYPES = {np.dtype(np.float32): "f4", np.dtype(np.uint32): "u4", np.dtype(np.uint8): "u1", np.dtype(np.int32): "i4"}
+
+
+def read_ply(path: Path, up: str = "z") -> ParticleFrame:
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as exc:  # plyfile raises a variety of types on garbage
+        raise InputError(f"{path}: not a readable PLY file ({exc})") from None
+    if "vertex" not in ply:
+        raise InputError(f"{path}: PLY has no 'vertex' element")
+    v = ply["vertex"].data
+    names = v.dtype.names or ()
+    for k in ("x", "y", "z"):
+        if k not in names:
+            raise InputError(f"{path}: PLY vertex element has no '{k}' property")
+    pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
+    vel = np.stack([v["vx"], v["vy"], v["vz"]], axis=1) if all(k in names for k in ("vx", "vy", "vz")) else None
+    from .axes import to_z_up
+
+    pos, vel = to_z_up(pos, vel, up)
+    arrays = {k: np.asarray(v[k]) for k in names if k not in _CORE and k not in ("nx", "ny", "nz")}
+    return ParticleFrame(
+        positions=pos,
+        velocities=vel,
+        ids=np.asarray(v["id"]) if "id" in names else None,
+        density=np.asarray(v["density"]) if "density" in names else None,
+        arrays=arrays,
+        source=str(path),
+    )
+
+
+def write_ply(path: Path, frame: ParticleFrame) -> None:
+    n = len(frame)
+    cols: list[tuple[str, np.ndarray]] = [
+        ("x", frame.positions[:, 0]),
+        ("y", frame.positions[:, 1]),
+        ("z", frame.positions[:, 2]),
+    ]
+    vel = frame.velocities if frame.velocities is not None else np.zeros((n, 3), np.float32)
+    cols += [("vx", vel[:, 0]), ("vy", vel[:, 1]), ("vz", vel[:, 2])]
+    if frame.density is not None:
+        cols.append(("density", frame.density))
+    for k, a in frame.arrays.items():
+        cols.append((k, a))
+    cols.append(("id", frame.ids))
+    dtype = []
+    for k, a in cols:
+        dt = np.dtype(a.dtype)
+        if dt not in _DTYPES:
+            dt = np.dtype(np.float32)
+        dtype.append((k, _DTYPES[dt]))
+    data = np.empty(n, dtype=dtype)
+    for k, a in cols:
+        data[k] = a
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(str(tmp))
+
+
+register("ply", (".ply",), read_ply, write_ply)

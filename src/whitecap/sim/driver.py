@@ -1,0 +1,198 @@
+"""The `simulate` loop: frames, output files, checkpoints, resume, progress.
+
+Per output frame the solver advances ``substeps`` steps, then the frame is
+written to ``fluid/fluid_NNNNN.ply`` (temporary file, then rename) and
+``run.json`` is updated. Every ``output.checkpoint_interval`` frames the full
+state goes to ``checkpoint.npz``; ``resume`` restarts from it and produces
+the same remaining frames as an uninterrupted run.
+
+Frame hooks (the foam stage, the live viewer) see each frame after the
+solver; they may add files and carry state in the checkpoint. This keeps the
+solver free of imports from later stages.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ..config import Scene
+from ..errors import InputError, WhitecapError
+from ..io import ParticleFrame, write, write_text
+from ..io.atomic import atomic_path
+from ..io.run import RunInfo, frame_name
+from ..progress import progress
+from ..timing import timer
+from . import runtime
+
+CHECKPOINT = "checkpoint.npz"
+
+
+class FrameHook(Protocol):
+    name: str
+
+    def on_start(self, solver, out: Path, info: RunInfo) -> None: ...
+
+    def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str: ...
+
+    def checkpoint(self) -> dict[str, np.ndarray]: ...
+
+    def restore(self, data: dict[str, np.ndarray]) -> None: ...
+
+
+def run_info_for(scene: Scene, solver) -> RunInfo:
+    return RunInfo(
+        particle_radius=scene.solver.particle_radius,
+        rest_density=scene.solver.rest_density,
+        particle_mass=float(solver.mass),
+        gravity=list(scene.domain.gravity),
+        domain={"lower": list(scene.domain.lower), "upper": list(scene.domain.upper)},
+        frame_rate=scene.solver.frame_rate,
+        obstacles=[o.model_dump() for o in scene.obstacle],
+        extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed},
+    )
+
+
+def build_solver(scene: Scene, arch: str = "cpu"):
+    """Initialise Taichi and build the solver with obstacles from the scene."""
+    from .pbf import PBFSolver, estimate_particle_count, lattice_points, bytes_per_particle, available_memory
+
+    n_est = estimate_particle_count(scene)
+    if n_est * bytes_per_particle(scene.solver.max_neighbors) > 0.8 * available_memory():
+        raise WhitecapError(
+            f"the fluid blocks hold about {n_est:,} particles, needing about "
+            f"{n_est * bytes_per_particle(scene.solver.max_neighbors) / 2**30:.1f} GiB, "
+            "more than this machine has free; increase solver.particle_radius or shrink the fluid"
+        )
+    runtime.init(arch)
+    pos, vel = lattice_points(scene)
+    obstacles = []
+    if scene.obstacle:
+        from .obstacles import load_obstacles
+
+        obstacles = load_obstacles(scene)
+        if obstacles:
+            keep = obstacles.outside_mask(pos)
+            pos, vel = pos[keep], vel[keep]
+    solver = PBFSolver(scene, pos, vel)
+    if obstacles:
+        solver.colliders.append(obstacles.collider(solver))
+    return solver
+
+
+def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
+    data = {f"solver/{k}": v for k, v in solver.checkpoint().items()}
+    for h in hooks:
+        data.update({f"{h.name}/{k}": v for k, v in h.checkpoint().items()})
+    data["frame"] = np.int64(index)
+    with atomic_path(out / CHECKPOINT) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **data)
+
+
+def _load_checkpoint(out: Path) -> tuple[int, dict]:
+    p = out / CHECKPOINT
+    try:
+        z = np.load(p)
+        data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise InputError(f"{p}: unreadable checkpoint ({exc}); rerun without --resume") from None
+    return int(data.pop("frame")), data
+
+
+def _sub(data: dict, prefix: str) -> dict:
+    return {k[len(prefix) + 1 :]: v for k, v in data.items() if k.startswith(prefix + "/")}
+
+
+def run_simulation(
+    scene: Scene,
+    out: str | Path,
+    frames: int | None = None,
+    resume: bool = False,
+    force: bool = False,
+    arch: str = "cpu",
+    hooks: list | tuple = (),
+    show_progress: bool = True,
+    solver=None,
+) -> RunInfo:
+    """Simulate ``scene`` into the run directory ``out``; return its RunInfo."""
+    out = Path(out)
+    nframes = scene.output.frames if frames is None else int(frames)
+    if nframes < 1:
+        raise InputError(f"--frames: must be at least 1 (got {nframes})")
+    has_run = (out / "run.json").exists()
+    if has_run and not resume and not force:
+        raise WhitecapError(f"{out}: already holds a run; pass --resume to continue it or --force to start over")
+    if force and not resume and out.exists():
+        for sub in ("fluid", "diffuse"):
+            shutil.rmtree(out / sub, ignore_errors=True)
+        for f in (CHECKPOINT, "run.json"):
+            (out / f).unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+
+    if solver is None:
+        with timer("setup"):
+            solver = build_solver(scene, arch)
+    start_frame = 0
+    info = run_info_for(scene, solver)
+    if resume and (out / CHECKPOINT).exists():
+        start_frame, data = _load_checkpoint(out)
+        solver.restore(_sub(data, "solver"))
+        for h in hooks:
+            h.restore(_sub(data, h.name))
+        if has_run:
+            info = RunInfo.load(out)
+            info.truncate(start_frame)
+    write_text(out / "scene.toml", scene.to_toml())
+    for h in hooks:
+        h.on_start(solver, out, info)
+
+    def emit(index: int, dt: float) -> None:
+        with timer("output"):
+            a = solver.arrays()
+            frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
+            for fmt in scene.output.formats:
+                rel = frame_name("fluid", index, fmt)
+                write(out / rel, frame)
+                info.set_file(index, "fluid" if fmt == "ply" else f"fluid_{fmt}", rel, solver.time)
+        for h in hooks:
+            with timer(h.name):
+                rel = h.on_frame(frame, index, dt, out, info)
+                if rel:
+                    info.set_file(index, h.name, rel, solver.time)
+        info.save(out)
+
+    frame_dt = 1.0 / scene.solver.frame_rate
+    if start_frame == 0:
+        emit(0, frame_dt)
+        _save_checkpoint(out, 0, solver, hooks)
+    bar = progress(disable=not show_progress)
+    with bar:
+        task = bar.add_task("simulate", total=nframes, completed=start_frame, info="")
+        t0, steps0 = time.perf_counter(), solver.step_count
+        for index in range(start_frame + 1, nframes + 1):
+            with timer("step"):
+                solver.advance_frame(index)
+            emit(index, frame_dt)
+            if index % scene.output.checkpoint_interval == 0 or index == nframes:
+                with timer("checkpoint"):
+                    _save_checkpoint(out, index, solver, hooks)
+            el = time.perf_counter() - t0
+            sps = (solver.step_count - steps0) / el if el > 0 else 0.0
+            bar.update(
+                task,
+                completed=index,
+                info=f"t={solver.time:.3f}s  {sps:.1f} steps/s  {solver.n:,} particles  vmax={solver.stats.max_speed:.2f} m/s",
+            )
+    if solver.stats.neighbor_overflow:
+        from ..progress import console
+
+        console.print(
+            f"[yellow]warning:[/] {solver.stats.neighbor_overflow} neighbour pairs exceeded "
+            f"solver.max_neighbors={scene.solver.max_neighbors}; raise it for accuracy"
+        )
+    return info

@@ -1,0 +1,228 @@
+"""Uniform-grid neighbour search, shared by the PBF solver and the foam stage.
+
+Counting sort by cell (Green 2008, "Particle Simulation using CUDA"):
+
+1. each particle finds its cell and takes a rank inside it with an atomic add;
+2. an exclusive prefix sum over the cell counts gives each cell's start;
+3. particles scatter to ``start[cell] + rank``; each cell's run is then
+   sorted by particle index so the result does not depend on thread timing
+   (bit-identical runs, resumes and foam whatever the thread count);
+4. a fixed-capacity neighbour list per particle is filled by scanning the 27
+   surrounding cells. Capacity is fixed, so memory never grows; overflow is
+   counted and reported, never silently dropped.
+
+Everything is a plain Taichi ndarray, so kernels compile once per process
+whatever the particle count.
+"""
+
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from ..errors import WhitecapError
+
+vec3 = ti.math.vec3
+ivec3 = ti.math.ivec3
+F3 = ti.types.ndarray(dtype=vec3, ndim=1)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
+
+
+@ti.func
+def cell_of(p: vec3, lower: vec3, inv_cell: ti.f32, dims: ivec3) -> ivec3:
+    c = ti.cast(ti.floor((p - lower) * inv_cell), ti.i32)
+    return ti.math.clamp(c, 0, dims - 1)
+
+
+@ti.func
+def cell_index(c: ivec3, dims: ivec3) -> ti.i32:
+    return (c.x * dims.y + c.y) * dims.z + c.z
+
+
+@ti.kernel
+def _count_cells(
+    n: ti.i32, x: F3, lower: vec3, inv_cell: ti.f32, dims: ivec3, cell: I1, rank: I1, count: I1
+):
+    for i in range(n):
+        c = cell_index(cell_of(x[i], lower, inv_cell, dims), dims)
+        cell[i] = c
+        rank[i] = ti.atomic_add(count[c], 1)
+
+
+@ti.kernel
+def _clear(a: I1, n: ti.i32):
+    for i in range(n):
+        a[i] = 0
+
+
+@ti.kernel
+def _block_sums(count: I1, ncells: ti.i32, bsum: I1):
+    for b in range(bsum.shape[0]):
+        s = 0
+        for k in range(SCAN_BLOCK):
+            idx = b * SCAN_BLOCK + k
+            if idx < ncells:
+                s += count[idx]
+        bsum[b] = s
+
+
+@ti.kernel
+def _scan_blocks(bsum: I1):
+    ti.loop_config(serialize=True)
+    run = 0
+    for b in range(bsum.shape[0]):
+        s = bsum[b]
+        bsum[b] = run
+        run += s
+
+
+@ti.kernel
+def _scan_cells(count: I1, ncells: ti.i32, bsum: I1, start: I1, n: ti.i32):
+    for b in range(bsum.shape[0]):
+        run = bsum[b]
+        for k in range(SCAN_BLOCK):
+            idx = b * SCAN_BLOCK + k
+            if idx < ncells:
+                start[idx] = run
+                run += count[idx]
+    start[ncells] = n
+
+
+@ti.kernel
+def _scatter(n: ti.i32, cell: I1, rank: I1, start: I1, order: I1):
+    for i in range(n):
+        order[start[cell[i]] + rank[i]] = i
+
+
+@ti.kernel
+def _sort_cells(ncells: ti.i32, start: I1, order: I1):
+    # Insertion sort of each cell's short run by particle index: makes the
+    # layout independent of the order in which atomics were granted.
+    for c in range(ncells):
+        a, b = start[c], start[c + 1]
+        for k in range(a + 1, b):
+            v = order[k]
+            m = k - 1
+            while m >= a and order[m] > v:
+                order[m + 1] = order[m]
+                m -= 1
+            order[m + 1] = v
+
+
+@ti.kernel
+def _build_lists(
+    n: ti.i32,
+    x: F3,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ivec3,
+    h: ti.f32,
+    start: I1,
+    order: I1,
+    nb_count: I1,
+    nb: I2,
+) -> ti.i32:
+    overflow = 0
+    cap = nb.shape[1]
+    h2 = h * h
+    for i in range(n):
+        xi = x[i]
+        ci = cell_of(xi, lower, inv_cell, dims)
+        k = 0
+        for off in ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
+            cj = ci + off
+            if 0 <= cj.x < dims.x and 0 <= cj.y < dims.y and 0 <= cj.z < dims.z:
+                c = cell_index(cj, dims)
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    if j != i and (x[j] - xi).norm_sqr() < h2:
+                        if k < cap:
+                            nb[i, k] = j
+                            k += 1
+                        else:
+                            overflow += 1
+        nb_count[i] = k
+    return overflow
+
+
+@dataclass
+class GridSpec:
+    lower: tuple[float, float, float]
+    cell: float
+    dims: tuple[int, int, int]
+
+    @property
+    def ncells(self) -> int:
+        return self.dims[0] * self.dims[1] * self.dims[2]
+
+
+def grid_spec(lower, upper, cell: float, max_cells: int = 64_000_000) -> GridSpec:
+    dims = tuple(max(1, int(math.ceil((u - lo) / cell))) for lo, u in zip(lower, upper))
+    spec = GridSpec(tuple(float(v) for v in lower), float(cell), dims)  # type: ignore[arg-type]
+    if spec.ncells > max_cells:
+        raise WhitecapError(
+            f"neighbour grid of {dims} cells is too large; the domain is huge compared with the kernel support"
+        )
+    return spec
+
+
+class NeighborGrid:
+    """Cell-sorted particle order plus fixed-capacity neighbour lists.
+
+    After :meth:`build`, ``order[start[c]:start[c+1]]`` are the particles in
+    cell ``c`` and ``nb[i, :nb_count[i]]`` the neighbours of particle ``i``
+    within ``h`` (excluding ``i`` itself).
+    """
+
+    def __init__(self, spec: GridSpec, capacity: int, max_neighbors: int, h: float):
+        self.spec = spec
+        self.h = float(h)
+        self.capacity = int(capacity)
+        self.max_neighbors = int(max_neighbors)
+        nc = spec.ncells
+        self.cell = ti.ndarray(ti.i32, capacity)
+        self.rank = ti.ndarray(ti.i32, capacity)
+        self.order = ti.ndarray(ti.i32, capacity)
+        self.count = ti.ndarray(ti.i32, nc)
+        self.start = ti.ndarray(ti.i32, nc + 1)
+        self.bsum = ti.ndarray(ti.i32, (nc + SCAN_BLOCK - 1) // SCAN_BLOCK)
+        self.nb_count = ti.ndarray(ti.i32, capacity)
+        self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
+        self.overflow = 0
+        self._lower = vec3(*spec.lower)
+        self._dims = ivec3(*spec.dims)
+
+    def nbytes(self) -> int:
+        nc = self.spec.ncells
+        return 4 * (self.capacity * (4 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc))
+
+    def sort(self, x, n: int) -> None:
+        """Counting sort of the first ``n`` positions of ``x`` into cells."""
+        s = self.spec
+        _clear(self.count, s.ncells)
+        _count_cells(n, x, self._lower, 1.0 / s.cell, self._dims, self.cell, self.rank, self.count)
+        _block_sums(self.count, s.ncells, self.bsum)
+        _scan_blocks(self.bsum)
+        _scan_cells(self.count, s.ncells, self.bsum, self.start, n)
+        _scatter(n, self.cell, self.rank, self.start, self.order)
+        _sort_cells(s.ncells, self.start, self.order)
+
+    def build(self, x, n: int) -> int:
+        """Sort and fill neighbour lists; returns how many neighbours overflowed."""
+        self.sort(x, n)
+        s = self.spec
+        self.overflow = int(
+            _build_lists(n, x, self._lower, 1.0 / s.cell, self._dims, self.h, self.start, self.order, self.nb_count, self.nb)
+        )
+        return self.overflow
+
+    def neighbor_counts(self, n: int) -> np.ndarray:
+        return self.nb_count.to_numpy()[:n]
+
+
+def len_blocks(nc: int) -> int:
+    return (nc + SCAN_BLOCK - 1) // SCAN_BLOCK

@@ -1,0 +1,52 @@
+"""SPH smoothing kernels (Müller et al. 2003), as used by PBF.
+
+poly6 for densities (smooth, never negative), spiky gradient for the
+constraint gradients (no vanishing gradient at r → 0, which would let
+particles clump). ``h`` is the support radius.
+"""
+
+
+import math
+
+import taichi as ti
+
+
+@ti.func
+def poly6(r2: ti.f32, h: ti.f32) -> ti.f32:
+    """W_poly6(r, h) = 315/(64 π h⁹) (h² − r²)³ for r < h."""
+    w = 0.0
+    h2 = h * h
+    if r2 < h2:
+        d = h2 - r2
+        w = 315.0 / (64.0 * math.pi * h**9) * d * d * d
+    return w
+
+
+@ti.func
+def spiky_grad(r: ti.math.vec3, h: ti.f32) -> ti.math.vec3:
+    """∇W_spiky(r, h) = −45/(π h⁶) (h − |r|)² r/|r| for 0 < |r| < h."""
+    g = ti.math.vec3(0.0)
+    rl = r.norm()
+    if 0.0 < rl < h:
+        d = h - rl
+        g = (-45.0 / (math.pi * h**6)) * d * d / rl * r
+    return g
+
+
+def poly6_np(r2, h):
+    """NumPy twin of :func:`poly6`, for setup-time calibration."""
+    import numpy as np
+
+    h2 = h * h
+    d = np.clip(h2 - r2, 0.0, None)
+    return 315.0 / (64.0 * math.pi * h**9) * d**3
+
+
+def spiky_grad_np(r, h):
+    import numpy as np
+
+    rl = np.linalg.norm(r, axis=-1, keepdims=True)
+    d = np.clip(h - rl, 0.0, None)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(rl > 0, -45.0 / (math.pi * h**6) * d * d / rl * r, 0.0)
+    return g

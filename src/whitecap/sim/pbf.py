@@ -1,0 +1,561 @@
+"""Position Based Fluids (Macklin & Müller 2013, "Position Based Fluids").
+
+One step, following Algorithm 1 of the paper:
+
+    v  ← v + Δt f_ext                      apply_external_forces
+    x* ← x + Δt v                          (same kernel)
+    neighbours of x*                       grid.NeighborGrid.build (once per step)
+    repeat `iterations` times:
+        λ_i  = −C_i / (Σ_k |∇_k C_i|² + ε)  compute_lambda,  C_i = ρ_i/ρ0 − 1
+        Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   compute_delta_p
+        x*  ← x* + Δp, then collisions     apply_delta_p
+    v ← (x* − x)/Δt                        update_velocity
+    vorticity confinement, XSPH viscosity  compute_vorticity, apply_vorticity_confinement, apply_xsph
+    x ← x*
+
+The density constraint is unilateral, C_i = max(ρ_i/ρ0 − 1, 0) (as in
+SPlisHSPlasH): a free surface is under-dense and must not be pulled together.
+
+Boundaries (domain walls and obstacles) contribute to density through a
+*density map* (Bender et al. 2019, "Volume maps"), in its planar form: a
+particle at distance d from a wall gets ρ0·ψ(d), where ψ(d) is the kernel's
+integral over the half space beyond the wall. This removes the density
+deficit that would otherwise suck particles onto walls or leave a gap, at the
+price of one table lookup per particle and iteration.
+
+All particle state is plain Taichi ndarrays in :class:`FluidState`.
+"""
+
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from ..config import Scene
+from ..errors import SimulationError, WhitecapError
+from ..timing import timer
+from .grid import F3, I1, I2, NeighborGrid, grid_spec
+from .kernels import poly6, poly6_np, spiky_grad, spiky_grad_np
+
+vec3 = ti.math.vec3
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
+
+
+# ============================================================================ kernels
+@ti.kernel
+def apply_external_forces(n: ti.i32, x: F3, v: F3, p: F3, g: vec3, dt: ti.f32):
+    """v ← v + Δt g;  x* ← x + Δt v."""
+    for i in range(n):
+        v[i] += dt * g
+        p[i] = x[i] + dt * v[i]
+
+
+@ti.func
+def lookup(table: ti.template(), d: ti.f32, h: ti.f32) -> ti.f32:
+    """Linear interpolation of a table sampled on d ∈ [0, h]."""
+    t = ti.math.clamp(d / h, 0.0, 1.0) * (PSI_SAMPLES - 1)
+    k = ti.min(ti.cast(ti.floor(t), ti.i32), PSI_SAMPLES - 2)
+    f = t - k
+    return (1.0 - f) * table[k] + f * table[k + 1]
+
+
+@ti.kernel
+def wall_density_map(
+    n: ti.i32, p: F3, lo: vec3, hi: vec3, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3
+):
+    """ψ_i = Σ_walls ψ(d), ∇ψ_i = Σ_walls ψ'(d) n_wall, for the six domain walls.
+
+    ψ is the boundary's share of ρ_i/ρ0; its gradient enters ∇_i C_i.
+    """
+    for i in range(n):
+        s = 0.0
+        g = vec3(0.0)
+        for a in ti.static(range(3)):
+            d_lo = p[i][a] - lo[a]
+            if d_lo < h:
+                s += lookup(psi_table, d_lo, h)
+                g[a] += lookup(dpsi_table, d_lo, h)  # dψ/dd · ∂d/∂x_a (= +1)
+            d_hi = hi[a] - p[i][a]
+            if d_hi < h:
+                s += lookup(psi_table, d_hi, h)
+                g[a] -= lookup(dpsi_table, d_hi, h)
+        psi[i] = s
+        grad_psi[i] = g
+
+
+@ti.kernel
+def compute_lambda(
+    n: ti.i32,
+    p: F3,
+    nb_count: I1,
+    nb: I2,
+    psi: F1,
+    grad_psi: F3,
+    mass: ti.f32,
+    rho0: ti.f32,
+    h: ti.f32,
+    eps: ti.f32,
+    rho: F1,
+    lam: F1,
+):
+    """ρ_i = Σ_j m W(x_ij) + ρ0 ψ_i;  C_i = max(ρ_i/ρ0 − 1, 0);
+    λ_i = −C_i / (|∇_i C_i|² + Σ_j |∇_j C_i|² + ε),  ∇_j C_i = −m/ρ0 ∇W(x_ij)."""
+    for i in range(n):
+        pi = p[i]
+        rho_i = mass * poly6(0.0, h)
+        grad_i = vec3(0.0)
+        sum_grad2 = 0.0
+        for k in range(nb_count[i]):
+            r = pi - p[nb[i, k]]
+            rho_i += mass * poly6(r.norm_sqr(), h)
+            g = (mass / rho0) * spiky_grad(r, h)
+            grad_i += g
+            sum_grad2 += g.norm_sqr()
+        rho_i += rho0 * psi[i]
+        grad_i += grad_psi[i]
+        c = ti.max(rho_i / rho0 - 1.0, 0.0)
+        rho[i] = rho_i
+        lam[i] = -c / (grad_i.norm_sqr() + sum_grad2 + eps)
+
+
+@ti.kernel
+def compute_delta_p(
+    n: ti.i32,
+    p: F3,
+    nb_count: I1,
+    nb: I2,
+    lam: F1,
+    grad_psi: F3,
+    mass: ti.f32,
+    rho0: ti.f32,
+    h: ti.f32,
+    scorr_k: ti.f32,
+    scorr_w_dq: ti.f32,
+    scorr_n: ti.i32,
+    dp: F3,
+):
+    """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
+    s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction)."""
+    for i in range(n):
+        pi = p[i]
+        li = lam[i]
+        acc = vec3(0.0)
+        for k in range(nb_count[i]):
+            j = nb[i, k]
+            r = pi - p[j]
+            s_corr = -scorr_k * ti.pow(poly6(r.norm_sqr(), h) / scorr_w_dq, scorr_n)
+            acc += (li + lam[j] + s_corr) * spiky_grad(r, h)
+        dp[i] = (mass / rho0) * acc + li * grad_psi[i]
+
+
+@ti.kernel
+def apply_delta_p(n: ti.i32, p: F3, dp: F3, lo: vec3, hi: vec3):
+    """x* ← x* + Δp, then keep x* inside the walls (lo/hi already shrunk by r)."""
+    for i in range(n):
+        p[i] = ti.math.clamp(p[i] + dp[i], lo, hi)
+
+
+@ti.kernel
+def confine_to_domain(n: ti.i32, p: F3, lo: vec3, hi: vec3):
+    for i in range(n):
+        p[i] = ti.math.clamp(p[i], lo, hi)
+
+
+@ti.kernel
+def update_velocity(n: ti.i32, x: F3, p: F3, v: F3, inv_dt: ti.f32, lo: vec3, hi: vec3, wall_friction: ti.f32):
+    """v ← (x* − x)/Δt; tangential damping for particles touching a wall."""
+    for i in range(n):
+        vi = (p[i] - x[i]) * inv_dt
+        touching = 0
+        for a in ti.static(range(3)):
+            if p[i][a] <= lo[a] + 1e-7 or p[i][a] >= hi[a] - 1e-7:
+                touching = 1
+        if touching == 1:
+            vi *= 1.0 - wall_friction
+        v[i] = vi
+
+
+@ti.kernel
+def compute_vorticity(n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, omega: F3):
+    """ω_i = ∇×v = Σ_j (m/ρ_j) ∇W(x_ij) × (v_j − v_i)."""
+    for i in range(n):
+        w = vec3(0.0)
+        for k in range(nb_count[i]):
+            j = nb[i, k]
+            w += (mass / rho[j]) * spiky_grad(p[i] - p[j], h).cross(v[j] - v[i])
+        omega[i] = w
+
+
+@ti.kernel
+def apply_vorticity_confinement(
+    n: ti.i32, p: F3, nb_count: I1, nb: I2, rho: F1, omega: F3, mass: ti.f32, h: ti.f32, eps: ti.f32, dt: ti.f32, v: F3
+):
+    """η = ∇|ω| = Σ_j (m/ρ_j)(|ω_j| − |ω_i|) ∇W(x_ij),  N = η/|η|,
+    f_vorticity = ε (N × ω_i);  v ← v + Δt f."""
+    for i in range(n):
+        wi = omega[i].norm()
+        eta = vec3(0.0)
+        for k in range(nb_count[i]):
+            j = nb[i, k]
+            eta += (mass / rho[j]) * (omega[j].norm() - wi) * spiky_grad(p[i] - p[j], h)
+        ln = eta.norm()
+        if ln > 1e-9:
+            v[i] += dt * eps * (eta / ln).cross(omega[i])
+
+
+@ti.kernel
+def apply_xsph(n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, c: ti.f32, v_out: F3):
+    """XSPH viscosity: v_i ← v_i + c Σ_j (m/ρ_j) (v_j − v_i) W(x_ij)."""
+    for i in range(n):
+        acc = vec3(0.0)
+        for k in range(nb_count[i]):
+            j = nb[i, k]
+            acc += (mass / rho[j]) * (v[j] - v[i]) * poly6((p[i] - p[j]).norm_sqr(), h)
+        v_out[i] = v[i] + c * acc
+
+
+@ti.kernel
+def max_speed_and_nans(n: ti.i32, x: F3, v: F3) -> ti.math.vec2:
+    """(max |v|, number of non-finite particles)."""
+    vmax = 0.0
+    bad = 0.0
+    for i in range(n):
+        s = v[i].norm()
+        q = x[i].sum()
+        if not (s == s and q == q) or ti.abs(s) > 1e30 or ti.abs(q) > 1e30:
+            bad += 1.0
+        else:
+            ti.atomic_max(vmax, s)
+    return ti.math.vec2(vmax, bad)
+
+
+@ti.kernel
+def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
+    for k in range(n):
+        dst[k] = src[order[k]]
+
+
+@ti.kernel
+def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
+    for k in range(n):
+        dst[k] = src[order[k]]
+
+
+# ============================================================================ setup
+def lattice_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities of the initial fluid: a cubic lattice of spacing 2r."""
+    r = scene.solver.particle_radius
+    d = 2.0 * r
+    pos, vel = [], []
+    for b in scene.fluid:
+        lo, hi = b.bounds()
+        axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, d, dtype=np.float64) for a in range(3)]
+        g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        if b.shape == "sphere":
+            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius - r + 1e-9]
+        pos.append(g)
+        vel.append(np.broadcast_to(np.asarray(b.velocity, np.float64), g.shape))
+    if not pos:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    return np.concatenate(pos).astype(np.float32), np.concatenate(vel).astype(np.float32)
+
+
+def estimate_particle_count(scene: Scene) -> int:
+    """Particle count from the fluid blocks, without allocating them."""
+    r = scene.solver.particle_radius
+    d = 2.0 * r
+    total = 0.0
+    for b in scene.fluid:
+        lo, hi = b.bounds()
+        cnt = 1.0
+        for a in range(3):
+            cnt *= max(0.0, math.floor((hi[a] - lo[a] - 2 * r) / d + 1e-6) + 1)
+        if b.shape == "sphere":
+            cnt *= math.pi / 6.0  # sphere / bounding cube
+        total += cnt
+    return int(total)
+
+
+def bytes_per_particle(max_neighbors: int) -> int:
+    """Device memory per particle: state (x, x*, v, v_tmp, Δp, ω, ∇ψ: 7 vec3; ρ, λ, ψ, id, tmp id: 5
+    scalars) plus grid (cell, rank, order, count, neighbours)."""
+    return 4 * (7 * 3 + 5) + 4 * (4 + max_neighbors)
+
+
+def available_memory() -> int:
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 1 << 62
+
+
+def half_space_tables(h: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """ψ(d) = ∫_{z > d} W dV, the share of ρ/ρ0 that a solid half space at
+    distance d contributes (W integrates to 1), and its derivative ψ'(d), sampled
+    on d ∈ [0, h]. Integrated numerically once at set-up, plane by plane; the
+    half space stands in for the lattice layers missing beyond a wall."""
+    ds = np.linspace(0.0, h, PSI_SAMPLES)
+    zs = np.linspace(0.0, h, 2001)
+    # ∫∫ W over a plane at height z below the particle: 2π ∫ W(√(z²+ρ²)) ρ dρ
+    rho_ = np.linspace(0.0, h, 2001)
+    plane = np.array([np.trapz(2 * np.pi * rho_ * poly6_np(z * z + rho_ * rho_, h), rho_) for z in zs])
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (plane[1:] + plane[:-1]) * np.diff(zs))])  # ∫_0^z plane
+    total = cum[-1]
+    psi = np.interp(ds, zs, total - cum)  # ∫_{d}^{h} plane(z) dz
+    dpsi = -np.interp(ds, zs, plane)  # dψ/dd
+    return psi.astype(np.float32), dpsi.astype(np.float32)
+
+
+def lattice_calibration(h: float, spacing: float) -> tuple[float, float]:
+    """Σ_j W and Σ_j |∇W|² over a full cubic lattice of this spacing.
+
+    The particle mass is set so that the lattice is exactly at rest density
+    (m = ρ0 / ΣW), and the second sum sets the scale of λ for s_corr and ε."""
+    k = int(math.ceil(h / spacing)) + 1
+    ax = np.arange(-k, k + 1) * spacing
+    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    r2 = (g * g).sum(1)
+    sum_w = float(poly6_np(r2, h).sum())
+    grads = spiky_grad_np(g, h)
+    sum_g2 = float((grads * grads).sum())
+    return sum_w, sum_g2
+
+
+# ============================================================================ state
+@dataclass
+class FluidState:
+    """Particle state: plain ndarrays of capacity ``n``."""
+
+    n: int
+    x: object  # positions                         vec3 [m]
+    p: object  # predicted positions x*            vec3 [m]
+    v: object  # velocities                        vec3 [m/s]
+    v_tmp: object  # scratch (XSPH output, reorder) vec3
+    dp: object  # position corrections Δp          vec3 [m]
+    omega: object  # vorticity ω                  vec3 [1/s]
+    grad_psi: object  # ∇ of boundary density share vec3 [1/m]
+    rho: object  # density ρ                        f32 [kg/m³]
+    lam: object  # Lagrange multipliers λ           f32 [m²]
+    psi: object  # boundary density share ψ         f32 [-]
+    ids: object  # persistent particle ids          i32
+    ids_tmp: object
+
+    @classmethod
+    def allocate(cls, n: int) -> "FluidState":
+        v3 = lambda: ti.Vector.ndarray(3, ti.f32, n)  # noqa: E731
+        f1 = lambda: ti.ndarray(ti.f32, n)  # noqa: E731
+        i1 = lambda: ti.ndarray(ti.i32, n)  # noqa: E731
+        return cls(n, v3(), v3(), v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1(), i1())
+
+
+@dataclass
+class StepStats:
+    max_speed: float = 0.0
+    neighbor_overflow: int = 0
+    steps: int = 0
+
+
+class PBFSolver:
+    """Owns the fluid state, the neighbour grid and the step.
+
+    ``colliders`` are objects with ``apply_forces(solver, dt)`` (before
+    prediction), ``add_density_map(solver)`` (each iteration, adds to ψ/∇ψ)
+    and ``project(solver)`` (after each iteration): the obstacle module plugs
+    in there.
+    """
+
+    def __init__(self, scene: Scene, positions: np.ndarray, velocities: np.ndarray, ids: np.ndarray | None = None):
+        s = scene.solver
+        self.scene = scene
+        n = len(positions)
+        if n == 0:
+            raise WhitecapError("the scene has no fluid: add a [[fluid]] block")
+        need = n * bytes_per_particle(s.max_neighbors)
+        if need > 0.8 * available_memory():
+            raise WhitecapError(
+                f"{n} particles need about {need / 2**30:.1f} GiB, more than this machine has free; "
+                "increase solver.particle_radius or shrink the fluid blocks"
+            )
+        self.n = n
+        self.r = s.particle_radius
+        self.h = s.kernel_support * s.particle_radius
+        self.rho0 = s.rest_density
+        sum_w, sum_g2 = lattice_calibration(self.h, 2.0 * self.r)
+        self.mass = self.rho0 / sum_w
+        # λ scale of a full lattice neighbourhood: λ_ref = 1 / Σ_j |∇_j C|².
+        self.lambda_ref = 1.0 / ((self.mass / self.rho0) ** 2 * sum_g2)
+        self.eps = s.relaxation / self.lambda_ref
+        self.scorr_k = s.scorr_k * self.lambda_ref
+        self.scorr_w_dq = float(poly6_np((s.scorr_dq * self.h) ** 2, self.h))
+        lo, hi = np.asarray(scene.domain.lower), np.asarray(scene.domain.upper)
+        self.wall_lo = vec3(*(lo + self.r))
+        self.wall_hi = vec3(*(hi - self.r))
+        self.domain_lo = vec3(*lo)
+        self.domain_hi = vec3(*hi)
+        self.gravity = vec3(*scene.domain.gravity)
+        psi, dpsi = half_space_tables(self.h, 2.0 * self.r)
+        self.psi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
+        self.dpsi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
+        self.psi_table.from_numpy(psi)
+        self.dpsi_table.from_numpy(dpsi)
+
+        self.state = FluidState.allocate(n)
+        st = self.state
+        st.x.from_numpy(np.ascontiguousarray(positions, np.float32))
+        st.v.from_numpy(np.ascontiguousarray(velocities, np.float32))
+        st.ids.from_numpy(np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32))
+        confine_to_domain(n, st.x, self.wall_lo, self.wall_hi)
+        self.grid = NeighborGrid(grid_spec(lo, hi, self.h), n, s.max_neighbors, self.h)
+        self.colliders: list = []
+        self.step_count = 0
+        self.time = 0.0
+        self.stats = StepStats()
+        self._warned_overflow = False
+
+    # ---------------------------------------------------------------- parameters
+    @property
+    def params(self):
+        return self.scene.solver
+
+    def memory_bytes(self) -> int:
+        return self.n * (4 * (7 * 3 + 5)) + self.grid.nbytes()
+
+    # ---------------------------------------------------------------- one step
+    def reorder(self) -> None:
+        """Permute particle data into cell order, for memory locality."""
+        st, n = self.state, self.n
+        self.grid.sort(st.x, n)
+        order = self.grid.order
+        gather_vec3(n, order, st.x, st.v_tmp)
+        st.x, st.v_tmp = st.v_tmp, st.x
+        gather_vec3(n, order, st.v, st.v_tmp)
+        st.v, st.v_tmp = st.v_tmp, st.v
+        gather_i32(n, order, st.ids, st.ids_tmp)
+        st.ids, st.ids_tmp = st.ids_tmp, st.ids
+
+    def boundary_density(self) -> None:
+        st = self.state
+        wall_density_map(self.n, st.p, self.domain_lo, self.domain_hi, self.h, self.psi_table, self.dpsi_table, st.psi, st.grad_psi)
+        for c in self.colliders:
+            c.add_density_map(self)
+
+    def step(self, dt: float) -> None:
+        s, st, n, g = self.params, self.state, self.n, self.grid
+        if s.reorder_interval and self.step_count % s.reorder_interval == 0:
+            with timer("pbf.reorder"):
+                self.reorder()
+        with timer("pbf.predict"):
+            for c in self.colliders:
+                c.apply_forces(self, dt)
+            apply_external_forces(n, st.x, st.v, st.p, self.gravity, dt)
+            confine_to_domain(n, st.p, self.wall_lo, self.wall_hi)
+        with timer("pbf.neighbours"):
+            overflow = g.build(st.p, n)
+            if overflow:
+                self.stats.neighbor_overflow += overflow
+        with timer("pbf.constraints"):
+            for _ in range(s.iterations):
+                self.boundary_density()
+                compute_lambda(n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h, self.eps, st.rho, st.lam)
+                compute_delta_p(
+                    n, st.p, g.nb_count, g.nb, st.lam, st.grad_psi, self.mass, self.rho0, self.h,
+                    self.scorr_k, self.scorr_w_dq, s.scorr_n, st.dp,
+                )
+                apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
+                for c in self.colliders:
+                    c.project(self)
+        with timer("pbf.velocity"):
+            update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
+            for c in self.colliders:
+                c.respond(self, dt)
+        if s.vorticity_epsilon > 0:
+            with timer("pbf.vorticity"):
+                compute_vorticity(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, st.omega)
+                apply_vorticity_confinement(
+                    n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, s.vorticity_epsilon, dt, st.v
+                )
+        if s.xsph_c > 0:
+            with timer("pbf.xsph"):
+                apply_xsph(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, s.xsph_c, st.v_tmp)
+                st.v, st.v_tmp = st.v_tmp, st.v
+        st.x, st.p = st.p, st.x  # x ← x*
+        self.step_count += 1
+        self.time += dt
+
+    # ---------------------------------------------------------------- frames
+    def max_speed(self) -> tuple[float, int]:
+        r = max_speed_and_nans(self.n, self.state.x, self.state.v)
+        return float(r[0]), int(r[1])
+
+    def substeps_for_frame(self) -> int:
+        """Fixed substeps, or the CFL limit Δt ≤ cfl·2r / v_max."""
+        s = self.params
+        if s.substeps is not None:
+            return s.substeps
+        frame_dt = 1.0 / s.frame_rate
+        vmax, _ = self.max_speed()
+        # Speed expected by the end of the frame under gravity alone.
+        v_est = vmax + float(np.linalg.norm(self.scene.domain.gravity)) * frame_dt
+        dt_cfl = s.cfl * 2.0 * self.r / max(v_est, 1e-6)
+        return int(min(max(math.ceil(frame_dt / dt_cfl), s.min_substeps), s.max_substeps))
+
+    def advance_frame(self, frame_index: int) -> int:
+        """Advance one output frame; raise SimulationError on blow-up."""
+        s = self.params
+        nsub = self.substeps_for_frame()
+        dt = 1.0 / s.frame_rate / nsub
+        for _ in range(nsub):
+            self.step(dt)
+        vmax, bad = self.max_speed()
+        self.stats.max_speed = vmax
+        if bad or vmax > s.max_speed:
+            what = f"{bad} particles became NaN" if bad else f"max speed {vmax:.3g} m/s exceeds solver.max_speed"
+            raise SimulationError(
+                f"simulation blew up at frame {frame_index} (t={self.time:.4f} s): {what}; "
+                "try more substeps, more iterations or a smaller cfl"
+            )
+        return nsub
+
+    def update_density(self) -> None:
+        """Density at the current positions (for output and statistics)."""
+        st, g = self.state, self.grid
+        st.p.copy_from(st.x)
+        g.build(st.p, self.n)
+        self.boundary_density()
+        compute_lambda(self.n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h, self.eps, st.rho, st.lam)
+
+    # ---------------------------------------------------------------- io
+    def arrays(self, with_density: bool = True) -> dict[str, np.ndarray]:
+        st = self.state
+        if with_density:
+            self.update_density()
+        return {
+            "positions": st.x.to_numpy(),
+            "velocities": st.v.to_numpy(),
+            "density": st.rho.to_numpy() if with_density else None,
+            "ids": st.ids.to_numpy().astype(np.uint32),
+        }
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        st = self.state
+        return {
+            "x": st.x.to_numpy(),
+            "v": st.v.to_numpy(),
+            "ids": st.ids.to_numpy(),
+            "step_count": np.int64(self.step_count),
+            "time": np.float64(self.time),
+        }
+
+    def restore(self, ck: dict) -> None:
+        st = self.state
+        st.x.from_numpy(np.asarray(ck["x"], np.float32))
+        st.v.from_numpy(np.asarray(ck["v"], np.float32))
+        st.ids.from_numpy(np.asarray(ck["ids"], np.int32))
+        self.step_count = int(ck["step_count"])
+        self.time = float(ck["time"])
