@@ -67,18 +67,23 @@ class Solver(_Section):
         None, ge=1, le=1000, description="fixed substeps per frame; unset = CFL-limited dt [-]"
     )
     cfl: float = Field(0.4, gt=0, le=1.0, description="CFL number: dt ≤ cfl·2r/v_max [-]")
-    max_substeps: int = Field(40, ge=1, le=10000, description="upper bound on CFL substeps per frame [-]")
+    gravity_dt_limit: float = Field(
+        0.005, gt=0, description="also bound dt so that |g|·dt² ≤ this × spacing 2r (limits compression per step) [-]"
+    )
+    max_substeps: int = Field(60, ge=1, le=10000, description="upper bound on CFL substeps per frame [-]")
     min_substeps: int = Field(2, ge=1, le=10000, description="lower bound on CFL substeps per frame [-]")
     iterations: int = Field(4, ge=1, le=100, description="density-constraint iterations per step [-]")
     relaxation: float = Field(
-        1e-6, gt=0, description="constraint-force mixing ε added to Σ|∇C|² [-] (scaled by h² internally... see docs)"
+        1e-4, gt=0, description="constraint-force mixing ε, relative to Σ|∇C|² of a full neighbourhood [-]"
     )
-    xsph_c: float = Field(0.01, ge=0, le=1, description="XSPH viscosity c [-]")
-    vorticity_epsilon: float = Field(0.05, ge=0, description="vorticity confinement ε [m/s²·m] (scaled by h)")
-    scorr_k: float = Field(0.0001, ge=0, description="artificial pressure strength k [-]")
+    xsph_c: float = Field(0.05, ge=0, le=1, description="XSPH viscosity c [-]")
+    vorticity_epsilon: float = Field(0.05, ge=0, description="vorticity confinement ε in f = ε (N × ω) [m/s]")
+    scorr_k: float = Field(
+        1e-4, ge=0, description="artificial pressure strength k, relative to λ of a full neighbourhood [-]"
+    )
     scorr_n: int = Field(4, ge=1, le=8, description="artificial pressure exponent n [-]")
     scorr_dq: float = Field(0.2, ge=0, lt=1, description="artificial pressure Δq as a fraction of h [-]")
-    max_neighbors: int = Field(96, ge=16, le=512, description="fixed neighbour-list capacity per particle [-]")
+    max_neighbors: int = Field(64, ge=16, le=512, description="fixed neighbour-list capacity per particle [-]")
     reorder_interval: int = Field(32, ge=0, description="steps between cell reorders of particle data; 0 = never [-]")
     wall_friction: float = Field(0.0, ge=0, le=1, description="tangential velocity damping at domain walls [-]")
     max_speed: float = Field(

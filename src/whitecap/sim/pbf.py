@@ -255,7 +255,7 @@ def lattice_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
         axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, d, dtype=np.float64) for a in range(3)]
         g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         if b.shape == "sphere":
-            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius - r + 1e-9]
+            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
         pos.append(g)
         vel.append(np.broadcast_to(np.asarray(b.velocity, np.float64), g.shape))
     if not pos:
@@ -494,7 +494,7 @@ class PBFSolver:
         return float(r[0]), int(r[1])
 
     def substeps_for_frame(self) -> int:
-        """Fixed substeps, or the CFL limit Δt ≤ cfl·2r / v_max."""
+        """Fixed substeps, or Δt ≤ min(cfl·2r / v_max, √(gravity_dt_limit·2r/|g|))."""
         s = self.params
         if s.substeps is not None:
             return s.substeps
@@ -503,7 +503,9 @@ class PBFSolver:
         # Speed expected by the end of the frame under gravity alone.
         v_est = vmax + float(np.linalg.norm(self.scene.domain.gravity)) * frame_dt
         dt_cfl = s.cfl * 2.0 * self.r / max(v_est, 1e-6)
-        return int(min(max(math.ceil(frame_dt / dt_cfl), s.min_substeps), s.max_substeps))
+        g = float(np.linalg.norm(self.scene.domain.gravity))
+        dt_g = math.sqrt(s.gravity_dt_limit * 2.0 * self.r / g) if g > 0 else frame_dt
+        return int(min(max(math.ceil(frame_dt / min(dt_cfl, dt_g)), s.min_substeps), s.max_substeps))
 
     def advance_frame(self, frame_index: int) -> int:
         """Advance one output frame; raise SimulationError on blow-up."""

@@ -1,0 +1,77 @@
+"""Scene file: validation, defaults, one-line errors with file and key."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from whitecap.cli import main
+from whitecap.config import default_scene, load_scene, scene_from_dict
+from whitecap.errors import InputError
+
+
+def write(tmp_path, text: str):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_round_trip(capsys):
+    assert main(["simulate", "--print-defaults"]) == 0
+    text = capsys.readouterr().out
+    data = tomllib.loads(text)
+    assert data["solver"]["particle_radius"] == default_scene().solver.particle_radius
+    assert data["domain"]["gravity"] == [0.0, 0.0, -9.81]  # z is up
+    again = scene_from_dict(data)
+    assert again.model_dump() == default_scene().model_dump()
+
+
+def test_shipped_scenes_validate():
+    from pathlib import Path
+
+    scenes = sorted((Path(__file__).parents[1] / "scenes").glob("*.toml"))
+    assert scenes
+    for s in scenes:
+        load_scene(s)
+
+
+@pytest.mark.parametrize(
+    "text, expect",
+    [
+        ("[solver\nparticle_radius = 1", "malformed TOML"),
+        ("[solver]\nparticle_radus = 0.01", "solver.particle_radus: unknown key; did you mean 'particle_radius'?"),
+        ("[solver]\nparticle_radius = -0.01", "solver.particle_radius: Input should be greater than 0"),
+        ("[domain]\nupper = [1, 2]", "domain.upper"),
+        ("[[fluid]]\nlower = [0, 0, 0]\nupper = [5, 0.2, 0.2]", "outside the domain"),
+        ("[[fluid]]\nshape = 'sphere'\ncenter = [0.5, 0.2, 0.3]", "a sphere needs 'center' and 'radius'"),
+        ("[output]\nframes = 'many'", "output.frames"),
+    ],
+)
+def test_bad_scene_one_line_error(tmp_path, capsys, text, expect):
+    p = write(tmp_path, text)
+    with pytest.raises(InputError) as e:
+        load_scene(p)
+    msg = str(e.value)
+    assert str(p) in msg and expect in msg and "\n" not in msg
+    # Through the CLI: non-zero exit and the same single line on stderr.
+    code = main(["simulate", str(p), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and err.startswith("error: ") and expect in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_scene_file(tmp_path, capsys):
+    assert main(["simulate", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 2
+    assert "nope.toml: scene file not found" in capsys.readouterr().err
+
+
+def test_too_many_particles_refused_before_allocating(tmp_path, capsys):
+    p = write(
+        tmp_path,
+        "[domain]\nupper = [10, 10, 10]\n[solver]\nparticle_radius = 0.0005\n"
+        "[[fluid]]\nlower = [0, 0, 0]\nupper = [10, 10, 5]\n",
+    )
+    code = main(["simulate", str(p), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code != 0 and "more than this machine has free" in err and "particles" in err
