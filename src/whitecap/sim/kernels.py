@@ -11,25 +11,35 @@ import math
 import taichi as ti
 
 
+class SPHKernel:
+    """Support h and the normalisation constants, computed once on the host so
+    kernels do not re-evaluate h⁹ per neighbour."""
+
+    def __init__(self, h: float):
+        self.h = float(h)
+        self.h2 = float(h) ** 2
+        self.poly6 = 315.0 / (64.0 * math.pi * h**9)
+        self.spiky = -45.0 / (math.pi * h**6)
+
+
 @ti.func
-def poly6(r2: ti.f32, h: ti.f32) -> ti.f32:
-    """W_poly6(r, h) = 315/(64 π h⁹) (h² − r²)³ for r < h."""
+def poly6(r2: ti.f32, h2: ti.f32, coef: ti.f32) -> ti.f32:
+    """W_poly6(r, h) = 315/(64 π h⁹) (h² − r²)³ for r < h;  coef = 315/(64 π h⁹)."""
     w = 0.0
-    h2 = h * h
     if r2 < h2:
         d = h2 - r2
-        w = 315.0 / (64.0 * math.pi * h**9) * d * d * d
+        w = coef * d * d * d
     return w
 
 
 @ti.func
-def spiky_grad(r: ti.math.vec3, h: ti.f32) -> ti.math.vec3:
-    """∇W_spiky(r, h) = −45/(π h⁶) (h − |r|)² r/|r| for 0 < |r| < h."""
+def spiky_grad(r: ti.math.vec3, h: ti.f32, coef: ti.f32) -> ti.math.vec3:
+    """∇W_spiky(r, h) = −45/(π h⁶) (h − |r|)² r/|r| for 0 < |r| < h;  coef = −45/(π h⁶)."""
     g = ti.math.vec3(0.0)
     rl = r.norm()
     if 0.0 < rl < h:
         d = h - rl
-        g = (-45.0 / (math.pi * h**6)) * d * d / rl * r
+        g = (coef * d * d / rl) * r
     return g
 
 

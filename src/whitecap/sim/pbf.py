@@ -37,7 +37,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F3, I1, I2, NeighborGrid, grid_spec
-from .kernels import poly6, poly6_np, spiky_grad, spiky_grad_np
+from .kernels import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -97,6 +97,8 @@ def compute_lambda(
     mass: ti.f32,
     rho0: ti.f32,
     h: ti.f32,
+    w_poly6: ti.f32,
+    w_spiky: ti.f32,
     eps: ti.f32,
     rho: F1,
     lam: F1,
@@ -105,16 +107,17 @@ def compute_lambda(
     λ_i = −C_i / (|∇_i C_i|² + Σ_j |∇_j C_i|² + ε),  ∇_j C_i = −m/ρ0 ∇W(x_ij)."""
     for i in range(n):
         pi = p[i]
-        rho_i = mass * poly6(0.0, h)
+        h2 = h * h
+        w_sum = poly6(0.0, h2, w_poly6)
         grad_i = vec3(0.0)
         sum_grad2 = 0.0
         for k in range(nb_count[i]):
             r = pi - p[nb[i, k]]
-            rho_i += mass * poly6(r.norm_sqr(), h)
-            g = (mass / rho0) * spiky_grad(r, h)
+            w_sum += poly6(r.norm_sqr(), h2, w_poly6)
+            g = (mass / rho0) * spiky_grad(r, h, w_spiky)
             grad_i += g
             sum_grad2 += g.norm_sqr()
-        rho_i += rho0 * psi[i]
+        rho_i = mass * w_sum + rho0 * psi[i]
         grad_i += grad_psi[i]
         c = ti.max(rho_i / rho0 - 1.0, 0.0)
         rho[i] = rho_i
@@ -132,9 +135,11 @@ def compute_delta_p(
     mass: ti.f32,
     rho0: ti.f32,
     h: ti.f32,
+    w_poly6: ti.f32,
+    w_spiky: ti.f32,
     scorr_k: ti.f32,
-    scorr_w_dq: ti.f32,
-    scorr_n: ti.i32,
+    scorr_inv_w_dq: ti.f32,
+    scorr_n: ti.template(),
     dp: F3,
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
@@ -142,12 +147,16 @@ def compute_delta_p(
     for i in range(n):
         pi = p[i]
         li = lam[i]
+        h2 = h * h
         acc = vec3(0.0)
         for k in range(nb_count[i]):
             j = nb[i, k]
             r = pi - p[j]
-            s_corr = -scorr_k * ti.pow(poly6(r.norm_sqr(), h) / scorr_w_dq, scorr_n)
-            acc += (li + lam[j] + s_corr) * spiky_grad(r, h)
+            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq
+            qn = 1.0
+            for _ in ti.static(range(scorr_n)):
+                qn *= q
+            acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
         dp[i] = (mass / rho0) * acc + li * grad_psi[i]
 
 
@@ -179,19 +188,32 @@ def update_velocity(n: ti.i32, x: F3, p: F3, v: F3, inv_dt: ti.f32, lo: vec3, hi
 
 
 @ti.kernel
-def compute_vorticity(n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, omega: F3):
+def compute_vorticity(
+    n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, w_spiky: ti.f32, omega: F3
+):
     """ω_i = ∇×v = Σ_j (m/ρ_j) ∇W(x_ij) × (v_j − v_i)."""
     for i in range(n):
         w = vec3(0.0)
         for k in range(nb_count[i]):
             j = nb[i, k]
-            w += (mass / rho[j]) * spiky_grad(p[i] - p[j], h).cross(v[j] - v[i])
+            w += (mass / rho[j]) * spiky_grad(p[i] - p[j], h, w_spiky).cross(v[j] - v[i])
         omega[i] = w
 
 
 @ti.kernel
 def apply_vorticity_confinement(
-    n: ti.i32, p: F3, nb_count: I1, nb: I2, rho: F1, omega: F3, mass: ti.f32, h: ti.f32, eps: ti.f32, dt: ti.f32, v: F3
+    n: ti.i32,
+    p: F3,
+    nb_count: I1,
+    nb: I2,
+    rho: F1,
+    omega: F3,
+    mass: ti.f32,
+    h: ti.f32,
+    w_spiky: ti.f32,
+    eps: ti.f32,
+    dt: ti.f32,
+    v: F3,
 ):
     """η = ∇|ω| = Σ_j (m/ρ_j)(|ω_j| − |ω_i|) ∇W(x_ij),  N = η/|η|,
     f_vorticity = ε (N × ω_i);  v ← v + Δt f."""
@@ -200,20 +222,23 @@ def apply_vorticity_confinement(
         eta = vec3(0.0)
         for k in range(nb_count[i]):
             j = nb[i, k]
-            eta += (mass / rho[j]) * (omega[j].norm() - wi) * spiky_grad(p[i] - p[j], h)
+            eta += (mass / rho[j]) * (omega[j].norm() - wi) * spiky_grad(p[i] - p[j], h, w_spiky)
         ln = eta.norm()
         if ln > 1e-9:
             v[i] += dt * eps * (eta / ln).cross(omega[i])
 
 
 @ti.kernel
-def apply_xsph(n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, c: ti.f32, v_out: F3):
+def apply_xsph(
+    n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, w_poly6: ti.f32, c: ti.f32, v_out: F3
+):
     """XSPH viscosity: v_i ← v_i + c Σ_j (m/ρ_j) (v_j − v_i) W(x_ij)."""
     for i in range(n):
         acc = vec3(0.0)
+        h2 = h * h
         for k in range(nb_count[i]):
             j = nb[i, k]
-            acc += (mass / rho[j]) * (v[j] - v[i]) * poly6((p[i] - p[j]).norm_sqr(), h)
+            acc += (mass / rho[j]) * (v[j] - v[i]) * poly6((p[i] - p[j]).norm_sqr(), h2, w_poly6)
         v_out[i] = v[i] + c * acc
 
 
@@ -281,8 +306,8 @@ def estimate_particle_count(scene: Scene) -> int:
 
 def bytes_per_particle(max_neighbors: int) -> int:
     """Device memory per particle: state (x, x*, v, v_tmp, Δp, ω, ∇ψ: 7 vec3; ρ, λ, ψ, id, tmp id: 5
-    scalars) plus grid (cell, rank, order, count, neighbours)."""
-    return 4 * (7 * 3 + 5) + 4 * (4 + max_neighbors)
+    scalars) plus grid (cell, rank, order, sorted copy of x*, count, neighbours)."""
+    return 4 * (7 * 3 + 5) + 4 * (7 + max_neighbors)
 
 
 def available_memory() -> int:
@@ -392,7 +417,8 @@ class PBFSolver:
         self.lambda_ref = 1.0 / ((self.mass / self.rho0) ** 2 * sum_g2)
         self.eps = s.relaxation / self.lambda_ref
         self.scorr_k = s.scorr_k * self.lambda_ref
-        self.scorr_w_dq = float(poly6_np((s.scorr_dq * self.h) ** 2, self.h))
+        self.scorr_inv_w_dq = 1.0 / float(poly6_np((s.scorr_dq * self.h) ** 2, self.h))
+        self.kernel = SPHKernel(self.h)
         lo, hi = np.asarray(scene.domain.lower), np.asarray(scene.domain.upper)
         self.wall_lo = vec3(*(lo + self.r))
         self.wall_hi = vec3(*(hi - self.r))
@@ -411,7 +437,7 @@ class PBFSolver:
         st.v.from_numpy(np.ascontiguousarray(velocities, np.float32))
         st.ids.from_numpy(np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32))
         confine_to_domain(n, st.x, self.wall_lo, self.wall_hi)
-        self.grid = NeighborGrid(grid_spec(lo, hi, self.h), n, s.max_neighbors, self.h)
+        self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), n, s.max_neighbors, self.h)
         self.colliders: list = []
         self.step_count = 0
         self.time = 0.0
@@ -445,6 +471,13 @@ class PBFSolver:
         for c in self.colliders:
             c.add_density_map(self)
 
+    def compute_lambda(self) -> None:
+        st, g = self.state, self.grid
+        compute_lambda(
+            self.n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h,
+            self.kernel.poly6, self.kernel.spiky, self.eps, st.rho, st.lam,
+        )
+
     def step(self, dt: float) -> None:
         s, st, n, g = self.params, self.state, self.n, self.grid
         if s.reorder_interval and self.step_count % s.reorder_interval == 0:
@@ -462,10 +495,10 @@ class PBFSolver:
         with timer("pbf.constraints"):
             for _ in range(s.iterations):
                 self.boundary_density()
-                compute_lambda(n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h, self.eps, st.rho, st.lam)
+                self.compute_lambda()
                 compute_delta_p(
-                    n, st.p, g.nb_count, g.nb, st.lam, st.grad_psi, self.mass, self.rho0, self.h,
-                    self.scorr_k, self.scorr_w_dq, s.scorr_n, st.dp,
+                    n, st.p, g.nb_count, g.nb, st.lam, st.grad_psi, self.mass, self.rho0, self.h, self.kernel.poly6,
+                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, st.dp,
                 )
                 apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
                 for c in self.colliders:
@@ -476,13 +509,14 @@ class PBFSolver:
                 c.respond(self, dt)
         if s.vorticity_epsilon > 0:
             with timer("pbf.vorticity"):
-                compute_vorticity(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, st.omega)
+                k = self.kernel
+                compute_vorticity(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.spiky, st.omega)
                 apply_vorticity_confinement(
-                    n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, s.vorticity_epsilon, dt, st.v
+                    n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, k.spiky, s.vorticity_epsilon, dt, st.v
                 )
         if s.xsph_c > 0:
             with timer("pbf.xsph"):
-                apply_xsph(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, s.xsph_c, st.v_tmp)
+                apply_xsph(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, self.kernel.poly6, s.xsph_c, st.v_tmp)
                 st.v, st.v_tmp = st.v_tmp, st.v
         st.x, st.p = st.p, st.x  # x ← x*
         self.step_count += 1
@@ -530,7 +564,7 @@ class PBFSolver:
         st.p.copy_from(st.x)
         g.build(st.p, self.n)
         self.boundary_density()
-        compute_lambda(self.n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h, self.eps, st.rho, st.lam)
+        self.compute_lambda()
 
     # ---------------------------------------------------------------- io
     def arrays(self, with_density: bool = True) -> dict[str, np.ndarray]:

@@ -16,10 +16,12 @@ _ARCH: str | None = None
 
 
 def cuda_available() -> bool:
+    if not _has_nvidia_device():
+        return False
     try:
         from taichi._lib import core as _ti_core
 
-        return bool(_ti_core.with_cuda()) and _has_nvidia_device()
+        return bool(_ti_core.with_cuda())
     except Exception:
         return False
 

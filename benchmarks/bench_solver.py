@@ -1,0 +1,127 @@
+"""Solver benchmark: dam break at ~30k and ~120k particles, 4 iterations, fixed dt.
+
+Prints ms per step, particle-iterations per second (particles × iterations /
+step time, the whole step included: neighbour search, all iterations,
+vorticity and XSPH), the scaling ratio of per-particle cost between the two
+sizes, and memory per particle. Runs on the CPU, and on CUDA when present.
+
+    python benchmarks/bench_solver.py [--arch cpu|cuda|auto] [--sizes 30000,120000] [--steps 30]
+
+Each size runs in its own process (one Taichi runtime per process).
+Reference run: SPlisHSPlasH PBF (C++, OpenMP) on this kind of 2-core machine,
+about 1.7 M particle-iterations/s (30k: ~54 ms/step, 120k: ~410 ms/step).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+
+REFERENCE_PITS = 1.7e6  # SPlisHSPlasH PBF, particle-iterations per second
+TARGET_PITS = 4.0e6
+
+
+def scene_for(n_target: int, iterations: int = 4):
+    from whitecap.config import scene_from_dict
+
+    # Column of width a, depth a/2, height 2a in a 4a × a/2 × 2.5a tank.
+    # n = (a/2r)·(a/4r)·(2a/2r) = a³/(8 r³)  →  r = a / (2·(n)^(1/3)).
+    a = 0.4
+    r = a / (2.0 * n_target ** (1.0 / 3.0))
+    return scene_from_dict(
+        {
+            "domain": {"upper": [4 * a, a / 2, 2.5 * a]},
+            "solver": {"particle_radius": r, "iterations": iterations, "substeps": 10, "frame_rate": 30},
+            "fluid": [{"lower": [0, 0, 0], "upper": [a, a / 2, 2 * a]}],
+        }
+    )
+
+
+def run_one(n_target: int, arch: str, steps: int, obstacle: str | None = None) -> dict:
+    from whitecap import timing
+    from whitecap.sim.driver import build_solver
+
+    sc = scene_for(n_target)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    s = build_solver(sc, arch)
+    dt = 1.0 / sc.solver.frame_rate / sc.solver.substeps
+    for _ in range(5):  # warm-up: compile kernels, settle the first contacts
+        s.step(dt)
+    import taichi as ti
+
+    ti.sync()
+    timing.reset()
+    timing.SYNC = arch != "cpu"
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        s.step(dt)
+    ti.sync()
+    el = time.perf_counter() - t0
+    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    ms = 1e3 * el / steps
+    phases = {k: 1e3 * v[0] / max(v[1], 1) * (v[1] / steps) for k, v in timing.TIMERS.items()}
+    return {
+        "arch": arch,
+        "particles": s.n,
+        "ms_per_step": ms,
+        "pits": s.n * sc.solver.iterations / (el / steps),
+        "bytes_per_particle_device": s.memory_bytes() / s.n,
+        "bytes_per_particle_rss": (rss1 - rss0) / s.n,
+        "phases_ms_per_step": phases,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--sizes", default="30000,120000")
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.one:
+        print(json.dumps(run_one(a.one, a.arch, a.steps)))
+        return
+    archs = [a.arch]
+    if a.arch == "cpu":
+        from whitecap.sim.runtime import cuda_available
+
+        if cuda_available():
+            archs.append("cuda")
+    results = []
+    for arch in archs:
+        for n in [int(v) for v in a.sizes.split(",")]:
+            out = subprocess.run(
+                [sys.executable, __file__, "--one", str(n), "--arch", arch, "--steps", str(a.steps)],
+                capture_output=True, text=True, env={**os.environ, "WHITECAP_PROGRESS": "0"},
+            )
+            if out.returncode:
+                print(out.stderr[-2000:], file=sys.stderr)
+                raise SystemExit(out.returncode)
+            results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    print(f"PBF dam break, 4 iterations, fixed dt, {os.cpu_count()} cores")
+    print(f"{'arch':5s} {'particles':>10s} {'ms/step':>9s} {'M p-it/s':>9s} {'vs SPH-PBF':>10s} {'vs target':>9s} {'B/particle':>10s} {'RSS B/p':>8s}")
+    for r in results:
+        print(
+            f"{r['arch']:5s} {r['particles']:10d} {r['ms_per_step']:9.1f} {r['pits'] / 1e6:9.2f} "
+            f"{r['pits'] / REFERENCE_PITS:9.2f}x {r['pits'] / TARGET_PITS:8.2f}x "
+            f"{r['bytes_per_particle_device']:10.0f} {r['bytes_per_particle_rss']:8.0f}"
+        )
+    for arch in archs:
+        rs = [r for r in results if r["arch"] == arch]
+        if len(rs) >= 2:
+            small, big = rs[0], rs[-1]
+            ratio = (big["ms_per_step"] / big["particles"]) / (small["ms_per_step"] / small["particles"])
+            print(f"{arch}: per-particle cost at {big['particles']} / at {small['particles']}: {ratio:.2f} (target ≤ 1.3)")
+    for r in results:
+        ph = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["phases_ms_per_step"].items(), key=lambda kv: -kv[1]))
+        print(f"  {r['arch']} {r['particles']}: ms/step by phase: {ph}")
+
+
+if __name__ == "__main__":
+    main()
