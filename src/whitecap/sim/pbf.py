@@ -329,7 +329,8 @@ def half_space_tables(h: float, spacing: float) -> tuple[np.ndarray, np.ndarray]
     zs = np.linspace(0.0, h, 2001)
     # ∫∫ W over a plane at height z below the particle: 2π ∫ W(√(z²+ρ²)) ρ dρ
     rho_ = np.linspace(0.0, h, 2001)
-    plane = np.array([np.trapz(2 * np.pi * rho_ * poly6_np(z * z + rho_ * rho_, h), rho_) for z in zs])
+    trapz = getattr(np, "trapezoid", None) or np.trapz  # numpy 2 renamed it
+    plane = np.array([trapz(2 * np.pi * rho_ * poly6_np(z * z + rho_ * rho_, h), rho_) for z in zs])
     cum = np.concatenate([[0.0], np.cumsum(0.5 * (plane[1:] + plane[:-1]) * np.diff(zs))])  # ∫_0^z plane
     total = cum[-1]
     psi = np.interp(ds, zs, total - cum)  # ∫_{d}^{h} plane(z) dz
