@@ -10,7 +10,8 @@ One step, following Algorithm 1 of the paper:
         Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   compute_delta_p
         x*  ← x* + Δp, then collisions     apply_delta_p
     v ← (x* − x)/Δt                        update_velocity
-    vorticity confinement, XSPH viscosity  compute_vorticity, apply_vorticity_confinement, apply_xsph
+    XSPH viscosity and vorticity ω         compute_vorticity_and_xsph (one neighbour pass)
+    vorticity confinement                  apply_vorticity_confinement
     x ← x*
 
 The density constraint is unilateral, C_i = max(ρ_i/ρ0 − 1, 0) (as in
@@ -188,16 +189,36 @@ def update_velocity(n: ti.i32, x: F3, p: F3, v: F3, inv_dt: ti.f32, lo: vec3, hi
 
 
 @ti.kernel
-def compute_vorticity(
-    n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, w_spiky: ti.f32, omega: F3
+def compute_vorticity_and_xsph(
+    n: ti.i32,
+    p: F3,
+    v: F3,
+    nb_count: I1,
+    nb: I2,
+    rho: F1,
+    mass: ti.f32,
+    h: ti.f32,
+    w_poly6: ti.f32,
+    w_spiky: ti.f32,
+    c: ti.f32,
+    omega: F3,
+    v_out: F3,
 ):
-    """ω_i = ∇×v = Σ_j (m/ρ_j) ∇W(x_ij) × (v_j − v_i)."""
+    """One pass over the neighbours of the updated velocities:
+    ω_i = ∇×v = Σ_j (m/ρ_j) ∇W(x_ij) × (v_j − v_i)            (vorticity)
+    v_i ← v_i + c Σ_j (m/ρ_j) (v_j − v_i) W(x_ij)              (XSPH viscosity)"""
     for i in range(n):
+        h2 = h * h
         w = vec3(0.0)
+        acc = vec3(0.0)
         for k in range(nb_count[i]):
             j = nb[i, k]
-            w += (mass / rho[j]) * spiky_grad(p[i] - p[j], h, w_spiky).cross(v[j] - v[i])
+            r = p[i] - p[j]
+            vj_i = (mass / rho[j]) * (v[j] - v[i])
+            w += spiky_grad(r, h, w_spiky).cross(vj_i)
+            acc += vj_i * poly6(r.norm_sqr(), h2, w_poly6)
         omega[i] = w
+        v_out[i] = v[i] + c * acc
 
 
 @ti.kernel
@@ -226,20 +247,6 @@ def apply_vorticity_confinement(
         ln = eta.norm()
         if ln > 1e-9:
             v[i] += dt * eps * (eta / ln).cross(omega[i])
-
-
-@ti.kernel
-def apply_xsph(
-    n: ti.i32, p: F3, v: F3, nb_count: I1, nb: I2, rho: F1, mass: ti.f32, h: ti.f32, w_poly6: ti.f32, c: ti.f32, v_out: F3
-):
-    """XSPH viscosity: v_i ← v_i + c Σ_j (m/ρ_j) (v_j − v_i) W(x_ij)."""
-    for i in range(n):
-        acc = vec3(0.0)
-        h2 = h * h
-        for k in range(nb_count[i]):
-            j = nb[i, k]
-            acc += (mass / rho[j]) * (v[j] - v[i]) * poly6((p[i] - p[j]).norm_sqr(), h2, w_poly6)
-        v_out[i] = v[i] + c * acc
 
 
 @ti.kernel
@@ -508,17 +515,22 @@ class PBFSolver:
             update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
             for c in self.colliders:
                 c.respond(self, dt)
-        if s.vorticity_epsilon > 0:
-            with timer("pbf.vorticity"):
-                k = self.kernel
-                compute_vorticity(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.spiky, st.omega)
-                apply_vorticity_confinement(
-                    n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, k.spiky, s.vorticity_epsilon, dt, st.v
+        if s.vorticity_epsilon > 0 or s.xsph_c > 0:
+            # ω and XSPH share one neighbour pass (both read the velocities
+            # after the position update); confinement then uses ω of the
+            # neighbours and is added on top of the XSPH-smoothed velocity.
+            k = self.kernel
+            with timer("pbf.vorticity_xsph"):
+                compute_vorticity_and_xsph(
+                    n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.poly6, k.spiky, s.xsph_c,
+                    st.omega, st.v_tmp,
                 )
-        if s.xsph_c > 0:
-            with timer("pbf.xsph"):
-                apply_xsph(n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, self.kernel.poly6, s.xsph_c, st.v_tmp)
                 st.v, st.v_tmp = st.v_tmp, st.v
+                if s.vorticity_epsilon > 0:
+                    apply_vorticity_confinement(
+                        n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, k.spiky,
+                        s.vorticity_epsilon, dt, st.v,
+                    )
         st.x, st.p = st.p, st.x  # x ← x*
         self.step_count += 1
         self.time += dt
