@@ -36,10 +36,11 @@ def poly6(r2: ti.f32, h2: ti.f32, coef: ti.f32) -> ti.f32:
 def spiky_grad(r: ti.math.vec3, h: ti.f32, coef: ti.f32) -> ti.math.vec3:
     """∇W_spiky(r, h) = −45/(π h⁶) (h − |r|)² r/|r| for 0 < |r| < h;  coef = −45/(π h⁶)."""
     g = ti.math.vec3(0.0)
-    rl = r.norm()
-    if 0.0 < rl < h:
-        d = h - rl
-        g = (coef * d * d / rl) * r
+    r2 = r.norm_sqr()
+    if 0.0 < r2 < h * h:
+        inv = ti.rsqrt(r2)  # 1/|r|, saving a division
+        d = h - r2 * inv
+        g = (coef * d * d * inv) * r
     return g
 
 
