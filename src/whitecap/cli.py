@@ -90,8 +90,31 @@ def _add_blender_addon(sub) -> None:
 
 # ============================================================================ run
 def _add_run(sub) -> None:
-    p = sub.add_parser("run", help="scene to movie: simulate, foam, mesh, render")
-    p.set_defaults(func=_not_yet("run"))
+    p = sub.add_parser(
+        "run",
+        help="scene to movie: simulate (with foam), mesh, render, MP4",
+        description="Run every stage on SCENE.toml into one run directory. Rerunning resumes at any "
+        "stage without redoing finished frames.",
+    )
+    p.add_argument("scene", help="scene TOML file")
+    p.add_argument("--out", "-o", help="run directory (default: out/<scene name>)")
+    p.add_argument("--until", default="render", choices=["simulate", "mesh", "render"], help="stop after this stage")
+    p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
+    p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
+    p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
+    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
+    p.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(a) -> int:
+    from . import pipeline
+
+    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames)
+    print(f"run directory: {r['run']}")
+    for key in ("movie", "blend"):
+        if r.get(key):
+            print(f"{key}: {r[key]}")
+    return 0
 
 
 # ============================================================================ main

@@ -50,3 +50,67 @@ def simulate(
     if profile:
         print(timing.report("simulate profile"))
     return info
+
+
+# ============================================================================ run: scene to movie
+RUN_STAGES = ("simulate", "mesh", "render")
+
+
+def _simulation_state(sc: Scene, out: Path, frames: int) -> str:
+    """'new', 'partial' or 'done' for the simulate stage of a run directory."""
+    from .sim.driver import CHECKPOINT
+
+    if not (out / "run.json").exists():
+        return "new"
+    ck = out / CHECKPOINT
+    if ck.exists():
+        import numpy as np
+
+        try:
+            done = int(np.load(ck)["frame"])
+        except Exception:
+            return "partial"
+        return "done" if done >= frames else "partial"
+    return "partial"
+
+
+def run(
+    scene: Scene | str | Path,
+    out: str | Path | None = None,
+    until: str = "render",
+    preview: bool = False,
+    arch: str = "cpu",
+    jobs: int | None = None,
+    frames: int | None = None,
+    show_progress: bool = True,
+) -> dict:
+    """Scene to movie: simulate (with foam), mesh, render, MP4, in one run directory.
+
+    Resumable at every stage: rerunning continues where an interrupted run
+    stopped and never redoes finished frames. ``until`` stops after a stage.
+    Returns the paths of what was made (``run``, and ``movie``/``blend`` when rendered).
+    """
+    from .errors import InputError
+    from .progress import console
+
+    if until not in RUN_STAGES:
+        raise InputError(f"--until: expected one of {', '.join(RUN_STAGES)}, got {until!r}")
+    sc = _scene(scene)
+    out = Path(out) if out is not None else default_out(sc)
+    nframes = sc.output.frames if frames is None else int(frames)
+    stages = RUN_STAGES[: RUN_STAGES.index(until) + 1]
+    result: dict = {"run": out}
+    for k, stage in enumerate(stages, 1):
+        console.rule(f"[bold]stage {k}/{len(stages)}: {stage}")
+        if stage == "simulate":
+            state = _simulation_state(sc, out, nframes)
+            if state == "done":
+                console.print(f"simulate: all {nframes} frames already in {out}")
+            else:
+                simulate(sc, out=out, frames=nframes, resume=state == "partial", arch=arch, show_progress=show_progress)
+        elif stage == "mesh":
+            mesh(out, jobs=jobs, show_progress=show_progress)
+        elif stage == "render":
+            r = render(out, quality="preview" if preview else "final", show_progress=show_progress)
+            result.update(r if isinstance(r, dict) else {})
+    return result
