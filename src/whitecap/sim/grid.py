@@ -141,8 +141,11 @@ def _build_lists(
     overflow = 0
     cap = nb.shape[1]
     h2 = h * h
-    for i in range(n):
-        xi = x[i]
+    for si in range(n):
+        # Walk particles in cell order: consecutive iterations share their
+        # candidate cells, which then stay in cache.
+        i = order[si]
+        xi = x_sorted[si]
         ci = cell_of(xi, lower, inv_cell, dims)
         z0 = ti.max(ci.z - reach, 0)
         z1 = ti.min(ci.z + reach, dims.z - 1)
