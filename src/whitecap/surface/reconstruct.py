@@ -1,0 +1,152 @@
+"""Per-frame surface reconstruction with splashsurf (pysplashsurf).
+
+:func:`mesh_frame` is the pure per-frame function: one particle file and a
+:class:`MeshParams` in, one mesh file out, a small stats dict back. It runs
+unchanged in a worker process (see :mod:`whitecap.surface.driver`).
+
+Radii. whitecap's particle radius r is half the particle spacing, and
+splashsurf's particle radius means the same thing (its rest volume is the
+cube of twice the radius), so the surface radius is simply
+``radius_factor × r``. The smoothing length and the cube size are passed to
+pysplashsurf as multiples of that surface radius, which is what it expects.
+Our defaults (1.5, 1.2, 0.5) keep the kernel support at 3.6 r, enough
+neighbours that thin sheets do not tear, and give a 0.75 r marching-cubes
+cell, fine enough that the surface is not faceted: a sphere of particles
+comes out watertight within 2 % of its volume.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import io as wio
+from ..config import Mesh
+from ..errors import InputError, WhitecapError
+from ..io.mesh import SurfaceMesh, write_mesh
+from ..timing import timer
+
+
+@dataclass(frozen=True)
+class MeshParams:
+    """Everything one frame's reconstruction needs (picklable, absolute radius)."""
+
+    particle_radius: float  # simulation particle radius r [m]
+    radius_factor: float = 1.5
+    smoothing_length: float = 1.2
+    cube_size: float = 0.5
+    iso_surface_threshold: float = 0.6
+    rest_density: float = 1000.0
+    mesh_cleanup: bool = True
+    mesh_smoothing_iters: int = 15
+    mesh_smoothing_weights: bool = True
+    normals_smoothing_iters: int = 10
+    interpolate_velocity: bool = True
+    multi_threading: bool = True
+    up: str = "z"
+
+    @property
+    def surface_radius(self) -> float:
+        """Radius handed to splashsurf [m]."""
+        return self.radius_factor * self.particle_radius
+
+    def check(self) -> "MeshParams":
+        if not (self.particle_radius > 0 and np.isfinite(self.particle_radius)):
+            raise InputError(f"mesh: particle radius must be a positive length in metres (got {self.particle_radius})")
+        if not self.rest_density > 0:
+            raise InputError(f"mesh: rest density must be positive (got {self.rest_density})")
+        if self.cube_size > 1.0:
+            warnings.warn(
+                f"mesh: cube_size {self.cube_size} is above 1 surface radius; the surface will look faceted "
+                "and thin sheets may tear (splashsurf recommends 0.5-0.75)",
+                UserWarning, stacklevel=2,
+            )
+        return self
+
+    def splashsurf_kwargs(self) -> dict:
+        """Keyword arguments of ``pysplashsurf.reconstruction_pipeline`` (not the particles)."""
+        return dict(
+            particle_radius=self.surface_radius,
+            rest_density=self.rest_density,
+            smoothing_length=self.smoothing_length,  # multiple of the surface radius
+            cube_size=self.cube_size,  # multiple of the surface radius
+            iso_surface_threshold=self.iso_surface_threshold,
+            multi_threading=self.multi_threading,
+            mesh_cleanup=self.mesh_cleanup,
+            mesh_smoothing_iters=self.mesh_smoothing_iters or None,
+            mesh_smoothing_weights=self.mesh_smoothing_weights,
+            normals_smoothing_iters=self.normals_smoothing_iters or None,
+            compute_normals=True,
+        )
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def params_from_config(particle_radius: float, config: Mesh | None = None, rest_density: float = 1000.0,
+                       **extra) -> MeshParams:
+    """MeshParams from a ``[mesh]`` section and the run's particle radius."""
+    cfg = config or Mesh()
+    return MeshParams(
+        particle_radius=float(particle_radius),
+        radius_factor=cfg.radius_factor,
+        smoothing_length=cfg.smoothing_length,
+        cube_size=cfg.cube_size,
+        iso_surface_threshold=cfg.iso_surface_threshold,
+        rest_density=float(rest_density),
+        mesh_cleanup=cfg.mesh_cleanup,
+        mesh_smoothing_iters=cfg.mesh_smoothing_iters,
+        mesh_smoothing_weights=cfg.mesh_smoothing_weights,
+        normals_smoothing_iters=cfg.normals_smoothing_iters,
+        interpolate_velocity=cfg.interpolate_velocity,
+        **extra,
+    ).check()
+
+
+def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: MeshParams,
+                source: str = "<memory>") -> SurfaceMesh:
+    """The surface of one particle cloud. No particles give an empty mesh."""
+    import pysplashsurf
+
+    pos = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(pos) == 0:
+        return SurfaceMesh.empty()
+    attrs = None
+    if params.interpolate_velocity and velocities is not None:
+        attrs = {"velocity": np.ascontiguousarray(velocities, dtype=np.float64).reshape(-1, 3)}
+    try:
+        with timer("mesh.splashsurf"):
+            mesh, _ = pysplashsurf.reconstruction_pipeline(pos, attributes_to_interpolate=attrs,
+                                                           **params.splashsurf_kwargs())
+    except Exception as exc:  # pysplashsurf raises plain exceptions on failures
+        raise WhitecapError(f"{source}: splashsurf reconstruction failed: {exc}") from None
+    pa = mesh.point_attributes
+    verts = mesh.mesh.vertices
+    vel = pa["velocity"] if "velocity" in pa else np.zeros_like(verts)
+    return SurfaceMesh(verts, mesh.mesh.triangles, pa.get("normals"), {"velocity": vel}, source=source)
+
+
+def mesh_frame(in_path: str | Path, out_path: str | Path, params: MeshParams) -> dict:
+    """Reconstruct one particle file into one mesh file (format from ``out_path``'s suffix).
+
+    Pure: reads ``in_path``, writes ``out_path`` atomically, returns stats
+    (particles, vertices, faces, seconds).
+    """
+    t0 = time.perf_counter()
+    frame = wio.read(in_path, **({"up": params.up} if params.up != "z" else {}))
+    frame.check_finite()
+    surface = reconstruct(frame.positions, frame.velocities, params, source=str(in_path))
+    with timer("mesh.write"):
+        write_mesh(out_path, surface)
+    return {
+        "in": str(in_path),
+        "out": str(out_path),
+        "particles": len(frame),
+        "vertices": len(surface.vertices),
+        "faces": len(surface.faces),
+        "seconds": time.perf_counter() - t0,
+    }
