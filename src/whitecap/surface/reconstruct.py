@@ -126,8 +126,32 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
         raise WhitecapError(f"{source}: splashsurf reconstruction failed: {exc}") from None
     pa = mesh.point_attributes
     verts = mesh.mesh.vertices
+    normals = pa["normals"] if "normals" in pa else np.zeros_like(verts)
     vel = pa["velocity"] if "velocity" in pa else np.zeros_like(verts)
-    return SurfaceMesh(verts, mesh.mesh.triangles, pa.get("normals"), {"velocity": vel}, source=source)
+    with timer("mesh.canonical_order"):
+        order, faces = canonical_order(verts, normals, np.asarray(mesh.mesh.triangles, dtype=np.int64))
+    return SurfaceMesh(verts[order], faces, normals[order], {"velocity": vel[order]}, source=source)
+
+
+def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A vertex permutation and remapped faces that depend on the geometry only.
+
+    splashsurf's multi-threaded run emits the same vertices in a different
+    order each time; sorting them by position (normals break ties) and the
+    faces by their vertex indices makes a mesh file byte-for-byte
+    reproducible, whatever the threading or ``--jobs``. Winding is kept: a
+    face is only rotated so its smallest index comes first.
+    """
+    order = np.lexsort((normals[:, 2], normals[:, 1], normals[:, 0], vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    if len(faces) == 0:
+        return order, faces.reshape(0, 3)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[faces]
+    shift = np.argmin(f, axis=1)
+    f = f[np.arange(len(f))[:, None], (shift[:, None] + np.arange(3)) % 3]
+    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    return order, f
 
 
 def mesh_frame(in_path: str | Path, out_path: str | Path, params: MeshParams) -> dict:
