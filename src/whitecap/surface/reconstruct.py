@@ -142,7 +142,11 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
     reproducible, whatever the threading or ``--jobs``. Winding is kept: a
     face is only rotated so its smallest index comes first.
     """
-    order = np.lexsort((normals[:, 2], normals[:, 1], normals[:, 0], vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    # One stable sort on x is enough when no two vertices share an x (the
+    # usual case after smoothing); otherwise sort on all six coordinates.
+    order = np.argsort(vertices[:, 0], kind="stable")
+    if np.any(np.diff(vertices[order, 0]) == 0):
+        order = np.lexsort((normals[:, 2], normals[:, 1], normals[:, 0], vertices[:, 2], vertices[:, 1], vertices[:, 0]))
     if len(faces) == 0:
         return order, faces.reshape(0, 3)
     rank = np.empty_like(order)
@@ -150,7 +154,11 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
     f = rank[faces]
     shift = np.argmin(f, axis=1)
     f = f[np.arange(len(f))[:, None], (shift[:, None] + np.arange(3)) % 3]
-    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    nv = len(order)
+    if nv < 2**21:  # nv**3 fits an int64: one sort key per face
+        f = f[np.argsort((f[:, 0] * nv + f[:, 1]) * nv + f[:, 2])]
+    else:
+        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
     return order, f
 
 
