@@ -47,6 +47,10 @@ def test_sphere_is_watertight_single_component_right_volume_outward_normals(tmp_
     stats = mesh_frame(src, tmp_path / "mesh.ply", MeshParams(particle_radius=R_SIM).check())
     tm, normals, _ = load_tm(tmp_path / "mesh.ply")
     assert stats["faces"] == len(tm.faces) > 1000
+    # An independent PLY reader sees the same mesh.
+    other = trimesh.load(tmp_path / "mesh.ply", process=False)
+    np.testing.assert_array_equal(other.faces, tm.faces)
+    np.testing.assert_allclose(other.vertices, tm.vertices)
     assert tm.is_watertight
     assert len(tm.split(only_watertight=False)) == 1
     # Faces are wound outward (positive signed volume) and the volume is the sphere's.
@@ -103,6 +107,7 @@ def run_copy(tiny_run, tmp_path) -> Path:
 
 def test_jobs_2_matches_jobs_1_and_reruns_skip(run_copy, tmp_path):
     s1 = mesh(run_copy, out=tmp_path / "j1", jobs=1, show_progress=False)
+    assert RunInfo.load(run_copy).files("mesh") == []  # meshes outside the run are not recorded
     s2 = mesh(run_copy, jobs=2, show_progress=False)
     assert len(s1) == len(s2) == 4 and all(s["faces"] > 0 for s in s1)
     for i in range(4):

@@ -74,12 +74,14 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         out_dir = Path(out) if out is not None else inputs[0][1].parent / "mesh"
     cfg = mesh_config(config, **overrides)
     params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up)
+    # Meshes are recorded in run.json only when they land inside the run.
+    inside = is_run and out_dir.resolve().is_relative_to(src.resolve())
     frames = []
     for i, p in inputs:
         o = out_dir / f"fluid_{i:05d}.{cfg.format}"
-        rel = os.path.relpath(o, src) if is_run else str(o)
+        rel = os.path.relpath(o, src) if inside else str(o)
         frames.append((i, p, o, rel))
-    return MeshJob(frames, params, src if is_run else None)
+    return MeshJob(frames, params, src if inside else None)
 
 
 def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True) -> list[dict]:
