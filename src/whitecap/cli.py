@@ -105,6 +105,7 @@ def _cmd_mesh(a) -> int:
     if a.jobs is not None and a.jobs < 1:
         raise WhitecapError(f"mesh: --jobs must be at least 1 (got {a.jobs})")
     warnings.simplefilter("default")
+    warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     timing.reset()
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,

@@ -73,7 +73,7 @@ def mesh(
 
     from .surface.driver import plan, run_mesh
 
-    jobs = max(1, jobs or os.cpu_count() or 1)
+    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
     cfg = load_scene(config).mesh if config is not None else None
     job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
     return run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)

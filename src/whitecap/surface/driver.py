@@ -86,7 +86,7 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
 
 def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True) -> list[dict]:
     """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done)."""
-    jobs = max(1, jobs or os.cpu_count() or 1)
+    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
     todo = [f for f in job.frames if force or not f[2].is_file()]
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
     try:
