@@ -93,6 +93,12 @@ def test_empty_frame_gives_empty_mesh(tmp_path):
     assert stats["vertices"] == stats["faces"] == 0
     m = read_mesh(tmp_path / "empty.ply")
     assert len(m.vertices) == 0 and len(m.faces) == 0
+    # ... which exports to VTK as an empty dataset
+    from whitecap.io.vtk_xml import read_vtp, write_vtp
+
+    write_vtp(tmp_path / "empty.vtp", m.vertices, {"velocity": m.arrays["velocity"]}, triangles=m.faces)
+    pts, arrays, tris = read_vtp(tmp_path / "empty.vtp")
+    assert len(pts) == len(tris) == 0
     # obj too
     mesh_frame(src, tmp_path / "empty.obj", MeshParams(particle_radius=R_SIM))
     assert (tmp_path / "empty.obj").is_file()

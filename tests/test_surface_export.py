@@ -26,7 +26,7 @@ def synthetic_diffuse(run: Path, seed: int = 0) -> dict[int, ParticleFrame]:
     info = RunInfo.load(run)
     frames = {}
     for i, _ in info.files("fluid"):
-        n = 50 + 10 * i
+        n = 0 if i == 0 else 50 + 10 * i  # frame 0: no diffuse particles yet
         f = ParticleFrame(
             positions=rng.uniform(0, 0.2, (n, 3)),
             velocities=rng.normal(0, 1, (n, 3)),
@@ -108,6 +108,10 @@ def test_vtk_series_read_back_with_arrays_and_times(meshed_run, tmp_path):
         np.testing.assert_array_equal(sp, d.positions[keep])
         total += len(sp)
     assert total == len(d)
+    # A frame without diffuse particles is an empty, readable dataset.
+    for name in ("diffuse", "diffuse_bubble"):
+        pts, arrays, _, _ = read_vtp(out / name / f"{name}_00000.vtp")
+        assert len(pts) == 0 and len(arrays.get("type", [])) == 0
 
     # Meshes: the same triangles, normals and velocities as mesh/fluid_NNNNN.ply.
     m = read_mesh(run / "mesh" / "fluid_00003.ply")
