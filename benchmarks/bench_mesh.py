@@ -50,7 +50,8 @@ def synthetic_frame(n_target: int, k: int, seed: int = 0) -> ParticleFrame:
     height = depth + 0.06 * np.sin(2 * np.pi * g[:, 0] / lx * 2 - phase) * np.cos(np.pi * g[:, 1] / ly)
     pool = g[g[:, 2] <= height]
     n_drop = max(0, n_target - len(pool))
-    drops = np.column_stack([rng.uniform(0, lx, n_drop), rng.uniform(0, ly, n_drop), rng.uniform(depth + 0.1, depth + 0.3, n_drop)])
+    drops = np.column_stack([rng.uniform(0, lx, n_drop), rng.uniform(0, ly, n_drop),
+                             rng.uniform(depth + 0.1, depth + 0.3, n_drop)])
     pos = np.concatenate([pool + rng.normal(0, 0.1 * s, pool.shape), drops])
     vel = np.zeros_like(pos)
     vel[:, 0] = np.cos(2 * np.pi * pos[:, 0] / lx * 2 - phase)
@@ -116,7 +117,8 @@ def main() -> None:
             run_mesh(job, jobs=jobs, force=True, show_progress=False)
             walls[jobs] = time.perf_counter() - t0
             print(f"{a.frames} frames, --jobs {jobs}: {walls[jobs]:7.2f} s wall  ({walls[jobs] / a.frames:.3f} s/frame)")
-        same = all((tmp / "jobs1" / f"fluid_{k:05d}.ply").read_bytes() == (tmp / "jobs2" / f"fluid_{k:05d}.ply").read_bytes()
+        name = "fluid_{:05d}.ply".format
+        same = all((tmp / "jobs1" / name(k)).read_bytes() == (tmp / "jobs2" / name(k)).read_bytes()
                    for k in range(a.frames))
         print(f"speed-up --jobs 2 / --jobs 1: {walls[1] / walls[2]:.2f}x; outputs byte-identical: {same}")
 
