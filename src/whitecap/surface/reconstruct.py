@@ -126,11 +126,27 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
         raise WhitecapError(f"{source}: splashsurf reconstruction failed: {exc}") from None
     pa = mesh.point_attributes
     verts = mesh.mesh.vertices
-    normals = pa["normals"] if "normals" in pa else np.zeros_like(verts)
-    vel = pa["velocity"] if "velocity" in pa else np.zeros_like(verts)
+    normals = _snap(pa["normals"]) if "normals" in pa else np.zeros_like(verts)
+    vel = _snap(pa["velocity"]) if "velocity" in pa else np.zeros_like(verts)
     with timer("mesh.canonical_order"):
         order, faces = canonical_order(verts, normals, np.asarray(mesh.mesh.triangles, dtype=np.int64), vel)
     return SurfaceMesh(verts[order], faces, normals[order], {"velocity": vel[order]}, source=source)
+
+
+#: Normals [-] and velocities [m/s] are rounded to multiples of this (~1e-6).
+SNAP = 2.0**-20
+
+
+def _snap(a: np.ndarray) -> np.ndarray:
+    """Round to multiples of :data:`SNAP`.
+
+    splashsurf's multi-threaded sums (normals, interpolated attributes) add
+    the same terms in a varying order, so the last bits of these arrays change
+    from run to run, and a component near zero can then round to a different
+    float32. Rounding far above that noise keeps the files reproducible; it is
+    far below anything a renderer can show.
+    """
+    return np.round(np.asarray(a, dtype=np.float64) * (1.0 / SNAP)) * SNAP
 
 
 def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray,
