@@ -205,3 +205,28 @@ def test_unparsable_frame_is_named(tmp_path, capsys):
 def test_bad_override_is_an_error(run_copy, capsys):
     assert main(["mesh", str(run_copy), "--cube-size", "-1"]) == 2
     assert "mesh.cube_size" in capsys.readouterr().err
+
+
+def test_canonical_order_ignores_vertex_and_face_order():
+    # splashsurf's threads permute vertices and triangles; the written order must not change.
+    from whitecap.surface.reconstruct import SNAP, canonical_order
+
+    rng = np.random.default_rng(1)
+    v = np.round(rng.uniform(-1, 1, (500, 3)) / SNAP) * SNAP
+    v[10:20, :2] = v[0, :2]  # ties on (x, y) are broken by z
+    n = rng.normal(size=(500, 3))
+    f = rng.integers(0, 500, (900, 3))
+    o1, f1 = canonical_order(v, n, f)
+    perm = rng.permutation(500)
+    inv = np.argsort(perm)
+    f2_in = np.roll(inv[f][rng.permutation(900)], 1, axis=1)  # same triangles, other order and rotation
+    o2, f2 = canonical_order(v[perm], n[perm], f2_in)
+    np.testing.assert_array_equal(v[o1], v[perm][o2])
+    np.testing.assert_array_equal(f1, f2)
+    # winding kept: each output triangle is a rotation of an input one
+    def rotations(t):
+        return {tuple(np.roll(t, -k)) for k in range(3)}
+
+    tri = set().union(*(rotations(t) for t in np.argsort(o1)[f]))
+    assert all(tuple(t) in tri for t in f1)
+    assert sorted(min(rotations(t)) for t in np.argsort(o1)[f]) == [tuple(t) for t in f1]

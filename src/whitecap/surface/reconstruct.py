@@ -125,7 +125,7 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
     except Exception as exc:  # pysplashsurf raises plain exceptions on failures
         raise WhitecapError(f"{source}: splashsurf reconstruction failed: {exc}") from None
     pa = mesh.point_attributes
-    verts = mesh.mesh.vertices
+    verts = _snap(mesh.mesh.vertices)
     normals = _snap(pa["normals"]) if "normals" in pa else np.zeros_like(verts)
     vel = _snap(pa["velocity"]) if "velocity" in pa else np.zeros_like(verts)
     with timer("mesh.canonical_order"):
@@ -133,7 +133,7 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
     return SurfaceMesh(verts[order], faces, normals[order], {"velocity": vel[order]}, source=source)
 
 
-#: Normals [-] and velocities [m/s] are rounded to multiples of this (~1e-6).
+#: Vertex positions [m], normals [-] and velocities [m/s] are rounded to multiples of this (~1e-6).
 SNAP = 2.0**-20
 
 
@@ -157,19 +157,24 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
     order each time; sorting them by position (normals, then ``extra``, break
     ties) and the faces by their vertex indices makes a mesh file byte-for-byte
     reproducible, whatever the threading or ``--jobs``. Winding is kept: a
-    face is only rotated so its smallest index comes first.
+    face is only rotated (to its lexicographically smallest rotation).
     """
-    # Sort on x, then re-sort only the runs of equal x on the full key: a
-    # full lexicographic sort of every vertex costs several times more.
-    x = vertices[:, 0]
-    order = np.argsort(x)
-    xs = x[order]
-    tie = np.flatnonzero(xs[1:] == xs[:-1])
+    # Positions are multiples of SNAP (see _snap), so they are exact integers
+    # in SNAP units: one int64 key holds x and y; only the rare runs of equal
+    # (x, y) are then re-sorted on the full key. A full lexicographic sort of
+    # every vertex costs several times more.
+    q = np.rint(vertices * (1.0 / SNAP)).astype(np.int64)
+    if len(q) and np.abs(q[:, :2]).max() < 2**31:
+        key = ((q[:, 0] + 2**31) << 32) | (q[:, 1] + 2**31)
+    else:  # beyond about 2 km from the origin: sort on x alone first
+        key = q[:, 0]
+    order = np.argsort(key)
+    ks = key[order]
+    tie = np.flatnonzero(ks[1:] == ks[:-1])
     if tie.size:
         pos = np.union1d(tie, tie + 1)
         sub = order[pos]
-        keys = [vertices[sub, 2], vertices[sub, 1], vertices[sub, 0]]
-        keys = [normals[sub, 2], normals[sub, 1], normals[sub, 0]] + keys
+        keys = [normals[sub, 2], normals[sub, 1], normals[sub, 0], q[sub, 2], q[sub, 1], q[sub, 0]]
         if extra is not None:
             keys = [extra[sub, k] for k in range(extra.shape[1] - 1, -1, -1)] + keys
         order[pos] = sub[np.lexsort(keys)]
@@ -178,14 +183,21 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     f = rank[faces]
-    a, b, c = f[:, 0], f[:, 1], f[:, 2]
-    first_b = (b < a) & (b < c)
-    first_c = (c < a) & (c < b)
-    f = np.where(first_b[:, None], np.stack([b, c, a], 1), np.where(first_c[:, None], np.stack([c, a, b], 1), f))
     nv = len(order)
-    if nv < 2**21:  # nv**3 fits an int64: one sort key per face
-        f = f[np.argsort((f[:, 0] * nv + f[:, 1]) * nv + f[:, 2])]
+    if nv < 2**21:  # nv**3 fits an int64: one key per triangle
+        # Of a triangle's three rotations (same winding) keep the smallest key;
+        # unlike "smallest index first" this is unambiguous for degenerate faces.
+        rots = np.stack([f, f[:, [1, 2, 0]], f[:, [2, 0, 1]]])
+        keys = (rots[..., 0] * nv + rots[..., 1]) * nv + rots[..., 2]
+        best = np.argmin(keys, axis=0)
+        idx = np.arange(len(f))
+        f, fkey = rots[best, idx], keys[best, idx]
+        f = f[np.argsort(fkey)]
     else:
+        first = np.argmin(f, axis=1)  # rotate so the smallest index leads
+        for k in (1, 2):
+            sel = first == k
+            f[sel] = np.roll(f[sel], -k, axis=1)
         f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
     return order, f
 
