@@ -183,21 +183,21 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     f = rank[faces]
+    # Rotate each triangle (same winding) so its smallest index leads, ...
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    lead_b = (b < a) & (b < c)
+    lead_c = (c < a) & (c < b)
+    f = np.stack([np.where(lead_b, b, np.where(lead_c, c, a)),
+                  np.where(lead_b, c, np.where(lead_c, a, b)),
+                  np.where(lead_b, a, np.where(lead_c, b, c))], axis=1)
+    # ... or, for the rare degenerate one with a repeated index, to its
+    # lexicographically smallest rotation, which is unambiguous.
+    for k in np.flatnonzero((a == b) | (b == c) | (a == c)):
+        f[k] = min((tuple(np.roll(f[k], -r)) for r in range(3)))
     nv = len(order)
-    if nv < 2**21:  # nv**3 fits an int64: one key per triangle
-        # Of a triangle's three rotations (same winding) keep the smallest key;
-        # unlike "smallest index first" this is unambiguous for degenerate faces.
-        rots = np.stack([f, f[:, [1, 2, 0]], f[:, [2, 0, 1]]])
-        keys = (rots[..., 0] * nv + rots[..., 1]) * nv + rots[..., 2]
-        best = np.argmin(keys, axis=0)
-        idx = np.arange(len(f))
-        f, fkey = rots[best, idx], keys[best, idx]
-        f = f[np.argsort(fkey)]
+    if nv < 2**21:  # nv**3 fits an int64: one sort key per triangle
+        f = f[np.argsort((f[:, 0] * nv + f[:, 1]) * nv + f[:, 2])]
     else:
-        first = np.argmin(f, axis=1)  # rotate so the smallest index leads
-        for k in (1, 2):
-            sel = first == k
-            f[sel] = np.roll(f[sel], -k, axis=1)
         f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
     return order, f
 
