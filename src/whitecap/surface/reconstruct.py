@@ -180,8 +180,9 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
         order[pos] = sub[np.lexsort(keys)]
     if len(faces) == 0:
         return order, faces.reshape(0, 3)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
+    idx_t = np.int32 if len(order) < 2**31 else np.int64  # half the memory traffic of int64
+    rank = np.empty(len(order), dtype=idx_t)
+    rank[order] = np.arange(len(order), dtype=idx_t)
     f = rank[faces]
     # Rotate each triangle (same winding) so its smallest index leads, ...
     a, b, c = f[:, 0], f[:, 1], f[:, 2]
@@ -196,7 +197,8 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
         f[k] = min((tuple(np.roll(f[k], -r)) for r in range(3)))
     nv = len(order)
     if nv < 2**21:  # nv**3 fits an int64: one sort key per triangle
-        f = f[np.argsort((f[:, 0] * nv + f[:, 1]) * nv + f[:, 2])]
+        f64 = f.astype(np.int64)
+        f = f[np.argsort((f64[:, 0] * nv + f64[:, 1]) * nv + f64[:, 2])]
     else:
         f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
     return order, f
