@@ -150,7 +150,35 @@ class Foam(_Section):
 
 # --------------------------------------------------------------------------- mesh
 class Mesh(_Section):
-    """Surface reconstruction with splashsurf."""
+    """Surface reconstruction with splashsurf (``whitecap mesh``).
+
+    Lengths are multiples of a radius, as pysplashsurf takes them: the surface
+    radius is ``radius_factor`` × the simulation's particle radius r (r is half
+    the particle spacing), and ``smoothing_length`` and ``cube_size`` are
+    multiples of that surface radius.
+    """
+
+    radius_factor: float = Field(
+        1.5, gt=0, le=4.0,
+        description="surface particle radius as a multiple of the simulation radius r [-] (splashsurf: 1.4-1.6)",
+    )
+    smoothing_length: float = Field(
+        1.2, gt=0, le=10.0,
+        description="SPH smoothing length as a multiple of the surface radius [-]; kernel support is twice it",
+    )
+    cube_size: float = Field(
+        0.5, gt=0, le=4.0,
+        description="marching-cubes cell edge as a multiple of the surface radius [-] (0.5-0.75; above 1 warns)",
+    )
+    iso_surface_threshold: float = Field(0.6, gt=0, description="iso value of the SPH colour field [-]")
+    mesh_cleanup: bool = Field(True, description="Moore-Warren cleanup of marching-cubes slivers")
+    mesh_smoothing_iters: int = Field(15, ge=0, le=1000, description="Laplacian smoothing passes on vertices [-]")
+    mesh_smoothing_weights: bool = Field(
+        True, description="weight the smoothing so it acts at the surface, not inside thin sheets (Löschner 2023)"
+    )
+    normals_smoothing_iters: int = Field(10, ge=0, le=1000, description="smoothing passes on vertex normals [-]")
+    interpolate_velocity: bool = Field(True, description="interpolate particle velocity onto vertices (motion blur)")
+    format: Literal["ply", "obj"] = Field("ply", description="mesh file format (obj carries no velocity)")
 
 
 # --------------------------------------------------------------------------- view

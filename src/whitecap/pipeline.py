@@ -114,3 +114,44 @@ def run(
             r = render(out, quality="preview" if preview else "final", show_progress=show_progress)
             result.update(r if isinstance(r, dict) else {})
     return result
+
+
+# ============================================================================ mesh, export
+def mesh(
+    run: str | Path,
+    out: str | Path | None = None,
+    radius: float | None = None,
+    jobs: int | None = None,
+    force: bool = False,
+    config: str | Path | None = None,
+    up: str = "z",
+    show_progress: bool = True,
+    **overrides,
+) -> list[dict]:
+    """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
+
+    ``overrides`` are ``[mesh]`` fields (``cube_size=0.6``, ``format="obj"``...);
+    ``config`` is a scene TOML whose ``[mesh]`` replaces the run's. Returns
+    per-frame stats; meshes of a run are recorded in its run.json.
+    """
+    import os
+
+    from .surface.driver import plan, run_mesh
+
+    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
+    cfg = load_scene(config).mesh if config is not None else None
+    job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
+    return run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+
+
+def export(
+    run: str | Path,
+    to: str = "vtk",
+    out: str | Path | None = None,
+    split_types: bool = False,
+    show_progress: bool = True,
+) -> dict[str, Path]:
+    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes."""
+    from .surface.export import export_run
+
+    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
