@@ -256,6 +256,12 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     sc.cycles.samples = cfg.preview_samples if preview else cfg.samples
     sc.cycles.use_adaptive_sampling = True
     sc.cycles.use_denoising = bool(cfg.denoise)
+    if preview:
+        # Fewer light bounces: enough for water seen through one surface.
+        sc.cycles.max_bounces = 6
+        sc.cycles.transmission_bounces = 6
+        sc.cycles.glossy_bounces = 2
+        sc.cycles.diffuse_bounces = 2
     sc.render.use_motion_blur = bool(cfg.motion_blur)
     sc.render.motion_blur_shutter = cfg.shutter
     fps = info.frame_rate
