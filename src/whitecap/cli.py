@@ -152,13 +152,47 @@ def _add_view(sub) -> None:
 
 # ============================================================================ render
 def _add_render(sub) -> None:
-    p = sub.add_parser("render", help="render a run in Blender (Cycles) to PNGs and an MP4")
-    p.set_defaults(func=_not_yet("render"))
+    p = sub.add_parser(
+        "render",
+        help="render a run in Blender (Cycles) to PNGs and an MP4",
+        description="Render RUN's meshes and diffuse particles with Blender's Cycles on the CPU. Writes "
+        "render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
+    )
+    p.add_argument("run", help="run directory (with mesh/ from `whitecap mesh`)")
+    p.add_argument("--quality", default="preview", choices=["preview", "final"], help="preview: small and fast")
+    p.add_argument("--frames", help="range a:b of frames to render (b excluded)")
+    p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
+    p.add_argument("--force", action="store_true", help="render frames again even if they exist")
+    p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
+    p.set_defaults(func=_cmd_render)
+
+
+def _cmd_render(a) -> int:
+    from . import pipeline
+
+    r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie)
+    print(f"rendered {len(r['frames'])} frames to {a.run}/render")
+    if r.get("movie"):
+        print(f"movie: {r['movie']}")
+    print(f"blend: {r['blend']}")
+    return 0
 
 
 def _add_blender_addon(sub) -> None:
-    p = sub.add_parser("blender-addon", help="build the Blender add-on zip")
-    p.set_defaults(func=_not_yet("blender-addon"))
+    p = sub.add_parser(
+        "blender-addon",
+        help="build the Blender add-on zip",
+        description="Build a Blender 4.2+ extension zip that loads whitecap runs and VTK/PLY/OBJ sequences.",
+    )
+    p.add_argument("--out", "-o", default="whitecap_blender_addon.zip", help="zip file to write")
+    p.set_defaults(func=_cmd_blender_addon)
+
+
+def _cmd_blender_addon(a) -> int:
+    from . import pipeline
+
+    print(f"wrote {pipeline.blender_addon(a.out)}; install it in Blender: Edit > Preferences > Get Extensions > Install from Disk")
+    return 0
 
 
 # ============================================================================ run

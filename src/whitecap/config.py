@@ -188,7 +188,31 @@ class View(_Section):
 
 # --------------------------------------------------------------------------- render
 class Render(_Section):
-    """Offline rendering in Blender (Cycles)."""
+    """Offline rendering in Blender (Cycles). Unset camera keys frame the domain automatically."""
+
+    resolution: list[int] = Field([1920, 1080], min_length=2, max_length=2, description="final image size [px]")
+    samples: int = Field(128, ge=1, le=65536, description="final Cycles samples per pixel [-]")
+    preview_resolution: list[int] = Field([320, 240], min_length=2, max_length=2, description="preview size [px]")
+    preview_samples: int = Field(16, ge=1, le=4096, description="preview samples per pixel [-]")
+    camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")
+    camera_end: Vec3 | None = Field(None, description="camera position at the last frame; unset = camera_start [m]")
+    camera_target: Vec3 | None = Field(None, description="point the camera looks at; unset = domain centre [m]")
+    camera_orbit: float = Field(0.0, ge=-360, le=360, description="orbit about the target over the run [deg]")
+    lens: float = Field(32.0, gt=1, le=500, description="camera focal length [mm]")
+    water_color: Vec3 = Field([0.55, 0.8, 0.9], description="volume absorption tint of the water, linear RGB [0-1]")
+    water_absorption: float = Field(3.0, ge=0, description="volume absorption density [1/m]")
+    water_roughness: float = Field(0.02, ge=0, le=1, description="surface roughness of the water [-]")
+    foam_radius: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="foam sphere radius range [m]; unset = 0.4–0.9 × particle radius"
+    )
+    motion_blur: bool = Field(True, description="motion blur from vertex velocities and object motion")
+    shutter: float = Field(0.5, gt=0, le=2, description="shutter open time [frames]")
+    denoise: bool = Field(True, description="OpenImageDenoise on the final image when available")
+    glare: float = Field(0.15, ge=0, le=1, description="strength of the compositor glare (0 = off) [-]")
+    sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units)")
+    sun_angle: Vec3 = Field([50.0, 10.0, 30.0], description="sun rotation about x, y, z [deg]")
+    world_strength: float = Field(0.6, ge=0, description="sky light strength [-]")
+    ground: bool = Field(True, description="draw a ground plane and a tank outline from the domain box")
 
 
 # --------------------------------------------------------------------------- output

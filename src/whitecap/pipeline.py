@@ -155,3 +155,26 @@ def export(
     from .surface.export import export_run
 
     return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
+
+
+# ============================================================================ render
+def render(
+    run: str | Path,
+    quality: str = "preview",
+    frames: str | None = None,
+    jobs: int = 1,
+    force: bool = False,
+    movie: bool = True,
+    show_progress: bool = True,
+) -> dict:
+    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render."""
+    from .render import render_run
+
+    return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie, show_progress=show_progress)
+
+
+def blender_addon(out: str | Path | None = None) -> Path:
+    """Build the Blender add-on zip."""
+    from .render import build_addon
+
+    return build_addon(out)
