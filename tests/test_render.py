@@ -7,6 +7,7 @@ inspect the saved scene.blend and the written images.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -68,7 +69,7 @@ def meshed_run(tiny_run, tmp_path_factory) -> Path:
 
 
 def blender(script: str, *args) -> dict:
-    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env={"PYTHONPATH": str(SRC), "PATH": "/usr/bin:/bin"})
+    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stderr[-2000:]
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     assert lines, out.stdout[-2000:] + out.stderr[-2000:]

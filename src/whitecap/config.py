@@ -144,8 +144,35 @@ class Foam(_Section):
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
     preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "auto"] = Field(
-        "ihmsen2012", description="parameter preset; every value below overrides it"
+        "ihmsen2012",
+        description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
+        "thresholds from percentiles of each potential over the first frame with motion",
     )
+    # Clamping thresholds φ(I, τmin, τmax) of the potentials. Unset = from the preset.
+    ta_min: float | None = Field(None, ge=0, description="trapped-air τmin [m/s]")
+    ta_max: float | None = Field(None, gt=0, description="trapped-air τmax [m/s]")
+    wc_min: float | None = Field(None, ge=0, description="wave-crest τmin [-]")
+    wc_max: float | None = Field(None, gt=0, description="wave-crest τmax [-]")
+    ke_min: float | None = Field(None, ge=0, description="kinetic-energy τmin, per unit mass [J/kg]")
+    ke_max: float | None = Field(None, gt=0, description="kinetic-energy τmax, per unit mass [J/kg]")
+    vo_min: float | None = Field(None, ge=0, description="vorticity τmin [1/s]")
+    vo_max: float | None = Field(None, gt=0, description="vorticity τmax [1/s]")
+    k_ta: float | None = Field(None, ge=0, description="trapped-air multiplier k_ta [1/s]")
+    k_wc: float | None = Field(None, ge=0, description="wave-crest multiplier k_wc [1/s]")
+    k_vo: float | None = Field(None, ge=0, description="vorticity multiplier k_vo [1/s]")
+    spray_below: int | None = Field(None, ge=0, description="spray when a particle has fewer fluid neighbours [-]")
+    bubble_above: int | None = Field(None, ge=0, description="bubble when a particle has more fluid neighbours [-]")
+    lifetime_min: float | None = Field(None, ge=0, description="foam lifetime lower bound [s]")
+    lifetime_max: float | None = Field(None, ge=0, description="foam lifetime upper bound [s]")
+    lifetime_multiplier: float | None = Field(
+        None, ge=0, description="if > 0: lifetime = multiplier × I_k × frame time (DualSPHysics style) [-]"
+    )
+    buoyancy: float | None = Field(None, ge=0, description="bubble buoyancy k_b [-]")
+    drag: float | None = Field(None, ge=0, le=1, description="bubble drag k_d [-]")
+    slots_per_particle: int = Field(8, ge=1, le=64, description="fixed generation slots per fluid particle and frame [-]")
+    max_particles: int = Field(400_000, ge=1, description="capacity of diffuse particles [-]")
+    radius: float = Field(0.5, gt=0, description="diffuse particle radius as a multiple of the fluid radius [-]")
+    support: float = Field(4.0, ge=2.0, le=8.0, description="neighbourhood radius h as a multiple of the fluid radius [-]")
 
 
 # --------------------------------------------------------------------------- mesh

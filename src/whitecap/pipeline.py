@@ -47,6 +47,9 @@ def simulate(
     info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
                           show_progress=show_progress)
     info.extra["out"] = str(out)
+    for h in hooks:
+        if hasattr(h, "warn_if_empty"):
+            h.warn_if_empty()
     if profile:
         print(timing.report("simulate profile"))
     return info
@@ -178,3 +181,23 @@ def blender_addon(out: str | Path | None = None) -> Path:
     from .render import build_addon
 
     return build_addon(out)
+
+
+# ============================================================================ foam (post-processing)
+def foam(
+    input: str | Path,
+    out: str | Path | None = None,
+    preset: str | None = None,
+    ini: str | Path | None = None,
+    case: str | Path | None = None,
+    up: str = "z",
+    dt: float | None = None,
+    radius: float | None = None,
+    seed: int | None = None,
+    show_progress: bool = True,
+) -> RunInfo:
+    """Diffuse particles over any particle sequence (see :func:`whitecap.foam.postprocess`)."""
+    from .foam import postprocess
+
+    return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
+                       show_progress=show_progress)
