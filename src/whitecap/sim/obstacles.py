@@ -4,8 +4,7 @@ Loading (host side): trimesh reads OBJ/STL/PLY; the mesh is checked for
 watertightness (or repaired on request), transformed (scale, then rotations
 about x, y, z in that order, then translation) and sampled into a signed
 distance field on a regular grid with spacing ``sdf_resolution × r``, padded
-by the kernel support. Distances come from point-cloud-utils (negative
-inside). The grid is cached on disk, keyed by the mesh file's content, the
+by the kernel support. Distances (negative inside) come from libigl. The grid is cached on disk, keyed by the mesh file's content, the
 transform and the resolution, so a second run starts at once.
 
 Collision (Taichi, per particle and obstacle):
@@ -95,14 +94,18 @@ def cache_dir() -> Path:
 
 
 def compute_sdf(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Signed distances (negative inside) of points to a watertight mesh, with point-cloud-utils."""
-    import point_cloud_utils as pcu
+    """Signed distances (negative inside) of points to a watertight mesh, with libigl.
 
-    d, _, _ = pcu.signed_distance_to_mesh(
+    libigl is exact (pseudo-normal sign, exact point-triangle distances). We
+    measured point-cloud-utils to be faster but to return wrong magnitudes
+    for some queries on large triangles (a box's faces), so we do not use it."""
+    import igl
+
+    s = igl.signed_distance(
         np.ascontiguousarray(points, np.float64), np.ascontiguousarray(vertices, np.float64),
-        np.ascontiguousarray(faces, np.int32),
+        np.ascontiguousarray(faces, np.int64),
     )
-    return d
+    return np.asarray(s[0])
 
 
 @dataclass
