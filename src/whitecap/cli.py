@@ -171,8 +171,29 @@ def _cmd_export(a) -> int:
 
 # ============================================================================ view
 def _add_view(sub) -> None:
-    p = sub.add_parser("view", help="real-time GGUI viewer, live or playback, or headless PNGs")
-    p.set_defaults(func=_not_yet("view"))
+    p = sub.add_parser(
+        "view",
+        help="real-time GGUI viewer, live or playback, or headless PNGs",
+        description="With a scene .toml, simulate while showing it; with a run directory or a particle "
+        "sequence (DualSPHysics, PLY, VTU...), play it back. --headless writes DIR/view_NNNNN.png.",
+    )
+    p.add_argument("target", help="scene .toml (live) or run directory / sequence (playback)")
+    p.add_argument("--headless", action="store_true", help="render offscreen to PNGs, no window")
+    p.add_argument("--frames", type=int, help="number of frames to render headless")
+    p.add_argument("--out", "-o", help="folder for headless images, screenshots and recordings")
+    p.add_argument("--mp4", action="store_true", help="with --headless, also encode view.mp4")
+    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a foreign sequence")
+    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend of the solver")
+    p.set_defaults(func=_cmd_view)
+
+
+def _cmd_view(a) -> int:
+    from . import pipeline
+
+    written = pipeline.view(a.target, headless=a.headless, frames=a.frames, out=a.out, mp4=a.mp4, up=a.up, arch=a.arch)
+    if a.headless:
+        print(f"wrote {len(written)} images to {a.out}")
+    return 0
 
 
 # ============================================================================ render

@@ -210,7 +210,19 @@ class Mesh(_Section):
 
 # --------------------------------------------------------------------------- view
 class View(_Section):
-    """Real-time GGUI viewer."""
+    """Real-time GGUI viewer. Unset camera keys frame the domain automatically."""
+
+    window: list[int] = Field([1280, 720], min_length=2, max_length=2, description="window or image size [px]")
+    camera_position: Vec3 | None = Field(None, description="start camera position [m]")
+    camera_lookat: Vec3 | None = Field(None, description="start point looked at [m]")
+    fov: float = Field(45.0, gt=1, lt=170, description="vertical field of view [deg]")
+    color_by: Literal["speed", "density"] = Field("speed", description="what colours the fluid")
+    speed_range: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="colour range for speed [m/s]; unset = 0..max of the frame"
+    )
+    point_scale: float = Field(1.0, gt=0, description="drawn particle radius as a multiple of the particle radius [-]")
+    background: Vec3 = Field([0.08, 0.09, 0.12], description="background colour, RGB [0-1]")
+    move_speed: float = Field(0.02, gt=0, description="WASD/QE camera speed per frame, as a fraction of the domain size [-]")
 
 
 # --------------------------------------------------------------------------- render

@@ -201,3 +201,21 @@ def foam(
 
     return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
                        show_progress=show_progress)
+
+
+# ============================================================================ view
+def view(
+    target: str | Path,
+    headless: bool = False,
+    frames: int | None = None,
+    out: str | Path | None = None,
+    mp4: bool = False,
+    up: str = "z",
+    arch: str = "cpu",
+    show_progress: bool = True,
+) -> list[Path]:
+    """Live viewer of a scene, playback of a run or sequence, or headless PNGs."""
+    from .view import run_view
+
+    return run_view(target, headless=headless, frames=frames, out=out, mp4=mp4, arch=arch, up=up,
+                    show_progress=show_progress)
