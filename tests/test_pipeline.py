@@ -69,7 +69,7 @@ def test_run_all_stages_with_interrupt_and_resume(tmp_path, monkeypatch, capsys)
     info = RunInfo.load(out)
     assert [f["index"] for f in info.frames] == [0, 1, 2, 3]
     for f in info.frames:
-        assert {"fluid", "mesh", "render"} <= set(f["files"])
+        assert {"fluid", "diffuse", "mesh", "render"} <= set(f["files"])
         fluid = PlyData.read(str(out / f["files"]["fluid"]))["vertex"].data
         assert fluid.dtype.names[:6] == ("x", "y", "z", "vx", "vy", "vz")
         assert fluid["id"].dtype == np.uint32 and fluid["density"].dtype == np.float32

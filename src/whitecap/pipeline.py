@@ -6,6 +6,7 @@ whole scene-to-movie run); stages themselves never import it.
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 from . import timing
@@ -39,10 +40,8 @@ def simulate(
     out = Path(out) if out is not None else default_out(sc)
     hooks = []
     if foam and sc.foam.enabled:
-        from . import foam as foam_stage
-
-        if hasattr(foam_stage, "simulation_hook"):
-            hooks.append(foam_stage.simulation_hook(sc))
+        foam_stage = importlib.import_module(".foam", __package__)  # the subpackage, not the API function
+        hooks.append(foam_stage.simulation_hook(sc))
     timing.reset()
     info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
                           show_progress=show_progress)

@@ -208,3 +208,14 @@ def postprocess(
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
     return info
+
+
+class _CallableModule(type(__import__("sys"))):
+    """``whitecap.foam(...)`` post-processes, like the other stage functions of the
+    API, even after this subpackage has been imported under the same name."""
+
+    def __call__(self, *args, **kwargs):
+        return postprocess(*args, **kwargs)
+
+
+__import__("sys").modules[__name__].__class__ = _CallableModule

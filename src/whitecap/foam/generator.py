@@ -26,6 +26,7 @@ from ..io import ParticleFrame
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
+from ..timing import timer
 from . import kernels as K
 from .params import FoamParams
 
@@ -94,7 +95,7 @@ class FoamGenerator:
         self.state = DiffuseState.empty()
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
-        self._tau = None
+        self._slots = None
 
     # ------------------------------------------------------------------ thresholds
     def thresholds(self) -> np.ndarray:
@@ -133,37 +134,62 @@ class FoamGenerator:
             self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), max(n, 1), 96, self.h)
         return self.grid
 
-    def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
-        p, st = self.p, self.state
-        if fluid.velocities is None:
-            raise ValueError(f"{fluid.source}: fluid frame has no velocities")
-        n = len(fluid)
+    def _prepare(self, fluid: ParticleFrame, n: int):
         fx = _nd(fluid.positions, ti.f32, vec=True)
         fv = _nd(fluid.velocities, ti.f32, vec=True)
         fid = _nd(fluid.ids.astype(np.uint32), ti.u32)
-        grid = self._fluid_grid(n)
-        grid.build(fx, n)
-        g = grid
-        args = (g.start, g.order, g._lower, 1.0 / g.spec.cell, g._dims, g.reach, self.h)
-        lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
+        g = self._fluid_grid(n)
+        g.build(fx, n)
+        return fx, fv, fid, (g.x_sorted, fv, g.start, g.order, g._lower, 1.0 / g.spec.cell, g._dims, g.reach, self.h)
 
-        # (1) advect the existing diffuse particles by type
+    def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
+        st = self.state
+        if fluid.velocities is None:
+            raise ValueError(f"{fluid.source}: fluid frame has no velocities")
+        n = len(fluid)
+        with timer("foam.neighbours"):
+            fx, fv, fid, args = self._prepare(fluid, n)
+        with timer("foam.advect"):
+            old = self._advect(fx, fv, args, dt)
+        with timer("foam.generate"):
+            new = self._generate(fluid, fx, fv, fid, n, index, dt)
+        with timer("foam.compact"):
+            self._compact(old, new, index)
+        with timer("foam.classify"):
+            kind = self._classify(fx, fv, args)
         nd = len(st.positions)
-        if nd:
-            xd, vd = _nd(st.positions, ti.f32, True), _nd(st.velocities, ti.f32, True)
-            life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
-            K.advect_diffuse(
-                nd, xd, vd, life, fx, fv, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above,
-                lo, hi, keep,
-            )
-            k = keep.to_numpy()[:nd].astype(bool)
-            old = (xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], life.to_numpy()[:nd][k], st.ids[k])
-        else:
-            old = (st.positions, st.velocities, st.lifetime, st.ids)
+        c = [int((kind == t).sum()) for t in range(3)]
+        time_ = fluid.time if fluid.time is not None else index * dt
+        st.counts.append((index, time_, *c))
+        return ParticleFrame(
+            positions=st.positions, velocities=st.velocities, ids=st.ids, time=time_,
+            arrays={"type": kind, "lifetime": st.lifetime, "radius": np.full(nd, self.p.radius * self.r, np.float32)},
+        )
 
-        # (2) potentials and generation, in parallel per fluid particle into fixed slots
-        normal, surface = ti.Vector.ndarray(3, ti.f32, max(n, 1)), ti.ndarray(ti.i32, max(n, 1))
-        v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, max(n, 1)) for _ in range(4))
+    def _advect(self, fx, fv, args, dt):
+        """(1) classify the existing diffuse particles by their fluid neighbours and advect by type."""
+        p, st = self.p, self.state
+        nd = len(st.positions)
+        self._old_kind = np.zeros(0, np.uint8)
+        if not nd:
+            return st.positions, st.velocities, st.lifetime, st.ids
+        lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
+        xd, vd = _nd(st.positions, ti.f32, True), _nd(st.velocities, ti.f32, True)
+        life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
+        kind = ti.ndarray(ti.i32, nd)
+        K.advect_diffuse(
+            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind
+        )
+        k = keep.to_numpy()[:nd].astype(bool)
+        self._old_kind = kind.to_numpy()[:nd][k].astype(np.uint8)
+        return xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], life.to_numpy()[:nd][k], st.ids[k]
+
+    def _generate(self, fluid, fx, fv, fid, n, index, dt):
+        """(2) potentials and generation, in parallel per fluid particle into its own fixed slots."""
+        p, st, g = self.p, self.state, self.grid
+        m = max(n, 1)
+        normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
+        v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
         K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
         K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
         if p.auto and st.tau is None:
@@ -171,24 +197,34 @@ class FoamGenerator:
             self._auto_thresholds(pots, np.linalg.norm(fluid.velocities, axis=1), index)
         tau = _nd(self.thresholds(), ti.f32)
         S = p.slots_per_particle
-        ox, ov = ti.Vector.ndarray(3, ti.f32, max(n * S, 1)), ti.Vector.ndarray(3, ti.f32, max(n * S, 1))
-        ol, cnt = ti.ndarray(ti.f32, max(n * S, 1)), ti.ndarray(ti.i32, max(n, 1))
+        if self._slots is None or self._slots[0] < n * S:
+            cap = max(n * S, 1)
+            self._slots = (cap, ti.Vector.ndarray(3, ti.f32, cap), ti.Vector.ndarray(3, ti.f32, cap), ti.ndarray(ti.f32, cap))
+        _, ox, ov, ol = self._slots
+        cnt = ti.ndarray(ti.i32, m)
         lost = K.generate(
             n, fx, fv, fid, v_diff, crest, e_k, vort, tau, p.k_ta, p.k_wc, p.k_vo, p.lifetime_min, p.lifetime_max,
             p.lifetime_multiplier, self.r, dt, self.seed, index & 0xFFFFFFFF, S, ox, ov, ol, cnt,
         )
-        # (3) compaction: slot k of particle i is valid when k < count[i]; row-major order is fixed.
+        # Slot s of particle i is valid when s < count[i]; only particles that generated are read back.
         counts = cnt.to_numpy()[:n]
-        valid = (np.arange(S)[None, :] < counts[:, None]).ravel()
-        new_x = ox.to_numpy()[: n * S][valid]
-        new_v = ov.to_numpy()[: n * S][valid]
-        new_l = ol.to_numpy()[: n * S][valid]
+        if not counts.any():
+            z = np.zeros((0, 3), np.float32)
+            return z, z, np.zeros(0, np.float32), int(lost)
+        rows = np.flatnonzero(counts)
+        idx = (rows[:, None] * S + np.arange(S)[None, :])[np.arange(S)[None, :] < counts[rows, None]]
+        return ox.to_numpy()[idx], ov.to_numpy()[idx], ol.to_numpy()[idx], int(lost)
+
+    def _compact(self, old, new, index) -> None:
+        """(3) survivors first, then the new particles in slot order: a fixed order, no global counter."""
+        p, st = self.p, self.state
+        new_x, new_v, new_l, lost = new
         room = p.max_particles - len(old[0])
         if len(new_x) > room or lost:
             if not self._warned_capacity:
                 console.print(
                     f"[yellow]warning:[/] foam capacity saturated at frame {index}: {len(new_x) + lost:,} new particles "
-                    f"wanted, {lost:,} beyond foam.slots_per_particle={S} per fluid particle, "
+                    f"wanted, {lost:,} beyond foam.slots_per_particle={p.slots_per_particle} per fluid particle, "
                     f"{max(len(new_x) - max(room, 0), 0):,} beyond foam.max_particles={p.max_particles:,} "
                     f"({len(old[0]):,} alive); the excess is dropped (raise these to keep it). Said once per run."
                 )
@@ -202,20 +238,17 @@ class FoamGenerator:
         st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
         st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
 
-        # (4) classify for output
-        nd = len(st.positions)
-        kind = np.zeros(0, np.uint8)
-        if nd:
-            kd = ti.ndarray(ti.i32, nd)
-            K.classify(nd, _nd(st.positions, ti.f32, True), fx, fv, *args, p.spray_below, p.bubble_above, kd)
-            kind = kd.to_numpy()[:nd].astype(np.uint8)
-        c = [int((kind == t).sum()) for t in range(3)]
-        time = fluid.time if fluid.time is not None else index * dt
-        st.counts.append((index, time, *c))
-        return ParticleFrame(
-            positions=st.positions, velocities=st.velocities, ids=st.ids, time=time,
-            arrays={"type": kind, "lifetime": st.lifetime, "radius": np.full(nd, p.radius * self.r, np.float32)},
-        )
+    def _classify(self, fx, fv, args) -> np.ndarray:
+        """(4) spray / foam / bubble for output: survivors keep the type they moved as
+        this frame; new particles are classified by their fluid neighbours."""
+        st, p = self.state, self.p
+        n_old = len(self._old_kind)
+        new = st.positions[n_old:]
+        if not len(new):
+            return self._old_kind
+        kd = ti.ndarray(ti.i32, len(new))
+        K.classify(len(new), _nd(new, ti.f32, True), *args, p.spray_below, p.bubble_above, kd)
+        return np.concatenate([self._old_kind, kd.to_numpy()[: len(new)].astype(np.uint8)])
 
     def with_params(self, **kw) -> None:
         self.p = replace(self.p, **kw)

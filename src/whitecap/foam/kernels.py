@@ -192,24 +192,28 @@ def generate(
 
 @ti.func
 def fluid_neighbourhood(
-    p: vec3, fx: F3, fv: F3, start: I1, order: I1, lower: vec3, inv_cell: ti.f32, dims: ivec3, reach: ti.i32, h: ti.f32
+    p: vec3, xs: F3, fv: F3, start: I1, order: I1, lower: vec3, inv_cell: ti.f32, dims: ivec3, reach: ti.i32, h: ti.f32
 ):
-    """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point."""
+    """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point. Reads the
+    cell-sorted positions ``xs``; the cells along z of each (x, y) column are
+    one contiguous run of the sorted order."""
     c = cell_of(p, lower, inv_cell, dims)
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
-        q = c + ivec3(dx, dy, dz)
-        if 0 <= q.x < dims.x and 0 <= q.y < dims.y and 0 <= q.z < dims.z:
-            ci = cell_index(q, dims)
-            for s in range(start[ci], start[ci + 1]):
-                j = order[s]
-                r = (fx[j] - p).norm()
+    z0 = ti.max(c.z - reach, 0)
+    z1 = ti.min(c.z + reach, dims.z - 1)
+    for dx, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+        qx, qy = c.x + dx, c.y + dy
+        if 0 <= qx < dims.x and 0 <= qy < dims.y:
+            first = start[cell_index(ivec3(qx, qy, z0), dims)]
+            last = start[cell_index(ivec3(qx, qy, z1), dims) + 1]
+            for s in range(first, last):
+                r = (xs[s] - p).norm()
                 if r < h:
                     wt = 1.0 - r / h
                     cnt += 1
-                    vsum += wt * fv[j]
+                    vsum += wt * fv[order[s]]
                     wsum += wt
     return cnt, vsum, wsum
 
@@ -220,7 +224,7 @@ def advect_diffuse(
     xd: F3,
     vd: F3,
     life: F1,
-    fx: F3,
+    xs: F3,
     fv: F3,
     start: I1,
     order: I1,
@@ -238,22 +242,26 @@ def advect_diffuse(
     lo: vec3,
     hi: vec3,
     keep: I1,
+    kind: I1,
 ):
     """Classify by fluid-neighbour count and advect each type its own way:
     spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
     velocity ṽ_f, its lifetime counting down; bubbles
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
-    that leave the domain."""
+    that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], fx, fv, start, order, lower, inv_cell, dims, reach, h)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], xs, fv, start, order, lower, inv_cell, dims, reach, h)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
         alive = 1
+        t = 1
         if cnt < spray_below:
+            t = 0
             vd[p] += dt * g
             xd[p] += dt * vd[p]
         elif cnt > bubble_above:
+            t = 2
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:
@@ -266,13 +274,14 @@ def advect_diffuse(
         if q.x < lo.x or q.y < lo.y or q.z < lo.z or q.x > hi.x or q.y > hi.y or q.z > hi.z:
             alive = 0
         keep[p] = alive
+        kind[p] = t
 
 
 @ti.kernel
 def classify(
     nd: ti.i32,
     xd: F3,
-    fx: F3,
+    xs: F3,
     fv: F3,
     start: I1,
     order: I1,
@@ -287,7 +296,7 @@ def classify(
 ):
     """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], fx, fv, start, order, lower, inv_cell, dims, reach, h)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], xs, fv, start, order, lower, inv_cell, dims, reach, h)
         t = 1
         if cnt < spray_below:
             t = 0
