@@ -114,3 +114,15 @@ def run(
             r = render(out, quality="preview" if preview else "final", show_progress=show_progress)
             result.update(r if isinstance(r, dict) else {})
     return result
+
+
+def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
+         mp4: bool = False, arch: str = "cpu", **opts):
+    """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
+
+    ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
+    returns the PNG paths. See :mod:`whitecap.view`.
+    """
+    from .view import view as _view
+
+    return _view(target, headless=headless, out=out, frames=frames, mp4=mp4, arch=arch, **opts)
