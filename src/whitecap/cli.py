@@ -86,6 +86,7 @@ def _add_view(sub) -> None:
     p.add_argument("--color", choices=["speed", "density"], help="colour fluid by speed or density")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
     p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
+    p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a sequence's files (default z)")
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for live simulation")
     p.set_defaults(func=_cmd_view)
@@ -100,6 +101,7 @@ def _cmd_view(a) -> int:
         paths = pipeline.view(
             a.target, headless=True, out=a.out, frames=a.frames, mp4=a.mp4, arch=a.arch,
             size=tuple(a.size) if a.size else None, color_mode=a.color, up=a.up, panel=a.panel,
+            legend=not a.no_legend,
         )
         print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if a.mp4 else ""))
         return 0

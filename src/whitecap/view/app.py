@@ -214,7 +214,7 @@ def _new_state(cfg: View, source) -> ViewerState:
 def run_headless(
     target, out: str | Path, frames: int | None = None, mp4: bool = False, arch: str = "cpu",
     size: tuple[int, int] | None = None, color_mode: str | None = None, up: str = "z",
-    panel: bool = False, show_progress: bool = True,
+    panel: bool = False, legend: bool = True, show_progress: bool = True,
 ) -> list[Path]:
     """Render frames offscreen to OUT/view_NNNNN.png (and OUT/view.mp4). Returns the PNG paths.
 
@@ -248,9 +248,22 @@ def run_headless(
         fr = _current(source, state)
         state.sim_time, state.counts = fr.time, fr.counts()
         rend.draw_scene(state, fr)
-        rend.draw_legend(state)
+        if legend:
+            rend.draw_legend(state)
         if panel:
             draw_panel(rend.gui, state, source, scene)
+        if k == 0 and (legend or panel):
+            # ImGui lays its windows out on the frame after they are first declared:
+            # draw the first frame once unsaved so the saved one has the legend and panel.
+            # (window.show() crashes without a visible window; save_image ends the frame instead.)
+            warm = out / ".view_warmup.png"
+            window.save_image(str(warm))
+            warm.unlink(missing_ok=True)
+            rend.draw_scene(state, fr)
+            if legend:
+                rend.draw_legend(state)
+            if panel:
+                draw_panel(rend.gui, state, source, scene)
         path = out / f"view_{k:05d}.png"
         with atomic_path(path) as tmp:
             window.save_image(str(tmp))

@@ -17,7 +17,7 @@ Z_NEAR = 0.01  # camera near plane [m]
 Z_FAR = 1000.0  # camera far plane [m]
 LEGEND_BAR = (0.02, 0.06, 0.22, 0.09)  # colour bar x0, y0, x1, y1 in canvas fractions (y down)
 LEGEND_STEPS = 32  # quads in the colour bar
-LEGEND_BOX = (0.32, 0.1)  # range text box width, height [window fractions]
+LEGEND_BOX_PX = (250, 60)  # range text box width, height [px]
 GRAVITY = 9.81  # |g| for the default speed range [m/s²]
 
 HELP = [
@@ -110,10 +110,6 @@ class Renderer:
         self.camera.fov(cam.fov)
         self.scene.set_camera(self.camera)
 
-    def view_projection(self) -> np.ndarray:
-        """Row-vector 4x4 matrix p_clip = [x y z 1] @ V @ P, as GGUI uses it."""
-        w, h = self.window.get_window_shape()
-        return np.asarray(self.camera.get_view_matrix()) @ np.asarray(self.camera.get_projection_matrix(w / h))
 
     # --------------------------------------------------------------- drawing
     def color_range(self, state: ViewerState, frame: Frame) -> tuple[float, float]:
@@ -161,10 +157,31 @@ class Renderer:
         lo, hi = state.color_range
         unit = "m/s" if state.color_mode == "speed" else "kg/m^3"
         x0, y0, x1, y1 = LEGEND_BAR
-        with self.gui.sub_window("legend", x0, y1 + 0.005, *LEGEND_BOX) as g:
+        w, h = self.window.get_window_shape()
+        bw, bh = min(LEGEND_BOX_PX[0] / w, 0.9), min(LEGEND_BOX_PX[1] / h, 0.5)
+        with self.gui.sub_window("legend", x0, y1 + 0.005, bw, bh) as g:
             g.text(f"{state.color_mode} [{unit}]: {lo:.3g} .. {hi:.3g}")
 
     def draw_help(self) -> None:
         with self.gui.sub_window("help", 0.3, 0.3, 0.4, 0.3) as g:
             for line in HELP:
                 g.text(line)
+
+
+def camera_matrix(cam, aspect: float) -> np.ndarray:
+    """Row-vector 4x4 matrix with p_clip = [x y z 1] @ M, from GGUI's own camera matrices."""
+    c = ti.ui.Camera()
+    c.up(0.0, 0.0, 1.0)
+    c.z_near(Z_NEAR)
+    c.z_far(Z_FAR)
+    c.position(*cam.eye)
+    c.lookat(*cam.target)
+    c.fov(cam.fov)
+    return np.asarray(c.get_view_matrix()) @ np.asarray(c.get_projection_matrix(aspect))
+
+
+def project(points: np.ndarray, cam, width: int, height: int) -> np.ndarray:
+    """Pixel coordinates (column, row from the top) of world points, as the viewer draws them."""
+    p = np.c_[np.asarray(points, float), np.ones(len(points))] @ camera_matrix(cam, width / height)
+    ndc = p[:, :2] / p[:, 3:4]
+    return np.c_[(ndc[:, 0] + 1) * 0.5 * width, (1 - ndc[:, 1]) * 0.5 * height]
