@@ -168,3 +168,91 @@ def test_orbit_camera_keeps_distance_and_target():
     cam.pan(0.1, 0.0)
     cam.zoom(0.5)
     assert cam.distance == pytest.approx(d / 2)
+
+
+def test_obstacle_mesh_is_drawn_where_it_projects(tiny_run, tmp_path):
+    import json
+
+    import trimesh
+
+    from whitecap.view.draw import project
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(run / "block.obj")
+    meta = json.loads((run / "run.json").read_text())
+    # A red cube, 45° about z, in the empty right part of the box; a missing mesh is skipped.
+    meta["obstacles"] = [
+        {"mesh": "block.obj", "translate": [0.45, 0.1, 0.1], "rotate": [0, 0, 45], "scale": 1.0, "color": [0.9, 0.1, 0.1]},
+        {"mesh": "missing.obj"},
+    ]
+    (run / "run.json").write_text(json.dumps(meta))
+    img = _img(_render(run, tmp_path / "png", "--frames", 1)[0])
+    c, r = np.round(project(np.array([[0.45, 0.1, 0.1]]), _camera(run), W, H)[0]).astype(int)
+    red = (img[..., 0] > img[..., 1] + 40) & (img[..., 0] > img[..., 2] + 40)
+    assert red[r - 2:r + 3, c - 2:c + 3].all()
+    assert not red[:, : W // 3].any()  # nothing red over the fluid column on the left
+
+
+class _FakeWindow:
+    """Stands in for a GGUI window: scripted key presses, held keys and cursor."""
+
+    def __init__(self, presses=(), held=(), cursor=(0.3, 0.5)):
+        self.presses, self.held, self.cursor = list(presses), set(held), cursor
+
+    def get_events(self, tag=None):
+        ev = [type("E", (), {"key": k}) for k in self.presses]
+        self.presses = []
+        return ev
+
+    def is_pressed(self, *keys):
+        return any(k in self.held for k in keys)
+
+    def get_cursor_pos(self):
+        return self.cursor
+
+    def get_window_shape(self):
+        return (W, H)
+
+
+def test_keys_and_mouse_change_the_state():
+    import taichi as ti
+
+    from whitecap.view.app import Input
+    from whitecap.view.state import OrbitCamera, ViewerState
+
+    st = ViewerState(camera=OrbitCamera.looking([2.0, -1.0, 1.0], [0.5, 0.5, 0.2], 45.0))
+    win = _FakeWindow(presses=[ti.ui.SPACE, "1", "3", "v", "h", "p", "c"])
+    inp = Input(win, move_speed=1.0, extent=1.0)
+    inp.poll(st)
+    assert st.paused and not st.visible.fluid and st.visible.diffuse and not st.visible.obstacles
+    assert st.recording and st.show_help and st.screenshot and st.color_mode == "density"
+    win.presses = ["n", "r"]
+    inp.poll(st)
+    assert st.step_once and st.reset
+    # Left drag orbits around the target: the eye moves, the distance stays.
+    eye0, d0, tgt0 = st.camera.eye.copy(), st.camera.distance, st.camera.target.copy()
+    win.held, win.cursor = {ti.ui.LMB}, (0.4, 0.5)
+    inp.poll(st)
+    assert np.linalg.norm(st.camera.eye - eye0) > 1e-3 and st.camera.distance == pytest.approx(d0)
+    np.testing.assert_allclose(st.camera.target, tgt0)
+    # W moves the camera forward, towards the target.
+    win.held = {"w"}
+    eye1 = st.camera.eye.copy()
+    inp.last_t -= 0.05
+    inp.poll(st)
+    f = tgt0 - eye1
+    assert np.dot(st.camera.eye - eye1, f) > 0
+
+
+def test_live_scene_simulates_while_rendering(tmp_path):
+    from tests.conftest import tiny_scene_dict
+    from whitecap.config import scene_from_dict
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(scene_from_dict(tiny_scene_dict()).to_toml())
+    pngs = _render(scene, tmp_path / "png", "--frames", 4)
+    assert len(pngs) == 4
+    # Frame 0 is the resting column; by frame 3 the front has run to the right.
+    right = [np.nonzero(_saturated(_img(p)).any(0))[0].max() for p in (pngs[0], pngs[-1])]
+    assert right[1] > right[0] + 3

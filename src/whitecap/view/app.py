@@ -19,7 +19,14 @@ from .sources import LiveSource, PlaybackSource
 from .state import OrbitCamera, ViewerState
 from .vulkan import INSTALL_HINT, require_vulkan
 
-PANEL = (0.74, 0.0, 0.26, 1.0)  # side panel x, y, width, height in window fractions
+PANEL_PX = 330  # side panel width [px]; it sits on the right edge, full height
+
+
+def panel_rect(window) -> tuple[float, float, float, float]:
+    """Side panel x, y, width, height in window fractions."""
+    w, _ = window.get_window_shape()
+    f = min(PANEL_PX / w, 0.5)
+    return (1.0 - f, 0.0, f, 1.0)
 ORBIT_RATE = 4.0  # radians per window width of mouse drag
 ZOOM_RATE = 3.0  # e-folds of distance per window height of middle drag
 KEY_ZOOM = 1.03  # distance factor per frame with z / x held
@@ -122,7 +129,7 @@ class Input:
         if w.is_pressed("x"):
             cam.zoom(KEY_ZOOM)
         x, y = w.get_cursor_pos()
-        if self.last_cursor is not None and x < PANEL[0]:
+        if self.last_cursor is not None and x < panel_rect(w)[0]:
             dx, dy = x - self.last_cursor[0], y - self.last_cursor[1]
             if w.is_pressed(ti.ui.LMB):
                 cam.orbit(-dx * ORBIT_RATE, -dy * ORBIT_RATE)
@@ -134,9 +141,9 @@ class Input:
 
 
 # ----------------------------------------------------------------------------- panel
-def draw_panel(gui, state: ViewerState, source, scene: Scene | None) -> None:
+def draw_panel(window, state: ViewerState, source, scene: Scene | None) -> None:
     """The side panel: statistics, live parameter sliders, playback controls."""
-    with gui.sub_window("whitecap", *PANEL) as g:
+    with window.get_gui().sub_window("whitecap", *panel_rect(window)) as g:
         g.text(f"frame {source.frame(state.frame).index if not source.live else state.frame}"
                f"   t = {state.sim_time:.3f} s")
         g.text(f"{state.fps:5.1f} fps" + (f"   {state.steps_per_s:6.1f} steps/s" if source.live else ""))
@@ -251,7 +258,7 @@ def run_headless(
         if legend:
             rend.draw_legend(state)
         if panel:
-            draw_panel(rend.gui, state, source, scene)
+            draw_panel(window, state, source, scene)
         if k == 0 and (legend or panel):
             # ImGui lays its windows out on the frame after they are first declared:
             # draw the first frame once unsaved so the saved one has the legend and panel.
@@ -263,7 +270,7 @@ def run_headless(
             if legend:
                 rend.draw_legend(state)
             if panel:
-                draw_panel(rend.gui, state, source, scene)
+                draw_panel(window, state, source, scene)
         path = out / f"view_{k:05d}.png"
         with atomic_path(path) as tmp:
             window.save_image(str(tmp))
@@ -313,7 +320,7 @@ def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = 
         state.sim_time, state.counts = fr.time, fr.counts()
         rend.draw_scene(state, fr)
         rend.draw_legend(state)
-        draw_panel(rend.gui, state, source, scene)
+        draw_panel(window, state, source, scene)
         if state.show_help:
             rend.draw_help()
         now = time.perf_counter()
