@@ -256,3 +256,52 @@ def test_live_scene_simulates_while_rendering(tmp_path):
     # Frame 0 is the resting column; by frame 3 the front has run to the right.
     right = [np.nonzero(_saturated(_img(p)).any(0))[0].max() for p in (pngs[0], pngs[-1])]
     assert right[1] > right[0] + 3
+
+
+class _FakeGui:
+    """Records panel widgets; sliders return a scripted new value."""
+
+    def __init__(self, new_values):
+        self.new_values, self.texts = new_values, []
+
+    def sub_window(self, *a):
+        import contextlib
+
+        return contextlib.nullcontext(self)
+
+    def text(self, t, color=None):
+        self.texts.append(t)
+
+    def slider_int(self, label, v, lo, hi):
+        return self.new_values.get(label, v)
+
+    slider_float = slider_int
+
+    def checkbox(self, label, v):
+        return self.new_values.get(label, v)
+
+    def button(self, label):
+        return self.new_values.get(label, False)
+
+
+def test_panel_sliders_change_the_live_solver_parameters():
+    from tests.conftest import tiny_scene_dict
+    from whitecap.config import scene_from_dict
+    from whitecap.view.app import draw_panel
+    from whitecap.view.state import OrbitCamera, ViewerState
+
+    scene = scene_from_dict(tiny_scene_dict())
+    live = type("Live", (), {"live": True, "scene": scene, "__len__": lambda self: 1})()
+    gui = _FakeGui({"iterations": 9, "XSPH c": 0.2, "vorticity eps": 0.0, "colour by density": True})
+    win = _FakeWindow()
+    win.get_gui = lambda: gui
+    st = ViewerState(camera=OrbitCamera.looking([2, -1, 1], [0, 0, 0], 45.0), counts={"fluid": 5, "spray": 2})
+    draw_panel(win, st, live, scene)
+    assert (scene.solver.iterations, scene.solver.xsph_c, scene.solver.vorticity_epsilon) == (9, 0.2, 0.0)
+    assert st.color_mode == "density" and "spray: 2" in gui.texts
+    # Playback controls: the frame slider moves the frame, loop can be turned off.
+    play = type("Play", (), {"live": False, "__len__": lambda self: 4,
+                             "frame": lambda self, k: type("F", (), {"index": k})()})()
+    gui.new_values = {"frame": 3, "loop": False}
+    draw_panel(win, st, play, None)
+    assert st.frame == 3 and not st.loop
