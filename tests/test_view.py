@@ -128,6 +128,13 @@ def test_missing_sequence_is_one_line_error(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_window_without_display_says_use_headless(tiny_run):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    r = subprocess.run([sys.executable, "-m", "whitecap.cli", "view", str(tiny_run)], capture_output=True, text=True,
+                       env={**env, "PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}, timeout=60)
+    assert r.returncode != 0 and "--headless" in r.stderr.strip().splitlines()[-1]
+
+
 def test_no_vulkan_names_the_packages(tiny_run, tmp_path):
     r = _cli(tiny_run, "--headless", "--out", tmp_path, env_extra={"WHITECAP_FAKE_NO_VULKAN": "1"})
     assert r.returncode != 0

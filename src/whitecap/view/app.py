@@ -6,6 +6,8 @@ Input handling lives here (keys and mouse change the :class:`ViewerState`);
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -68,6 +70,9 @@ def initial_camera(cfg: View, bounds) -> OrbitCamera:
 def make_window(res: tuple[int, int], headless: bool, fps_limit: int = 60):
     """A GGUI window; a clear one-line error when Vulkan is missing."""
     require_vulkan()
+    if not headless and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        # GLFW would print "cannot initialize GLFW" and exit the process.
+        raise WhitecapError("view: no display for a window (DISPLAY is unset); use --headless --out DIR for PNGs")
     import taichi as ti
 
     from ..sim import runtime
