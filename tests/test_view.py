@@ -312,3 +312,32 @@ def test_panel_sliders_change_the_live_solver_parameters():
     gui.new_values = {"frame": 3, "loop": False}
     draw_panel(win, st, play, None)
     assert st.frame == 3 and not st.loop
+
+
+LOOP_SCRIPT = """
+import sys
+from whitecap.view.app import make_window, run_interactive
+win = make_window((320, 240), headless=True)
+# Offscreen windows have no input or show(): stand-ins for an idle user.
+win.show = lambda: win.save_image(sys.argv[2] + "/shown.png")
+win.get_events = lambda tag=None: []
+win.is_pressed = lambda *keys: False
+win.get_cursor_pos = lambda: (0.5, 0.5)
+st = run_interactive(sys.argv[1], out=sys.argv[2], max_frames=3, window=win, recording=True)
+print(st.frame, st.record_index, st.counts["fluid"], st.steps_per_s > 0)
+"""
+
+
+def test_interactive_loop_simulates_and_records(tmp_path):
+    from tests.conftest import tiny_scene_dict
+    from whitecap.config import scene_from_dict
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(scene_from_dict(tiny_scene_dict()).to_toml())
+    env = {**os.environ, "PYTHONPATH": f"{SRC}{os.pathsep}{Path(__file__).parents[1]}"}
+    r = subprocess.run([sys.executable, "-c", LOOP_SCRIPT, str(scene), str(tmp_path)], capture_output=True,
+                       text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    frame, recorded, nfluid, stepping = r.stdout.split()[-4:]
+    assert (int(frame), int(recorded), stepping) == (3, 3, "True") and int(nfluid) > 1000
+    assert len(list(tmp_path.glob("record_*.png"))) == 3

@@ -308,17 +308,25 @@ def encode_mp4(pngs: list[Path], path: Path, fps: float = 30.0) -> Path:
     return path
 
 
-def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = "view_out") -> None:
-    """Open a window and show the scene (live) or the sequence (playback) until closed."""
+def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = "view_out",
+                    max_frames: int | None = None, window=None, recording: bool = False) -> ViewerState:
+    """Open a window and show the scene (live) or the sequence (playback) until closed.
+
+    ``max_frames``, ``window`` and ``recording`` let tests drive the loop with an offscreen window.
+    Returns the final viewer state.
+    """
     source, cfg = open_source(target, arch, up)
-    window = make_window(tuple(cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
+    window = window or make_window(tuple(cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
     rend = _renderer(window, source, cfg)
     state = _new_state(cfg, source)
+    state.recording = recording
     inp = Input(window, cfg.move_speed, rend.extent)
     scene = source.scene if source.live else None
     out = Path(out)
     t_last = time.perf_counter()
-    while window.running and not state.quit:
+    drawn = 0
+    while window.running and not state.quit and (max_frames is None or drawn < max_frames):
+        drawn += 1
         inp.poll(state)
         _advance(state, source)
         fr = _current(source, state)
@@ -343,6 +351,7 @@ def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = 
             window.save_image(str(name))
         else:
             window.show()
+    return state
 
 
 def counts_text(counts: dict[str, int]) -> str:
