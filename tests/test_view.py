@@ -341,3 +341,34 @@ def test_interactive_loop_simulates_and_records(tmp_path):
     frame, recorded, nfluid, stepping = r.stdout.split()[-4:]
     assert (int(frame), int(recorded), stepping) == (3, 3, "True") and int(nfluid) > 1000
     assert len(list(tmp_path.glob("record_*.png"))) == 3
+
+
+def test_playback_steps_loops_and_pauses():
+    from whitecap.view.app import _advance
+    from whitecap.view.state import OrbitCamera, ViewerState
+
+    src = type("Play", (), {"live": False, "info": type("I", (), {"frame_rate": 1e9})(), "__len__": lambda self: 3})()
+    st = ViewerState(camera=OrbitCamera.looking([2, -1, 1], [0, 0, 0], 45.0))
+    seen = []
+    for _ in range(4):
+        _advance(st, src)
+        seen.append(st.frame)
+    assert seen == [1, 2, 0, 1]  # loops
+    st.loop, st.frame = False, 2
+    _advance(st, src)
+    assert st.frame == 2  # holds the last frame
+    st.paused, st.frame = True, 0
+    _advance(st, src)
+    assert st.frame == 0
+    st.step_once = True
+    _advance(st, src)
+    assert st.frame == 1 and st.paused and not st.step_once
+    st.reset = True
+    _advance(st, src)
+    assert st.frame == 0
+    # At a real frame rate, playback waits for the frame's time to pass.
+    src.info.frame_rate = 1e-3
+    st.paused, st.last_advance = False, 0.0
+    _advance(st, src)
+    _advance(st, src)
+    assert st.frame == 1

@@ -190,13 +190,20 @@ def _advance(state: ViewerState, source) -> None:
         return
     if state.paused and not state.step_once:
         return
-    state.step_once = False
+    if state.step_once:
+        state.step_once = False
+        state.last_advance = 0.0  # a single step is never held back by the pacing
     if source.live:
         t0 = time.perf_counter()
         nsub = source.advance()
         state.steps_per_s = nsub / max(time.perf_counter() - t0, 1e-9)
         state.frame = source.index
     else:
+        # Play at the run's frame rate, not the window's.
+        now = time.perf_counter()
+        if now - state.last_advance < 1.0 / _fps(source):
+            return
+        state.last_advance = now
         nxt = state.frame + 1
         if nxt >= len(source):
             nxt = 0 if state.loop else len(source) - 1
@@ -236,6 +243,8 @@ def run_headless(
     from ..io.atomic import atomic_path
     from ..progress import progress
 
+    if frames is not None and int(frames) < 1:
+        raise InputError(f"view --frames: expected at least 1, got {frames}")
     require_vulkan()
     source, cfg = open_source(target, arch, up)
     if color_mode:
