@@ -34,6 +34,7 @@ def load_obstacle_meshes(entries: list[dict], base: Path) -> list[tuple[np.ndarr
     out = []
     for e in entries:
         path = Path(e.get("render_mesh") or e["mesh"])
+        # The scene directory first; for runs that did not record it, the run dir, its parent and the cwd.
         cands = [path] if path.is_absolute() else [base / path, base.parent / path, Path.cwd() / path]
         found = next((c for c in cands if c.is_file()), None)
         if found is None:

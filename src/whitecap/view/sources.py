@@ -176,7 +176,9 @@ class PlaybackSource:
         return list(self.info.obstacles) if self.info else []
 
     def obstacle_base(self) -> Path:
-        return self.path
+        """Where relative obstacle mesh paths start: the scene's directory when the run recorded it."""
+        scene_dir = (self.info.extra.get("scene_dir") if self.info else None) or self.path
+        return Path(scene_dir)
 
 
 # ----------------------------------------------------------------------------- live
