@@ -4,7 +4,7 @@
 PYTHON ?= python3.11
 VENV   ?= .venv
 PY      = $(VENV)/bin/python
-DEMO_OUT ?= out/demo
+DEMO_OUT ?= out/bunny
 DEB_PACKAGES = mesa-vulkan-drivers libvulkan1 libgl1 libegl1 libxrender1 libxi6 libxkbcommon0 libsm6 libxxf86vm1 libxfixes3
 
 .PHONY: install deps demo test bench clean
@@ -30,7 +30,7 @@ deps:
 install: $(VENV)/.installed
 
 demo: install
-	$(VENV)/bin/whitecap simulate scenes/dam_break.toml --out $(DEMO_OUT) --force
+	$(VENV)/bin/whitecap run scenes/bunny.toml --out $(DEMO_OUT) --preview
 
 test: install
 	$(PY) -m pytest -q tests

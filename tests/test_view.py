@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 def _cli(*args, env_extra=None) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "whitecap.cli", "view", *map(str, args)],
-                          capture_output=True, text=True, env=env, timeout=120)
+                          capture_output=True, text=True, env=env, timeout=120,
+                          cwd=tempfile.gettempdir())  # GGUI writes imgui.ini into the working directory
 
 
 def _render(target, out, *extra) -> list[Path]:
@@ -143,17 +145,35 @@ def test_no_vulkan_names_the_packages(tiny_run, tmp_path):
 
 
 # ------------------------------------------------------------------ pieces (no window)
-def test_numbered_sequence_in_numeric_order(tmp_path):
-    from whitecap.view.sources import find_sequence
+def test_numbered_sequence_plays_in_frame_order(tmp_path):
+    from whitecap.view.sources import PlaybackSource
 
     for i in (10, 2, 1):
         write(tmp_path / f"part_{i}.npz", ParticleFrame(np.zeros((2, 3)) + i))
-    (tmp_path / "notes.txt").write_text("x")
-    assert [p.name for p in find_sequence(tmp_path)] == ["part_1.npz", "part_2.npz", "part_10.npz"]
-    assert [p.name for p in find_sequence(tmp_path / "part_2.npz")][-1] == "part_10.npz"
+    src = PlaybackSource(tmp_path)
+    assert src.indices == [1, 2, 10] and len(src) == 3
+    assert src.frame(2).positions[0, 0] == 10.0
     (tmp_path / "empty").mkdir()
-    with pytest.raises(InputError, match="no numbered particle files"):
-        find_sequence(tmp_path / "empty")
+    with pytest.raises(InputError):
+        PlaybackSource(tmp_path / "empty")
+
+
+def test_dualsphysics_sequence_plays_back(tmp_path):
+    from whitecap.view.app import initial_camera
+    from whitecap.view.draw import project
+    from whitecap.view.sources import PlaybackSource
+
+    data = Path(__file__).parent / "data" / "dualsphysics"
+    pngs = _render(data, tmp_path)
+    assert len(pngs) == len(list(data.glob("PartFluid_*.vtk")))
+    src = PlaybackSource(data)
+    pts = src.frame(0).positions
+    lo, hi = pts.min(0), pts.max(0)
+    corners = np.array([[(hi if (k >> a) & 1 else lo)[a] for a in range(3)] for k in range(8)])
+    px = project(corners, initial_camera(View(), src.bounds), W, H)
+    (c0, r0), (c1, r1) = np.floor(px.min(0)).astype(int), np.ceil(px.max(0)).astype(int)
+    fluid = _saturated(_img(pngs[0]))
+    assert fluid[max(r0, 0):r1, max(c0, 0):c1].mean() > 0.2
 
 
 def test_obstacle_transform_rotates_x_then_y_then_z():
@@ -336,7 +356,7 @@ def test_interactive_loop_simulates_and_records(tmp_path):
     scene.write_text(scene_from_dict(tiny_scene_dict()).to_toml())
     env = {**os.environ, "PYTHONPATH": f"{SRC}{os.pathsep}{Path(__file__).parents[1]}"}
     r = subprocess.run([sys.executable, "-c", LOOP_SCRIPT, str(scene), str(tmp_path)], capture_output=True,
-                       text=True, env=env, timeout=120)
+                       text=True, env=env, timeout=120, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     frame, recorded, nfluid, stepping = r.stdout.split()[-4:]
     assert (int(frame), int(recorded), stepping) == (3, 3, "True") and int(nfluid) > 1000

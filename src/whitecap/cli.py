@@ -55,20 +55,118 @@ def _cmd_simulate(a) -> int:
 
 # ============================================================================ foam
 def _add_foam(sub) -> None:
-    p = sub.add_parser("foam", help="diffuse particles (spray, foam, bubbles) over any particle sequence")
-    p.set_defaults(func=_not_yet("foam"))
+    p = sub.add_parser(
+        "foam",
+        help="diffuse particles (spray, foam, bubbles) over any particle sequence",
+        description="Generate spray, foam and air bubbles (Ihmsen et al. 2012) for INPUT: a whitecap run "
+        "directory, a DualSPHysics PartVTK folder (its case XML is read when beside the files), "
+        "SPlisHSPlasH VTK output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
+        "diffuse/counts.csv.",
+    )
+    p.add_argument("input", help="run directory, sequence directory or glob ('frames/*.vtk')")
+    p.add_argument("--out", "-o", help="output run directory (default: the input run itself)")
+    p.add_argument("--preset", choices=["ihmsen2012", "dualsphysics", "splishsplash", "auto"], help="parameter preset")
+    p.add_argument("--params", help="DualSPHysics DiffuseCalculator .ini file with the parameters")
+    p.add_argument("--case", help="DualSPHysics case XML (spacing, mass, time step, domain)")
+    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input (y for Y-up solvers)")
+    p.add_argument("--dt", type=float, help="time between frames [s] when the input does not say")
+    p.add_argument("--radius", type=float, help="fluid particle radius [m] (half the spacing) when unknown")
+    p.add_argument("--seed", type=int, help="random seed (default: the run's)")
+    p.set_defaults(func=_cmd_foam)
+
+
+def _cmd_foam(a) -> int:
+    from . import pipeline
+
+    info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
+                         radius=a.radius, seed=a.seed)
+    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {a.out or a.input}")
+    return 0
 
 
 # ============================================================================ mesh
 def _add_mesh(sub) -> None:
-    p = sub.add_parser("mesh", help="reconstruct fluid surfaces with splashsurf")
-    p.set_defaults(func=_not_yet("mesh"))
+    p = sub.add_parser(
+        "mesh",
+        help="reconstruct fluid surfaces with splashsurf",
+        description="Reconstruct a surface per frame of a run directory (RUN/mesh/fluid_NNNNN.ply, recorded in "
+        "run.json) or of any particle sequence (a directory or a quoted glob of numbered files). Defaults come "
+        "from the run's particle radius and its [mesh] section; every value can be overridden here.",
+    )
+    p.add_argument("input", help="run directory, directory of numbered particle files, or a quoted glob")
+    p.add_argument("--out", "-o", help="mesh directory (default RUN/mesh, or <sequence dir>/mesh)")
+    p.add_argument("--radius", type=float, help="simulation particle radius r [m], half the spacing "
+                   "(default: the run's; required for plain sequences)")
+    p.add_argument("--config", help="scene TOML whose [mesh] section to use (default: the run's scene.toml)")
+    p.add_argument("--radius-factor", type=float, help="surface radius as a multiple of r (default 1.5)")
+    p.add_argument("--smoothing-length", type=float, help="smoothing length, multiple of the surface radius (1.2)")
+    p.add_argument("--cube-size", type=float, help="marching-cubes cell, multiple of the surface radius (0.5)")
+    p.add_argument("--iso", dest="iso_surface_threshold", type=float, help="iso-surface threshold (0.6)")
+    p.add_argument("--smoothing-iters", dest="mesh_smoothing_iters", type=int, help="mesh smoothing passes (15)")
+    p.add_argument("--normals-smoothing-iters", type=int, help="normal smoothing passes (10)")
+    p.add_argument("--no-cleanup", dest="mesh_cleanup", action="store_const", const=False, help="skip mesh cleanup")
+    p.add_argument("--no-weights", dest="mesh_smoothing_weights", action="store_const", const=False,
+                   help="unweighted Laplacian smoothing")
+    p.add_argument("--no-velocity", dest="interpolate_velocity", action="store_const", const=False,
+                   help="do not interpolate particle velocity onto vertices")
+    p.add_argument("--format", choices=["ply", "obj"], help="mesh file format (default ply; obj has no velocity)")
+    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
+    p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
+    p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
+    p.add_argument("--profile", action="store_true", help="print time spent per phase")
+    p.set_defaults(func=_cmd_mesh)
+
+
+_MESH_OVERRIDES = ("radius_factor", "smoothing_length", "cube_size", "iso_surface_threshold", "mesh_smoothing_iters",
+                   "normals_smoothing_iters", "mesh_cleanup", "mesh_smoothing_weights", "interpolate_velocity",
+                   "format")
+
+
+def _cmd_mesh(a) -> int:
+    import warnings
+
+    from . import pipeline, timing
+
+    if a.jobs is not None and a.jobs < 1:
+        raise WhitecapError(f"mesh: --jobs must be at least 1 (got {a.jobs})")
+    warnings.simplefilter("default")
+    warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
+    timing.reset()
+    overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
+    stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
+                          up=a.up, **overrides)
+    made = [s for s in stats if not s["skipped"]]
+    tris = sum(s["faces"] for s in made)
+    print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
+    if a.profile:
+        print(timing.report("mesh profile"))
+    return 0
 
 
 # ============================================================================ export
 def _add_export(sub) -> None:
-    p = sub.add_parser("export", help="write ParaView series (.pvd + VTK XML) of a run")
-    p.set_defaults(func=_not_yet("export"))
+    p = sub.add_parser(
+        "export",
+        help="write ParaView series (.pvd + VTK XML) of a run",
+        description="Write the fluid particles, diffuse particles and meshes of RUN as ParaView series in "
+        "RUN/export: one file per frame plus a collection with each frame's simulated time (.pvd for vtk, "
+        ".series for ply).",
+    )
+    p.add_argument("run", help="run directory")
+    p.add_argument("--to", default="vtk", choices=["vtk", "ply"], help="vtk: .vtp + .pvd (default); ply: PLY + .series")
+    p.add_argument("--out", "-o", help="output directory (default RUN/export)")
+    p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
+                   "separate series")
+    p.set_defaults(func=_cmd_export)
+
+
+def _cmd_export(a) -> int:
+    from . import pipeline
+
+    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types)
+    for name, path in written.items():
+        print(f"{name}: {path}")
+    return 0
 
 
 # ============================================================================ view
@@ -111,13 +209,47 @@ def _cmd_view(a) -> int:
 
 # ============================================================================ render
 def _add_render(sub) -> None:
-    p = sub.add_parser("render", help="render a run in Blender (Cycles) to PNGs and an MP4")
-    p.set_defaults(func=_not_yet("render"))
+    p = sub.add_parser(
+        "render",
+        help="render a run in Blender (Cycles) to PNGs and an MP4",
+        description="Render RUN's meshes and diffuse particles with Blender's Cycles on the CPU. Writes "
+        "render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
+    )
+    p.add_argument("run", help="run directory (with mesh/ from `whitecap mesh`)")
+    p.add_argument("--quality", default="preview", choices=["preview", "final"], help="preview: small and fast")
+    p.add_argument("--frames", help="range a:b of frames to render (b excluded)")
+    p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
+    p.add_argument("--force", action="store_true", help="render frames again even if they exist")
+    p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
+    p.set_defaults(func=_cmd_render)
+
+
+def _cmd_render(a) -> int:
+    from . import pipeline
+
+    r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie)
+    print(f"rendered {len(r['frames'])} frames to {a.run}/render")
+    if r.get("movie"):
+        print(f"movie: {r['movie']}")
+    print(f"blend: {r['blend']}")
+    return 0
 
 
 def _add_blender_addon(sub) -> None:
-    p = sub.add_parser("blender-addon", help="build the Blender add-on zip")
-    p.set_defaults(func=_not_yet("blender-addon"))
+    p = sub.add_parser(
+        "blender-addon",
+        help="build the Blender add-on zip",
+        description="Build a Blender 4.2+ extension zip that loads whitecap runs and VTK/PLY/OBJ sequences.",
+    )
+    p.add_argument("--out", "-o", default="whitecap_blender_addon.zip", help="zip file to write")
+    p.set_defaults(func=_cmd_blender_addon)
+
+
+def _cmd_blender_addon(a) -> int:
+    from . import pipeline
+
+    print(f"wrote {pipeline.blender_addon(a.out)}; install it in Blender: Edit > Preferences > Get Extensions > Install from Disk")
+    return 0
 
 
 # ============================================================================ run

@@ -144,13 +144,68 @@ class Foam(_Section):
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
     preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "auto"] = Field(
-        "ihmsen2012", description="parameter preset; every value below overrides it"
+        "ihmsen2012",
+        description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
+        "thresholds from percentiles of each potential over the first frame with motion",
     )
+    # Clamping thresholds φ(I, τmin, τmax) of the potentials. Unset = from the preset.
+    ta_min: float | None = Field(None, ge=0, description="trapped-air τmin [m/s]")
+    ta_max: float | None = Field(None, gt=0, description="trapped-air τmax [m/s]")
+    wc_min: float | None = Field(None, ge=0, description="wave-crest τmin [-]")
+    wc_max: float | None = Field(None, gt=0, description="wave-crest τmax [-]")
+    ke_min: float | None = Field(None, ge=0, description="kinetic-energy τmin, per unit mass [J/kg]")
+    ke_max: float | None = Field(None, gt=0, description="kinetic-energy τmax, per unit mass [J/kg]")
+    vo_min: float | None = Field(None, ge=0, description="vorticity τmin [1/s]")
+    vo_max: float | None = Field(None, gt=0, description="vorticity τmax [1/s]")
+    k_ta: float | None = Field(None, ge=0, description="trapped-air multiplier k_ta [1/s]")
+    k_wc: float | None = Field(None, ge=0, description="wave-crest multiplier k_wc [1/s]")
+    k_vo: float | None = Field(None, ge=0, description="vorticity multiplier k_vo [1/s]")
+    spray_below: int | None = Field(None, ge=0, description="spray when a particle has fewer fluid neighbours [-]")
+    bubble_above: int | None = Field(None, ge=0, description="bubble when a particle has more fluid neighbours [-]")
+    lifetime_min: float | None = Field(None, ge=0, description="foam lifetime lower bound [s]")
+    lifetime_max: float | None = Field(None, ge=0, description="foam lifetime upper bound [s]")
+    lifetime_multiplier: float | None = Field(
+        None, ge=0, description="if > 0: lifetime = multiplier × I_k × frame time (DualSPHysics style) [-]"
+    )
+    buoyancy: float | None = Field(None, ge=0, description="bubble buoyancy k_b [-]")
+    drag: float | None = Field(None, ge=0, le=1, description="bubble drag k_d [-]")
+    slots_per_particle: int = Field(8, ge=1, le=64, description="fixed generation slots per fluid particle and frame [-]")
+    max_particles: int = Field(400_000, ge=1, description="capacity of diffuse particles [-]")
+    radius: float = Field(0.5, gt=0, description="diffuse particle radius as a multiple of the fluid radius [-]")
+    support: float = Field(4.0, ge=2.0, le=8.0, description="neighbourhood radius h as a multiple of the fluid radius [-]")
 
 
 # --------------------------------------------------------------------------- mesh
 class Mesh(_Section):
-    """Surface reconstruction with splashsurf."""
+    """Surface reconstruction with splashsurf (``whitecap mesh``).
+
+    Lengths are multiples of a radius, as pysplashsurf takes them: the surface
+    radius is ``radius_factor`` × the simulation's particle radius r (r is half
+    the particle spacing), and ``smoothing_length`` and ``cube_size`` are
+    multiples of that surface radius.
+    """
+
+    radius_factor: float = Field(
+        1.5, gt=0, le=4.0,
+        description="surface particle radius as a multiple of the simulation radius r [-] (splashsurf: 1.4-1.6)",
+    )
+    smoothing_length: float = Field(
+        1.2, gt=0, le=10.0,
+        description="SPH smoothing length as a multiple of the surface radius [-]; kernel support is twice it",
+    )
+    cube_size: float = Field(
+        0.5, gt=0, le=4.0,
+        description="marching-cubes cell edge as a multiple of the surface radius [-] (0.5-0.75; above 1 warns)",
+    )
+    iso_surface_threshold: float = Field(0.6, gt=0, description="iso value of the SPH colour field [-]")
+    mesh_cleanup: bool = Field(True, description="Moore-Warren cleanup of marching-cubes slivers")
+    mesh_smoothing_iters: int = Field(15, ge=0, le=1000, description="Laplacian smoothing passes on vertices [-]")
+    mesh_smoothing_weights: bool = Field(
+        True, description="weight the smoothing so it acts at the surface, not inside thin sheets (Löschner 2023)"
+    )
+    normals_smoothing_iters: int = Field(10, ge=0, le=1000, description="smoothing passes on vertex normals [-]")
+    interpolate_velocity: bool = Field(True, description="interpolate particle velocity onto vertices (motion blur)")
+    format: Literal["ply", "obj"] = Field("ply", description="mesh file format (obj carries no velocity)")
 
 
 # --------------------------------------------------------------------------- view
@@ -174,7 +229,31 @@ class View(_Section):
 
 # --------------------------------------------------------------------------- render
 class Render(_Section):
-    """Offline rendering in Blender (Cycles)."""
+    """Offline rendering in Blender (Cycles). Unset camera keys frame the domain automatically."""
+
+    resolution: list[int] = Field([1920, 1080], min_length=2, max_length=2, description="final image size [px]")
+    samples: int = Field(128, ge=1, le=65536, description="final Cycles samples per pixel [-]")
+    preview_resolution: list[int] = Field([320, 240], min_length=2, max_length=2, description="preview size [px]")
+    preview_samples: int = Field(16, ge=1, le=4096, description="preview samples per pixel [-]")
+    camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")
+    camera_end: Vec3 | None = Field(None, description="camera position at the last frame; unset = camera_start [m]")
+    camera_target: Vec3 | None = Field(None, description="point the camera looks at; unset = domain centre [m]")
+    camera_orbit: float = Field(0.0, ge=-360, le=360, description="orbit about the target over the run [deg]")
+    lens: float = Field(32.0, gt=1, le=500, description="camera focal length [mm]")
+    water_color: Vec3 = Field([0.55, 0.8, 0.9], description="volume absorption tint of the water, linear RGB [0-1]")
+    water_absorption: float = Field(3.0, ge=0, description="volume absorption density [1/m]")
+    water_roughness: float = Field(0.02, ge=0, le=1, description="surface roughness of the water [-]")
+    foam_radius: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="foam sphere radius range [m]; unset = 0.4–0.9 × particle radius"
+    )
+    motion_blur: bool = Field(True, description="motion blur from vertex velocities and object motion")
+    shutter: float = Field(0.5, gt=0, le=2, description="shutter open time [frames]")
+    denoise: bool = Field(True, description="OpenImageDenoise on the final image when available")
+    glare: float = Field(0.15, ge=0, le=1, description="strength of the compositor glare (0 = off) [-]")
+    sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units)")
+    sun_angle: Vec3 = Field([50.0, 10.0, 30.0], description="sun rotation about x, y, z [deg]")
+    world_strength: float = Field(0.6, ge=0, description="sky light strength [-]")
+    ground: bool = Field(True, description="draw a ground plane and a tank outline from the domain box")
 
 
 # --------------------------------------------------------------------------- output

@@ -47,6 +47,9 @@ def simulate(
     info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
                           show_progress=show_progress)
     info.extra["out"] = str(out)
+    for h in hooks:
+        if hasattr(h, "warn_if_empty"):
+            h.warn_if_empty()
     if profile:
         print(timing.report("simulate profile"))
     return info
@@ -116,12 +119,98 @@ def run(
     return result
 
 
+# ============================================================================ mesh, export
+def mesh(
+    run: str | Path,
+    out: str | Path | None = None,
+    radius: float | None = None,
+    jobs: int | None = None,
+    force: bool = False,
+    config: str | Path | None = None,
+    up: str = "z",
+    show_progress: bool = True,
+    **overrides,
+) -> list[dict]:
+    """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
+
+    ``overrides`` are ``[mesh]`` fields (``cube_size=0.6``, ``format="obj"``...);
+    ``config`` is a scene TOML whose ``[mesh]`` replaces the run's. Returns
+    per-frame stats; meshes of a run are recorded in its run.json.
+    """
+    import os
+
+    from .surface.driver import plan, run_mesh
+
+    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
+    cfg = load_scene(config).mesh if config is not None else None
+    job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
+    return run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+
+
+def export(
+    run: str | Path,
+    to: str = "vtk",
+    out: str | Path | None = None,
+    split_types: bool = False,
+    show_progress: bool = True,
+) -> dict[str, Path]:
+    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes."""
+    from .surface.export import export_run
+
+    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
+
+
+# ============================================================================ render
+def render(
+    run: str | Path,
+    quality: str = "preview",
+    frames: str | None = None,
+    jobs: int = 1,
+    force: bool = False,
+    movie: bool = True,
+    show_progress: bool = True,
+) -> dict:
+    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render."""
+    from .render import render_run
+
+    return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie, show_progress=show_progress)
+
+
+def blender_addon(out: str | Path | None = None) -> Path:
+    """Build the Blender add-on zip."""
+    from .render import build_addon
+
+    return build_addon(out)
+
+
+# ============================================================================ foam (post-processing)
+def foam(
+    input: str | Path,
+    out: str | Path | None = None,
+    preset: str | None = None,
+    ini: str | Path | None = None,
+    case: str | Path | None = None,
+    up: str = "z",
+    dt: float | None = None,
+    radius: float | None = None,
+    seed: int | None = None,
+    show_progress: bool = True,
+) -> RunInfo:
+    """Diffuse particles over any particle sequence (see :func:`whitecap.foam.postprocess`)."""
+    from .foam import postprocess
+
+    return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
+                       show_progress=show_progress)
+
+
+# ============================================================================ view
 def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
          mp4: bool = False, arch: str = "cpu", **opts):
     """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
 
     ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
-    returns the PNG paths. See :mod:`whitecap.view`.
+    returns the PNG paths. ``opts``: size, color_mode, up, panel, legend, show_progress.
+    See :mod:`whitecap.view`.
     """
     from .view import view as _view
 

@@ -1,0 +1,210 @@
+"""Diffuse particles (spray, foam, air bubbles) after Ihmsen et al. 2012.
+
+Two ways in, one code path (:class:`~whitecap.foam.generator.FoamGenerator`):
+
+- inside ``simulate``: :func:`simulation_hook` gives the frame hook the
+  simulation driver calls after every frame;
+- as post-processing: :func:`postprocess` runs over a whitecap run, a
+  DualSPHysics PartVTK sequence, SPlisHSPlasH VTK output or PLY/VTU/NPZ
+  sequences, and writes a run directory the later stages can read.
+
+Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
+0 spray / 1 foam / 2 bubble, lifetime, radius, id) and ``diffuse/counts.csv``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Foam, Scene, load_scene
+from ..errors import InputError
+from ..io import ParticleFrame, read, write, write_text
+from ..io.run import RunInfo, frame_name
+from ..progress import console, progress
+from .generator import TYPES, DiffuseState, FoamGenerator
+from .params import FoamParams, resolve
+
+__all__ = ["simulation_hook", "postprocess", "FoamGenerator", "FoamParams", "resolve"]
+
+
+def write_counts(out: Path, rows: list) -> None:
+    lines = ["frame,time,spray,foam,bubbles"] + [
+        f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
+    ]
+    write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
+
+
+class FoamStage:
+    """Frame hook: diffuse particles for each fluid frame, with checkpointable state."""
+
+    name = "diffuse"
+
+    def __init__(self, params: FoamParams, seed: int, verbose: bool = False):
+        self.params = params
+        self.seed = seed
+        self.gen: FoamGenerator | None = None
+        self._pending: DiffuseState | None = None
+        self.verbose = verbose
+
+    def on_start(self, solver, out: Path, info: RunInfo) -> None:
+        self.start(info)
+
+    def start(self, info: RunInfo) -> None:
+        self.gen = FoamGenerator(
+            self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed
+        )
+        if self._pending is not None:
+            self.gen.state = self._pending
+
+    def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
+        d = self.gen.step(frame, index, dt)
+        rel = frame_name("diffuse", index)
+        write(out / rel, d)
+        rows = self.gen.state.counts
+        write_counts(out, rows)
+        if self.verbose:
+            r = rows[-1]
+            console.print(f"frame {index}: spray {r[2]}, foam {r[3]}, bubbles {r[4]}")
+        return rel
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        return self.gen.state.to_arrays() if self.gen else {}
+
+    def restore(self, data: dict[str, np.ndarray]) -> None:
+        if data:
+            self._pending = DiffuseState.from_arrays(data)
+            if self.gen is not None:
+                self.gen.state = self._pending
+
+    def warn_if_empty(self) -> None:
+        rows = self.gen.state.counts if self.gen else []
+        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
+            console.print(
+                "[yellow]warning:[/] no diffuse particles were generated: the flow never exceeded the clamping "
+                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\"."
+            )
+
+
+def simulation_hook(scene: Scene) -> FoamStage:
+    """The frame hook `simulate` uses when [foam] is enabled."""
+    return FoamStage(resolve(scene.foam), scene.seed)
+
+
+# ============================================================================ post-processing
+def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+    """Frames of the input plus what is known about the run (radius, dt, domain...)."""
+    from ..io.sequence import find_sequence
+
+    if src.is_dir() and (src / "run.json").exists():
+        info = RunInfo.load(src)
+        files = [(i, src / rel) for i, rel in info.files("fluid")]
+        if not files:
+            raise InputError(f"{src}/run.json: no fluid frames listed")
+        return files, info, {}
+    if not src.exists() and not any(c in str(src) for c in "*?["):
+        raise InputError(f"{src}: no such file or directory")
+    files = find_sequence(src)
+    known: dict = {}
+    folder = src if src.is_dir() else src.parent
+    xmls = sorted(folder.glob("*.xml")) if folder.is_dir() else []
+    if xmls:
+        from ..io.dualsphysics import read_case
+
+        case = read_case(xmls[0])
+        known.update(radius=case.particle_radius, mass=case.mass, dt=case.time_out, rest_density=case.rho0,
+                     gravity=case.gravity, lower=case.lower, upper=case.upper, case=str(xmls[0]))
+    return files, None, known
+
+
+def postprocess(
+    src: str | Path,
+    out: str | Path | None = None,
+    params: FoamParams | None = None,
+    ini: str | Path | None = None,
+    preset: str | None = None,
+    up: str = "z",
+    dt: float | None = None,
+    radius: float | None = None,
+    seed: int | None = None,
+    case: str | Path | None = None,
+    show_progress: bool = True,
+) -> RunInfo:
+    """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
+
+    For a whitecap run, the run's own [foam] settings and seed are used unless
+    overridden, and results land in the run itself (``out`` defaults to it).
+    For other sequences the fluid frames are converted into ``out/fluid`` so
+    that `whitecap mesh`, `view` and `render` can continue from there.
+    """
+    src = Path(src)
+    files, info, known = _input_frames(src, up)
+    if case is not None:
+        from ..io.dualsphysics import read_case
+
+        c = read_case(case)
+        known.update(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
+                     lower=c.lower, upper=c.upper)
+    foam_cfg = Foam()
+    run_seed = 0
+    if info is not None:
+        scene_file = src / "scene.toml"
+        if scene_file.is_file():
+            foam_cfg = load_scene(scene_file).foam
+        run_seed = int(info.extra.get("seed", 0))
+        out = Path(out) if out is not None else src
+    elif out is None:
+        raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
+    out = Path(out)
+    p = params or resolve(foam_cfg, ini=ini, preset=preset)
+    seed = run_seed if seed is None else seed
+
+    frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
+    if not frame_dt or frame_dt <= 0:
+        raise InputError(f"{src}: the time between frames is unknown; pass --dt SECONDS")
+    r = radius or (info.particle_radius if info else known.get("radius"))
+    if not r or r <= 0:
+        raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
+
+    src_is_run = info is not None
+    first = read(files[0][1], **({"up": up} if info is None else {}))
+    if first.velocities is None:
+        raise InputError(f"{files[0][1]}: missing array 'velocity'")
+    if info is None:
+        lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
+        hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
+        info = RunInfo(
+            particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
+            particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
+            domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
+            extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
+        )
+    # Results for a whitecap run go into that run; anywhere else the fluid
+    # frames are copied along so the output is a complete run directory.
+    convert = out.resolve() != src.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    stage = FoamStage(p, seed)
+    stage.start(info)
+    bar = progress(disable=not show_progress)
+    with bar:
+        task = bar.add_task("foam", total=len(files), info="")
+        for index, path in files:
+            fr = first if path == files[0][1] else read(path, **({"up": up} if not src_is_run else {}))
+            if fr.velocities is None:
+                raise InputError(f"{path}: missing array 'velocity'")
+            fr.check_finite()
+            fr.time = info.frame(index)["time"] if src_is_run else index * frame_dt
+            if convert:
+                rel = frame_name("fluid", index)
+                write(out / rel, fr)
+                info.set_file(index, "fluid", rel, fr.time)
+            rel = stage.on_frame(fr, index, frame_dt, out, info)
+            info.set_file(index, "diffuse", rel, fr.time)
+            c = stage.gen.state.counts[-1]
+            bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
+    info.save(out)
+    stage.warn_if_empty()
+    tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
+    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
+    return info

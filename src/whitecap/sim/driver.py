@@ -53,7 +53,7 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
         domain={"lower": list(scene.domain.lower), "upper": list(scene.domain.upper)},
         frame_rate=scene.solver.frame_rate,
         obstacles=[o.model_dump() for o in scene.obstacle],
-        extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed},
+        extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed, "scene_dir": str(scene.base_dir)},
     )
 
 

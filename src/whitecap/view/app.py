@@ -31,6 +31,7 @@ def panel_rect(window) -> tuple[float, float, float, float]:
     return (1.0 - f, 0.0, f, 1.0)
 ORBIT_RATE = 4.0  # radians per window width of mouse drag
 ZOOM_RATE = 3.0  # e-folds of distance per window height of middle drag
+FOAM_SLIDERS = ("k_ta", "k_wc", "k_vo", "lifetime_multiplier")  # foam multipliers on the live panel
 KEY_ZOOM = 1.03  # distance factor per frame with z / x held
 
 
@@ -162,10 +163,14 @@ def draw_panel(window, state: ViewerState, source, scene: Scene | None) -> None:
             s.iterations = g.slider_int("iterations", s.iterations, 1, 20)
             s.xsph_c = g.slider_float("XSPH c", s.xsph_c, 0.0, 0.5)
             s.vorticity_epsilon = g.slider_float("vorticity eps", s.vorticity_epsilon, 0.0, 0.5)
-            for name, fld in type(scene.foam).model_fields.items():
-                v = getattr(scene.foam, name)
-                if isinstance(v, float) and ("mult" in name or name.startswith("k_") or name.endswith("_scale")):
-                    setattr(scene.foam, name, g.slider_float(name, v, 0.0, max(4.0 * v, 1.0)))
+            fp = getattr(source, "foam_params", None)
+            if fp is not None:
+                for name in FOAM_SLIDERS:
+                    v = float(getattr(fp, name))
+                    new = g.slider_float(name, v, 0.0, max(4.0 * v, 1.0))
+                    if new != v:
+                        source.set_foam_params(**{name: new})
+                        setattr(scene.foam, name, new)
         else:
             if g.button("play / pause"):
                 state.paused = not state.paused

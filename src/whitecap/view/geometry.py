@@ -22,11 +22,11 @@ def obstacle_transform(translate, rotate_deg, scale) -> np.ndarray:
     return m
 
 
-def load_obstacle_meshes(entries: list[dict], base: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple]]:
+def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple]]:
     """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour) per obstacle.
 
-    Mesh paths resolve against ``base`` (the scene directory, or the run
-    directory for playback). Missing or unreadable meshes are skipped with a
+    Relative mesh paths are looked for in ``bases`` in order (the scene
+    directory, then the run directory for playback), then the working directory. Missing or unreadable meshes are skipped with a
     warning: the viewer still shows the fluid.
     """
     import trimesh
@@ -34,8 +34,7 @@ def load_obstacle_meshes(entries: list[dict], base: Path) -> list[tuple[np.ndarr
     out = []
     for e in entries:
         path = Path(e.get("render_mesh") or e["mesh"])
-        # The scene directory first; for runs that did not record it, the run dir, its parent and the cwd.
-        cands = [path] if path.is_absolute() else [base / path, base.parent / path, Path.cwd() / path]
+        cands = [path] if path.is_absolute() else [b / path for b in bases] + [Path.cwd() / path]
         found = next((c for c in cands if c.is_file()), None)
         if found is None:
             log.warning("obstacle mesh %s not found; not shown", path)

@@ -6,15 +6,14 @@ diffuse particles (positions, type, radius).
 
 from __future__ import annotations
 
-import glob
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ..io import FORMATS, read
+from ..io import read
+from ..io.sequence import find_sequence
 from ..io.run import RUN_JSON, RunInfo
 
 
@@ -48,65 +47,6 @@ class Bounds:
     upper: np.ndarray
 
 
-# ----------------------------------------------------------------------------- sequences
-_NUM = re.compile(r"^(.*?)(\d+)$")
-
-
-def find_sequence(path: str | Path) -> list[Path]:
-    """Numbered particle files of one sequence, in frame order.
-
-    ``path`` is a directory (the largest group of files sharing a name stem
-    ``PREFIX<digits>.<ext>`` with a registered extension), one file of the
-    sequence, or a glob pattern. Hand-written because the shared sequence
-    reader (io/sequence.py) is not on this branch yet.
-    """
-    p = Path(path)
-    if any(ch in str(path) for ch in "*?["):
-        files = [Path(f) for f in glob.glob(str(path)) if Path(f).is_file()]
-        if not files:
-            raise InputError(f"{path}: no files match this pattern")
-        return _numeric_sort(files)
-    if p.is_file():
-        m = _NUM.match(_stem(p)[0])
-        if not m:
-            return [p]
-        pre, ext = m.group(1), _stem(p)[1]
-        return _numeric_sort([q for q in p.parent.iterdir() if _key(q) == (pre, ext)])
-    if p.is_dir():
-        exts = tuple(e for f in FORMATS.values() if f.reader for e in f.extensions)
-        groups: dict[tuple[str, str], list[Path]] = {}
-        for q in p.iterdir():
-            if q.is_file() and q.name.lower().endswith(exts) and _key(q):
-                groups.setdefault(_key(q), []).append(q)
-        if not groups:
-            raise InputError(f"{p}: no numbered particle files ({', '.join(exts)}) and no {RUN_JSON}")
-        return _numeric_sort(max(groups.values(), key=len))
-    raise InputError(f"{p}: no such run directory or particle sequence")
-
-
-def _stem(p: Path) -> tuple[str, str]:
-    name = p.name
-    for f in FORMATS.values():
-        for e in f.extensions:
-            if name.lower().endswith(e):
-                return name[: -len(e)], e
-    return p.stem, p.suffix
-
-
-def _key(p: Path):
-    stem, ext = _stem(p)
-    m = _NUM.match(stem)
-    return (m.group(1), ext) if m else None
-
-
-def _numeric_sort(files: list[Path]) -> list[Path]:
-    def num(q: Path) -> int:
-        m = _NUM.match(_stem(q)[0])
-        return int(m.group(2)) if m else -1
-
-    return sorted(files, key=num)
-
-
 # ----------------------------------------------------------------------------- playback
 class PlaybackSource:
     """Frames read from disk on demand (with a small cache)."""
@@ -131,8 +71,11 @@ class PlaybackSource:
             d = self.info.domain or {}
             self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float)) if "lower" in d else None
         else:
-            self.files = find_sequence(self.path)
-            self.indices = list(range(len(self.files)))
+            if not self.path.exists() and not any(c in str(path) for c in "*?["):
+                raise InputError(f"{self.path}: no such run directory or particle sequence")
+            seq = find_sequence(self.path)
+            self.indices = [i for i, _ in seq]
+            self.files = [q for _, q in seq]
             self.times = {}
             self.bounds = None
             self.radius = None
@@ -175,10 +118,11 @@ class PlaybackSource:
     def obstacles(self) -> list[dict]:
         return list(self.info.obstacles) if self.info else []
 
-    def obstacle_base(self) -> Path:
-        """Where relative obstacle mesh paths start: the scene's directory when the run recorded it."""
-        scene_dir = (self.info.extra.get("scene_dir") if self.info else None) or self.path
-        return Path(scene_dir)
+    def obstacle_base(self) -> list[Path]:
+        """Where relative obstacle mesh paths are looked for: the scene's directory as the run
+        recorded it, then the run directory."""
+        scene_dir = self.info.extra.get("scene_dir") if self.info else None
+        return ([Path(scene_dir)] if scene_dir else []) + [self.path]
 
 
 # ----------------------------------------------------------------------------- live
@@ -203,18 +147,30 @@ class LiveSource:
         self.bounds = Bounds(lo, hi)
         self.radius = float(self.scene.solver.particle_radius)
         self._diffuse = None
+        self._diffuse_index = -1
         self._foam_hook()
 
     def _foam_hook(self) -> None:
-        """Use the foam stage's live hook when it exists (optional)."""
+        """Diffuse particles from the foam stage's generator, when that stage exists (optional)."""
         try:
             from .. import foam
+            from ..sim.driver import run_info_for
 
             make = getattr(foam, "simulation_hook", None)
             if make is not None and self.scene.foam.enabled:
                 self.hook = make(self.scene)
+                self.hook.start(run_info_for(self.scene, self.solver))
         except Exception:  # the foam stage is optional for viewing
             self.hook = None
+
+    @property
+    def foam_params(self):
+        """The live foam generator's parameters (a dataclass), or None."""
+        gen = getattr(self.hook, "gen", None)
+        return gen.p if gen is not None else None
+
+    def set_foam_params(self, **kw) -> None:
+        self.hook.gen.with_params(**kw)
 
     def __len__(self) -> int:
         return self.index + 1
@@ -229,33 +185,37 @@ class LiveSource:
     def reset(self) -> None:
         self.solver.restore(self._initial)
         self.index = 0
-        self._diffuse = None
+        if self.hook is not None:
+            from ..foam.generator import DiffuseState
+
+            self.hook.gen.state = DiffuseState.empty()
 
     def current(self, with_density: bool = False) -> Frame:
-        a = self.solver.arrays(with_density=with_density)
+        need_rho = with_density or self.hook is not None
+        a = self.solver.arrays(with_density=need_rho)
         fr = Frame(self.index, float(self.solver.time), a["positions"], a["velocities"], a["density"])
-        if self.hook is not None:
-            self._run_hook(fr, a)
+        if self.hook is not None and self._diffuse_index != self.index:
+            self._step_foam(fr, a)
+        if self._diffuse is not None:
+            fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse
         return fr
 
-    def _run_hook(self, fr: Frame, a: dict) -> None:
+    def _step_foam(self, fr: Frame, a: dict) -> None:
         try:
             from ..io import ParticleFrame
 
-            if self.index == 0 and hasattr(self.hook, "on_start"):
-                self.hook.on_start(self.solver, None, None)
             pf = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=fr.time)
-            res = self.hook.on_frame(pf, self.index, 1.0 / self.scene.solver.frame_rate, None, None)
-            d = getattr(self.hook, "diffuse", None) or (res if isinstance(res, object) and hasattr(res, "arrays") else None)
-            if d is not None and hasattr(d, "arrays"):
-                fr.diffuse_positions = d.positions
-                fr.diffuse_type = np.asarray(d.arrays["type"], np.uint8)
-                fr.diffuse_radius = np.asarray(d.arrays["radius"], np.float32)
-        except Exception:
-            self.hook = None  # the hook's interface may differ; the viewer carries on without diffuse
+            d = self.hook.gen.step(pf, self.index, 1.0 / self.scene.solver.frame_rate)
+            self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8), np.asarray(d.arrays["radius"], np.float32))
+            self._diffuse_index = self.index
+        except Exception as exc:  # the viewer carries on without diffuse particles
+            import logging
+
+            logging.getLogger("whitecap.view").warning("foam generator failed (%s); diffuse particles off", exc)
+            self.hook, self._diffuse = None, None
 
     def obstacles(self) -> list[dict]:
         return [o.model_dump() for o in self.scene.obstacle]
 
-    def obstacle_base(self) -> Path:
-        return Path(self.scene.base_dir)
+    def obstacle_base(self) -> list[Path]:
+        return [Path(self.scene.base_dir)]

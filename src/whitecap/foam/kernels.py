@@ -1,0 +1,296 @@
+"""Taichi kernels of the diffuse-particle model (Ihmsen et al. 2012).
+
+Symbols follow the paper: x_ij = x_i − x_j, v_ij = v_i − v_j, the radially
+symmetric weight W̃(x_ij, h) = 1 − |x_ij|/h, the clamping function
+φ(I, τmin, τmax) and the potentials I_ta (trapped air), I_wc (wave crest),
+I_k (kinetic energy) and, optionally, I_vo (vorticity).
+
+Random numbers are a counter-based hash of (seed, frame, particle id, slot,
+draw), so generation is parallel per fluid particle and bit-reproducible
+whatever the thread count.
+"""
+
+import math
+
+import taichi as ti
+
+from ..sim.grid import F3, I1, I2, cell_index, cell_of
+
+vec3 = ti.math.vec3
+ivec3 = ti.math.ivec3
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
+
+
+@ti.func
+def hash_u32(a: ti.u32) -> ti.u32:
+    """An integer avalanche hash (Wellons' lowbias32): each output bit depends on every input bit."""
+    a ^= a >> ti.u32(16)
+    a *= ti.u32(0x7FEB352D)
+    a ^= a >> ti.u32(15)
+    a *= ti.u32(0x846CA68B)
+    a ^= a >> ti.u32(16)
+    return a
+
+
+@ti.func
+def rand01(seed: ti.u32, frame: ti.u32, pid: ti.u32, slot: ti.u32, draw: ti.u32) -> ti.f32:
+    """Uniform [0, 1) from the counter (seed, frame, particle id, slot, draw)."""
+    h = hash_u32(seed ^ hash_u32(frame ^ hash_u32(pid ^ hash_u32(slot * ti.u32(16) + draw))))
+    return ti.cast(h >> ti.u32(8), ti.f32) * (1.0 / 16777216.0)
+
+
+@ti.func
+def clamp_phi(i: ti.f32, tmin: ti.f32, tmax: ti.f32) -> ti.f32:
+    """φ(I, τmin, τmax) = (min(I, τmax) − min(I, τmin)) / (τmax − τmin)."""
+    return (ti.min(i, tmax) - ti.min(i, tmin)) / (tmax - tmin)
+
+
+@ti.kernel
+def fluid_potentials(
+    n: ti.i32,
+    x: F3,
+    v: F3,
+    nb_count: I1,
+    nb: I2,
+    h: ti.f32,
+    surface_fraction: ti.f32,
+    normal: F3,
+    surface: I1,
+    v_diff: F1,
+    e_k: F1,
+    vort: F1,
+):
+    """Per fluid particle: surface normal n̂_i (from the colour-field gradient,
+    −∇c ∝ Σ_j x̂_ij W̃), trapped-air v_i^diff = Σ_j |v_ij|(1 − v̂_ij·x̂_ij) W̃,
+    kinetic energy per unit mass E_k = ½|v_i|², and |ω_i| ≈ |Σ_j v_ji × x̂_ij W̃|/Σ W̃."""
+    for i in range(n):
+        grad = vec3(0.0)
+        wsum = 0.0
+        vd = 0.0
+        w = vec3(0.0)
+        for k in range(nb_count[i]):
+            j = nb[i, k]
+            xij = x[i] - x[j]
+            r = xij.norm()
+            if 0.0 < r < h:
+                wt = 1.0 - r / h
+                xh = xij / r
+                grad += xh * wt
+                wsum += wt
+                vij = v[i] - v[j]
+                vl = vij.norm()
+                if vl > 1e-9:
+                    vd += vl * (1.0 - (vij / vl).dot(xh)) * wt
+                w += (v[j] - v[i]).cross(xh) * wt
+        gl = grad.norm()
+        normal[i] = grad / gl if gl > 1e-9 else vec3(0.0)
+        # A particle is on the surface when its neighbourhood is lopsided.
+        surface[i] = 1 if gl > surface_fraction * wsum else 0
+        v_diff[i] = vd
+        e_k[i] = 0.5 * v[i].norm_sqr()
+        vort[i] = w.norm() / (wsum + 1e-9) / h
+
+
+@ti.kernel
+def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surface: I1, h: ti.f32, crest: F1):
+    """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
+    δ_vn = [v̂_i·n̂_i ≥ 0.6]; zero away from the surface."""
+    for i in range(n):
+        kappa = 0.0
+        if surface[i] == 1:
+            ni = normal[i]
+            for k in range(nb_count[i]):
+                j = nb[i, k]
+                xji = x[j] - x[i]
+                r = xji.norm()
+                if 0.0 < r < h and xji.dot(ni) < 0.0:
+                    kappa += (1.0 - ni.dot(normal[j])) * (1.0 - r / h)
+            vl = v[i].norm()
+            if vl < 1e-9 or (v[i] / vl).dot(ni) < 0.6:
+                kappa = 0.0
+        crest[i] = kappa
+
+
+@ti.kernel
+def generate(
+    n: ti.i32,
+    x: F3,
+    v: F3,
+    ids: U1,
+    v_diff: F1,
+    crest: F1,
+    e_k: F1,
+    vort: F1,
+    tau: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    k_ta: ti.f32,
+    k_wc: ti.f32,
+    k_vo: ti.f32,
+    life_min: ti.f32,
+    life_max: ti.f32,
+    life_mult: ti.f32,
+    r_v: ti.f32,
+    dt: ti.f32,
+    seed: ti.u32,
+    frame: ti.u32,
+    slots: ti.i32,
+    out_x: F3,
+    out_v: F3,
+    out_life: F1,
+    count: I1,
+) -> ti.i32:
+    """n_d = I_k (k_ta I_ta + k_wc I_wc + k_vo I_vo) Δt new particles per fluid
+    particle (fraction rounded stochastically), each sampled uniformly in a
+    cylinder of radius r_V and height |Δt v_f| along v̂_f:
+        r = r_V √X_r, θ = 2π X_θ, h = X_h |Δt v_f|,
+        x_d = x_f + r cosθ e1' + r sinθ e2' + h v̂_f,  v_d = r cosθ e1' + r sinθ e2' + v_f.
+    Particle i writes only its own slots [i·slots, (i+1)·slots). Returns the
+    number of particles that did not fit in the slots."""
+    lost = 0
+    for i in range(n):
+        i_ta = clamp_phi(v_diff[i], tau[0], tau[1])
+        i_wc = clamp_phi(crest[i], tau[2], tau[3])
+        i_k = clamp_phi(e_k[i], tau[4], tau[5])
+        i_vo = clamp_phi(vort[i], tau[6], tau[7])
+        nd = i_k * (k_ta * i_ta + k_wc * i_wc + k_vo * i_vo) * dt
+        pid = ids[i]
+        m = ti.cast(ti.floor(nd), ti.i32)
+        if rand01(seed, frame, pid, ti.u32(0xFFFF), ti.u32(0)) < nd - m:
+            m += 1
+        if m > slots:
+            lost += m - slots
+            m = slots
+        vf = v[i]
+        vl = vf.norm()
+        vh = vec3(0.0, 0.0, 1.0)
+        if vl > 1e-9:
+            vh = vf / vl
+        a = vec3(1.0, 0.0, 0.0)
+        if ti.abs(vh.x) > 0.9:
+            a = vec3(0.0, 1.0, 0.0)
+        e1 = a.cross(vh).normalized()
+        e2 = vh.cross(e1)
+        for s in range(m):
+            su = ti.cast(s, ti.u32)
+            xr = rand01(seed, frame, pid, su, ti.u32(1))
+            xt = rand01(seed, frame, pid, su, ti.u32(2))
+            xh = rand01(seed, frame, pid, su, ti.u32(3))
+            xl = rand01(seed, frame, pid, su, ti.u32(4))
+            rr = r_v * ti.sqrt(xr)
+            th = 2.0 * math.pi * xt
+            off = rr * ti.cos(th) * e1 + rr * ti.sin(th) * e2
+            k = i * slots + s
+            out_x[k] = x[i] + off + xh * dt * vl * vh
+            out_v[k] = off + vf
+            life = life_min + (life_max - life_min) * xl
+            if life_mult > 0.0:
+                life = life_mult * i_k * dt
+            out_life[k] = life
+        count[i] = m
+    return lost
+
+
+@ti.func
+def fluid_neighbourhood(
+    p: vec3, fx: F3, fv: F3, start: I1, order: I1, lower: vec3, inv_cell: ti.f32, dims: ivec3, reach: ti.i32, h: ti.f32
+):
+    """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point."""
+    c = cell_of(p, lower, inv_cell, dims)
+    cnt = 0
+    vsum = vec3(0.0)
+    wsum = 0.0
+    for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
+        q = c + ivec3(dx, dy, dz)
+        if 0 <= q.x < dims.x and 0 <= q.y < dims.y and 0 <= q.z < dims.z:
+            ci = cell_index(q, dims)
+            for s in range(start[ci], start[ci + 1]):
+                j = order[s]
+                r = (fx[j] - p).norm()
+                if r < h:
+                    wt = 1.0 - r / h
+                    cnt += 1
+                    vsum += wt * fv[j]
+                    wsum += wt
+    return cnt, vsum, wsum
+
+
+@ti.kernel
+def advect_diffuse(
+    nd: ti.i32,
+    xd: F3,
+    vd: F3,
+    life: F1,
+    fx: F3,
+    fv: F3,
+    start: I1,
+    order: I1,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ivec3,
+    reach: ti.i32,
+    h: ti.f32,
+    g: vec3,
+    k_b: ti.f32,
+    k_d: ti.f32,
+    dt: ti.f32,
+    spray_below: ti.i32,
+    bubble_above: ti.i32,
+    lo: vec3,
+    hi: vec3,
+    keep: I1,
+):
+    """Classify by fluid-neighbour count and advect each type its own way:
+    spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
+    velocity ṽ_f, its lifetime counting down; bubbles
+    v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
+    that leave the domain."""
+    for p in range(nd):
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], fx, fv, start, order, lower, inv_cell, dims, reach, h)
+        vf = vec3(0.0)
+        if wsum > 0.0:
+            vf = vsum / wsum
+        alive = 1
+        if cnt < spray_below:
+            vd[p] += dt * g
+            xd[p] += dt * vd[p]
+        elif cnt > bubble_above:
+            vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
+            xd[p] += dt * vd[p]
+        else:
+            vd[p] = vf
+            xd[p] += dt * vf
+            life[p] -= dt
+            if life[p] <= 0.0:
+                alive = 0
+        q = xd[p]
+        if q.x < lo.x or q.y < lo.y or q.z < lo.z or q.x > hi.x or q.y > hi.y or q.z > hi.z:
+            alive = 0
+        keep[p] = alive
+
+
+@ti.kernel
+def classify(
+    nd: ti.i32,
+    xd: F3,
+    fx: F3,
+    fv: F3,
+    start: I1,
+    order: I1,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ivec3,
+    reach: ti.i32,
+    h: ti.f32,
+    spray_below: ti.i32,
+    bubble_above: ti.i32,
+    kind: I1,
+):
+    """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
+    for p in range(nd):
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], fx, fv, start, order, lower, inv_cell, dims, reach, h)
+        t = 1
+        if cnt < spray_below:
+            t = 0
+        elif cnt > bubble_above:
+            t = 2
+        kind[p] = t

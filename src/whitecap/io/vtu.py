@@ -1,0 +1,56 @@
+"""VTK XML unstructured grids (``.vtu``) through meshio: points plus point data
+(``velocity``/``Vel``/``v``, ``density``, ``id``), as ParaView and many
+solvers write them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .axes import to_z_up
+from .frame import ParticleFrame
+from .registry import register
+from .vtk_legacy import ID_NAMES, RHO_NAMES, VEL_NAMES, _find
+
+
+def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
+    import meshio
+
+    try:
+        m = meshio.read(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: not a readable VTU file ({exc})") from None
+    arrays = dict(m.point_data)
+    vk, rk, ik = _find(arrays, VEL_NAMES), _find(arrays, RHO_NAMES), _find(arrays, ID_NAMES)
+    if vk is None and require_velocity:
+        raise InputError(f"{path}: missing array 'velocity'; found {sorted(arrays) or 'no arrays'}")
+    pos, vel = to_z_up(np.asarray(m.points, np.float32), np.asarray(arrays[vk], np.float32) if vk else None, up)
+    return ParticleFrame(
+        positions=pos,
+        velocities=vel,
+        ids=np.asarray(arrays[ik]).astype(np.uint32).ravel() if ik else None,
+        density=np.asarray(arrays[rk]).ravel() if rk else None,
+        arrays={k: np.asarray(v) for k, v in arrays.items() if k not in (vk, rk, ik) and np.asarray(v).ndim == 1},
+        source=str(path),
+    )
+
+
+def write_vtu(path: Path, frame: ParticleFrame) -> None:
+    import meshio
+
+    from .atomic import atomic_path
+
+    n = len(frame)
+    data = {"id": frame.ids.astype(np.int64)}
+    if frame.velocities is not None:
+        data["velocity"] = frame.velocities
+    if frame.density is not None:
+        data["density"] = frame.density
+    data.update(frame.arrays)
+    with atomic_path(path) as tmp:
+        meshio.write(str(tmp), meshio.Mesh(frame.positions, [("vertex", np.arange(n).reshape(-1, 1))], point_data=data))
+
+
+register("vtu", (".vtu",), read_vtu, write_vtu)

@@ -1,0 +1,414 @@
+"""Build and update the Blender scene of a run (bpy calls only).
+
+Everything here runs inside a process that imported ``bpy``. The scene is
+built once per process by :func:`build_scene`; :func:`load_frame` swaps in
+the meshes and point clouds of one frame, so each rendered frame is a pure
+function of the run's files and the render settings.
+
+Motion blur: fluid meshes change topology every frame, so Blender cannot
+match vertices between frames. Each fluid mesh carries the velocity that
+splashsurf interpolated onto its vertices as a FLOAT_VECTOR point attribute
+named ``velocity`` (m/s); Cycles turns that attribute into per-vertex motion
+over the shutter interval when the topology is not stable. Foam points carry
+the same attribute. Camera and obstacle motion blur come from keyframes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Render
+from ..io import read
+from ..io.run import RunInfo
+
+TYPE_NAMES = ("spray", "foam", "bubbles")
+
+
+@dataclass
+class SceneHandles:
+    """The objects that change per frame."""
+
+    fluid: object
+    diffuse: dict  # type index -> object
+    camera: object
+    water: object
+
+
+# ---------------------------------------------------------------------------- meshes
+def read_mesh_ply(path: Path):
+    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a contract mesh PLY."""
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    v = ply["vertex"].data
+    verts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    names = v.dtype.names or ()
+    vel = np.stack([v["vx"], v["vy"], v["vz"]], axis=1).astype(np.float32) if "vx" in names else None
+    faces = np.zeros((0, 3), np.int32)
+    if "face" in ply and len(ply["face"].data):
+        f = ply["face"].data
+        key = f.dtype.names[0]
+        faces = np.vstack(f[key]).astype(np.int32)
+    return verts, faces, vel
+
+
+def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):
+    """A bpy mesh filled with foreach_set (fast for 100k+ elements)."""
+    import bpy
+
+    me = bpy.data.meshes.new(name)
+    nv, nf = len(verts), len(faces)
+    if nv:
+        me.vertices.add(nv)
+        me.vertices.foreach_set("co", np.ascontiguousarray(verts, np.float32).ravel())
+    if nf:
+        me.loops.add(3 * nf)
+        me.loops.foreach_set("vertex_index", np.ascontiguousarray(faces, np.int32).ravel())
+        me.polygons.add(nf)
+        me.polygons.foreach_set("loop_start", np.arange(0, 3 * nf, 3, dtype=np.int32))
+    if velocity is not None and nv:
+        a = me.attributes.new("velocity", "FLOAT_VECTOR", "POINT")
+        a.data.foreach_set("vector", np.ascontiguousarray(velocity, np.float32).ravel())
+    if ids is not None and nv:
+        a = me.attributes.new("id", "INT", "POINT")
+        a.data.foreach_set("value", np.ascontiguousarray(ids, np.int64).astype(np.int32).ravel())
+    me.update()
+    if nf:
+        me.shade_smooth()
+    return me
+
+
+def swap_mesh(obj, me) -> None:
+    import bpy
+
+    old = obj.data
+    mats = list(old.materials)
+    for m in mats:
+        me.materials.append(m)
+    obj.data = me
+    if old.users == 0:
+        bpy.data.meshes.remove(old)
+
+
+# ---------------------------------------------------------------------------- materials
+def _principled(mat):
+    mat.use_nodes = True
+    nt = mat.node_tree
+    return nt, nt.nodes.get("Principled BSDF")
+
+
+def water_material(cfg: Render):
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_water")
+    nt, bsdf = _principled(mat)
+    bsdf.inputs["Base Color"].default_value = (*cfg.water_color, 1.0)
+    bsdf.inputs["Transmission Weight"].default_value = 1.0
+    bsdf.inputs["IOR"].default_value = 1.33
+    bsdf.inputs["Roughness"].default_value = cfg.water_roughness
+    out = nt.nodes.get("Material Output")
+    absorb = nt.nodes.new("ShaderNodeVolumeAbsorption")
+    absorb.inputs["Color"].default_value = (*cfg.water_color, 1.0)
+    absorb.inputs["Density"].default_value = cfg.water_absorption
+    nt.links.new(absorb.outputs[0], out.inputs["Volume"])
+    return mat
+
+
+def foam_material():
+    """Transparent + Emission mixed by a noise texture: soft, broken-up foam."""
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_foam")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    transp = nt.nodes.new("ShaderNodeBsdfTransparent")
+    emit = nt.nodes.new("ShaderNodeEmission")
+    emit.inputs["Color"].default_value = (0.95, 0.97, 1.0, 1.0)
+    emit.inputs["Strength"].default_value = 1.2
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 40.0
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].position = 0.35
+    ramp.color_ramp.elements[1].position = 0.65
+    nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+    nt.links.new(ramp.outputs["Color"], mix.inputs["Fac"])
+    nt.links.new(transp.outputs[0], mix.inputs[1])
+    nt.links.new(emit.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def spray_material():
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_spray")
+    _, bsdf = _principled(mat)
+    bsdf.inputs["Base Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    bsdf.inputs["Transmission Weight"].default_value = 0.6
+    bsdf.inputs["Roughness"].default_value = 0.3
+    return mat
+
+
+def bubble_material():
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_bubbles")
+    _, bsdf = _principled(mat)
+    bsdf.inputs["Base Color"].default_value = (0.9, 0.97, 1.0, 1.0)
+    bsdf.inputs["Transmission Weight"].default_value = 1.0
+    bsdf.inputs["IOR"].default_value = 1.0 / 1.33  # air inside water
+    bsdf.inputs["Roughness"].default_value = 0.05
+    return mat
+
+
+def obstacle_material(entry: dict):
+    import bpy
+
+    mat = bpy.data.materials.new(f"whitecap_obstacle_{entry.get('material', 'stone')}")
+    _, bsdf = _principled(mat)
+    bsdf.inputs["Base Color"].default_value = (*entry.get("color", [0.8, 0.78, 0.72]), 1.0)
+    preset = entry.get("material", "stone")
+    rough, metal = {"stone": (0.8, 0.0), "clay": (0.6, 0.0), "metal": (0.3, 1.0), "plastic": (0.35, 0.0)}.get(
+        preset, (0.7, 0.0)
+    )
+    bsdf.inputs["Roughness"].default_value = rough
+    bsdf.inputs["Metallic"].default_value = metal
+    return mat
+
+
+# ---------------------------------------------------------------------------- geometry nodes
+def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int):
+    """Mesh to Points with a radius from Random Value seeded by the particle id."""
+    import bpy
+
+    ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gin = ng.nodes.new("NodeGroupInput")
+    gout = ng.nodes.new("NodeGroupOutput")
+    m2p = ng.nodes.new("GeometryNodeMeshToPoints")
+    m2p.mode = "VERTICES"
+    rnd = ng.nodes.new("FunctionNodeRandomValue")
+    rnd.data_type = "FLOAT"
+    mins = [s for s in rnd.inputs if s.name == "Min" and s.enabled]
+    maxs = [s for s in rnd.inputs if s.name == "Max" and s.enabled]
+    mins[0].default_value = rmin
+    maxs[0].default_value = rmax
+    rnd.inputs["Seed"].default_value = seed
+    pid = ng.nodes.new("GeometryNodeInputNamedAttribute")
+    pid.data_type = "INT"
+    pid.inputs["Name"].default_value = "id"
+    ng.links.new(pid.outputs["Attribute"], rnd.inputs["ID"])
+    val = [s for s in rnd.outputs if s.enabled][0]
+    setm = ng.nodes.new("GeometryNodeSetMaterial")
+    setm.inputs["Material"].default_value = material
+    ng.links.new(gin.outputs[0], m2p.inputs["Mesh"])
+    ng.links.new(val, m2p.inputs["Radius"])
+    ng.links.new(m2p.outputs["Points"], setm.inputs["Geometry"])
+    ng.links.new(setm.outputs["Geometry"], gout.inputs[0])
+    return ng
+
+
+# ---------------------------------------------------------------------------- stage
+def _look_at(obj, target) -> None:
+    import bpy
+
+    empty = bpy.data.objects.new("camera_target", None)
+    empty.location = target
+    bpy.context.scene.collection.objects.link(empty)
+    c = obj.constraints.new("TRACK_TO")
+    c.target = empty
+    c.track_axis = "TRACK_NEGATIVE_Z"
+    c.up_axis = "UP_Y"
+
+
+def camera_path(cfg: Render, info: RunInfo, nframes: int) -> tuple[list, list, list]:
+    """Camera positions at the first and last frame and the target point."""
+    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
+    c = (lo + hi) / 2
+    size = hi - lo
+    target = np.array(cfg.camera_target) if cfg.camera_target else np.array([c[0], c[1], lo[2] + 0.3 * size[2]])
+    L = float(np.linalg.norm(size))
+    start = np.array(cfg.camera_start) if cfg.camera_start else target + np.array([0.35 * L, -1.0 * L, 0.55 * L])
+    end = np.array(cfg.camera_end) if cfg.camera_end else start
+    return start.tolist(), end.tolist(), target.tolist()
+
+
+def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: int, last: int) -> SceneHandles:
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    preview = quality == "preview"
+    w, h = cfg.preview_resolution if preview else cfg.resolution
+    sc.render.resolution_x, sc.render.resolution_y = int(w), int(h)
+    sc.render.resolution_percentage = 100
+    sc.cycles.samples = cfg.preview_samples if preview else cfg.samples
+    sc.cycles.use_adaptive_sampling = True
+    sc.cycles.use_denoising = bool(cfg.denoise)
+    if preview:
+        # Fewer light bounces: enough for water seen through one surface.
+        sc.cycles.max_bounces = 6
+        sc.cycles.transmission_bounces = 6
+        sc.cycles.glossy_bounces = 2
+        sc.cycles.diffuse_bounces = 2
+    sc.render.use_motion_blur = bool(cfg.motion_blur)
+    sc.render.motion_blur_shutter = cfg.shutter
+    fps = info.frame_rate
+    sc.render.fps = max(1, int(round(fps)))
+    sc.render.fps_base = sc.render.fps / fps
+    sc.frame_start, sc.frame_end = first, last
+    sc.render.image_settings.file_format = "PNG"
+    sc.render.film_transparent = False
+    sc.view_settings.view_transform = "AgX" if "AgX" in [
+        e.identifier for e in sc.view_settings.bl_rna.properties["view_transform"].enum_items
+    ] else "Filmic"
+
+    # world: a soft sky
+    world = bpy.data.worlds.new("whitecap_sky")
+    sc.world = world
+    world.use_nodes = True
+    bg = world.node_tree.nodes.get("Background")
+    bg.inputs["Color"].default_value = (0.62, 0.74, 0.9, 1.0)
+    bg.inputs["Strength"].default_value = cfg.world_strength
+
+    sun_data = bpy.data.lights.new("sun", "SUN")
+    sun_data.energy = cfg.sun_strength
+    sun_data.angle = math.radians(3.0)
+    sun = bpy.data.objects.new("sun", sun_data)
+    sun.rotation_euler = [math.radians(a) for a in cfg.sun_angle]
+    sc.collection.objects.link(sun)
+
+    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
+    if cfg.ground:
+        size = hi - lo
+        c = (lo + hi) / 2
+        gv = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32) * [3 * size[0], 3 * size[1], 0]
+        gv += [c[0], c[1], lo[2] - 1e-3]
+        ground = bpy.data.objects.new("ground", make_mesh("ground", gv, np.array([[0, 1, 2], [0, 2, 3]])))
+        gm = bpy.data.materials.new("whitecap_ground")
+        _, b = _principled(gm)
+        b.inputs["Base Color"].default_value = (0.42, 0.45, 0.48, 1.0)
+        b.inputs["Roughness"].default_value = 0.7
+        ground.data.materials.append(gm)
+        sc.collection.objects.link(ground)
+
+    water = water_material(cfg)
+    fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
+    fluid.data.materials.append(water)
+    sc.collection.objects.link(fluid)
+
+    r = info.particle_radius
+    rmin, rmax = cfg.foam_radius if cfg.foam_radius else (0.4 * r, 0.9 * r)
+    diffuse = {}
+    mats = (spray_material(), foam_material(), bubble_material())
+    scale = (0.6, 1.0, 0.8)
+    for t, name in enumerate(TYPE_NAMES):
+        obj = bpy.data.objects.new(name, bpy.data.meshes.new(f"{name}_empty"))
+        mod = obj.modifiers.new(name, "NODES")
+        mod.node_group = sphere_nodes(f"{name}_spheres", rmin * scale[t], rmax * scale[t], mats[t], seed=t + 1)
+        sc.collection.objects.link(obj)
+        diffuse[t] = obj
+
+    for k, entry in enumerate(info.obstacles):
+        _add_obstacle(entry, k, info)
+
+    cam_data = bpy.data.cameras.new("camera")
+    cam_data.lens = cfg.lens
+    cam = bpy.data.objects.new("camera", cam_data)
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    start, end, target = camera_path(cfg, info, last - first + 1)
+    _look_at(cam, target)
+    for frame in range(first, last + 1):
+        u = 0.0 if last == first else (frame - first) / (last - first)
+        p = (1 - u) * np.array(start) + u * np.array(end)
+        if cfg.camera_orbit:
+            ang = math.radians(cfg.camera_orbit) * u
+            d = p - np.array(target)
+            rot = np.array([[math.cos(ang), -math.sin(ang), 0], [math.sin(ang), math.cos(ang), 0], [0, 0, 1]])
+            p = np.array(target) + rot @ d
+        cam.location = p.tolist()
+        cam.keyframe_insert("location", frame=frame)
+    _compositing(sc, cfg)
+    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+
+
+def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
+    """The high-poly render mesh of an obstacle, with the scene's transform."""
+    import bpy
+    import trimesh
+
+    base = Path(info.extra.get("scene_dir", "."))
+    src = entry.get("render_mesh") or entry.get("mesh")
+    path = Path(src) if Path(src).is_absolute() else base / src
+    if not path.is_file():
+        return
+    m = trimesh.load(str(path), force="mesh")
+    T = trimesh.transformations
+    M = T.translation_matrix(entry.get("translate", [0, 0, 0]))
+    rx, ry, rz = [math.radians(a) for a in entry.get("rotate", [0, 0, 0])]
+    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
+    S = T.scale_matrix(entry.get("scale", 1.0))
+    m.apply_transform(T.concatenate_matrices(M, R, S))
+    obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
+    obj.data.materials.append(obstacle_material(entry))
+    bpy.context.scene.collection.objects.link(obj)
+
+
+def _compositing(sc, cfg: Render) -> None:
+    """Denoise (when the build has OpenImageDenoise) and a light glare, through the 5.x compositor."""
+    import bpy
+
+    if cfg.glare <= 0:
+        return
+    try:
+        ng = bpy.data.node_groups.new("whitecap_compositing", "CompositorNodeTree")
+        ng.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        rl = ng.nodes.new("CompositorNodeRLayers")
+        glare = ng.nodes.new("CompositorNodeGlare")
+        glare.inputs["Strength"].default_value = cfg.glare
+        glare.inputs["Threshold"].default_value = 1.0
+        out = ng.nodes.new("NodeGroupOutput")
+        ng.links.new(rl.outputs["Image"], glare.inputs["Image"])
+        ng.links.new(glare.outputs["Image"], out.inputs[0])
+        sc.compositing_node_group = ng
+    except Exception:  # older/newer compositor API: render without glare rather than fail
+        pass
+
+
+# ---------------------------------------------------------------------------- per frame
+def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dict:
+    """Replace the fluid mesh and diffuse point clouds with frame ``index``'s files."""
+    import bpy
+
+    frame = info.frame(index)
+    files = frame["files"]
+    stats = {"triangles": 0, "diffuse": [0, 0, 0]}
+    if "mesh" in files:
+        verts, faces, vel = read_mesh_ply(run_dir / files["mesh"])
+        swap_mesh(h.fluid, make_mesh(f"fluid_{index:05d}", verts, faces, vel))
+        stats["triangles"] = len(faces)
+    if "diffuse" in files:
+        d = read(run_dir / files["diffuse"])
+        types = d.arrays.get("type", np.zeros(len(d), np.uint8))
+        for t, obj in h.diffuse.items():
+            sel = types == t
+            me = make_mesh(
+                f"{TYPE_NAMES[t]}_{index:05d}", d.positions[sel], np.zeros((0, 3), np.int32),
+                d.velocities[sel] if d.velocities is not None else None, ids=d.ids[sel],
+            )
+            swap_mesh(obj, me)
+            stats["diffuse"][t] = int(sel.sum())
+    bpy.context.scene.frame_set(index)
+    return stats

@@ -1,0 +1,21 @@
+"""Worker process entry: ``python -m whitecap.render.worker RUN QUALITY FRAMES THREADS SAVE_BLEND``.
+
+bpy is a whole Blender in one process; rendering in a child keeps it out of
+the caller (which may hold a Taichi runtime) and lets frames spread over
+several processes.
+"""
+
+import sys
+from pathlib import Path
+
+from . import render_worker
+
+
+def main() -> None:
+    run, quality, frames, threads, save = sys.argv[1:6]
+    idx = [] if frames == "-" else [int(v) for v in frames.split(",")]
+    render_worker(Path(run), quality, idx, int(threads) or None, save == "1")
+
+
+if __name__ == "__main__":
+    main()

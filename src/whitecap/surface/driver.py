@@ -1,0 +1,138 @@
+"""``whitecap mesh``: reconstruct every frame of a run or a particle sequence.
+
+The main process lists the frames, skips those already meshed (unless
+``force``), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over a
+process pool and, once the pool is done, records the meshes in ``run.json``
+(one atomic write).
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from ..config import Mesh, load_scene
+from ..errors import InputError
+from ..io.run import RUN_JSON, RunInfo
+from ..io.sequence import find_sequence
+from ..progress import progress
+from ..timing import timer
+from .reconstruct import MeshParams, mesh_frame, params_from_config
+
+
+@dataclass
+class MeshJob:
+    """Frames to mesh: (index, input path, output path, output path relative to the run)."""
+
+    frames: list[tuple[int, Path, Path, str]]
+    params: MeshParams
+    run_dir: Path | None = None
+    stats: list[dict[str, Any]] = field(default_factory=list)
+
+
+def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
+    """A ``[mesh]`` section with command-line overrides applied (None = keep)."""
+    data = (base or Mesh()).model_dump()
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return Mesh(**data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        raise InputError(f"mesh.{key}: {err['msg']} (got {err.get('input')!r})") from None
+
+
+def plan(source: str | Path, out: str | Path | None = None, radius: float | None = None,
+         config: Mesh | None = None, jobs: int = 1, up: str = "z", **overrides) -> MeshJob:
+    """Resolve the input (run directory or sequence), the parameters and the output names."""
+    src = Path(source)
+    is_run = src.is_dir() and (src / RUN_JSON).is_file()
+    if not is_run and not any(c in str(source) for c in "*?[") and not src.exists():
+        raise InputError(f"{src}: no such run directory or particle sequence")
+    rest_density = 1000.0
+    if is_run:
+        info = RunInfo.load(src)
+        if config is None and (src / "scene.toml").is_file():
+            config = load_scene(src / "scene.toml").mesh
+        r = info.particle_radius if radius is None else radius
+        rest_density = info.rest_density
+        inputs = [(i, src / rel) for i, rel in info.files("fluid")]
+        if not inputs:
+            raise InputError(f"{src / RUN_JSON}: the run has no fluid frames")
+        out_dir = Path(out) if out is not None else src / "mesh"
+    else:
+        inputs = find_sequence(source)
+        if radius is None:
+            raise InputError(f"{source}: not a whitecap run, so the particle radius is unknown; pass --radius R [m]")
+        r = radius
+        out_dir = Path(out) if out is not None else inputs[0][1].parent / "mesh"
+    cfg = mesh_config(config, **overrides)
+    params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up)
+    # Meshes are recorded in run.json only when they land inside the run.
+    inside = is_run and out_dir.resolve().is_relative_to(src.resolve())
+    frames = []
+    for i, p in inputs:
+        o = out_dir / f"fluid_{i:05d}.{cfg.format}"
+        rel = os.path.relpath(o, src) if inside else str(o)
+        frames.append((i, p, o, rel))
+    return MeshJob(frames, params, src if inside else None)
+
+
+def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True) -> list[dict]:
+    """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done)."""
+    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
+    todo = [f for f in job.frames if force or not f[2].is_file()]
+    stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
+    try:
+        _map_frames(job, todo, stats, jobs, show_progress)
+    finally:
+        # Frames finished before an error or Ctrl-C are kept and recorded.
+        job.stats = [stats[i] for i, *_ in job.frames if i in stats]
+        if job.run_dir is not None:
+            record(job)
+    return job.stats
+
+
+def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress: bool) -> None:
+    with progress(disable=None if show_progress else True) as bar, timer("mesh"):
+        task = bar.add_task("mesh", total=len(job.frames), completed=len(stats), info="")
+
+        def done(index: int, s: dict) -> None:
+            stats[index] = {"index": index, "skipped": False, **s}
+            bar.update(task, advance=1, info=f"{s['particles']} particles -> {s['faces']} triangles")
+
+        if jobs == 1 or len(todo) <= 1:
+            for i, p, o, _ in todo:
+                done(i, mesh_frame(p, o, job.params))
+        else:
+            # spawn, not fork: the parent may already hold splashsurf's thread
+            # pool, which a forked child would inherit in a broken state.
+            ctx = get_context("spawn")
+            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+                pending = {pool.submit(mesh_frame, p, o, job.params): i for i, p, o, _ in todo}
+                try:
+                    while pending:
+                        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in finished:
+                            done(pending.pop(fut), fut.result())
+                except BaseException:
+                    for fut in pending:
+                        fut.cancel()
+                    raise
+
+
+def record(job: MeshJob) -> RunInfo:
+    """Add the meshes to run.json (main process only, after the pool)."""
+    info = RunInfo.load(job.run_dir)
+    for i, _, o, rel in job.frames:
+        if o.is_file():
+            info.set_file(i, "mesh", rel)
+    info.extra["mesh"] = job.params.as_dict()
+    info.save(job.run_dir)
+    return info

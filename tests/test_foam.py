@@ -1,0 +1,227 @@
+"""Diffuse particles (Ihmsen et al. 2012): physics, determinism, readers and errors."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from whitecap import io
+from whitecap.cli import main
+from whitecap.config import scene_from_dict
+from whitecap.errors import InputError
+from whitecap.foam import postprocess
+from whitecap.foam.params import PRESETS, read_ini, resolve
+from whitecap.io.run import RunInfo
+from whitecap.pipeline import simulate
+
+from .conftest import DATA, tiny_scene_dict
+
+FOAM = {"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0}
+
+
+@pytest.fixture(scope="module")
+def foam_run(tmp_path_factory) -> Path:
+    """A dam break with in-simulation foam, 12 frames."""
+    out = tmp_path_factory.mktemp("foam") / "run"
+    simulate(scene_from_dict(tiny_scene_dict(output={"frames": 12}, foam=FOAM)), out=out, show_progress=False)
+    return out
+
+
+def diffuse(run: Path, i: int):
+    return io.read(run / f"diffuse/diffuse_{i:05d}.ply")
+
+
+@pytest.fixture(scope="module")
+def settled_tank(tmp_path_factory) -> Path:
+    """A tank of water left to settle for 1.5 s (no foam), then 10 more frames."""
+    out = tmp_path_factory.mktemp("still") / "run"
+    d = tiny_scene_dict(
+        domain={"upper": [0.3, 0.2, 0.4]},
+        fluid=[{"lower": [0, 0, 0], "upper": [0.3, 0.2, 0.2]}],
+        output={"frames": 55},
+        foam={"enabled": False},
+    )
+    simulate(scene_from_dict(d), out=out, show_progress=False)
+    return out
+
+
+@pytest.mark.parametrize("preset", ["ihmsen2012", "splishsplash", "dualsphysics", "auto"])
+def test_still_water_makes_no_foam(settled_tank, tmp_path, preset):
+    pattern = str(settled_tank / "fluid" / "fluid_0004[5-9].ply")
+    info = postprocess(pattern, out=tmp_path, preset=preset, dt=1 / 30, radius=0.01, show_progress=False)
+    assert len(info.files("diffuse")) == 5
+    rows = np.loadtxt(tmp_path / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
+    assert rows.shape == (5, 5) and rows[:, 2:].sum() == 0
+
+
+def test_still_water_in_simulation_makes_no_foam(tmp_path):
+    d = tiny_scene_dict(domain={"upper": [0.3, 0.2, 0.4]}, fluid=[{"lower": [0, 0, 0], "upper": [0.3, 0.2, 0.2]}],
+                        output={"frames": 6})
+    simulate(scene_from_dict(d), out=tmp_path, show_progress=False)
+    rows = np.loadtxt(tmp_path / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
+    assert rows.shape == (7, 5) and rows[:, 2:].sum() == 0
+
+
+def test_dam_break_makes_all_three_types(foam_run):
+    rows = np.loadtxt(foam_run / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
+    assert (rows[-1, 2:] > 0).all(), rows[-1]
+    d = diffuse(foam_run, 12)
+    assert set(np.unique(d.arrays["type"])) == {0, 1, 2}
+    info = RunInfo.load(foam_run)
+    assert info.files("diffuse")[-1] == (12, "diffuse/diffuse_00012.ply")
+    # The file follows the contract.
+    from plyfile import PlyData
+
+    names = PlyData.read(str(foam_run / "diffuse/diffuse_00012.ply"))["vertex"].data.dtype
+    assert names.names == ("x", "y", "z", "vx", "vy", "vz", "type", "lifetime", "radius", "id")
+    assert names["type"] == np.uint8 and names["id"] == np.uint32
+
+
+def test_spray_above_surface_bubbles_inside_and_rising(foam_run):
+    from scipy.spatial import cKDTree
+
+    info = RunInfo.load(foam_run)
+    h = 4 * info.particle_radius
+    for i in (8, 10, 12):
+        f, d = io.read(foam_run / f"fluid/fluid_{i:05d}.ply"), diffuse(foam_run, i)
+        tree = cKDTree(f.positions)
+        t = d.arrays["type"]
+        spray, bub = d.positions[t == 0], d.positions[t == 2]
+        # Spray: above the local fluid (higher than the mean of the fluid within 3h, or clear of it).
+        assert len(spray) > 0
+        over = []
+        for p in spray:
+            js = tree.query_ball_point(p, 3 * h)
+            over.append(not js or p[2] > f.positions[js, 2].mean())
+        assert np.mean(over) > 0.9, np.mean(over)
+        # Bubbles: inside the fluid (fluid all round), rising relative to the local fluid.
+        counts = np.array([len(tree.query_ball_point(p, h)) for p in bub])
+        assert (counts > 10).mean() > 0.9
+        # Rising: bubbles that were already bubbles last frame (new ones start at the fluid's
+        # velocity) move up relative to the kernel-averaged velocity of the fluid round them.
+        prev = diffuse(foam_run, i - 1)
+        old = set(prev.ids[prev.arrays["type"] == 2].tolist())
+        sel = np.array([int(k) in old for k in d.ids[t == 2]])
+        assert sel.sum() > 10
+        rel = []
+        for p, v in zip(bub[sel], d.velocities[t == 2][sel]):
+            js = tree.query_ball_point(p, h)
+            w = 1 - np.linalg.norm(f.positions[js] - p, axis=1) / h
+            rel.append(v[2] - (w @ f.velocities[js][:, 2]) / w.sum())
+        assert np.mean(rel) > 0.05
+
+
+def test_foam_lifetime_falls_and_foam_disappears_at_zero(foam_run):
+    info = RunInfo.load(foam_run)
+    dt = 1 / info.frame_rate
+    a, b = diffuse(foam_run, 10), diffuse(foam_run, 11)
+    foam_a = a.arrays["type"] == 1
+    assert foam_a.sum() > 10
+    ids_b = {int(k): n for n, k in enumerate(b.ids)}
+    # A foam particle still present one frame later has lived dt less.
+    was = [(n, ids_b[int(k)]) for n, k in enumerate(a.ids) if foam_a[n] and int(k) in ids_b]
+    assert was
+    drops = np.array([a.arrays["lifetime"][n] - b.arrays["lifetime"][m] for n, m in was])
+    assert np.isclose(drops, dt, atol=1e-5).mean() > 0.8
+    # Foam about to expire is gone the frame after; no foam is kept at or below zero.
+    dying = [int(k) for n, k in enumerate(a.ids) if foam_a[n] and a.arrays["lifetime"][n] <= dt + 1e-6]
+    gone = [k for k in dying if k not in ids_b or b.arrays["type"][ids_b[k]] != 1]
+    assert len(gone) >= 0.8 * len(dying)
+    for i in range(13):
+        d = diffuse(foam_run, i)
+        assert (d.arrays["lifetime"][d.arrays["type"] == 1] > -1e-6).all()
+
+
+def test_in_simulation_equals_post_processing_byte_for_byte(foam_run, tmp_path):
+    out = tmp_path / "post"
+    assert main(["foam", str(foam_run), "--out", str(out)]) == 0
+    for i in range(13):
+        name = f"diffuse/diffuse_{i:05d}.ply"
+        assert (out / name).read_bytes() == (foam_run / name).read_bytes(), name
+    assert (out / "diffuse/counts.csv").read_text() == (foam_run / "diffuse/counts.csv").read_text()
+    assert (out / "fluid/fluid_00012.ply").exists()  # a complete run for the next stages
+
+
+THREADS = r"""
+import sys, taichi as ti
+ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[3]), log_level=ti.WARN)
+import whitecap.sim.runtime as rt
+rt._ARCH = "cpu"
+from whitecap.foam import postprocess
+postprocess(sys.argv[1], out=sys.argv[2], show_progress=False)
+"""
+
+
+def test_same_seed_same_bytes_whatever_the_thread_count(foam_run, tmp_path):
+    src = Path(__file__).resolve().parents[1] / "src"
+    for threads in (1, 2):
+        subprocess.run([sys.executable, "-c", THREADS, str(foam_run), str(tmp_path / f"t{threads}"), str(threads)],
+                       check=True, env={**os.environ, "PYTHONPATH": str(src), "WHITECAP_PROGRESS": "0"})
+    for i in (4, 8, 12):
+        name = f"diffuse/diffuse_{i:05d}.ply"
+        assert (tmp_path / "t1" / name).read_bytes() == (tmp_path / "t2" / name).read_bytes()
+    # A different seed gives different particles.
+    postprocess(foam_run, out=tmp_path / "s9", seed=9, show_progress=False)
+    assert (tmp_path / "s9/diffuse/diffuse_00012.ply").read_bytes() != (tmp_path / "t1/diffuse/diffuse_00012.ply").read_bytes()
+
+
+def test_dualsphysics_partvtk_makes_foam(tmp_path):
+    src = DATA / "dualsphysics"
+    info = postprocess(src, out=tmp_path, preset="auto", show_progress=False)
+    assert info.particle_radius == pytest.approx(0.01)  # dp/2 from CaseDambreak.xml
+    assert info.frame_rate == pytest.approx(50.0)  # TimeOut 0.02 s
+    d = io.read(tmp_path / "diffuse/diffuse_00014.ply")
+    assert (d.arrays["type"] == 1).sum() > 0
+    assert len(io.read(tmp_path / "fluid/fluid_00014.ply")) == 9600
+
+
+def test_missing_vel_array_is_named(tmp_path, capsys):
+    import vtk
+
+    r = vtk.vtkGenericDataObjectReader()
+    r.SetFileName(str(DATA / "dualsphysics" / "PartFluid_0012.vtk"))
+    r.Update()
+    ds = r.GetOutput()
+    ds.GetPointData().RemoveArray("Vel")
+    (tmp_path / "in").mkdir()
+    w = vtk.vtkPolyDataWriter()
+    w.SetFileName(str(tmp_path / "in" / "PartFluid_0012.vtk"))
+    w.SetInputData(ds)
+    w.SetFileTypeToBinary()
+    w.Write()
+    code = main(["foam", str(tmp_path / "in"), "--out", str(tmp_path / "o"), "--dt", "0.02", "--radius", "0.01"])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and "PartFluid_0012.vtk" in err and "'Vel'" in err and len(err.splitlines()) == 1
+
+
+def test_input_errors(tmp_path, capsys):
+    assert main(["foam", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) != 0
+    assert "no such file or directory" in capsys.readouterr().err
+    (tmp_path / "seq").mkdir()
+    shutil.copy(DATA / "dualsphysics" / "PartFluid_0012.vtk", tmp_path / "seq")
+    assert main(["foam", str(tmp_path / "seq"), "--out", str(tmp_path / "o")]) != 0
+    assert "--dt" in capsys.readouterr().err
+
+
+def test_presets_and_ini(tmp_path):
+    p = resolve(preset="dualsphysics")
+    assert (p.ta_min, p.ta_max, p.wc_min, p.wc_max, p.ke_min, p.ke_max) == (5, 20, 2, 8, 5, 50)
+    assert (p.k_ta, p.k_wc, p.spray_below, p.bubble_above, p.lifetime_multiplier, p.buoyancy, p.drag) == (
+        40, 40, 6, 9, 10, 0.8, 0.5)
+    s = resolve(preset="splishsplash")
+    assert (s.vo_min, s.vo_max, s.k_ta, s.k_wc, s.k_vo, s.lifetime_min, s.lifetime_max, s.buoyancy, s.drag,
+            s.spray_below, s.bubble_above) == (5, 20, 4000, 50000, 4000, 2, 5, 2.0, 0.8, 6, 20)
+    assert set(PRESETS) >= {"ihmsen2012", "dualsphysics", "splishsplash", "auto"}
+    ini = tmp_path / "case.ini"
+    ini.write_text("[DiffuseCalculator]\nTaMin = 3\nTaMax = 12\nKTa = 77\nSprayMax = 4\n")
+    q = resolve(ini=ini, preset="dualsphysics")
+    assert (q.ta_min, q.ta_max, q.k_ta, q.spray_below, q.k_wc) == (3, 12, 77, 4, 40)
+    ini.write_text("[x]\nTaMin = lots\n")
+    with pytest.raises(InputError, match="(?i)tamin"):
+        read_ini(ini)

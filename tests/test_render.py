@@ -1,0 +1,220 @@
+"""Blender rendering (bpy, Cycles on the CPU) and the Blender add-on.
+
+bpy runs in child processes (as `whitecap render` does), so these tests
+inspect the saved scene.blend and the written images.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData, PlyElement
+
+from whitecap import io
+from whitecap.cli import main
+from whitecap.errors import InputError, MissingDependency
+from whitecap.io.run import RunInfo
+
+pytest.importorskip("bpy")
+SRC = Path(__file__).resolve().parents[1] / "src"
+N_FOAM = {}
+
+
+def write_mesh_ply(path: Path, verts, faces, vel, normals) -> None:
+    names = ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")
+    v = np.empty(len(verts), dtype=[(k, "f4") for k in names])
+    for k, a in zip(names, np.hstack([verts, normals, vel]).T):
+        v[k] = a
+    f = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = faces
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(path))
+
+
+@pytest.fixture(scope="module")
+def meshed_run(tiny_run, tmp_path_factory) -> Path:
+    """The tiny run plus contract meshes (convex hull of the particles, moving with their
+    mean velocity) and synthetic diffuse particles of all three types."""
+    import trimesh
+
+    run = tmp_path_factory.mktemp("render") / "run"
+    shutil.copytree(tiny_run, run)
+    info = RunInfo.load(run)
+    rng = np.random.default_rng(0)
+    for i, rel in info.files("fluid"):
+        fr = io.read(run / rel)
+        m = trimesh.convex.convex_hull(fr.positions)
+        vel = np.tile(fr.velocities.mean(0), (len(m.vertices), 1))
+        write_mesh_ply(run / f"mesh/fluid_{i:05d}.ply", np.asarray(m.vertices), np.asarray(m.faces), vel, np.asarray(m.vertex_normals))
+        info.set_file(i, "mesh", f"mesh/fluid_{i:05d}.ply")
+        n = 400
+        types = rng.integers(0, 3, n).astype(np.uint8)
+        N_FOAM[i] = int((types == 1).sum())
+        pos = fr.positions[rng.integers(0, len(fr), n)] + [0, 0, 0.01]
+        d = io.ParticleFrame(pos, np.zeros((n, 3)), np.arange(n) + 1000 * i, arrays={
+            "type": types, "lifetime": np.ones(n, np.float32), "radius": np.full(n, 0.005, np.float32)})
+        io.write(run / f"diffuse/diffuse_{i:05d}.ply", d)
+        info.set_file(i, "diffuse", f"diffuse/diffuse_{i:05d}.ply")
+    info.save(run)
+    assert main(["render", str(run), "--quality", "preview", "--frames", "0:2"]) == 0
+    return run
+
+
+def blender(script: str, *args) -> dict:
+    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    assert lines, out.stdout[-2000:] + out.stderr[-2000:]
+    return json.loads(lines[-1])
+
+
+INSPECT = r"""
+import sys, json, bpy, numpy as np
+from bpy_extras.object_utils import world_to_camera_view
+bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
+sc = bpy.context.scene
+sc.frame_set(0)
+dg = bpy.context.evaluated_depsgraph_get()
+fl = bpy.data.objects["fluid"]
+pts = [fl.matrix_world @ v.co for v in fl.data.vertices]
+uv = np.array([tuple(world_to_camera_view(sc, sc.camera, p))[:2] for p in pts])
+foam = bpy.data.objects["foam"].evaluated_get(dg)
+geom = foam.evaluated_geometry()
+pc = geom.pointcloud
+radii = [a.value for a in pc.attributes["radius"].data] if pc is not None else []
+print(json.dumps({
+  "uv_min": uv.min(0).tolist(), "uv_max": uv.max(0).tolist(),
+  "foam_points": len(radii), "r_min": min(radii) if radii else 0, "r_max": max(radii) if radii else 0,
+  "motion_blur": sc.render.use_motion_blur, "engine": sc.render.engine,
+  "velocity_attr": "velocity" in fl.data.attributes, "size": [sc.render.resolution_x, sc.render.resolution_y],
+}))
+"""
+
+
+def test_preview_frames_show_the_fluid(meshed_run):
+    import imageio.v2 as imageio
+
+    pngs = [meshed_run / "render" / f"frame_{i:05d}.png" for i in (0, 1)]
+    assert all(p.exists() for p in pngs) and not (meshed_run / "render" / "frame_00002.png").exists()
+    a, b = (imageio.imread(p)[..., :3].astype(float) for p in pngs)
+    assert a.shape[:2] == (240, 320)
+    assert a.std() > 5, "blank image"
+    assert np.abs(a - b).mean() > 0.5, "the two frames are identical"
+    s = blender(INSPECT, meshed_run / "render" / "scene.blend")
+    h, w = a.shape[:2]
+    (u0, v0), (u1, v1) = s["uv_min"], s["uv_max"]
+    # Image rows run top-down, camera-view v bottom-up.
+    box = (slice(int((1 - v1) * h), int((1 - v0) * h)), slice(int(u0 * w), int(u1 * w)))
+    inside = np.zeros(a.shape[:2], bool)
+    inside[box] = True
+    blue = a[..., 2] - a[..., 0]  # water is tinted blue; ground and sky behind it are grey/pale
+    assert inside.sum() > 100
+    assert blue[inside].mean() > blue[~inside].mean() + 3
+
+
+def test_foam_spheres_and_motion_blur(meshed_run):
+    s = blender(INSPECT, meshed_run / "render" / "scene.blend")
+    assert s["foam_points"] == N_FOAM[0]
+    r = RunInfo.load(meshed_run).particle_radius
+    assert 0.4 * r - 1e-9 <= s["r_min"] <= s["r_max"] <= 0.9 * r + 1e-9
+    assert s["r_max"] > s["r_min"]  # random radii
+    assert s["motion_blur"] and s["engine"] == "CYCLES" and s["velocity_attr"]
+
+
+def test_movie_and_rerun_skips_done_frames(meshed_run):
+    import imageio.v2 as imageio
+
+    movie = meshed_run / "render" / "movie.mp4"
+    assert imageio.get_reader(str(movie), format="FFMPEG").count_frames() == 2
+    before = (meshed_run / "render" / "frame_00000.png").stat().st_mtime_ns
+    assert main(["render", str(meshed_run), "--frames", "0:2"]) == 0
+    assert (meshed_run / "render" / "frame_00000.png").stat().st_mtime_ns == before
+
+
+def test_no_meshes_says_run_mesh_first(tiny_run, capsys):
+    assert main(["render", str(tiny_run)]) != 0
+    err = capsys.readouterr().err
+    assert "whitecap mesh" in err and str(tiny_run) in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_bpy_says_how_to_install(monkeypatch):
+    import builtins
+
+    from whitecap.render import require_bpy
+
+    real = builtins.__import__
+
+    def fake(name, *a, **k):
+        if name == "bpy":
+            raise ImportError("No module named 'bpy'")
+        return real(name, *a, **k)
+
+    monkeypatch.setitem(sys.modules, "bpy", None)
+    monkeypatch.setattr(builtins, "__import__", fake)
+    with pytest.raises(MissingDependency, match="pip install bpy==5.0.1"):
+        require_bpy()
+
+
+ADDON = r"""
+import sys, json, zipfile, importlib.util, bpy, os
+zip_path, tmp, seq_ply, seq_vtk = sys.argv[1:5]
+zipfile.ZipFile(zip_path).extractall(os.path.join(tmp, "whitecap_sequences"))
+sys.path.insert(0, tmp)
+import whitecap_sequences as addon
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon.register()
+res = {}
+for key, path in (("ply", seq_ply), ("vtk", seq_vtk)):
+    bpy.ops.whitecap.load(filepath=path)
+    obj = [o for o in bpy.context.scene.objects if o.whitecap_seq.enabled][-1]
+    sc = bpy.context.scene
+    sc.frame_set(sc.frame_start)
+    a = [tuple(v.co) for v in obj.data.vertices][:5]; na = len(obj.data.vertices)
+    sc.frame_set(sc.frame_start + 1)
+    b = [tuple(v.co) for v in obj.data.vertices][:5]
+    res[key] = {"n": na, "changed": a != b, "velocity": "velocity" in obj.data.attributes}
+print(json.dumps(res))
+"""
+
+
+def test_blender_addon_loads_sequences_and_follows_frames(tmp_path, meshed_run):
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    zip_path = tmp_path / "addon.zip"
+    assert main(["blender-addon", "--out", str(zip_path)]) == 0
+    names = zipfile.ZipFile(zip_path).namelist()
+    assert "blender_manifest.toml" in names and "__init__.py" in names
+    # A DualSPHysics-like PartVTK sequence: legacy binary POLYDATA points with a Vel array.
+    vdir = tmp_path / "vtk"
+    vdir.mkdir()
+    for k in range(2):
+        pts = np.random.default_rng(k).random((50, 3))
+        poly = vtk.vtkPolyData()
+        p = vtk.vtkPoints()
+        p.SetData(numpy_to_vtk(pts))
+        poly.SetPoints(p)
+        vel = numpy_to_vtk(np.full((50, 3), float(k)))
+        vel.SetName("Vel")
+        poly.GetPointData().AddArray(vel)
+        w = vtk.vtkPolyDataWriter()
+        w.SetFileName(str(vdir / f"PartFluid_{k:04d}.vtk"))
+        w.SetInputData(poly)
+        w.SetFileTypeToBinary()
+        w.Write()
+    s = blender(ADDON, zip_path, tmp_path, meshed_run / "mesh" / "fluid_00000.ply", vdir / "PartFluid_0000.vtk")
+    assert s["ply"]["n"] >= 8 and s["ply"]["changed"] and s["ply"]["velocity"]
+    assert s["vtk"]["n"] == 50 and s["vtk"]["changed"] and s["vtk"]["velocity"]
+
+
+def test_bad_frame_range(meshed_run, capsys):
+    assert main(["render", str(meshed_run), "--frames", "x:y"]) != 0
+    assert "--frames" in capsys.readouterr().err
