@@ -153,8 +153,11 @@ class LiveSource:
     def _foam_hook(self) -> None:
         """Diffuse particles from the foam stage's generator, when that stage exists (optional)."""
         try:
-            from .. import foam
+            import importlib
+
             from ..sim.driver import run_info_for
+
+            foam = importlib.import_module("whitecap.foam")  # the package, not a same-named function
 
             make = getattr(foam, "simulation_hook", None)
             if make is not None and self.scene.foam.enabled:
