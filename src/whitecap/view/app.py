@@ -15,7 +15,6 @@ import numpy as np
 
 from ..config import Scene, View, load_scene
 from ..errors import InputError, WhitecapError
-from .colors import DIFFUSE_NAMES
 from .geometry import load_obstacle_meshes
 from .sources import LiveSource, PlaybackSource
 from .state import OrbitCamera, ViewerState
@@ -367,6 +366,3 @@ def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = 
             window.show()
     return state
 
-
-def counts_text(counts: dict[str, int]) -> str:
-    return ", ".join(f"{k} {v}" for k, v in counts.items() if k == "fluid" or k in DIFFUSE_NAMES)

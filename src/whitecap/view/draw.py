@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from .colors import DIFFUSE_COLORS, DIFFUSE_NAMES, colormap, fluid_scalar
+from .colors import DIFFUSE_COLORS, colormap, fluid_scalar
 from .geometry import box_lines
 from .sources import Frame
 from .state import ViewerState
