@@ -172,27 +172,38 @@ def _cmd_export(a) -> int:
 # ============================================================================ view
 def _add_view(sub) -> None:
     p = sub.add_parser(
-        "view",
-        help="real-time GGUI viewer, live or playback, or headless PNGs",
-        description="With a scene .toml, simulate while showing it; with a run directory or a particle "
-        "sequence (DualSPHysics, PLY, VTU...), play it back. --headless writes DIR/view_NNNNN.png.",
+        "view", help="real-time GGUI viewer, live or playback, or headless PNGs",
+        description="Show a scene while it simulates (TARGET is a scene .toml), or play back a run "
+        "directory or a numbered particle sequence. --headless writes OUT/view_NNNNN.png without a display.",
     )
-    p.add_argument("target", help="scene .toml (live) or run directory / sequence (playback)")
-    p.add_argument("--headless", action="store_true", help="render offscreen to PNGs, no window")
-    p.add_argument("--frames", type=int, help="number of frames to render headless")
-    p.add_argument("--out", "-o", help="folder for headless images, screenshots and recordings")
-    p.add_argument("--mp4", action="store_true", help="with --headless, also encode view.mp4")
-    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a foreign sequence")
-    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend of the solver")
+    p.add_argument("target", help="scene .toml (live), run directory, or particle sequence (dir, file or glob)")
+    p.add_argument("--headless", action="store_true", help="render offscreen to PNGs instead of opening a window")
+    p.add_argument("--frames", type=int, help="frames to render headless (live: simulated frames; default: all / 1)")
+    p.add_argument("--out", "-o", help="output directory for PNGs, screenshots and recordings")
+    p.add_argument("--mp4", action="store_true", help="with --headless, also encode OUT/view.mp4")
+    p.add_argument("--color", choices=["speed", "density"], help="colour fluid by speed or density")
+    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
+    p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
+    p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
+    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a sequence's files (default z)")
+    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for live simulation")
     p.set_defaults(func=_cmd_view)
 
 
 def _cmd_view(a) -> int:
     from . import pipeline
 
-    written = pipeline.view(a.target, headless=a.headless, frames=a.frames, out=a.out, mp4=a.mp4, up=a.up, arch=a.arch)
     if a.headless:
-        print(f"wrote {len(written)} images to {a.out}")
+        if not a.out:
+            raise WhitecapError("view --headless: --out DIR is required")
+        paths = pipeline.view(
+            a.target, headless=True, out=a.out, frames=a.frames, mp4=a.mp4, arch=a.arch,
+            size=tuple(a.size) if a.size else None, color_mode=a.color, up=a.up, panel=a.panel,
+            legend=not a.no_legend,
+        )
+        print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if a.mp4 else ""))
+        return 0
+    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up)
     return 0
 
 

@@ -210,19 +210,21 @@ class Mesh(_Section):
 
 # --------------------------------------------------------------------------- view
 class View(_Section):
-    """Real-time GGUI viewer. Unset camera keys frame the domain automatically."""
+    """Real-time GGUI viewer (`whitecap view`). Camera fields left out are framed on the domain."""
 
-    window: list[int] = Field([1280, 720], min_length=2, max_length=2, description="window or image size [px]")
-    camera_position: Vec3 | None = Field(None, description="start camera position [m]")
-    camera_lookat: Vec3 | None = Field(None, description="start point looked at [m]")
-    fov: float = Field(45.0, gt=1, lt=170, description="vertical field of view [deg]")
-    color_by: Literal["speed", "density"] = Field("speed", description="what colours the fluid")
-    speed_range: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="colour range for speed [m/s]; unset = 0..max of the frame"
+    camera_position: Vec3 | None = Field(None, description="camera eye position [m]; default: in front of the domain")
+    lookat: Vec3 | None = Field(None, description="point the camera looks at [m]; default: the domain centre")
+    fov: float = Field(45.0, gt=1.0, lt=170.0, description="vertical field of view [deg]")
+    window_size: list[int] = Field([1280, 720], min_length=2, max_length=2, description="window width, height [px]")
+    color_mode: Literal["speed", "density"] = Field("speed", description="what colours the fluid particles")
+    color_range: list[float] | None = Field(
+        None, min_length=2, max_length=2,
+        description="colour-map range [m/s] or [kg/m³]; default: fitted to the first frame shown",
     )
-    point_scale: float = Field(1.0, gt=0, description="drawn particle radius as a multiple of the particle radius [-]")
-    background: Vec3 = Field([0.08, 0.09, 0.12], description="background colour, RGB [0-1]")
-    move_speed: float = Field(0.02, gt=0, description="WASD/QE camera speed per frame, as a fraction of the domain size [-]")
+    point_scale: float = Field(1.0, gt=0, le=10.0, description="drawn fluid sphere radius as a multiple of r [-]")
+    background: Vec3 = Field([0.13, 0.14, 0.17], description="background colour, RGB [0-1]")
+    move_speed: float = Field(1.0, gt=0, description="WASD/QE camera speed [domain diagonals per second]")
+    fps_limit: int = Field(60, ge=1, le=1000, description="frame rate cap of the interactive window [1/s]")
 
 
 # --------------------------------------------------------------------------- render

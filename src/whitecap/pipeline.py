@@ -203,18 +203,14 @@ def foam(
 
 
 # ============================================================================ view
-def view(
-    target: str | Path,
-    headless: bool = False,
-    frames: int | None = None,
-    out: str | Path | None = None,
-    mp4: bool = False,
-    up: str = "z",
-    arch: str = "cpu",
-    show_progress: bool = True,
-) -> list[Path]:
-    """Live viewer of a scene, playback of a run or sequence, or headless PNGs."""
-    from .view import run_view
+def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
+         mp4: bool = False, arch: str = "cpu", **opts):
+    """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
 
-    return run_view(target, headless=headless, frames=frames, out=out, mp4=mp4, arch=arch, up=up,
-                    show_progress=show_progress)
+    ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
+    returns the PNG paths. ``opts``: size, color_mode, up, panel, legend, show_progress.
+    See :mod:`whitecap.view`.
+    """
+    from .view import view as _view
+
+    return _view(target, headless=headless, out=out, frames=frames, mp4=mp4, arch=arch, **opts)

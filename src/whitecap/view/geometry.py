@@ -1,0 +1,58 @@
+"""Static geometry for the viewer: obstacle meshes and the domain box."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("whitecap.view")
+
+
+def obstacle_transform(translate, rotate_deg, scale) -> np.ndarray:
+    """4x4 matrix: scale, then rotate about x, then y, then z [deg], then translate."""
+    from trimesh.transformations import rotation_matrix
+
+    m = np.eye(4)
+    m[:3, :3] *= float(scale)
+    for axis, ang in zip(np.eye(3), rotate_deg):
+        m = rotation_matrix(np.radians(ang), axis) @ m
+    m[:3, 3] += np.asarray(translate, float)
+    return m
+
+
+def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple]]:
+    """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour) per obstacle.
+
+    Relative mesh paths are looked for in ``bases`` in order (the scene
+    directory, then the run directory for playback), then the working directory. Missing or unreadable meshes are skipped with a
+    warning: the viewer still shows the fluid.
+    """
+    import trimesh
+
+    out = []
+    for e in entries:
+        path = Path(e.get("render_mesh") or e["mesh"])
+        cands = [path] if path.is_absolute() else [b / path for b in bases] + [Path.cwd() / path]
+        found = next((c for c in cands if c.is_file()), None)
+        if found is None:
+            log.warning("obstacle mesh %s not found; not shown", path)
+            continue
+        try:
+            m = trimesh.load(found, force="mesh")
+        except Exception as exc:  # a bad mesh must not stop the viewer
+            log.warning("obstacle mesh %s unreadable (%s); not shown", found, exc)
+            continue
+        m.apply_transform(obstacle_transform(e.get("translate", [0, 0, 0]), e.get("rotate", [0, 0, 0]), e.get("scale", 1.0)))
+        color = tuple(float(c) for c in e.get("color", (0.8, 0.78, 0.72)))
+        out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color))
+    return out
+
+
+def box_lines(lower, upper) -> np.ndarray:
+    """The 12 edges of an axis-aligned box as 24 line-segment end points."""
+    lo, hi = np.asarray(lower, np.float32), np.asarray(upper, np.float32)
+    c = np.array([[(hi if (k >> a) & 1 else lo)[a] for a in range(3)] for k in range(8)], np.float32)
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    return np.array([c[i] for e in edges for i in e], np.float32)

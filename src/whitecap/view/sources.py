@@ -1,0 +1,224 @@
+"""Where frames come from: a written run, a numbered particle sequence, or a live solver.
+
+Every source gives :class:`Frame` objects: fluid arrays and, when present,
+diffuse particles (positions, type, radius).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import read
+from ..io.sequence import find_sequence
+from ..io.run import RUN_JSON, RunInfo
+
+
+@dataclass
+class Frame:
+    index: int
+    time: float
+    positions: np.ndarray
+    velocities: np.ndarray | None = None
+    density: np.ndarray | None = None
+    diffuse_positions: np.ndarray | None = None
+    diffuse_type: np.ndarray | None = None
+    diffuse_radius: np.ndarray | None = None
+
+    def as_dict(self) -> dict:
+        return {"positions": self.positions, "velocities": self.velocities, "density": self.density}
+
+    def counts(self) -> dict[str, int]:
+        from .colors import DIFFUSE_NAMES
+
+        c = {"fluid": len(self.positions)}
+        if self.diffuse_type is not None:
+            for t, name in enumerate(DIFFUSE_NAMES):
+                c[name] = int((self.diffuse_type == t).sum())
+        return c
+
+
+@dataclass
+class Bounds:
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+# ----------------------------------------------------------------------------- playback
+class PlaybackSource:
+    """Frames read from disk on demand (with a small cache)."""
+
+    live = False
+
+    def __init__(self, path: str | Path, up: str = "z"):
+        self.path = Path(path)
+        self.up = up
+        self.info: RunInfo | None = None
+        self.diffuse: dict[int, Path] = {}
+        if (self.path / RUN_JSON).is_file():
+            self.info = RunInfo.load(self.path)
+            fl = self.info.files("fluid")
+            if not fl:
+                raise InputError(f"{self.path / RUN_JSON}: no fluid frames listed")
+            self.indices = [i for i, _ in fl]
+            self.files = [self.path / rel for _, rel in fl]
+            self.diffuse = {i: self.path / rel for i, rel in self.info.files("diffuse")}
+            self.times = {f["index"]: f.get("time", f["index"] / self.info.frame_rate) for f in self.info.frames}
+            self.radius = float(self.info.particle_radius)
+            d = self.info.domain or {}
+            self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float)) if "lower" in d else None
+        else:
+            if not self.path.exists() and not any(c in str(path) for c in "*?["):
+                raise InputError(f"{self.path}: no such run directory or particle sequence")
+            seq = find_sequence(self.path)
+            self.indices = [i for i, _ in seq]
+            self.files = [q for _, q in seq]
+            self.times = {}
+            self.bounds = None
+            self.radius = None
+        self._cache: dict[int, Frame] = {}
+        first = self.frame(0)
+        if self.bounds is None:
+            lo, hi = first.positions.min(axis=0), first.positions.max(axis=0)
+            self.bounds = Bounds(lo.astype(float), hi.astype(float))
+        if self.radius is None:
+            # Spacing estimate: the cube root of the volume per particle, halved.
+            ext = np.maximum(self.bounds.upper - self.bounds.lower, 1e-6)
+            self.radius = 0.5 * float(np.prod(ext) / max(len(first.positions), 1)) ** (1 / 3)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def frame(self, k: int) -> Frame:
+        k = int(np.clip(k, 0, len(self.files) - 1))
+        if k in self._cache:
+            return self._cache[k]
+        opts = {"up": self.up} if self.up != "z" else {}
+        pf = read(self.files[k], **opts)
+        idx = self.indices[k]
+        t = pf.time if pf.time is not None else self.times.get(idx, float(idx))
+        fr = Frame(idx, float(t), pf.positions, pf.velocities, pf.density)
+        dpath = self.diffuse.get(idx)
+        if dpath is not None and dpath.is_file():
+            dfr = read(dpath)
+            for name in ("type", "radius"):
+                if name not in dfr.arrays:
+                    raise InputError(f"{dpath}: missing array '{name}'")
+            fr.diffuse_positions = dfr.positions
+            fr.diffuse_type = np.asarray(dfr.arrays["type"], np.uint8)
+            fr.diffuse_radius = np.asarray(dfr.arrays["radius"], np.float32)
+        if len(self._cache) > 8:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[k] = fr
+        return fr
+
+    def obstacles(self) -> list[dict]:
+        return list(self.info.obstacles) if self.info else []
+
+    def obstacle_base(self) -> list[Path]:
+        """Where relative obstacle mesh paths are looked for: the scene's directory as the run
+        recorded it, then the run directory."""
+        scene_dir = self.info.extra.get("scene_dir") if self.info else None
+        return ([Path(scene_dir)] if scene_dir else []) + [self.path]
+
+
+# ----------------------------------------------------------------------------- live
+@dataclass
+class LiveSource:
+    """A solver advanced frame by frame while the viewer shows it."""
+
+    scene: object
+    arch: str = "cpu"
+    live: bool = True
+    hook: object | None = None
+    _initial: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        from ..sim.driver import build_solver
+
+        self.solver = build_solver(self.scene, self.arch)
+        self._initial = self.solver.checkpoint()
+        self.index = 0
+        self.steps = 0
+        lo, hi = np.asarray(self.scene.domain.lower, float), np.asarray(self.scene.domain.upper, float)
+        self.bounds = Bounds(lo, hi)
+        self.radius = float(self.scene.solver.particle_radius)
+        self._diffuse = None
+        self._diffuse_index = -1
+        self._foam_hook()
+
+    def _foam_hook(self) -> None:
+        """Diffuse particles from the foam stage's generator, when that stage exists (optional)."""
+        try:
+            import importlib
+
+            from ..sim.driver import run_info_for
+
+            foam = importlib.import_module("whitecap.foam")  # the package, not a same-named function
+
+            make = getattr(foam, "simulation_hook", None)
+            if make is not None and self.scene.foam.enabled:
+                self.hook = make(self.scene)
+                self.hook.start(run_info_for(self.scene, self.solver))
+        except Exception:  # the foam stage is optional for viewing
+            self.hook = None
+
+    @property
+    def foam_params(self):
+        """The live foam generator's parameters (a dataclass), or None."""
+        gen = getattr(self.hook, "gen", None)
+        return gen.p if gen is not None else None
+
+    def set_foam_params(self, **kw) -> None:
+        self.hook.gen.with_params(**kw)
+
+    def __len__(self) -> int:
+        return self.index + 1
+
+    def advance(self) -> int:
+        """One output frame; returns the substeps taken."""
+        nsub = self.solver.advance_frame(self.index + 1)
+        self.index += 1
+        self.steps += nsub
+        return nsub
+
+    def reset(self) -> None:
+        self.solver.restore(self._initial)
+        self.index = 0
+        if self.hook is not None:
+            from ..foam.generator import DiffuseState
+
+            self.hook.gen.state = DiffuseState.empty()
+
+    def current(self, with_density: bool = False) -> Frame:
+        need_rho = with_density or self.hook is not None
+        a = self.solver.arrays(with_density=need_rho)
+        fr = Frame(self.index, float(self.solver.time), a["positions"], a["velocities"], a["density"])
+        if self.hook is not None and self._diffuse_index != self.index:
+            self._step_foam(fr, a)
+        if self._diffuse is not None:
+            fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse
+        return fr
+
+    def _step_foam(self, fr: Frame, a: dict) -> None:
+        try:
+            from ..io import ParticleFrame
+
+            pf = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=fr.time)
+            d = self.hook.gen.step(pf, self.index, 1.0 / self.scene.solver.frame_rate)
+            self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8), np.asarray(d.arrays["radius"], np.float32))
+            self._diffuse_index = self.index
+        except Exception as exc:  # the viewer carries on without diffuse particles
+            import logging
+
+            logging.getLogger("whitecap.view").warning("foam generator failed (%s); diffuse particles off", exc)
+            self.hook, self._diffuse = None, None
+
+    def obstacles(self) -> list[dict]:
+        return [o.model_dump() for o in self.scene.obstacle]
+
+    def obstacle_base(self) -> list[Path]:
+        return [Path(self.scene.base_dir)]
