@@ -106,7 +106,7 @@ def test_diffuse_types_render_in_their_colours(tiny_run, tmp_path):
     d = ParticleFrame(pos, np.zeros_like(pos), arrays={
         "type": np.array([0, 1, 2], np.uint8), "lifetime": np.ones(3, np.float32),
         "radius": np.full(3, 0.02, np.float32)})
-    (run / "diffuse").mkdir()
+    (run / "diffuse").mkdir(exist_ok=True)
     write(run / frame_name("diffuse", 0), d)
     info.set_file(0, "diffuse", frame_name("diffuse", 0))
     info.save(run)
