@@ -250,15 +250,21 @@ def obstacle_penalty(
 
 
 @ti.kernel
-def obstacle_density_map(
+def obstacle_project_and_density_map(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
+    r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
 ):
-    """ψ_i += ψ(sdf), ∇ψ_i += ψ'(sdf)·∇sdf: the obstacle's share of ρ_i/ρ0."""
+    """Fused at the start of each constraint iteration (one SDF lookup serves both):
+    x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
+    iteration, or follows the prediction), then ψ_i += ψ(sdf), ∇ψ_i += ψ'(sdf)·∇sdf,
+    the obstacle's share of ρ_i/ρ0."""
     for i in range(n):
         for o in range(off.shape[0]):
             if in_box(p[i], box_lo[o], box_hi[o]):
                 d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+                if d < r and g.norm() > 1e-9:
+                    p[i] += (r - d) * g.normalized()
+                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
                 if d < h:
                     gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
                     dd = ti.max(d, 0.0)
@@ -338,7 +344,9 @@ class ObstacleCollider:
 
     def add_density_map(self, s) -> None:
         st = s.state
-        obstacle_density_map(s.n, st.p, *self._geo(), s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi)
+        obstacle_project_and_density_map(
+            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi
+        )
 
     def project(self, s) -> None:
         obstacle_project(s.n, s.state.p, *self._geo(), s.r)

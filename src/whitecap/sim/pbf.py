@@ -398,9 +398,10 @@ class PBFSolver:
     """Owns the fluid state, the neighbour grid and the step.
 
     ``colliders`` are objects with ``apply_forces(solver, dt)`` (before
-    prediction), ``add_density_map(solver)`` (each iteration, adds to ψ/∇ψ)
-    and ``project(solver)`` (after each iteration): the obstacle module plugs
-    in there.
+    prediction), ``add_density_map(solver)`` (start of each iteration: project
+    particles out, then add to ψ/∇ψ), ``project(solver)`` (after the last
+    iteration) and ``respond(solver, dt)`` (velocity response): the obstacle
+    module plugs in there.
     """
 
     def __init__(self, scene: Scene, positions: np.ndarray, velocities: np.ndarray, ids: np.ndarray | None = None):
@@ -509,8 +510,11 @@ class PBFSolver:
                     self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, st.dp,
                 )
                 apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
-                for c in self.colliders:
-                    c.project(self)
+            # Colliders project at the start of each iteration (fused with their
+            # density map, see boundary_density) and once more here, so no
+            # particle ends an iteration inside an obstacle.
+            for c in self.colliders:
+                c.project(self)
         with timer("pbf.velocity"):
             update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
             for c in self.colliders:
