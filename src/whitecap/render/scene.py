@@ -256,6 +256,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     sc.cycles.samples = cfg.preview_samples if preview else cfg.samples
     sc.cycles.use_adaptive_sampling = True
     sc.cycles.use_denoising = bool(cfg.denoise)
+    sc.render.use_persistent_data = True  # keep static geometry (ground, obstacles) between frames
     if preview:
         # Fewer light bounces: enough for water seen through one surface.
         sc.cycles.max_bounces = 6
