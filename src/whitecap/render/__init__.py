@@ -94,12 +94,25 @@ def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int |
             bpy.ops.wm.save_as_mainfile(filepath=str(tmp), check_existing=False, compress=True)
 
 
-def encode_movie(run_dir: Path, fps: float) -> Path:
+def _done(png: Path, size: tuple[int, int]) -> bool:
+    """A finished frame exists at this quality's size (a rerun at another quality redoes it)."""
+    if not png.exists():
+        return False
+    try:
+        from PIL import Image
+
+        with Image.open(png) as im:
+            return tuple(im.size) == tuple(size)
+    except Exception:
+        return False
+
+
+def encode_movie(run_dir: Path, fps: float, indices: list[int] | None = None) -> Path:
     import imageio.v2 as imageio
 
     from ..io.atomic import atomic_path
 
-    frames = sorted((run_dir / "render").glob("frame_*.png"))
+    frames = [frame_path(run_dir, i) for i in indices] if indices else sorted((run_dir / "render").glob("frame_*.png"))
     movie = run_dir / "render" / "movie.mp4"
     with atomic_path(movie) as tmp:
         with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8, macro_block_size=8, format="FFMPEG") as w:
@@ -131,7 +144,9 @@ def render_run(
     wanted = parse_range(frames, meshes)
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
-    todo = [i for i in wanted if force or not frame_path(run_dir, i).exists()]
+    cfg = render_settings(run_dir)
+    size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
+    todo = [i for i in wanted if force or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
     need_blend = force or not blend.exists()
     (run_dir / "render").mkdir(parents=True, exist_ok=True)
@@ -167,7 +182,7 @@ def render_run(
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if movie:
-        result["movie"] = encode_movie(run_dir, info.frame_rate)
+        result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
     info = RunInfo.load(run_dir)
     for i in wanted:
         info.set_file(i, "render", f"render/frame_{i:05d}.png")
