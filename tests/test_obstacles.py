@@ -149,3 +149,26 @@ def test_sdf_cache_is_reused(tmp_path, monkeypatch):
     moved = scene_from_dict({"obstacle": [{"mesh": path, "translate": [0.3, 0.2, 0.25]}]})
     obs.load_obstacles(moved)  # another transform is another cache entry
     assert len(calls) == 2
+
+
+def test_diffuse_particles_never_inside_obstacles(tmp_path):
+    r = 0.01
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.06)
+    path = save(m, tmp_path / "ball.stl")
+    sc = scene_from_dict({
+        "domain": {"upper": [0.5, 0.2, 0.4]},
+        "solver": {"particle_radius": r},
+        "fluid": [{"lower": [0, 0, 0], "upper": [0.16, 0.2, 0.3]}],
+        "obstacle": [{"mesh": path, "translate": [0.3, 0.1, 0.06]}],
+        "foam": {"preset": "auto", "k_ta": 400.0, "k_wc": 4000.0},
+        "output": {"frames": 14},
+    })
+    simulate(sc, out=tmp_path / "run", show_progress=False)
+    total = 0
+    for i in range(15):
+        d = io.read(tmp_path / f"run/diffuse/diffuse_{i:05d}.ply")
+        total += len(d)
+        if len(d):
+            dist = np.linalg.norm(d.positions - [0.3, 0.1, 0.06], axis=1)
+            assert dist.min() > 0.06 - 1e-3  # outside the ball (to its facets)
+    assert total > 0

@@ -41,9 +41,10 @@ class FoamStage:
 
     name = "diffuse"
 
-    def __init__(self, params: FoamParams, seed: int, verbose: bool = False):
+    def __init__(self, params: FoamParams, seed: int, verbose: bool = False, obstacles: list | None = None):
         self.params = params
         self.seed = seed
+        self.obstacles = obstacles
         self.gen: FoamGenerator | None = None
         self._pending: DiffuseState | None = None
         self.verbose = verbose
@@ -53,7 +54,8 @@ class FoamStage:
 
     def start(self, info: RunInfo) -> None:
         self.gen = FoamGenerator(
-            self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed
+            self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed,
+            obstacles=self.obstacles,
         )
         if self._pending is not None:
             self.gen.state = self._pending
@@ -65,9 +67,12 @@ class FoamStage:
         rows = self.gen.state.counts
         write_counts(out, rows)
         if self.verbose:
-            r = rows[-1]
-            console.print(f"frame {index}: spray {r[2]}, foam {r[3]}, bubbles {r[4]}")
+            console.print(f"frame {index}: {self.status()}")
         return rel
+
+    def status(self) -> str:
+        r = self.gen.state.counts[-1] if self.gen and self.gen.state.counts else (0, 0, 0, 0, 0)
+        return f"spray {int(r[2]):,} foam {int(r[3]):,} bubbles {int(r[4]):,}"
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         return self.gen.state.to_arrays() if self.gen else {}
@@ -87,9 +92,18 @@ class FoamStage:
             )
 
 
+def obstacle_grids(scene: Scene) -> list:
+    """The scene's obstacle SDFs (cached on disk), so diffuse particles entering them are removed."""
+    if not scene.obstacle:
+        return []
+    from ..sim.obstacles import load_obstacles
+
+    return load_obstacles(scene).grids
+
+
 def simulation_hook(scene: Scene) -> FoamStage:
     """The frame hook `simulate` uses when [foam] is enabled."""
-    return FoamStage(resolve(scene.foam), scene.seed)
+    return FoamStage(resolve(scene.foam), scene.seed, obstacles=obstacle_grids(scene))
 
 
 # ============================================================================ post-processing
@@ -148,10 +162,14 @@ def postprocess(
                      lower=c.lower, upper=c.upper)
     foam_cfg = Foam()
     run_seed = 0
+    grids: list = []
     if info is not None:
         scene_file = src / "scene.toml"
         if scene_file.is_file():
-            foam_cfg = load_scene(scene_file).foam
+            run_scene = load_scene(scene_file)
+            run_scene.base_dir = info.extra.get("scene_dir", run_scene.base_dir)
+            foam_cfg = run_scene.foam
+            grids = obstacle_grids(run_scene)
         run_seed = int(info.extra.get("seed", 0))
         out = Path(out) if out is not None else src
     elif out is None:
@@ -184,7 +202,7 @@ def postprocess(
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    stage = FoamStage(p, seed)
+    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
     stage.start(info)
     bar = progress(disable=not show_progress)
     with bar:

@@ -83,7 +83,8 @@ def _nd(a: np.ndarray, dtype, vec: bool = False):
 
 
 class FoamGenerator:
-    def __init__(self, params: FoamParams, radius: float, domain: tuple, gravity, seed: int, arch: str = "cpu"):
+    def __init__(self, params: FoamParams, radius: float, domain: tuple, gravity, seed: int, arch: str = "cpu",
+                 obstacles: list | None = None):
         runtime.init(runtime.current() or arch)
         self.p = params
         self.r = float(radius)
@@ -96,6 +97,7 @@ class FoamGenerator:
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
         self._slots = None
+        self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
 
     # ------------------------------------------------------------------ thresholds
     def thresholds(self) -> np.ndarray:
@@ -237,6 +239,15 @@ class FoamGenerator:
         st.velocities = np.concatenate([old[1], new_v]).astype(np.float32)
         st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
         st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
+        if self.obstacles and len(st.positions):
+            outside = np.ones(len(st.positions), bool)
+            for g in self.obstacles:
+                outside &= g.sample(st.positions) > 0.0
+            if not outside.all():
+                n_old = len(old[0])
+                self._old_kind = self._old_kind[outside[:n_old]]
+                st.positions, st.velocities = st.positions[outside], st.velocities[outside]
+                st.lifetime, st.ids = st.lifetime[outside], st.ids[outside]
 
     def _classify(self, fx, fv, args) -> np.ndarray:
         """(4) spray / foam / bubble for output: survivors keep the type they moved as

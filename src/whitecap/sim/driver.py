@@ -183,10 +183,12 @@ def run_simulation(
                     _save_checkpoint(out, index, solver, hooks)
             el = time.perf_counter() - t0
             sps = (solver.step_count - steps0) / el if el > 0 else 0.0
+            extra = "".join(f"  {h.status()}" for h in hooks if hasattr(h, "status"))
             bar.update(
                 task,
                 completed=index,
-                info=f"t={solver.time:.3f}s  {sps:.1f} steps/s  {solver.n:,} particles  vmax={solver.stats.max_speed:.2f} m/s",
+                info=f"t={solver.time:.3f}s  {sps:.1f} steps/s  {solver.n:,} particles  "
+                f"vmax={solver.stats.max_speed:.2f} m/s{extra}",
             )
     if solver.stats.neighbor_overflow:
         from ..progress import console
