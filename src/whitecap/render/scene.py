@@ -57,10 +57,18 @@ def read_mesh_ply(path: Path):
 
 
 def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):
-    """A bpy mesh filled with foreach_set (fast for 100k+ elements)."""
+    """A new bpy mesh filled with foreach_set (fast for 100k+ elements)."""
     import bpy
 
-    me = bpy.data.meshes.new(name)
+    return fill_mesh(bpy.data.meshes.new(name), verts, faces, velocity, ids)
+
+
+def fill_mesh(me, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):
+    """Replace a mesh's geometry in place (its materials and identity stay)."""
+    me.clear_geometry()
+    for name in ("velocity", "id"):
+        if name in me.attributes:
+            me.attributes.remove(me.attributes[name])
     nv, nf = len(verts), len(faces)
     if nv:
         me.vertices.add(nv)
@@ -80,18 +88,6 @@ def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndar
     if nf:
         me.shade_smooth()
     return me
-
-
-def swap_mesh(obj, me) -> None:
-    import bpy
-
-    old = obj.data
-    mats = list(old.materials)
-    for m in mats:
-        me.materials.append(m)
-    obj.data = me
-    if old.users == 0:
-        bpy.data.meshes.remove(old)
 
 
 # ---------------------------------------------------------------------------- materials
@@ -398,18 +394,17 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
         verts, faces, vel = read_mesh_ply(run_dir / files["mesh"])
-        swap_mesh(h.fluid, make_mesh(f"fluid_{index:05d}", verts, faces, vel))
+        fill_mesh(h.fluid.data, verts, faces, vel)
         stats["triangles"] = len(faces)
     if "diffuse" in files:
         d = read(run_dir / files["diffuse"])
         types = d.arrays.get("type", np.zeros(len(d), np.uint8))
         for t, obj in h.diffuse.items():
             sel = types == t
-            me = make_mesh(
-                f"{TYPE_NAMES[t]}_{index:05d}", d.positions[sel], np.zeros((0, 3), np.int32),
+            fill_mesh(
+                obj.data, d.positions[sel], np.zeros((0, 3), np.int32),
                 d.velocities[sel] if d.velocities is not None else None, ids=d.ids[sel],
             )
-            swap_mesh(obj, me)
             stats["diffuse"][t] = int(sel.sum())
     bpy.context.scene.frame_set(index)
     return stats
