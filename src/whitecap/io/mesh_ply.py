@@ -46,17 +46,9 @@ def write_mesh_ply(path: Path, mesh: SurfaceMesh) -> None:
 
 
 def read_mesh_ply(path: Path) -> SurfaceMesh:
-    try:
-        ply = PlyData.read(str(path))
-    except Exception as exc:  # plyfile raises a variety of types on garbage
-        raise InputError(f"{path}: not a readable PLY file ({exc})") from None
-    if "vertex" not in ply:
-        raise InputError(f"{path}: PLY has no 'vertex' element")
-    v = ply["vertex"].data
-    names = v.dtype.names or ()
-    for k in ("x", "y", "z"):
-        if k not in names:
-            raise InputError(f"{path}: PLY vertex element has no '{k}' property")
+    from .ply import read_vertices
+
+    ply, v, names = read_vertices(path)
 
     def vec(a, b, c):
         return np.stack([v[a], v[b], v[c]], axis=1) if all(k in names for k in (a, b, c)) else None

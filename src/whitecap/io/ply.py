@@ -21,7 +21,8 @@ _CORE = ("x", "y", "z", "vx", "vy", "vz", "density", "id")
 _DTYPES = {np.dtype(np.float32): "f4", np.dtype(np.uint32): "u4", np.dtype(np.uint8): "u1", np.dtype(np.int32): "i4"}
 
 
-def read_ply(path: Path, up: str = "z") -> ParticleFrame:
+def read_vertices(path: Path):
+    """(PlyData, vertex records, property names) of a PLY with x y z, or InputError naming the file."""
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # plyfile raises a variety of types on garbage
@@ -33,6 +34,11 @@ def read_ply(path: Path, up: str = "z") -> ParticleFrame:
     for k in ("x", "y", "z"):
         if k not in names:
             raise InputError(f"{path}: PLY vertex element has no '{k}' property")
+    return ply, v, names
+
+
+def read_ply(path: Path, up: str = "z") -> ParticleFrame:
+    ply, v, names = read_vertices(path)
     pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
     vel = np.stack([v["vx"], v["vy"], v["vz"]], axis=1) if all(k in names for k in ("vx", "vy", "vz")) else None
     from .axes import to_z_up

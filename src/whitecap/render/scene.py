@@ -41,19 +41,10 @@ class SceneHandles:
 # ---------------------------------------------------------------------------- meshes
 def read_mesh_ply(path: Path):
     """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a contract mesh PLY."""
-    from plyfile import PlyData
+    from ..io.mesh_ply import read_mesh_ply as read_surface
 
-    ply = PlyData.read(str(path))
-    v = ply["vertex"].data
-    verts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
-    names = v.dtype.names or ()
-    vel = np.stack([v["vx"], v["vy"], v["vz"]], axis=1).astype(np.float32) if "vx" in names else None
-    faces = np.zeros((0, 3), np.int32)
-    if "face" in ply and len(ply["face"].data):
-        f = ply["face"].data
-        key = f.dtype.names[0]
-        faces = np.vstack(f[key]).astype(np.int32)
-    return verts, faces, vel
+    m = read_surface(path)
+    return m.vertices, m.faces, m.arrays.get("velocity")
 
 
 def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):

@@ -29,7 +29,7 @@ All particle state is plain Taichi ndarrays in :class:`FluidState`.
 
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti

@@ -50,7 +50,6 @@ def read_vtk_legacy(path):
     lines = data.split(b"\n", 4)
     binary = lines[2].strip().upper() == b"BINARY"
     pos = data.index(b"\n", data.index(lines[2])) + 1
-    tokens_ascii = None
     points, tris, vel, npts = [], [], None, 0
     sizes = {"float": (">f", 4), "double": (">d", 8), "int": (">i", 4), "unsigned_int": (">I", 4),
              "char": (">b", 1), "unsigned_char": (">B", 1), "short": (">h", 2), "unsigned_short": (">H", 2),
@@ -64,7 +63,7 @@ def read_vtk_legacy(path):
         return line
 
     def read_values(count, typ):
-        nonlocal pos, tokens_ascii
+        nonlocal pos
         if binary:
             fmt, size = sizes.get(typ.lower(), (">f", 4))
             vals = struct.unpack(">" + fmt[1] * count, data[pos:pos + size * count])
