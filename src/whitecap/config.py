@@ -225,6 +225,10 @@ class View(_Section):
     background: Vec3 = Field([0.13, 0.14, 0.17], description="background colour, RGB [0-1]")
     move_speed: float = Field(1.0, gt=0, description="WASD/QE camera speed [domain diagonals per second]")
     fps_limit: int = Field(60, ge=1, le=1000, description="frame rate cap of the interactive window [1/s]")
+    steps_per_draw: int | None = Field(
+        None, ge=1, le=10000,
+        description="live mode: solver steps between redraws; unset = a whole output frame per redraw [-]",
+    )
 
 
 # --------------------------------------------------------------------------- render

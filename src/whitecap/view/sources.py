@@ -179,15 +179,31 @@ class LiveSource:
         return self.index + 1
 
     def advance(self) -> int:
-        """One output frame; returns the substeps taken."""
-        nsub = self.solver.advance_frame(self.index + 1)
-        self.index += 1
-        self.steps += nsub
-        return nsub
+        """One output frame, or ``[view] steps_per_draw`` solver steps of it, so the
+        window redraws while a frame is still being computed; returns the steps taken."""
+        k = self.scene.view.steps_per_draw
+        if not k:
+            nsub = self.solver.advance_frame(self.index + 1)
+            self.index += 1
+            self.steps += nsub
+            return nsub
+        if getattr(self, "_left", 0) == 0:
+            self._nsub = self.solver.substeps_for_frame()
+            self._left = self._nsub
+        dt = 1.0 / self.scene.solver.frame_rate / self._nsub
+        n = min(k, self._left)
+        for _ in range(n):
+            self.solver.step(dt)
+        self._left -= n
+        self.steps += n
+        if self._left == 0:
+            self.index += 1
+        return n
 
     def reset(self) -> None:
         self.solver.restore(self._initial)
         self.index = 0
+        self._left = 0
         if self.hook is not None:
             from ..foam.generator import DiffuseState
 
