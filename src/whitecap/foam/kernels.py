@@ -218,6 +218,17 @@ def fluid_neighbourhood(
     return cnt, vsum, wsum
 
 
+@ti.func
+def diffuse_type(cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32) -> ti.i32:
+    """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
+    t = 1
+    if cnt < spray_below:
+        t = 0
+    elif cnt > bubble_above:
+        t = 2
+    return t
+
+
 @ti.kernel
 def advect_diffuse(
     nd: ti.i32,
@@ -255,13 +266,11 @@ def advect_diffuse(
         if wsum > 0.0:
             vf = vsum / wsum
         alive = 1
-        t = 1
-        if cnt < spray_below:
-            t = 0
+        t = diffuse_type(cnt, spray_below, bubble_above)
+        if t == 0:
             vd[p] += dt * g
             xd[p] += dt * vd[p]
-        elif cnt > bubble_above:
-            t = 2
+        elif t == 2:
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:
@@ -294,12 +303,7 @@ def classify(
     bubble_above: ti.i32,
     kind: I1,
 ):
-    """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
+    """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type)."""
     for p in range(nd):
         cnt, vsum, wsum = fluid_neighbourhood(xd[p], xs, fv, start, order, lower, inv_cell, dims, reach, h)
-        t = 1
-        if cnt < spray_below:
-            t = 0
-        elif cnt > bubble_above:
-            t = 2
-        kind[p] = t
+        kind[p] = diffuse_type(cnt, spray_below, bubble_above)
