@@ -257,7 +257,7 @@ class Render(_Section):
     sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units)")
     sun_angle: Vec3 = Field([50.0, 10.0, 30.0], description="sun rotation about x, y, z [deg]")
     world_strength: float = Field(0.6, ge=0, description="sky light strength [-]")
-    ground: bool = Field(True, description="draw a ground plane and a tank outline from the domain box")
+    ground: bool = Field(True, description="a ground plane under the domain box (three times its width)")
 
 
 # --------------------------------------------------------------------------- output

@@ -19,6 +19,7 @@ from .mesh import SurfaceMesh, register_mesh
 
 _VERTEX = ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")
 _FACE_DTYPE = np.dtype([("n", "u1"), ("i", "<i4", (3,))])  # packed: 13 bytes per triangle
+_TRIANGLES = {"face": {"vertex_indices": 3}}  # plyfile maps such lists from the file in one go
 
 
 def write_mesh_ply(path: Path, mesh: SurfaceMesh) -> None:
@@ -48,7 +49,7 @@ def write_mesh_ply(path: Path, mesh: SurfaceMesh) -> None:
 def read_mesh_ply(path: Path) -> SurfaceMesh:
     from .ply import read_vertices
 
-    ply, v, names = read_vertices(path)
+    ply, v, names = read_vertices(path, _TRIANGLES)
 
     def vec(a, b, c):
         return np.stack([v[a], v[b], v[c]], axis=1) if all(k in names for k in (a, b, c)) else None
@@ -56,11 +57,14 @@ def read_mesh_ply(path: Path) -> SurfaceMesh:
     faces = np.zeros((0, 3), np.int32)
     if "face" in ply and ply["face"].count:
         lists = ply["face"].data["vertex_indices"]
-        try:
-            faces = np.stack([np.asarray(f) for f in lists]).astype(np.int32)
-        except ValueError:
-            raise InputError(f"{path}: only triangle faces are supported") from None
-        if faces.shape[1] != 3:
+        if lists.dtype != object:  # binary: mapped as fixed-length triangles
+            faces = np.array(lists, np.int32)
+        else:  # ASCII PLY: one list per row
+            try:
+                faces = np.stack([np.asarray(f) for f in lists]).astype(np.int32)
+            except ValueError:
+                raise InputError(f"{path}: only triangle faces are supported") from None
+        if faces.ndim != 2 or faces.shape[1] != 3:
             raise InputError(f"{path}: only triangle faces are supported")
     vel = vec("vx", "vy", "vz")
     return SurfaceMesh(vec("x", "y", "z"), faces, vec("nx", "ny", "nz"),

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyElementParseError
 
 from ..errors import InputError
 from .atomic import atomic_path
@@ -21,10 +21,18 @@ _CORE = ("x", "y", "z", "vx", "vy", "vz", "density", "id")
 _DTYPES = {np.dtype(np.float32): "f4", np.dtype(np.uint32): "u4", np.dtype(np.uint8): "u1", np.dtype(np.int32): "i4"}
 
 
-def read_vertices(path: Path):
-    """(PlyData, vertex records, property names) of a PLY with x y z, or InputError naming the file."""
+def read_vertices(path: Path, known_list_len: dict | None = None):
+    """(PlyData, vertex records, property names) of a PLY with x y z, or InputError naming the file.
+
+    ``known_list_len`` ({element: {list property: length}}) lets plyfile map
+    fixed-length lists (triangles) straight from the file instead of parsing
+    them row by row; a row of another length raises a PlyElementParseError
+    naming the element and row.
+    """
     try:
-        ply = PlyData.read(str(path))
+        ply = PlyData.read(str(path), known_list_len=known_list_len or {})
+    except PlyElementParseError as exc:
+        raise InputError(f"{path}: {exc}") from None
     except Exception as exc:  # plyfile raises a variety of types on garbage
         raise InputError(f"{path}: not a readable PLY file ({exc})") from None
     if "vertex" not in ply:
