@@ -218,3 +218,34 @@ def test_blender_addon_loads_sequences_and_follows_frames(tmp_path, meshed_run):
 def test_bad_frame_range(meshed_run, capsys):
     assert main(["render", str(meshed_run), "--frames", "x:y"]) != 0
     assert "--frames" in capsys.readouterr().err
+
+
+DEVICE = "import json; from whitecap.render.scene import cycles_device; print(json.dumps({'device': cycles_device('auto')}))"
+
+
+def _has_gpu() -> bool:
+    return blender(DEVICE)["device"] == "GPU"
+
+
+@pytest.mark.gpu
+def test_gpu_render_matches_the_cpu_frame(meshed_run, tmp_path):
+    """Where Blender finds a GPU, `--device gpu` renders the frame the CPU renders (up to noise)."""
+    import imageio.v2 as imageio
+
+    if not _has_gpu():
+        pytest.skip("Cycles finds no GPU here")
+    run = tmp_path / "run"
+    shutil.copytree(meshed_run, run)
+    assert main(["render", str(run), "--frames", "0:1", "--force", "--device", "gpu", "--no-movie"]) == 0
+    gpu = imageio.imread(run / "render" / "frame_00000.png")[..., :3].astype(float)
+    cpu = imageio.imread(meshed_run / "render" / "frame_00000.png")[..., :3].astype(float)
+    assert gpu.std() > 5, "blank image"
+    assert np.abs(gpu - cpu).mean() < 8, "GPU and CPU frames differ beyond sampling noise"
+
+
+def test_gpu_asked_for_without_one_is_one_line_error(meshed_run, capsys):
+    if _has_gpu():
+        pytest.skip("this machine has a GPU")
+    assert main(["render", str(meshed_run), "--frames", "0:1", "--device", "gpu"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "render.device" in err and "no GPU" in err and len(err.splitlines()) == 1

@@ -392,3 +392,32 @@ def test_playback_steps_loops_and_pauses():
     _advance(st, src)
     _advance(st, src)
     assert st.frame == 1
+
+
+def test_live_buffers_filled_on_the_device_match_the_host_colour_map():
+    """A live solver's particles are coloured by a kernel on the device; it must give the
+    positions and colours of the numpy path used for files (speed and density modes)."""
+    import taichi as ti
+
+    from whitecap.sim import runtime
+    from whitecap.view.colors import colormap
+    from whitecap.view.draw import _Buffer
+    from whitecap.view.kernels import fill_fluid_buffer
+
+    runtime.init(runtime.current() or "cpu")
+    rng = np.random.default_rng(1)
+    n = 1000
+    x = rng.random((n, 3)).astype(np.float32)
+    v = rng.normal(size=(n, 3)).astype(np.float32)
+    rho = (1000.0 + 40.0 * rng.normal(size=n)).astype(np.float32)
+    xs, vs, rs = ti.Vector.ndarray(3, ti.f32, n), ti.Vector.ndarray(3, ti.f32, n), ti.ndarray(ti.f32, n)
+    xs.from_numpy(x)
+    vs.from_numpy(v)
+    rs.from_numpy(rho)
+    buf = _Buffer()
+    buf.reserve(n)
+    for by_density, (lo, hi), s in ((0, (0.0, 2.5), np.linalg.norm(v, axis=1)), (1, (950.0, 1050.0), rho)):
+        fill_fluid_buffer(n, xs, vs, rs, by_density, lo, hi, buf.pos, buf.col)
+        np.testing.assert_allclose(buf.pos.to_numpy()[:n], x)
+        np.testing.assert_allclose(buf.col.to_numpy()[:n], colormap(s, lo, hi), atol=1e-5)
+        assert len(np.unique(buf.col.to_numpy()[:n].round(3), axis=0)) > 100  # a spread of colours, not one

@@ -212,7 +212,7 @@ def _add_render(sub) -> None:
     p = sub.add_parser(
         "render",
         help="render a run in Blender (Cycles) to PNGs and an MP4",
-        description="Render RUN's meshes and diffuse particles with Blender's Cycles on the CPU. Writes "
+        description="Render RUN's meshes and diffuse particles with Blender's Cycles (on a GPU where one exists). Writes "
         "render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
     )
     p.add_argument("run", help="run directory (with mesh/ from `whitecap mesh`)")
@@ -221,13 +221,15 @@ def _add_render(sub) -> None:
     p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
+    p.add_argument("--device", choices=["auto", "cpu", "gpu"], help="Cycles device (default: [render].device, auto)")
     p.set_defaults(func=_cmd_render)
 
 
 def _cmd_render(a) -> int:
     from . import pipeline
 
-    r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie)
+    r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie,
+                         device=a.device)
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")

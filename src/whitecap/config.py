@@ -237,6 +237,9 @@ class Render(_Section):
 
     resolution: list[int] = Field([1920, 1080], min_length=2, max_length=2, description="final image size [px]")
     samples: int = Field(128, ge=1, le=65536, description="final Cycles samples per pixel [-]")
+    device: Literal["auto", "cpu", "gpu"] = Field(
+        "auto", description="Cycles device: auto = a GPU (OptiX, CUDA, HIP, oneAPI) where Blender finds one, else the CPU"
+    )
     preview_resolution: list[int] = Field([320, 240], min_length=2, max_length=2, description="preview size [px]")
     preview_samples: int = Field(16, ge=1, le=4096, description="preview samples per pixel [-]")
     camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")

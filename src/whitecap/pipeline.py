@@ -168,11 +168,13 @@ def render(
     force: bool = False,
     movie: bool = True,
     show_progress: bool = True,
+    device: str | None = None,
 ) -> dict:
     """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render."""
     from .render import render_run
 
-    return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie, show_progress=show_progress)
+    return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie,
+                      show_progress=show_progress, device=device)
 
 
 def blender_addon(out: str | Path | None = None) -> Path:

@@ -35,11 +35,11 @@ def require_bpy():
     return bpy
 
 
-def render_settings(run_dir: Path) -> Render:
+def render_settings(run_dir: Path, device: str | None = None) -> Render:
+    """The run's ``[render]`` section (defaults without a scene.toml); ``device`` overrides its device."""
     scene_file = run_dir / "scene.toml"
-    if scene_file.is_file():
-        return load_scene(scene_file).render
-    return Render()
+    cfg = load_scene(scene_file).render if scene_file.is_file() else Render()
+    return cfg.model_copy(update={"device": device}) if device else cfg
 
 
 def frame_path(run_dir: Path, index: int) -> Path:
@@ -61,7 +61,8 @@ def parse_range(spec: str | None, available: list[int]) -> list[int]:
         raise InputError(f"--frames: expected a:b, got {spec!r}") from None
 
 
-def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int | None, save_blend: bool) -> None:
+def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int | None, save_blend: bool,
+                  device: str | None = None) -> None:
     """Build the scene and render ``frames`` (runs in this process)."""
     require_bpy()
     import bpy
@@ -70,7 +71,7 @@ def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int |
     from .scene import build_scene, load_frame
 
     info = RunInfo.load(run_dir)
-    cfg = render_settings(run_dir)
+    cfg = render_settings(run_dir, device)
     mesh_frames = [i for i, _ in info.files("mesh")]
     h = build_scene(run_dir, info, cfg, quality, min(mesh_frames), max(mesh_frames))
     sc = bpy.context.scene
@@ -129,11 +130,17 @@ def render_run(
     force: bool = False,
     movie: bool = True,
     show_progress: bool = True,
+    device: str | None = None,
 ) -> dict:
-    """Render a run directory. Returns {'frames': [...], 'movie': path, 'blend': path}."""
+    """Render a run directory. Returns {'frames': [...], 'movie': path, 'blend': path}.
+
+    ``device`` (auto, cpu, gpu) overrides ``[render].device``.
+    """
     run_dir = Path(run_dir)
     if quality not in ("preview", "final"):
         raise InputError(f"--quality: expected preview or final, got {quality!r}")
+    if device not in (None, "auto", "cpu", "gpu"):
+        raise InputError(f"--device: expected auto, cpu or gpu, got {device!r}")
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: run directory not found")
     info = RunInfo.load(run_dir)
@@ -144,7 +151,11 @@ def render_run(
     wanted = parse_range(frames, meshes)
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
-    cfg = render_settings(run_dir)
+    cfg = render_settings(run_dir, device)
+    if cfg.device == "gpu":  # fail here, in one line, rather than in every worker
+        from .scene import cycles_device
+
+        cycles_device("gpu")
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
     todo = [i for i in wanted if force or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
@@ -164,6 +175,7 @@ def render_run(
                 cmd = [
                     sys.executable, "-m", "whitecap.render.worker", str(run_dir), quality,
                     ",".join(map(str, share)) or "-", str(threads), "1" if (k == 0 and need_blend) else "0",
+                    cfg.device,
                 ]
                 log = tempfile.TemporaryFile(mode="w+")
                 logs.append(log)

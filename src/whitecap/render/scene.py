@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Render
+from ..errors import InputError
 from ..io import read
 from ..io.run import RunInfo
 
@@ -232,13 +233,43 @@ def camera_path(cfg: Render, info: RunInfo, nframes: int) -> tuple[list, list, l
     return start.tolist(), end.tolist(), target.tolist()
 
 
+GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")  # Cycles' GPU back-ends, preferred first
+
+
+def cycles_device(want: str) -> str:
+    """Enable the GPUs of the first back-end that has any and return "GPU", or "CPU".
+
+    ``want`` is ``[render].device``: "cpu" never looks, "auto" falls back to the
+    CPU, "gpu" without a GPU is an error.
+    """
+    import bpy
+
+    if want == "cpu":
+        return "CPU"
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    for backend in GPU_BACKENDS:
+        try:
+            devices = prefs.get_devices_for_type(backend)
+        except (TypeError, ValueError, RuntimeError):  # back-end not built into this Blender
+            continue
+        gpus = [d for d in devices if d.type != "CPU"]
+        if gpus:
+            prefs.compute_device_type = backend
+            for d in devices:
+                d.use = d.type != "CPU"
+            return "GPU"
+    if want == "gpu":
+        raise InputError(f"render.device = 'gpu': Cycles found no GPU ({', '.join(GPU_BACKENDS)}); use 'auto' or 'cpu'")
+    return "CPU"
+
+
 def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: int, last: int) -> SceneHandles:
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
     sc.render.engine = "CYCLES"
-    sc.cycles.device = "CPU"
+    sc.cycles.device = cycles_device(cfg.device)
     preview = quality == "preview"
     w, h = cfg.preview_resolution if preview else cfg.resolution
     sc.render.resolution_x, sc.render.resolution_y = int(w), int(h)

@@ -1,4 +1,4 @@
-"""Worker process entry: ``python -m whitecap.render.worker RUN QUALITY FRAMES THREADS SAVE_BLEND``.
+"""Worker process entry: ``python -m whitecap.render.worker RUN QUALITY FRAMES THREADS SAVE_BLEND DEVICE``.
 
 bpy is a whole Blender in one process; rendering in a child keeps it out of
 the caller (which may hold a Taichi runtime) and lets frames spread over
@@ -12,9 +12,9 @@ from . import render_worker
 
 
 def main() -> None:
-    run, quality, frames, threads, save = sys.argv[1:6]
+    run, quality, frames, threads, save, device = sys.argv[1:7]
     idx = [] if frames == "-" else [int(v) for v in frames.split(",")]
-    render_worker(Path(run), quality, idx, int(threads) or None, save == "1")
+    render_worker(Path(run), quality, idx, int(threads) or None, save == "1", device)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import numpy as np
 
 # A perceptually ordered blue -> teal -> yellow map, sampled at five stops
 # (close to matplotlib's "viridis"; hand-written to avoid a matplotlib dependency).
-_STOPS = np.array(
+COLORMAP_STOPS = np.array(
     [[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.551], [0.369, 0.789, 0.383], [0.993, 0.906, 0.144]],
     np.float32,
 )
@@ -18,10 +18,10 @@ DIFFUSE_NAMES = ("spray", "foam", "bubble")
 
 def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Map scalars to RGB (N, 3) float32 over [lo, hi] (clamped)."""
-    t = np.clip((np.asarray(values, np.float32) - lo) / max(hi - lo, 1e-12), 0.0, 1.0) * (len(_STOPS) - 1)
-    i = np.minimum(t.astype(np.int32), len(_STOPS) - 2)
+    t = np.clip((np.asarray(values, np.float32) - lo) / max(hi - lo, 1e-12), 0.0, 1.0) * (len(COLORMAP_STOPS) - 1)
+    i = np.minimum(t.astype(np.int32), len(COLORMAP_STOPS) - 2)
     w = (t - i)[:, None]
-    return ((1 - w) * _STOPS[i] + w * _STOPS[i + 1]).astype(np.float32)
+    return ((1 - w) * COLORMAP_STOPS[i] + w * COLORMAP_STOPS[i + 1]).astype(np.float32)
 
 
 def fluid_scalar(positions_velocities_density: dict, mode: str) -> np.ndarray:

@@ -10,6 +10,7 @@ import taichi as ti
 
 from .colors import DIFFUSE_COLORS, colormap, fluid_scalar
 from .geometry import box_lines
+from .kernels import fill_fluid_buffer
 from .sources import Frame
 from .state import ViewerState
 
@@ -37,13 +38,16 @@ class _Buffer:
         self.cap = 0
         self.pos = self.col = self.rad = None
 
-    def fill(self, pos: np.ndarray, col: np.ndarray, rad: np.ndarray | None = None) -> int:
-        n = len(pos)
+    def reserve(self, n: int) -> None:
         if n > self.cap:
             self.cap = max(1024, 1 << int(np.ceil(np.log2(n))))
             self.pos = ti.Vector.field(3, ti.f32, self.cap)
             self.col = ti.Vector.field(3, ti.f32, self.cap)
             self.rad = ti.field(ti.f32, self.cap)
+
+    def fill(self, pos: np.ndarray, col: np.ndarray, rad: np.ndarray | None = None) -> int:
+        n = len(pos)
+        self.reserve(n)
         if n:
             pad = self.cap - n
             self.pos.from_numpy(np.pad(np.asarray(pos, np.float32), ((0, pad), (0, 0))))
@@ -131,10 +135,15 @@ class Renderer:
         eye = state.camera.eye
         sc.point_light(pos=tuple(eye + np.array([0.0, 0.0, self.extent])), color=(0.7, 0.7, 0.7))
         vis = state.visible
-        if vis.fluid and len(frame.positions):
+        if vis.fluid and frame.n_fluid:
             lo, hi = self.color_range(state, frame)
-            col = colormap(fluid_scalar(frame.as_dict(), state.color_mode), lo, hi)
-            n = self.fluid.fill(frame.positions, col)
+            if frame.device is not None:
+                d, n = frame.device, frame.device.n
+                self.fluid.reserve(n)
+                fill_fluid_buffer(n, d.x, d.v, d.rho, int(state.color_mode == "density"), lo, hi, self.fluid.pos, self.fluid.col)
+            else:
+                col = colormap(fluid_scalar(frame.as_dict(), state.color_mode), lo, hi)
+                n = self.fluid.fill(frame.positions, col)
             sc.particles(self.fluid.pos, radius=self.radius * self.point_scale, per_vertex_color=self.fluid.col, index_count=n)
         if vis.diffuse and frame.diffuse_positions is not None and len(frame.diffuse_positions):
             t = np.clip(frame.diffuse_type.astype(np.int64), 0, len(DIFFUSE_COLORS) - 1)

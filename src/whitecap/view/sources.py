@@ -18,23 +18,44 @@ from ..io.run import RUN_JSON, RunInfo
 
 
 @dataclass
+class DeviceFluid:
+    """A live solver's particle arrays where they live (CPU or GPU memory): the
+    viewer colours and draws them with one kernel, without a copy to numpy."""
+
+    x: object  # positions, vec3 ndarray [m]
+    v: object  # velocities, vec3 ndarray [m/s]
+    rho: object  # density, f32 ndarray [kg/m³]; current only when asked for
+    n: int
+
+    def host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.x.to_numpy(), self.v.to_numpy(), self.rho.to_numpy()
+
+
+@dataclass
 class Frame:
     index: int
     time: float
-    positions: np.ndarray
+    positions: np.ndarray | None  # None for a live frame until as_dict() copies it from `device`
     velocities: np.ndarray | None = None
     density: np.ndarray | None = None
     diffuse_positions: np.ndarray | None = None
     diffuse_type: np.ndarray | None = None
     diffuse_radius: np.ndarray | None = None
+    device: DeviceFluid | None = None
 
     def as_dict(self) -> dict:
+        if self.positions is None and self.device is not None:
+            self.positions, self.velocities, self.density = self.device.host()
         return {"positions": self.positions, "velocities": self.velocities, "density": self.density}
+
+    @property
+    def n_fluid(self) -> int:
+        return self.device.n if self.device is not None else len(self.positions)
 
     def counts(self) -> dict[str, int]:
         from .colors import DIFFUSE_NAMES
 
-        c = {"fluid": len(self.positions)}
+        c = {"fluid": self.n_fluid}
         if self.diffuse_type is not None:
             for t, name in enumerate(DIFFUSE_NAMES):
                 c[name] = int((self.diffuse_type == t).sum())
@@ -210,10 +231,15 @@ class LiveSource:
             self.hook.gen.state = DiffuseState.empty()
 
     def current(self, with_density: bool = False) -> Frame:
-        need_rho = with_density or self.hook is not None
-        a = self.solver.arrays(with_density=need_rho)
-        fr = Frame(self.index, float(self.solver.time), a["positions"], a["velocities"], a["density"])
-        if self.hook is not None and self._diffuse_index != self.index:
+        """The solver's state as a frame; its arrays stay on the device (see DeviceFluid)."""
+        s = self.solver
+        step_foam = self.hook is not None and self._diffuse_index != self.index
+        if with_density and not step_foam:
+            s.update_density()
+        fr = Frame(self.index, float(s.time), None, device=DeviceFluid(s.state.x, s.state.v, s.state.rho, s.n))
+        if step_foam:  # once per output frame: the foam generator works on host arrays
+            a = s.arrays(with_density=True)
+            fr.positions, fr.velocities, fr.density = a["positions"], a["velocities"], a["density"]
             self._step_foam(fr, a)
         if self._diffuse is not None:
             fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse

@@ -1,0 +1,38 @@
+"""Drawing kernels that run where the particles are (CPU or GPU).
+
+No ``from __future__ import annotations`` here: Taichi reads the kernel
+annotations as objects.
+"""
+
+import taichi as ti
+
+from ..sim.grid import F3
+from .colors import COLORMAP_STOPS
+
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+
+
+@ti.func
+def _colormap(s, lo, hi):
+    """The colour map of :func:`colors.colormap`, for one value inside a kernel."""
+    t = ti.math.clamp((s - lo) / ti.max(hi - lo, 1e-12), 0.0, 1.0) * (len(COLORMAP_STOPS) - 1)
+    k = ti.min(ti.cast(t, ti.i32), len(COLORMAP_STOPS) - 2)
+    w = t - k
+    c = ti.Vector([0.0, 0.0, 0.0])
+    for j in ti.static(range(len(COLORMAP_STOPS) - 1)):
+        if k == j:
+            c = (1.0 - w) * ti.Vector(COLORMAP_STOPS[j].tolist()) + w * ti.Vector(COLORMAP_STOPS[j + 1].tolist())
+    return c
+
+
+@ti.kernel
+def fill_fluid_buffer(n: ti.i32, x: F3, v: F3, rho: F1, by_density: ti.i32, lo: ti.f32, hi: ti.f32,
+                      pos: ti.template(), col: ti.template()):
+    """GGUI vertices of a live solver: positions x_i and the colour of |v_i| or ρ_i,
+    written on the compute device (no copy through numpy, which dominated on a GPU)."""
+    for i in range(n):
+        pos[i] = x[i]
+        s = v[i].norm()
+        if by_density:
+            s = rho[i]
+        col[i] = _colormap(s, lo, hi)
