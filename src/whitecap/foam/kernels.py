@@ -14,11 +14,10 @@ import math
 
 import taichi as ti
 
-from ..sim.grid import F3, I1, I2, cell_index, cell_of
+from ..sim.grid import F1, F3, I1, I2, cell_index, cell_of
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
 
@@ -122,7 +121,7 @@ def generate(
     crest: F1,
     e_k: F1,
     vort: F1,
-    tau: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    tau: F1,
     k_ta: ti.f32,
     k_wc: ti.f32,
     k_vo: ti.f32,

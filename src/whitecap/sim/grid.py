@@ -26,6 +26,7 @@ from ..errors import WhitecapError
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 F3 = ti.types.ndarray(dtype=vec3, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)

@@ -43,12 +43,10 @@ from ..config import Obstacle, Scene
 from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..timing import timer
-from .grid import F3
+from .grid import F1, F3, I1
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
 SDF_CACHE_VERSION = 1
 FAR = 1e6  # SDF value outside an obstacle's grid [m]

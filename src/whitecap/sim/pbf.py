@@ -37,11 +37,10 @@ import taichi as ti
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
-from .grid import F3, I1, I2, NeighborGrid, grid_spec
+from .grid import F1, F3, I1, I2, NeighborGrid, grid_spec
 from .kernels import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
 
 

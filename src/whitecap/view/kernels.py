@@ -6,10 +6,8 @@ annotations as objects.
 
 import taichi as ti
 
-from ..sim.grid import F3
+from ..sim.grid import F1, F3
 from .colors import COLORMAP_STOPS
-
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 
 
 @ti.func
