@@ -41,3 +41,31 @@ def tiny_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_run")
     simulate(scene_from_dict(tiny_scene_dict()), out=out, show_progress=False)
     return out
+
+
+def write_partio_bgeo(path, positions, attributes: dict, compress: bool = True) -> None:
+    """A BGEO version 5 file laid out as partio writes it (SPlisHSPlasH's partio exporter):
+    big-endian header, one descriptor per point attribute, then per point x y z w and
+    the attribute values, then the two end bytes. ``attributes`` maps a name to an
+    (N,) int32 array (partio INT), an (N,) float array (FLOAT) or an (N, 3) float array
+    (VECTOR). Test data only: whitecap itself never writes BGEO."""
+    import gzip
+    import struct
+
+    import numpy as np
+
+    pos = np.asarray(positions, ">f4").reshape(-1, 3)
+    n = len(pos)
+    head = b"BgeoV" + struct.pack(">9i", 5, n, 0, 0, 0, len(attributes), 0, 0, 0)
+    cols = [pos, np.ones((n, 1), ">f4")]
+    for name, a in attributes.items():
+        a = np.asarray(a)
+        if a.dtype.kind in "iu":
+            size, kind, col = 1, 1, a.astype(">i4").reshape(n, 1).view(">f4")
+        else:
+            col = a.astype(">f4").reshape(n, -1)
+            size, kind = col.shape[1], (5 if col.shape[1] == 3 else 0)
+        head += struct.pack(">h", len(name)) + name.encode() + struct.pack(">hi", size, kind) + b"\0" * (4 * size)
+        cols.append(col)
+    body = head + np.hstack(cols).astype(">f4").tobytes() + b"\x00\xff"
+    Path(path).write_bytes(gzip.compress(body) if compress else body)

@@ -81,3 +81,38 @@ def test_writes_are_atomic(tmp_path):
         io.write(target, bad)
     assert target.read_bytes() == before  # the earlier file survives a failed write
     assert [p.name for p in tmp_path.iterdir()] == ["f.ply"]  # and no temporary is left
+
+
+def test_splishsplash_partio_bgeo_with_y_up(tmp_path):
+    # SPlisHSPlasH's partio exporter: gzip-compressed BGEO V5 with 'id' (INT), 'velocity' and 'density', y up.
+    from .conftest import write_partio_bgeo
+
+    pos = np.array([[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]], np.float32)
+    vel = np.array([[0.0, -1.0, 0.0], [2.0, 0.0, 0.0]], np.float32)
+    p = tmp_path / "ParticleData_Fluid_7.bgeo"
+    write_partio_bgeo(p, pos, {"id": np.array([4, 70000], np.int32), "velocity": vel, "density": [998.0, 1001.5]})
+    f = io.read(p, up="y")
+    assert f.ids.tolist() == [4, 70000]
+    assert f.density.tolist() == [998.0, 1001.5]
+    assert f.positions[1].tolist() == pytest.approx([3.0, -5.0, 4.0])
+    assert f.velocities[0].tolist() == pytest.approx([0.0, 0.0, -1.0])
+    # z up (the default) leaves the axes alone.
+    assert io.read(p).positions[1].tolist() == pytest.approx([3.0, 4.0, 5.0])
+
+
+def test_bad_bgeo_files_are_named(tmp_path):
+    from .conftest import write_partio_bgeo
+
+    pos = np.zeros((4, 3))
+    write_partio_bgeo(tmp_path / "novel_1.bgeo", pos, {"id": np.arange(4, dtype=np.int32)})
+    with pytest.raises(InputError, match=r"novel_1.bgeo: missing attribute 'velocity'"):
+        io.read(tmp_path / "novel_1.bgeo")
+    write_partio_bgeo(tmp_path / "plain_1.bgeo", pos, {"velocity": pos}, compress=False)
+    with pytest.raises(InputError, match=r"plain_1.bgeo: not a gzip-compressed BGEO"):
+        io.read(tmp_path / "plain_1.bgeo")
+    import gzip
+
+    whole = gzip.decompress((tmp_path / "novel_1.bgeo").read_bytes())
+    (tmp_path / "cut_1.bgeo").write_bytes(gzip.compress(whole[:-20]))
+    with pytest.raises(InputError, match=r"cut_1.bgeo: not a readable BGEO"):
+        io.read(tmp_path / "cut_1.bgeo")

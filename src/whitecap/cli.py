@@ -60,7 +60,7 @@ def _add_foam(sub) -> None:
         help="diffuse particles (spray, foam, bubbles) over any particle sequence",
         description="Generate spray, foam and air bubbles (Ihmsen et al. 2012) for INPUT: a whitecap run "
         "directory, a DualSPHysics PartVTK folder (its case XML is read when beside the files), "
-        "SPlisHSPlasH VTK output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
+        "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
         "diffuse/counts.csv.",
     )
     p.add_argument("input", help="run directory, sequence directory or glob ('frames/*.vtk')")

@@ -5,7 +5,7 @@ Two ways in, one code path (:class:`~whitecap.foam.generator.FoamGenerator`):
 - inside ``simulate``: :func:`simulation_hook` gives the frame hook the
   simulation driver calls after every frame;
 - as post-processing: :func:`postprocess` runs over a whitecap run, a
-  DualSPHysics PartVTK sequence, SPlisHSPlasH VTK output or PLY/VTU/NPZ
+  DualSPHysics PartVTK sequence, SPlisHSPlasH VTK or partio BGEO output or PLY/VTU/NPZ
   sequences, and writes a run directory the later stages can read.
 
 Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
