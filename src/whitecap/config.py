@@ -298,7 +298,8 @@ class Scene(_Section):
             blo, bhi = b.bounds()
             if any(blo[i] < lo[i] - 1e-9 or bhi[i] > hi[i] + 1e-9 for i in range(3)):
                 raise ValueError(
-                    f"fluid[{k}] spans {blo}..{bhi}, outside the domain {lo}..{hi}"
+                    f"fluid[{k}]: the block spans {blo}..{bhi}, outside the domain {lo}..{hi} "
+                    "(domain.lower, domain.upper)"
                 )
         return self
 
@@ -359,7 +360,9 @@ def _format_error(err: dict, source: str) -> str:
     msg = err["msg"].removeprefix("Value error, ")
     got = err.get("input")
     got_s = "" if isinstance(got, dict) or got is None else f" (got {got!r})"
-    return f"{source}: {key or '<top level>'}: {msg}{got_s}"
+    if not key:  # a whole-scene check: its message names the fields
+        return f"{source}: {msg}{got_s}"
+    return f"{source}: {key}: {msg}{got_s}"
 
 
 def scene_from_dict(data: dict, source: str = "<scene>", base_dir: str | Path = ".") -> Scene:

@@ -34,9 +34,9 @@ def simulate(
     show_progress: bool = True,
 ) -> RunInfo:
     """Simulate a scene (PBF, plus diffuse particles when ``[foam]`` is on) into ``out``."""
+    sc = _scene(scene)  # a bad scene file fails before Taichi starts
     from .sim.driver import run_simulation
 
-    sc = _scene(scene)
     out = Path(out) if out is not None else default_out(sc)
     hooks = []
     if foam and sc.foam.enabled:
