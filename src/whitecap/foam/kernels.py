@@ -20,6 +20,13 @@ vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
+# δ_vn of the wave-crest potential: a surface particle counts as a crest only
+# while it moves along its normal, v̂_i·n̂_i ≥ this cosine (Ihmsen et al. 2012, Sec. 4.2).
+CREST_MOTION_COS = 0.6
+# Sampling frame of the generation cylinder: e1 is built from the x axis, or from y
+# when v̂ is within acos(0.9) ≈ 26° of x, so the cross product never degenerates.
+NEAR_PARALLEL_COS = 0.9
+
 
 @ti.func
 def hash_u32(a: ti.u32) -> ti.u32:
@@ -94,7 +101,7 @@ def fluid_potentials(
 @ti.kernel
 def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surface: I1, h: ti.f32, crest: F1):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
-    δ_vn = [v̂_i·n̂_i ≥ 0.6]; zero away from the surface."""
+    δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface."""
     for i in range(n):
         kappa = 0.0
         if surface[i] == 1:
@@ -106,7 +113,7 @@ def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surfac
                 if 0.0 < r < h and xji.dot(ni) < 0.0:
                     kappa += (1.0 - ni.dot(normal[j])) * (1.0 - r / h)
             vl = v[i].norm()
-            if vl < 1e-9 or (v[i] / vl).dot(ni) < 0.6:
+            if vl < 1e-9 or (v[i] / vl).dot(ni) < CREST_MOTION_COS:
                 kappa = 0.0
         crest[i] = kappa
 
@@ -165,7 +172,7 @@ def generate(
         if vl > 1e-9:
             vh = vf / vl
         a = vec3(1.0, 0.0, 0.0)
-        if ti.abs(vh.x) > 0.9:
+        if ti.abs(vh.x) > NEAR_PARALLEL_COS:
             a = vec3(0.0, 1.0, 0.0)
         e1 = a.cross(vh).normalized()
         e2 = vh.cross(e1)
