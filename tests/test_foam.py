@@ -250,3 +250,101 @@ def test_splishsplash_partio_sequence_gives_the_same_foam_as_the_same_frames_in_
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
         made += len(io.read(tmp_path / "a" / name))
     assert made > 0  # the comparison is not between empty files
+
+
+# ------------------------------------------------------------------ the model, kernel by kernel
+def _lattice(n=10, r=0.01):
+    g = np.arange(n) * 2 * r
+    return np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3).astype(np.float32) + 0.1
+
+
+def _potentials(x, v, r=0.01):
+    """Trapped air, wave crest, kinetic energy and the surface flag of each fluid particle."""
+    import taichi as ti
+
+    from whitecap.foam import kernels as K
+    from whitecap.foam.generator import SURFACE_FRACTION, FoamGenerator
+
+    gen = FoamGenerator(resolve(preset="ihmsen2012"), r, ([0, 0, 0], [1, 1, 1]), (0, 0, -9.81), seed=1)
+    n = len(x)
+    fx, fv, _, _ = gen._prepare(io.ParticleFrame(x, v), n)
+    g = gen.grid
+    normal, surface = ti.Vector.ndarray(3, ti.f32, n), ti.ndarray(ti.i32, n)
+    v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, n) for _ in range(4))
+    K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+    K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, gen.h, crest)
+    return v_diff.to_numpy(), crest.to_numpy(), e_k.to_numpy(), surface.to_numpy().astype(bool)
+
+
+def test_trapped_air_sees_colliding_fluid_only():
+    x = _lattice()
+    ta, _, ke, _ = _potentials(x, np.tile([[1.0, 0.0, 0.0]], (len(x), 1)))
+    assert not ta.any() and np.allclose(ke, 0.5)  # uniform motion traps no air; E_k = ½|v|²
+    left = x[:, 0] < x[:, 0].mean()
+    v = np.where(left[:, None], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]).astype(np.float32)
+    ta_in, _, _, _ = _potentials(x, v)  # two halves running into each other
+    ta_out, _, _, _ = _potentials(x, -v)  # the same halves pulling apart
+    seam = np.abs(x[:, 0] - x[:, 0].mean()) < 0.02
+    far = np.abs(x[:, 0] - x[:, 0].mean()) > 0.05  # more than a kernel support from the seam
+    assert ta_in[seam].min() > 0 and not ta_in[far].any()
+    # (1 − v̂_ij·x̂_ij) weighs approaching pairs up to 2 and separating ones down to 0.
+    assert ta_in[seam].mean() > 3 * ta_out[seam].mean()
+
+
+def test_wave_crest_needs_the_surface_moving_along_its_normal():
+    x = _lattice(12)
+    c = x.mean(0)
+    ball = x[np.linalg.norm(x - c, axis=1) < 0.1]
+    out = (ball - c) / np.maximum(np.linalg.norm(ball - c, axis=1, keepdims=True), 1e-9)
+    _, wc_out, _, surf = _potentials(ball, out)  # a ball bursting outward: the surface moves along n̂
+    _, wc_in, _, _ = _potentials(ball, -out)  # collapsing: v̂·n̂ < 0.6, so δ_vn = 0
+    assert surf.sum() > 100 and (wc_out[surf] > 0).mean() > 0.9 and not wc_out[~surf].any()
+    assert not wc_in.any()
+
+
+def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01, slots=16):
+    """Run the generation kernel on n fluid particles at the origin moving at 2 m/s along z, with
+    the given trapped-air potentials, I_k = 1 and no wave-crest or vorticity share."""
+    import taichi as ti
+
+    from whitecap.foam import kernels as K
+    from whitecap.foam.generator import FoamGenerator, _nd
+
+    FoamGenerator(resolve(preset="ihmsen2012"), r, ([0, 0, 0], [1, 1, 1]), (0, 0, -9.81), seed=1)  # Taichi up
+    n = len(v_diff)
+    zeros = np.zeros(n, np.float32)
+    x, v = _nd(np.zeros((n, 3), np.float32), ti.f32, True), _nd(np.tile([[0.0, 0.0, 2.0]], (n, 1)).astype(np.float32), ti.f32, True)
+    tau = _nd(np.array([*ta_range, 1, 2, 0, 1e-3, 1, 2], np.float32), ti.f32)
+    ox, ov = ti.Vector.ndarray(3, ti.f32, n * slots), ti.Vector.ndarray(3, ti.f32, n * slots)
+    ol, cnt = ti.ndarray(ti.f32, n * slots), ti.ndarray(ti.i32, n)
+    ek = np.ones(n, np.float32)  # above ke_max: I_k = 1
+    K.generate(n, x, v, _nd(np.arange(n, dtype=np.uint32), ti.u32), _nd(np.asarray(v_diff, np.float32), ti.f32),
+               _nd(zeros, ti.f32), _nd(ek, ti.f32), _nd(zeros, ti.f32), tau, k_ta, 0.0, 0.0, 1.0, 2.0, 0.0, r, dt,
+               7, 3, slots, ox, ov, ol, cnt)
+    counts = cnt.to_numpy()
+    valid = (np.arange(slots)[None, :] < counts[:, None]).ravel()
+    return counts, ox.to_numpy()[valid], ov.to_numpy()[valid], ol.to_numpy()[valid]
+
+
+def test_generation_count_follows_the_clamped_potential():
+    n = 4000
+    # φ(I, τmin, τmax): 0 below τmin, linear between, 1 above τmax; n_d = I_k k_ta φ Δt = 5 φ here.
+    for i_ta, expect in ((0.5, 0.0), (1.0, 0.0), (2.0, 2.5), (3.0, 5.0), (50.0, 5.0)):
+        counts, *_ = _generate(np.full(n, i_ta))
+        assert counts.mean() == pytest.approx(expect, abs=0.08), i_ta
+        # The fraction is rounded stochastically: only the two neighbouring integers occur.
+        assert set(np.unique(counts)) <= {int(np.floor(expect)), int(np.ceil(expect))}
+
+
+def test_new_particles_fill_the_cylinder_around_the_velocity():
+    r, dt = 0.01, 0.05
+    counts, x, v, life = _generate(np.full(3000, 5.0), r=r, dt=dt)
+    assert counts.sum() == 15000
+    radial, axial = np.linalg.norm(x[:, :2], axis=1), x[:, 2]
+    # Radius r_V, height |v|Δt = 0.1 m along v̂ = z, uniform in volume.
+    assert radial.max() <= r * (1 + 1e-5) and axial.min() >= 0 and axial.max() <= 2.0 * dt * (1 + 1e-5)
+    assert (radial < r / np.sqrt(2)).mean() == pytest.approx(0.5, abs=0.02)  # uniform over the disc's area
+    assert axial.mean() == pytest.approx(dt, rel=0.03)
+    # Velocity: the fluid's, plus the same radial offset, so particles spread out of the cylinder.
+    assert np.allclose(v[:, 2], 2.0) and np.allclose(v[:, :2], x[:, :2], atol=1e-6)
+    assert life.min() >= 1.0 and life.max() <= 2.0  # lifetime drawn from [lifetime_min, lifetime_max]
