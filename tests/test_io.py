@@ -116,3 +116,16 @@ def test_bad_bgeo_files_are_named(tmp_path):
     (tmp_path / "cut_1.bgeo").write_bytes(gzip.compress(whole[:-20]))
     with pytest.raises(InputError, match=r"cut_1.bgeo: not a readable BGEO"):
         io.read(tmp_path / "cut_1.bgeo")
+
+
+def test_two_fluids_in_one_folder_ask_for_a_glob(tmp_path):
+    # SPlisHSPlasH writes one file per fluid model and frame into the same folder.
+    from whitecap.io.sequence import find_sequence
+
+    for name in ("Fluid", "Fluid2"):
+        for i in (1, 2):
+            io.write(tmp_path / f"ParticleData_{name}_{i}.npz", frame(seed=i))
+    with pytest.raises(InputError, match=r"frame 1 also given by .*pass a glob such as '.*ParticleData_Fluid_\*\.npz'"):
+        find_sequence(tmp_path)
+    hint = str(tmp_path / "ParticleData_Fluid_*.npz")
+    assert [(i, p.name) for i, p in find_sequence(hint)] == [(1, "ParticleData_Fluid_1.npz"), (2, "ParticleData_Fluid_2.npz")]

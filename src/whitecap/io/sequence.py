@@ -57,7 +57,8 @@ def find_sequence(spec: str | Path) -> list[tuple[int, Path]]:
         if n is None:
             raise InputError(f"{p}: no frame number in the file name")
         if n in frames:
-            raise InputError(f"{p}: frame {n} also given by {frames[n].name}")
+            stem = _NUMBER.sub("*", p.name, count=1)
+            raise InputError(f"{p}: frame {n} also given by {frames[n].name}; pass a glob such as '{p.parent / stem}'")
         frames[n] = p
     if not frames:
         raise InputError(f"{s}: no particle files found")
