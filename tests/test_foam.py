@@ -234,10 +234,12 @@ def test_splishsplash_partio_sequence_gives_the_same_foam_as_the_same_frames_in_
     # post-processed with --up y give byte-identical diffuse files to the same frames as z-up PLY.
     from .conftest import write_partio_bgeo
 
+    def y_up(a):  # the inverse of the reader's y-up to z-up rotation
+        return np.stack([a[:, 0], a[:, 2], -a[:, 1]], axis=1)
+
     (tmp_path / "partio").mkdir()
     for i in range(13):
         f = io.read(foam_run / f"fluid/fluid_{i:05d}.ply")
-        y_up = lambda a: np.stack([a[:, 0], a[:, 2], -a[:, 1]], axis=1)  # inverse of the z-up rotation
         write_partio_bgeo(tmp_path / "partio" / f"ParticleData_Fluid_{i}.bgeo", y_up(f.positions),
                           {"id": f.ids.astype(np.int32), "velocity": y_up(f.velocities), "density": f.density})
     info = RunInfo.load(foam_run)
@@ -308,9 +310,10 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01, slots=16
     import taichi as ti
 
     from whitecap.foam import kernels as K
-    from whitecap.foam.generator import FoamGenerator, _nd
+    from whitecap.foam.generator import _nd
+    from whitecap.sim import runtime
 
-    FoamGenerator(resolve(preset="ihmsen2012"), r, ([0, 0, 0], [1, 1, 1]), (0, 0, -9.81), seed=1)  # Taichi up
+    runtime.init(runtime.current() or "cpu")
     n = len(v_diff)
     zeros = np.zeros(n, np.float32)
     x, v = _nd(np.zeros((n, 3), np.float32), ti.f32, True), _nd(np.tile([[0.0, 0.0, 2.0]], (n, 1)).astype(np.float32), ti.f32, True)

@@ -42,13 +42,14 @@ def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True) -> Parti
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing attribute 'velocity'; found {sorted(arrays) or 'no attributes'} "
                          "(SPlisHSPlasH: add velocity to particleAttributes)")
-    vel = arrays[vk].astype(np.float32).reshape(-1, 3) if vk else None
-    pos, vel = to_z_up(np.asarray(m.points, np.float32).reshape(-1, 3), vel, up)
+    # The file is big-endian; ParticleFrame converts to native float32/uint32.
+    vel = arrays[vk].reshape(-1, 3) if vk else None
+    pos, vel = to_z_up(np.asarray(m.points).reshape(-1, 3), vel, up)
     return ParticleFrame(
         positions=pos,
         velocities=vel,
-        ids=arrays[ik].astype(np.int64).astype(np.uint32).ravel() if ik else None,
-        density=arrays[rk].astype(np.float32).ravel() if rk else None,
+        ids=arrays[ik] if ik else None,
+        density=arrays[rk] if rk else None,
         arrays={k: v for k, v in arrays.items() if k not in (vk, rk, ik) and v.ndim == 1},
         source=str(path),
     )
