@@ -32,7 +32,7 @@ def main() -> None:
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     from whitecap import io
-    from whitecap.foam import postprocess
+    from whitecap.diffuse import postprocess
 
     side = 0.5
     r = side / (2 * (2 * a.particles) ** (1 / 3))  # column side/2 × side × side on a lattice of spacing 2r

@@ -386,12 +386,17 @@ def test_playback_steps_loops_and_pauses():
     st.reset = True
     _advance(st, src)
     assert st.frame == 0
-    # At a real frame rate, playback waits for the frame's time to pass.
-    src.info.frame_rate = 1e-3
-    st.paused, st.last_advance = False, 0.0
-    _advance(st, src)
-    _advance(st, src)
-    assert st.frame == 1
+    # At a real frame rate, playback waits for the frame's time to pass, whatever
+    # the clock's origin: a clock that reads 5 s (a machine just booted) or 1e6 s.
+    src.info.frame_rate = 1e-3  # one frame per 1000 s
+    for origin in (5.0, 1.0e6):
+        st.paused, st.last_advance, st.frame = False, None, 0
+        _advance(st, src, now=origin)
+        assert st.frame == 1  # the first advance is never held back
+        _advance(st, src, now=origin + 1.0)
+        assert st.frame == 1  # held: the frame's 1000 s have not passed
+        _advance(st, src, now=origin + 1000.5)
+        assert st.frame == 2
 
 
 def test_live_buffers_filled_on_the_device_match_the_host_colour_map():

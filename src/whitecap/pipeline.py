@@ -40,7 +40,7 @@ def simulate(
     out = Path(out) if out is not None else default_out(sc)
     hooks = []
     if foam and sc.foam.enabled:
-        foam_stage = importlib.import_module(".foam", __package__)  # the subpackage, not the API function
+        foam_stage = importlib.import_module(".diffuse", __package__)
         hooks.append(foam_stage.simulation_hook(sc))
     timing.reset()
     info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
@@ -197,8 +197,8 @@ def foam(
     seed: int | None = None,
     show_progress: bool = True,
 ) -> RunInfo:
-    """Diffuse particles over any particle sequence (see :func:`whitecap.foam.postprocess`)."""
-    from .foam import postprocess
+    """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`)."""
+    from .diffuse import postprocess
 
     return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
                        show_progress=show_progress)

@@ -8,7 +8,7 @@ several processes.
 import sys
 from pathlib import Path
 
-from . import render_worker
+from .driver import render_worker
 
 
 def main() -> None:

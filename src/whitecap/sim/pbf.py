@@ -38,7 +38,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, grid_spec
-from .kernels import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
+from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]

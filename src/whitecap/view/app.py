@@ -184,8 +184,13 @@ def draw_panel(window, state: ViewerState, source, scene: Scene | None) -> None:
 
 
 # ----------------------------------------------------------------------------- loops
-def _advance(state: ViewerState, source) -> None:
-    """Move to the next frame unless paused (one frame when stepping)."""
+def _advance(state: ViewerState, source, now: float | None = None) -> None:
+    """Move to the next frame unless paused (one frame when stepping).
+
+    Playback is paced against the previous advance only: ``now`` is any
+    monotonic clock reading (default ``time.perf_counter()``, whose origin is
+    arbitrary, e.g. the boot), and the first advance is never held back.
+    """
     if state.reset:
         state.reset = False
         if source.live:
@@ -196,7 +201,7 @@ def _advance(state: ViewerState, source) -> None:
         return
     if state.step_once:
         state.step_once = False
-        state.last_advance = 0.0  # a single step is never held back by the pacing
+        state.last_advance = None  # a single step is never held back by the pacing
     if source.live:
         t0 = time.perf_counter()
         nsub = source.advance()
@@ -204,8 +209,8 @@ def _advance(state: ViewerState, source) -> None:
         state.frame = source.index
     else:
         # Play at the run's frame rate, not the window's.
-        now = time.perf_counter()
-        if now - state.last_advance < 1.0 / _fps(source):
+        now = time.perf_counter() if now is None else now
+        if state.last_advance is not None and now - state.last_advance < 1.0 / _fps(source):
             return
         state.last_advance = now
         nxt = state.frame + 1

@@ -172,20 +172,13 @@ class LiveSource:
         self._foam_hook()
 
     def _foam_hook(self) -> None:
-        """Diffuse particles from the foam stage's generator, when that stage exists (optional)."""
-        try:
-            import importlib
+        """Diffuse particles from the diffuse stage's generator, when the scene has [foam] on."""
+        from ..diffuse import simulation_hook
+        from ..sim.driver import run_info_for
 
-            from ..sim.driver import run_info_for
-
-            foam = importlib.import_module("whitecap.foam")  # the package, not a same-named function
-
-            make = getattr(foam, "simulation_hook", None)
-            if make is not None and self.scene.foam.enabled:
-                self.hook = make(self.scene)
-                self.hook.start(run_info_for(self.scene, self.solver))
-        except Exception:  # the foam stage is optional for viewing
-            self.hook = None
+        if self.scene.foam.enabled:
+            self.hook = simulation_hook(self.scene)
+            self.hook.start(run_info_for(self.scene, self.solver))
 
     @property
     def foam_params(self):
@@ -226,7 +219,7 @@ class LiveSource:
         self.index = 0
         self._left = 0
         if self.hook is not None:
-            from ..foam.generator import DiffuseState
+            from ..diffuse import DiffuseState
 
             self.hook.gen.state = DiffuseState.empty()
 

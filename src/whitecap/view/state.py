@@ -96,4 +96,4 @@ class ViewerState:
     record_index: int = 0
     shot_index: int = 0
     quit: bool = False
-    last_advance: float = 0.0     # wall time of the last playback frame change [s]
+    last_advance: float | None = None  # clock reading at the last playback frame change [s]; None: never

@@ -15,8 +15,8 @@ from whitecap import io
 from whitecap.cli import main
 from whitecap.config import scene_from_dict
 from whitecap.errors import InputError
-from whitecap.foam import postprocess
-from whitecap.foam.params import PRESETS, read_ini, resolve
+from whitecap.diffuse import postprocess
+from whitecap.diffuse.params import PRESETS, read_ini, resolve
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import simulate
 
@@ -155,7 +155,7 @@ import sys, taichi as ti
 ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[3]), log_level=ti.WARN)
 import whitecap.sim.runtime as rt
 rt._ARCH = "cpu"
-from whitecap.foam import postprocess
+from whitecap.diffuse import postprocess
 postprocess(sys.argv[1], out=sys.argv[2], show_progress=False)
 """
 
@@ -264,8 +264,8 @@ def _potentials(x, v, r=0.01):
     """Trapped air, wave crest, kinetic energy and the surface flag of each fluid particle."""
     import taichi as ti
 
-    from whitecap.foam import kernels as K
-    from whitecap.foam.generator import SURFACE_FRACTION, FoamGenerator
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import SURFACE_FRACTION, FoamGenerator
 
     gen = FoamGenerator(resolve(preset="ihmsen2012"), r, ([0, 0, 0], [1, 1, 1]), (0, 0, -9.81), seed=1)
     n = len(x)
@@ -309,8 +309,8 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01, slots=16
     the given trapped-air potentials, I_k = 1 and no wave-crest or vorticity share."""
     import taichi as ti
 
-    from whitecap.foam import kernels as K
-    from whitecap.foam.generator import _nd
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import _nd
     from whitecap.sim import runtime
 
     runtime.init(runtime.current() or "cpu")

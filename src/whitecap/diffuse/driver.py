@@ -1,6 +1,6 @@
-"""Diffuse particles (spray, foam, air bubbles) after Ihmsen et al. 2012.
+"""The diffuse stage's driver: the simulation frame hook and post-processing.
 
-Two ways in, one code path (:class:`~whitecap.foam.generator.FoamGenerator`):
+Two ways in, one code path (:class:`~whitecap.diffuse.generator.FoamGenerator`):
 
 - inside ``simulate``: :func:`simulation_hook` gives the frame hook the
   simulation driver calls after every frame;
@@ -226,14 +226,3 @@ def postprocess(
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
     return info
-
-
-class _CallableModule(type(__import__("sys"))):
-    """``whitecap.foam(...)`` post-processes, like the other stage functions of the
-    API, even after this subpackage has been imported under the same name."""
-
-    def __call__(self, *args, **kwargs):
-        return postprocess(*args, **kwargs)
-
-
-__import__("sys").modules[__name__].__class__ = _CallableModule

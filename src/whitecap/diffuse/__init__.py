@@ -1,0 +1,13 @@
+"""Diffuse particles (spray, foam, air bubbles) after Ihmsen et al. 2012.
+
+- :mod:`.kernels`: the Taichi kernels (potentials, generation, advection);
+- :mod:`.generator`: :class:`FoamGenerator`, the per-frame state machine;
+- :mod:`.params`: thresholds, presets and parameter files;
+- :mod:`.driver`: the simulation frame hook and post-processing of any sequence.
+"""
+
+from .driver import FoamStage, postprocess, simulation_hook
+from .generator import DiffuseState, FoamGenerator
+from .params import FoamParams, resolve
+
+__all__ = ["simulation_hook", "postprocess", "FoamStage", "FoamGenerator", "DiffuseState", "FoamParams", "resolve"]
