@@ -230,3 +230,57 @@ def test_canonical_order_ignores_vertex_and_face_order():
     tri = set().union(*(rotations(t) for t in np.argsort(o1)[f]))
     assert all(tuple(t) in tri for t in f1)
     assert sorted(min(rotations(t)) for t in np.argsort(o1)[f]) == [tuple(t) for t in f1]
+
+
+def settled_tank_run(root: Path, extra: dict) -> tuple[Path, np.ndarray, np.ndarray]:
+    """A run holding one frame of water at rest in the corner of a tank: a lattice of spacing 2r
+    with centres r from the walls, as the solver leaves them (it confines centres to r inside)."""
+    lo, hi = np.zeros(3), np.array([0.3, 0.2, 0.4])
+    g = [np.arange(lo[i] + R_SIM, hi[i] - R_SIM + 1e-9, 2 * R_SIM) for i in range(2)] + [np.arange(R_SIM, 0.15, 2 * R_SIM)]
+    pos = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    run = root / "run"
+    run.mkdir()
+    info = RunInfo(particle_radius=R_SIM, rest_density=1000.0, particle_mass=0.008, gravity=[0, 0, -9.81],
+                   domain={"lower": lo.tolist(), "upper": hi.tolist()}, frame_rate=30.0, extra=extra)
+    write_frame(run / "fluid/fluid_00000.ply", pos)
+    info.set_file(0, "fluid", "fluid/fluid_00000.ply")
+    info.save(run)
+    return run, lo, hi
+
+
+def wall_gaps(run: Path, lo, hi) -> dict:
+    """For each wall the water touches: the largest distance [r] from the wall plane of the
+    vertices that face it (normal within 45° of the wall's outward normal, within 3 r of it)."""
+    m = read_mesh(run / "mesh/fluid_00000.ply")
+    v, n = m.vertices.astype(float), m.normals.astype(float)
+    gaps = {}
+    for name, axis, side, coord in (("x-", 0, -1, lo[0]), ("x+", 0, 1, hi[0]), ("y-", 1, -1, lo[1]),
+                                    ("y+", 1, 1, hi[1]), ("z-", 2, -1, lo[2])):
+        d = (coord - v[:, axis]) * side
+        sel = (n[:, axis] * side > 0.7) & (d < 3 * R_SIM)
+        assert sel.sum() > 100, name
+        gaps[name] = float(np.abs(d[sel]).max() / R_SIM)
+    return gaps
+
+
+def test_settled_tank_surface_meets_the_solid_walls(tmp_path):
+    """splashsurf ends the surface about where the particles end, half a radius or more inside
+    a wall; for the walls a whitecap run says are solid, the vertices facing them are on them."""
+    run, lo, hi = settled_tank_run(tmp_path, {"solid_walls": ["x-", "x+", "y-", "y+", "z-", "z+"]})
+    assert main(["mesh", str(run), "--jobs", "1"]) == 0
+    gaps = wall_gaps(run, lo, hi)
+    assert max(gaps.values()) <= 0.25, gaps
+    m = read_mesh(run / "mesh/fluid_00000.ply")
+    assert (m.vertices >= lo - 1e-6).all() and (m.vertices <= hi + 1e-6).all()  # nothing pushed through a wall
+    # The water fills its share of the tank: the volume of N lattice cells (2r)³, within 3 %.
+    n = len(wio.read(run / "fluid/fluid_00000.ply"))
+    volume = trimesh.Trimesh(m.vertices, m.faces, process=False).volume
+    assert volume == pytest.approx(n * (2 * R_SIM) ** 3, rel=0.03)
+
+
+def test_a_foreign_sequence_box_is_not_a_wall(tmp_path):
+    """A converted foreign sequence's domain is only a bound: its surface is left where splashsurf put it."""
+    run, lo, hi = settled_tank_run(tmp_path, {"source": "elsewhere/PartFluid_*.vtk"})
+    assert RunInfo.load(run).solid_walls() == []
+    assert main(["mesh", str(run), "--jobs", "1"]) == 0
+    assert min(wall_gaps(run, lo, hi).values()) > 0.4

@@ -26,6 +26,9 @@ from .atomic import write_text
 FORMAT_VERSION = 1
 RUN_JSON = "run.json"
 
+#: The six faces of the domain box, named by axis and side: "x-" is the face at domain.lower[0].
+WALLS = ("x-", "x+", "y-", "y+", "z-", "z+")
+
 
 def frame_name(kind: str, index: int, ext: str = "ply") -> str:
     """Relative file name of a frame: ``fluid/fluid_00012.ply``."""
@@ -67,6 +70,20 @@ class RunInfo:
 
     def save(self, run_dir: str | Path) -> None:
         write_text(Path(run_dir) / RUN_JSON, json.dumps(asdict(self), indent=1))
+
+    # ------------------------------------------------------------------ walls
+    def solid_walls(self) -> list[str]:
+        """The domain box faces that held the fluid in (names from :data:`WALLS`).
+
+        ``extra.solid_walls`` when the run says; otherwise all six for a run
+        that whitecap simulated (the solver confines particles to the box) and
+        none for a converted foreign sequence (``extra.source``), whose box is
+        only a bound.
+        """
+        walls = self.extra.get("solid_walls")
+        if walls is None:
+            walls = [] if "source" in self.extra else list(WALLS)
+        return [w for w in WALLS if w in walls]
 
     # ------------------------------------------------------------------ frames
     def frame(self, index: int) -> dict[str, Any]:

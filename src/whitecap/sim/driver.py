@@ -24,7 +24,7 @@ from ..config import Scene
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import atomic_path
-from ..io.run import RunInfo, frame_name
+from ..io.run import WALLS, RunInfo, frame_name
 from ..progress import progress
 from ..timing import timer
 from . import runtime
@@ -53,7 +53,8 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
         domain={"lower": list(scene.domain.lower), "upper": list(scene.domain.upper)},
         frame_rate=scene.solver.frame_rate,
         obstacles=[o.model_dump() for o in scene.obstacle],
-        extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed, "scene_dir": str(scene.base_dir)},
+        extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed, "scene_dir": str(scene.base_dir),
+               "solid_walls": list(WALLS)},
     )
 
 

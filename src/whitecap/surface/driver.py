@@ -23,7 +23,7 @@ from ..io.run import RUN_JSON, RunInfo
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
-from .reconstruct import MeshParams, mesh_frame, params_from_config
+from .reconstruct import MeshParams, mesh_frame, params_from_config, walls_from_run
 
 
 @dataclass
@@ -56,12 +56,14 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
     if not is_run and not any(c in str(source) for c in "*?[") and not src.exists():
         raise InputError(f"{src}: no such run directory or particle sequence")
     rest_density = 1000.0
+    walls: tuple = ()
     if is_run:
         info = RunInfo.load(src)
         if config is None and (src / "scene.toml").is_file():
             config = load_scene(src / "scene.toml").mesh
         r = info.particle_radius if radius is None else radius
         rest_density = info.rest_density
+        walls = walls_from_run(info)
         inputs = [(i, src / rel) for i, rel in info.files("fluid")]
         if not inputs:
             raise InputError(f"{src / RUN_JSON}: the run has no fluid frames")
@@ -73,7 +75,8 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         r = radius
         out_dir = Path(out) if out is not None else inputs[0][1].parent / "mesh"
     cfg = mesh_config(config, **overrides)
-    params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up)
+    params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up,
+                               walls=walls)
     # Meshes are recorded in run.json only when they land inside the run.
     inside = is_run and out_dir.resolve().is_relative_to(src.resolve())
     frames = []
