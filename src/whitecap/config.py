@@ -233,7 +233,7 @@ class View(_Section):
 
 # --------------------------------------------------------------------------- render
 class Render(_Section):
-    """Offline rendering in Blender (Cycles). Unset camera keys frame the domain automatically."""
+    """Offline rendering in Blender (Cycles). Unset camera keys frame the fluid automatically."""
 
     resolution: list[int] = Field([1920, 1080], min_length=2, max_length=2, description="final image size [px]")
     samples: int = Field(128, ge=1, le=65536, description="final Cycles samples per pixel [-]")
@@ -244,7 +244,9 @@ class Render(_Section):
     preview_samples: int = Field(16, ge=1, le=4096, description="preview samples per pixel [-]")
     camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")
     camera_end: Vec3 | None = Field(None, description="camera position at the last frame; unset = camera_start [m]")
-    camera_target: Vec3 | None = Field(None, description="point the camera looks at; unset = domain centre [m]")
+    camera_target: Vec3 | None = Field(
+        None, description="point the camera looks at; unset = centre of the fluid's bounds over the run [m]"
+    )
     camera_orbit: float = Field(0.0, ge=-360, le=360, description="orbit about the target over the run [deg]")
     lens: float = Field(32.0, gt=1, le=500, description="camera focal length [mm]")
     water_color: Vec3 = Field([0.55, 0.8, 0.9], description="volume absorption tint of the water, linear RGB [0-1]")
@@ -257,10 +259,28 @@ class Render(_Section):
     shutter: float = Field(0.5, gt=0, le=2, description="shutter open time [frames]")
     denoise: bool = Field(True, description="OpenImageDenoise on the final image when available")
     glare: float = Field(0.15, ge=0, le=1, description="strength of the compositor glare (0 = off) [-]")
-    sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units)")
-    sun_angle: Vec3 = Field([50.0, 10.0, 30.0], description="sun rotation about x, y, z [deg]")
-    world_strength: float = Field(0.6, ge=0, description="sky light strength [-]")
-    ground: bool = Field(True, description="a ground plane under the domain box (three times its width)")
+    sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units); with the sky only")
+    sun_angle: Vec3 = Field(
+        [50.0, 10.0, 30.0], description="sun lamp rotation about x, y, z [deg]; the sky's sun is put where it points from"
+    )
+    world_strength: float = Field(1.0, ge=0, description="strength of the sky or of the environment image [-]")
+    environment: str | None = Field(
+        None, description="an HDRI (.hdr or .exr) lighting the scene, relative to the scene file; unset = physical sky"
+    )
+    sky_type: Literal["MULTIPLE_SCATTERING", "SINGLE_SCATTERING", "PREETHAM", "HOSEK_WILKIE"] = Field(
+        "MULTIPLE_SCATTERING", description="Blender's physical sky model when no environment image is set"
+    )
+    exposure: float = Field(0.0, ge=-10, le=10, description="exposure of the AgX view transform [stops]")
+    focus_target: Vec3 | None = Field(None, description="depth of field: the point in focus; unset = camera target [m]")
+    fstop: float | None = Field(None, gt=0, le=1024, description="depth of field: aperture f-number; unset = no depth of field [-]")
+    container: Literal["glass", "basin", "none"] | None = Field(
+        None,
+        description="the domain's solid walls drawn as a glass tank with an open top, an opaque tiled basin, or "
+        "nothing; unset = glass where the run's walls held the fluid, else none",
+    )
+    wall_thickness: float | None = Field(None, gt=0, description="container wall thickness [m]; unset = 2.5 particle radii")
+    ground: bool = Field(True, description="a textured ground plane under the domain box")
+    ground_texture: Literal["tiles", "checker", "concrete"] = Field("tiles", description="the ground's procedural texture")
 
 
 # --------------------------------------------------------------------------- output

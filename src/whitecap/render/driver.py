@@ -152,6 +152,9 @@ def render_run(
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
     cfg = render_settings(run_dir, device)
+    from .stage import environment_path
+
+    environment_path(cfg, info, run_dir)  # a missing HDRI fails here, in one line, not in every worker
     if cfg.device == "gpu":  # fail here, in one line, rather than in every worker
         from .scene import cycles_device
 

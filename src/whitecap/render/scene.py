@@ -25,6 +25,7 @@ from ..config import Render
 from ..errors import InputError
 from ..io import read
 from ..io.run import RunInfo
+from . import stage
 
 TYPE_NAMES = ("spray", "foam", "bubbles")
 
@@ -219,18 +220,7 @@ def _look_at(obj, target) -> None:
     c.target = empty
     c.track_axis = "TRACK_NEGATIVE_Z"
     c.up_axis = "UP_Y"
-
-
-def camera_path(cfg: Render, info: RunInfo, nframes: int) -> tuple[list, list, list]:
-    """Camera positions at the first and last frame and the target point."""
-    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
-    c = (lo + hi) / 2
-    size = hi - lo
-    target = np.array(cfg.camera_target) if cfg.camera_target else np.array([c[0], c[1], lo[2] + 0.3 * size[2]])
-    L = float(np.linalg.norm(size))
-    start = np.array(cfg.camera_start) if cfg.camera_start else target + np.array([0.35 * L, -1.0 * L, 0.55 * L])
-    end = np.array(cfg.camera_end) if cfg.camera_end else start
-    return start.tolist(), end.tolist(), target.tolist()
+    return empty
 
 
 GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")  # Cycles' GPU back-ends, preferred first
@@ -303,38 +293,11 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     sc.frame_start, sc.frame_end = first, last
     sc.render.image_settings.file_format = "PNG"
     sc.render.film_transparent = False
-    sc.view_settings.view_transform = "AgX" if "AgX" in [
-        e.identifier for e in sc.view_settings.bl_rna.properties["view_transform"].enum_items
-    ] else "Filmic"
-
-    # world: a soft sky
-    world = bpy.data.worlds.new("whitecap_sky")
-    sc.world = world
-    world.use_nodes = True
-    bg = world.node_tree.nodes.get("Background")
-    bg.inputs["Color"].default_value = (0.62, 0.74, 0.9, 1.0)
-    bg.inputs["Strength"].default_value = cfg.world_strength
-
-    sun_data = bpy.data.lights.new("sun", "SUN")
-    sun_data.energy = cfg.sun_strength
-    sun_data.angle = math.radians(3.0)
-    sun = bpy.data.objects.new("sun", sun_data)
-    sun.rotation_euler = [math.radians(a) for a in cfg.sun_angle]
-    sc.collection.objects.link(sun)
-
-    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
+    stage.set_exposure(sc, cfg)
+    stage.add_environment(sc, cfg, stage.environment_path(cfg, info, run_dir))
     if cfg.ground:
-        size = hi - lo
-        c = (lo + hi) / 2
-        gv = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32) * [3 * size[0], 3 * size[1], 0]
-        gv += [c[0], c[1], lo[2] - 1e-3]
-        ground = bpy.data.objects.new("ground", make_mesh("ground", gv, np.array([[0, 1, 2], [0, 2, 3]])))
-        gm = bpy.data.materials.new("whitecap_ground")
-        _, b = _principled(gm)
-        b.inputs["Base Color"].default_value = (0.42, 0.45, 0.48, 1.0)
-        b.inputs["Roughness"].default_value = 0.7
-        ground.data.materials.append(gm)
-        sc.collection.objects.link(ground)
+        stage.add_ground(sc, cfg, info)
+    stage.add_container(sc, cfg, info)
 
     water = water_material(cfg)
     fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
@@ -361,8 +324,11 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     cam = bpy.data.objects.new("camera", cam_data)
     sc.collection.objects.link(cam)
     sc.camera = cam
-    start, end, target = camera_path(cfg, info, last - first + 1)
-    _look_at(cam, target)
+    bounds = stage.scene_bounds(run_dir, info, [o for o in sc.objects if o.name.startswith("obstacle_")])
+    start, end, target = stage.camera_path(cfg, info, bounds, aspect=w / h)
+    cam_data.clip_start = 1e-3 * float(np.linalg.norm(np.subtract(start, target)))
+    cam_data.clip_end = 1e3 * float(np.linalg.norm(np.subtract(start, target)))
+    stage.depth_of_field(cam, cfg, _look_at(cam, target))
     for frame in range(first, last + 1):
         u = 0.0 if last == first else (frame - first) / (last - first)
         p = (1 - u) * np.array(start) + u * np.array(end)

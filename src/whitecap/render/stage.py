@@ -1,0 +1,385 @@
+"""The place a run is shown in: container, sky, ground, camera framing (bpy calls only where noted).
+
+:func:`build_scene` in :mod:`whitecap.render.scene` calls these steps; the
+pure-numpy parts (sun direction, framing, paths) run without Blender, so the
+render driver and the tests can use them too.
+
+Container. The domain box's solid walls are drawn as a tank: walls and floor
+of real thickness outside the box, open at the top. ``glass`` is a clear
+dielectric of IOR 1.5; ``basin`` is opaque concrete-like tiling. The fluid
+mesh reaches the walls (the meshing stage moves the vertices facing a solid
+wall onto it, see :func:`whitecap.surface.reconstruct.close_wall_gap`), and
+the glass's inner faces sit :data:`GLASS_OVERLAP` r inside the box, so the
+water overlaps the glass slightly. That is the usual way of modelling liquid
+in a glass for a path tracer: two coincident surfaces flicker between each
+other, and any gap is a film of air that shows as a bright silver line of
+total internal reflection; a thin overlap has neither, and the error it makes
+(refraction at the water surface inside the glass uses the water/air ratio
+1.33 instead of the water/glass ratio 1.33/1.5) bends rays by a few degrees
+over a sub-millimetre layer, which nothing shows.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Render
+from ..errors import InputError
+from ..io.run import RunInfo
+
+#: The glass's inner faces sit this many particle radii inside the domain box, under the water's edge.
+GLASS_OVERLAP = 0.1
+#: Blender's physical skies are in physical units, several times brighter than a sun lamp of a few
+#: W/m²; this scale, chosen by eye (AgX, exposure 0, the default 3 W/m² sun), lets the sky fill the
+#: shadows without washing out the sun's light.
+SKY_SCALE = 0.2
+#: Window glass (soda-lime) refractive index.
+GLASS_IOR = 1.5
+#: Container wall thickness when [render].wall_thickness is unset, in particle radii.
+WALL_RADII = 2.5
+#: Share of the image that the fluid's bounds fill along the tighter direction when the camera frames them.
+FRAME_FILL = 0.9
+#: Direction from the framed point to the default camera: in front (−y), a little right, above.
+VIEW_DIRECTION = (0.35, -1.0, 0.55)
+#: Frames whose bounds are read to frame the camera (evenly spread over the run).
+FRAMING_SAMPLES = 16
+#: Bounds of a frame leave out this share of its vertices on each side (a stray droplet does not widen the shot).
+FRAMING_TRIM = 0.002
+#: Blender's default camera sensor width [mm] (the wider image side with sensor_fit AUTO).
+SENSOR_WIDTH = 36.0
+
+
+# ============================================================================ pure helpers
+def sun_direction(angles_deg) -> np.ndarray:
+    """Unit vector toward the sun for a sun lamp with Euler XYZ rotation ``angles_deg``.
+
+    A Blender sun lamp shines along its local −z, so the sun lies along R·(0, 0, 1).
+    """
+    x, y, z = (math.radians(a) for a in angles_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
+    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
+    return rz @ ry @ rx @ np.array([0.0, 0.0, 1.0])
+
+
+def sky_sun_angles(direction) -> tuple[float, float]:
+    """(sun_elevation, sun_rotation) [rad] of Blender's sky texture for a sun along ``direction``.
+
+    The sky puts its sun at (cos e · sin ρ, cos e · cos ρ, sin e): rotation ρ is
+    measured from +y toward +x (checked by rendering the sun disc of the
+    MULTIPLE_SCATTERING sky with bpy 5.0.1 at ρ = 40° and 100°).
+    """
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    return math.asin(max(-1.0, min(1.0, d[2]))), math.atan2(d[0], d[1])
+
+
+def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
+    """The HDRI file of ``[render].environment``, resolved against the scene's directory; a missing one is an error."""
+    if not cfg.environment:
+        return None
+    p = Path(cfg.environment)
+    if not p.is_absolute():
+        p = Path(info.extra.get("scene_dir", run_dir)) / p
+    if not p.is_file():
+        raise InputError(f"{run_dir / 'scene.toml'}: render.environment: file not found: {p}")
+    if p.suffix.lower() not in (".hdr", ".exr"):
+        raise InputError(f"{run_dir / 'scene.toml'}: render.environment: expected an .hdr or .exr image, got {p.name}")
+    return p
+
+
+def container_kind(cfg: Render, info: RunInfo) -> str:
+    """``[render].container``, or its default: glass where the run's walls held the fluid, else none."""
+    if cfg.container is not None:
+        return cfg.container
+    return "glass" if info.solid_walls() else "none"
+
+
+def wall_thickness(cfg: Render, info: RunInfo) -> float:
+    return cfg.wall_thickness if cfg.wall_thickness else WALL_RADII * info.particle_radius
+
+
+def fluid_bounds(run_dir: Path, info: RunInfo) -> tuple[np.ndarray, np.ndarray] | None:
+    """Bounds of the fluid over the run: the union of per-frame bounds of up to
+    FRAMING_SAMPLES meshes (or particle files where there are no meshes), each
+    trimmed by FRAMING_TRIM on both sides. None when no frame has any fluid."""
+    from ..io import read
+
+    kind = "mesh" if info.files("mesh") else "fluid"
+    files = info.files(kind)
+    if not files:
+        return None
+    pick = sorted(set(np.linspace(0, len(files) - 1, min(FRAMING_SAMPLES, len(files))).round().astype(int)))
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for k in pick:
+        path = run_dir / files[k][1]
+        if kind == "mesh":
+            from ..io.mesh import read_mesh
+
+            pts = read_mesh(path).vertices
+        else:
+            pts = read(path).positions
+        if len(pts) == 0:
+            continue
+        q = np.quantile(pts, [FRAMING_TRIM, 1 - FRAMING_TRIM], axis=0) if len(pts) > 1000 else np.array([pts.min(0), pts.max(0)])
+        lo, hi = np.minimum(lo, q[0]), np.maximum(hi, q[1])
+    if not np.isfinite(lo).all():
+        return None
+    return lo, hi
+
+
+def frame_box(lo, hi, target, direction, lens: float, aspect: float, fill: float = FRAME_FILL) -> float:
+    """Distance from ``target`` along ``direction`` at which the box [lo, hi] just fits
+    ``fill`` of a pinhole image (width/height ``aspect``, focal length ``lens`` mm on a
+    SENSOR_WIDTH mm sensor across the wider side), the camera looking at ``target`` with z up."""
+    u = np.asarray(direction, float) / np.linalg.norm(direction)
+    fwd = -u
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    half_w = SENSOR_WIDTH / 2 / lens if aspect >= 1 else SENSOR_WIDTH / 2 / lens * aspect
+    half_h = half_w / aspect
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    q = corners - np.asarray(target, float)
+    need = np.maximum(np.abs(q @ right) / (fill * half_w), np.abs(q @ up) / (fill * half_h)) + q @ u
+    return float(need.max())
+
+
+def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) -> tuple[list, list, list]:
+    """Camera positions at the first and last frame and the target point.
+
+    Camera keys that are set are used as they are. Unset, the camera looks at
+    the centre of ``bounds`` (the fluid over the run and the obstacles; the
+    domain when None) from VIEW_DIRECTION, at the distance where the bounds
+    fill FRAME_FILL of the image along the tighter direction.
+    """
+    if bounds is None:
+        bounds = (np.array(info.domain["lower"], float), np.array(info.domain["upper"], float))
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    target = np.array(cfg.camera_target, float) if cfg.camera_target else (lo + hi) / 2
+    if cfg.camera_start:
+        start = np.array(cfg.camera_start, float)
+    else:
+        dist = frame_box(lo, hi, target, VIEW_DIRECTION, cfg.lens, aspect)
+        u = np.asarray(VIEW_DIRECTION, float) / np.linalg.norm(VIEW_DIRECTION)
+        start = target + dist * u
+    end = np.array(cfg.camera_end, float) if cfg.camera_end else start
+    return start.tolist(), end.tolist(), target.tolist()
+
+
+def _box_mesh(lo, hi, thickness: float, inset: float, top: float):
+    """An open-top tank around the box [lo, hi]: outer shell ``thickness`` outside it, cavity
+    ``inset`` inside it, both up to height ``top``. Vertices (16, 3) and quads (14, 4)."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    o_lo, o_hi = lo - thickness, hi + thickness
+    i_lo, i_hi = lo + inset, hi - inset
+
+    def ring(a, b, z):
+        return [[a[0], a[1], z], [b[0], a[1], z], [b[0], b[1], z], [a[0], b[1], z]]
+
+    v = np.array(ring(o_lo, o_hi, o_lo[2]) + ring(o_lo, o_hi, top) + ring(i_lo, i_hi, top) + ring(i_lo, i_hi, i_lo[2]))
+    quads = [[0, 3, 2, 1], [12, 13, 14, 15]]  # outer bottom, cavity floor
+    for k in range(4):
+        k1 = (k + 1) % 4
+        quads.append([k, k1, 4 + k1, 4 + k])  # outer side
+        quads.append([4 + k, 4 + k1, 8 + k1, 8 + k])  # rim
+        quads.append([8 + k, 8 + k1, 12 + k1, 12 + k])  # inner side
+    return v, np.array(quads)
+
+
+# ============================================================================ bpy steps
+def set_exposure(sc, cfg: Render) -> None:
+    """AgX view transform with ``[render].exposure`` stops."""
+    names = [e.identifier for e in sc.view_settings.bl_rna.properties["view_transform"].enum_items]
+    sc.view_settings.view_transform = "AgX" if "AgX" in names else "Filmic"
+    sc.view_settings.exposure = cfg.exposure
+
+
+def add_environment(sc, cfg: Render, hdri: Path | None):
+    """The world: the user's HDRI, or Blender's physical sky with a sun lamp where the sky has its sun."""
+    import bpy
+
+    world = bpy.data.worlds.new("whitecap_sky")
+    sc.world = world
+    world.use_nodes = True
+    nt = world.node_tree
+    bg = nt.nodes.get("Background")
+    bg.inputs["Strength"].default_value = cfg.world_strength
+    if hdri is not None:
+        tex = nt.nodes.new("ShaderNodeTexEnvironment")
+        tex.image = bpy.data.images.load(str(hdri), check_existing=True)
+        nt.links.new(tex.outputs["Color"], bg.inputs["Color"])
+        return None
+    bg.inputs["Strength"].default_value = cfg.world_strength * SKY_SCALE
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    sky.sky_type = cfg.sky_type
+    d = sun_direction(cfg.sun_angle)
+    if cfg.sky_type in ("PREETHAM", "HOSEK_WILKIE"):
+        sky.sun_direction = d.tolist()
+    else:
+        sky.sun_elevation, sky.sun_rotation = sky_sun_angles(d)
+        # The sun's light comes from the lamp below, which Cycles samples
+        # directly; a sun disc in the sky map would only add noise.
+        sky.sun_disc = False
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    sun_data = bpy.data.lights.new("sun", "SUN")
+    sun_data.energy = cfg.sun_strength
+    sun_data.angle = math.radians(1.0)
+    sun = bpy.data.objects.new("sun", sun_data)
+    sun.rotation_euler = [math.radians(a) for a in cfg.sun_angle]
+    sc.collection.objects.link(sun)
+    return sun
+
+
+def _tiles(nt, coord, tile: float, colours, mortar):
+    """Square tiles of edge ``tile`` [m] (a Brick texture without offset) in object space."""
+    b = nt.nodes.new("ShaderNodeTexBrick")
+    b.offset = 0.0
+    b.squash = 1.0
+    b.inputs["Scale"].default_value = 1.0
+    b.inputs["Brick Width"].default_value = tile
+    b.inputs["Row Height"].default_value = tile
+    b.inputs["Mortar Size"].default_value = 0.04 * tile
+    b.inputs["Bias"].default_value = 0.0
+    b.inputs["Color1"].default_value = (*colours[0], 1.0)
+    b.inputs["Color2"].default_value = (*colours[1], 1.0)
+    b.inputs["Mortar"].default_value = (*mortar, 1.0)
+    nt.links.new(coord, b.inputs["Vector"])
+    return b
+
+
+def surface_material(name: str, texture: str, tile: float):
+    """An opaque material with a procedural ``texture`` (tiles, checker, concrete) of feature size ``tile`` [m]."""
+    import bpy
+
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    bsdf = nt.nodes.get("Principled BSDF")
+    coord = nt.nodes.new("ShaderNodeTexCoord").outputs["Object"]
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 4.0 / tile
+    nt.links.new(coord, noise.inputs["Vector"])
+    if texture == "checker":
+        tex = nt.nodes.new("ShaderNodeTexChecker")
+        tex.inputs["Scale"].default_value = 1.0 / tile
+        tex.inputs["Color1"].default_value = (0.75, 0.74, 0.7, 1.0)
+        tex.inputs["Color2"].default_value = (0.12, 0.13, 0.14, 1.0)
+        nt.links.new(coord, tex.inputs["Vector"])
+        colour = tex.outputs["Color"]
+        rough = 0.5
+    elif texture == "concrete":
+        ramp = nt.nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].color = (0.28, 0.27, 0.25, 1.0)
+        ramp.color_ramp.elements[1].color = (0.52, 0.5, 0.47, 1.0)
+        nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+        colour = ramp.outputs["Color"]
+        rough = 0.85
+    else:  # tiles: pale, slightly varied, with dark grout
+        tex = _tiles(nt, coord, tile, ((0.42, 0.36, 0.3), (0.33, 0.29, 0.25)), (0.06, 0.06, 0.06))
+        colour = tex.outputs["Color"]
+        rough = 0.35
+    bsdf.inputs["Roughness"].default_value = rough
+    nt.links.new(colour, bsdf.inputs["Base Color"])
+    bump = nt.nodes.new("ShaderNodeBump")
+    bump.inputs["Strength"].default_value = 0.15
+    nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    return mat
+
+
+def glass_material():
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_glass")
+    mat.use_nodes = True
+    bsdf = mat.node_tree.nodes.get("Principled BSDF")
+    bsdf.inputs["Base Color"].default_value = (0.93, 0.97, 0.96, 1.0)  # the faint green of soda-lime glass
+    bsdf.inputs["Transmission Weight"].default_value = 1.0
+    bsdf.inputs["IOR"].default_value = GLASS_IOR
+    bsdf.inputs["Roughness"].default_value = 0.0
+    return mat
+
+
+def add_container(sc, cfg: Render, info: RunInfo):
+    """The tank around the domain box (see the module docstring), or None for ``container = "none"``."""
+    import bmesh
+    import bpy
+
+    kind = container_kind(cfg, info)
+    if kind == "none":
+        return None
+    lo, hi = np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)
+    t = wall_thickness(cfg, info)
+    inset = GLASS_OVERLAP * info.particle_radius if kind == "glass" else 0.0
+    v, quads = _box_mesh(lo, hi, t, inset, hi[2])
+    me = bpy.data.meshes.new(f"container_{kind}")
+    bm = bmesh.new()
+    verts = [bm.verts.new(p) for p in v]
+    for q in quads:
+        bm.faces.new([verts[i] for i in q])
+    bmesh.ops.recalc_face_normals(bm, faces=bm.faces)  # outward from the solid glass: Cycles needs it to refract
+    bm.to_mesh(me)
+    bm.free()
+    obj = bpy.data.objects.new("container", me)
+    tile = max(4 * t, float((hi - lo).max()) / 12)
+    obj.data.materials.append(glass_material() if kind == "glass" else surface_material("whitecap_basin", "tiles", tile))
+    sc.collection.objects.link(obj)
+    return obj
+
+
+def add_ground(sc, cfg: Render, info: RunInfo):
+    """A large textured ground under the domain (and under the container's floor)."""
+    import bpy
+
+    from .scene import make_mesh
+
+    lo, hi = np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)
+    size = float(np.linalg.norm(hi - lo))
+    c = (lo + hi) / 2
+    z = lo[2] - (wall_thickness(cfg, info) if container_kind(cfg, info) != "none" else 0.0) - 1e-4 * size
+    half = 20.0 * size
+    gv = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]]) + [c[0], c[1], z]
+    obj = bpy.data.objects.new("ground", make_mesh("ground", gv, np.array([[0, 1, 2], [0, 2, 3]])))
+    tile = _nice_tile(size / 12)
+    obj.data.materials.append(surface_material("whitecap_ground", cfg.ground_texture, tile))
+    sc.collection.objects.link(obj)
+    return obj
+
+
+def _nice_tile(x: float) -> float:
+    """A tile edge of 1, 2 or 5 × 10^k metres near ``x``."""
+    k = math.floor(math.log10(x))
+    return min((m * 10.0**k for m in (1, 2, 5, 10)), key=lambda t: abs(math.log(t / x)))
+
+
+def scene_bounds(run_dir: Path, info: RunInfo, obstacles=()) -> tuple[np.ndarray, np.ndarray]:
+    """What the default camera frames: the fluid over the run plus the obstacle objects' boxes."""
+    b = fluid_bounds(run_dir, info)
+    lo, hi = (b if b is not None else (np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)))
+    for obj in obstacles:
+        from mathutils import Vector
+
+        pts = np.array([tuple(obj.matrix_world @ Vector(c)) for c in obj.bound_box])
+        lo, hi = np.minimum(lo, pts.min(0)), np.maximum(hi, pts.max(0))
+    return lo, hi
+
+
+def depth_of_field(cam, cfg: Render, target_obj) -> None:
+    """Depth of field when ``fstop`` is set, focused on ``focus_target`` (or the camera target)."""
+    import bpy
+
+    if cfg.fstop is None:
+        return
+    dof = cam.data.dof
+    dof.use_dof = True
+    dof.aperture_fstop = cfg.fstop
+    if cfg.focus_target:
+        focus = bpy.data.objects.new("focus_target", None)
+        focus.location = cfg.focus_target
+        bpy.context.scene.collection.objects.link(focus)
+        dof.focus_object = focus
+    else:
+        dof.focus_object = target_obj
