@@ -403,3 +403,29 @@ def test_missing_hdri_is_a_one_line_error(meshed_run, tmp_path, capsys):
     assert main(["render", str(run), "--frames", "0:1", "--force", "--no-movie"]) != 0
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "render.environment" in err and "studio.hdr" in err, err
+
+
+def _box_width(uv) -> float:
+    u = np.array(uv)[:, 0]
+    return float(u.max() - u.min())
+
+
+@pytest.mark.parametrize("source", ["whitecap run", "DualSPHysics sequence"])
+def test_default_camera_frames_the_fluid(source, meshed_run, tmp_path):
+    """With no camera keys the camera frames the fluid's bounds over the run (not the domain):
+    projected with the camera at the first frame, they span at least half the image width
+    and stay inside it."""
+    if source == "whitecap run":
+        run = meshed_run
+    else:
+        from whitecap.diffuse.driver import postprocess
+
+        run = tmp_path / "dsph"
+        postprocess(Path(__file__).parent / "data" / "dualsphysics", out=run, preset="auto", show_progress=False)
+        assert main(["mesh", str(run), "--jobs", "1"]) == 0
+        assert RunInfo.load(run).solid_walls() == []  # its box is only a bound: no glass by default
+    s = variants(run, tmp_path / "img", default={"_render": False})["default"]
+    uv = np.array(s["fluid_box_uv"])
+    assert _box_width(uv) >= 0.5, uv
+    assert (uv > -1e-6).all() and (uv < 1 + 1e-6).all(), uv
+    assert source == "whitecap run" or "container_vertices" not in s
