@@ -318,6 +318,9 @@ for name, over in variants.items():
         pts = [[x, y, lo_o[2] + t * (hi_o[2] - lo_o[2])] for x in (lo_o[0], hi_o[0]) for y in (lo_o[1], hi_o[1])
                for t in np.linspace(0.1, 0.9, 9)]
         r["edge_uv"] = uv(pts)
+    obst = bpy.data.objects.get("obstacle_0")
+    if obst is not None:
+        r["obstacle_uv"] = uv([obst.matrix_world @ __import__("mathutils").Vector(c) for c in obst.bound_box])
     if render:
         sc.render.filepath = str(out / f"{name}.png")
         bpy.ops.render.render(write_still=True)
@@ -429,3 +432,44 @@ def test_default_camera_frames_the_fluid(source, meshed_run, tmp_path):
     assert _box_width(uv) >= 0.5, uv
     assert (uv > -1e-6).all() and (uv < 1 + 1e-6).all(), uv
     assert source == "whitecap run" or "container_vertices" not in s
+
+
+def cube_obj(path: Path) -> None:
+    """A unit cube whose every face maps the whole texture (24 vertices, UVs per face)."""
+    lines, faces = [], []
+    quads = {0: [(0, 0, 0), (0, 1, 0), (0, 1, 1), (0, 0, 1)], 1: [(1, 0, 0), (1, 0, 1), (1, 1, 1), (1, 1, 0)],
+             2: [(0, 0, 0), (0, 0, 1), (1, 0, 1), (1, 0, 0)], 3: [(0, 1, 0), (1, 1, 0), (1, 1, 1), (0, 1, 1)],
+             4: [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], 5: [(0, 0, 1), (0, 1, 1), (1, 1, 1), (1, 0, 1)]}
+    for f, corners in quads.items():
+        for c in corners:
+            lines.append("v %g %g %g" % tuple(np.subtract(c, 0.5)))
+        b = 4 * f + 1
+        faces += [(b, b + 1, b + 2), (b, b + 2, b + 3)]
+    lines += ["vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1"]
+    for f in range(6):
+        b = 4 * f + 1
+        lines += [f"f {b}/1 {b + 1}/2 {b + 2}/3", f"f {b}/1 {b + 2}/3 {b + 3}/4"]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_red_texture_shows_on_the_cube(meshed_run, tmp_path):
+    """An obstacle's `texture` is mapped by its mesh's UVs: a red image on a cube makes the
+    pixels where the cube projects red (the preset colour is a pale grey)."""
+    import imageio.v2 as imageio
+
+    run = tmp_path / "run"
+    shutil.copytree(meshed_run, run)
+    cube_obj(tmp_path / "cube.obj")
+    imageio.imwrite(tmp_path / "red.png", np.tile(np.array([230, 10, 10], np.uint8), (8, 8, 1)))
+    info = RunInfo.load(run)
+    info.obstacles = [{"mesh": str(tmp_path / "cube.obj"), "translate": [0.42, 0.1, 0.06], "scale": 0.1,
+                       "material": "plastic", "texture": str(tmp_path / "red.png")}]
+    info.save(run)
+    s = variants(run, tmp_path / "img", textured={"container": "none"})["textured"]
+    img = image(tmp_path / "img" / "textured.png")
+    h, w = img.shape[:2]
+    u, v = np.array(s["obstacle_uv"]).mean(0)  # the cube's centre, projected
+    assert 0.1 < u < 0.9 and 0.1 < v < 0.9
+    y, x = int((1 - v) * h), int(u * w)
+    r, g, b = img[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3).mean(0)
+    assert r > g + 60 and r > b + 60, (r, g, b)

@@ -136,6 +136,10 @@ class Obstacle(_Section):
     sdf_resolution: float = Field(1.0, gt=0, le=4.0, description="SDF grid spacing as a multiple of r [-]")
     material: str = Field("stone", description="render material preset: stone, clay, metal, plastic")
     color: Vec3 = Field([0.8, 0.78, 0.72], description="render base colour, linear RGB [0-1]")
+    texture: str | None = Field(
+        None, description="image texture (PNG, JPEG...) mapped by the render mesh's UVs, relative to the scene file; "
+        "replaces the base colour"
+    )
 
 
 # --------------------------------------------------------------------------- foam

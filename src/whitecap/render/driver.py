@@ -152,9 +152,12 @@ def render_run(
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
     cfg = render_settings(run_dir, device)
-    from .stage import environment_path
+    from .stage import environment_path, texture_path
 
-    environment_path(cfg, info, run_dir)  # a missing HDRI fails here, in one line, not in every worker
+    # A missing image fails here, in one line, not in every worker.
+    environment_path(cfg, info, run_dir)
+    for k, entry in enumerate(info.obstacles):
+        texture_path(entry, k, info, run_dir)
     if cfg.device == "gpu":  # fail here, in one line, rather than in every worker
         from .scene import cycles_device
 

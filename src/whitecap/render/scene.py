@@ -317,7 +317,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
         diffuse[t] = obj
 
     for k, entry in enumerate(info.obstacles):
-        _add_obstacle(entry, k, info)
+        _add_obstacle(entry, k, info, run_dir)
 
     cam_data = bpy.data.cameras.new("camera")
     cam_data.lens = cfg.lens
@@ -343,7 +343,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
 
 
-def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
+def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path) -> None:
     """The high-poly render mesh of an obstacle, with the scene's transform."""
     import bpy
     import trimesh
@@ -362,6 +362,7 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
     m.apply_transform(T.concatenate_matrices(M, R, S))
     obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
     obj.data.materials.append(obstacle_material(entry))
+    stage.apply_texture(obj, m, entry, k, info, run_dir)
     bpy.context.scene.collection.objects.link(obj)
 
 

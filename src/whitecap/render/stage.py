@@ -383,3 +383,37 @@ def depth_of_field(cam, cfg: Render, target_obj) -> None:
         dof.focus_object = focus
     else:
         dof.focus_object = target_obj
+
+
+# ============================================================================ obstacle textures
+def texture_path(entry: dict, k: int, info: RunInfo, run_dir: Path) -> Path | None:
+    """The image of ``obstacle[k].texture``, resolved against the scene's directory; a missing one is an error."""
+    if not entry.get("texture"):
+        return None
+    p = Path(entry["texture"])
+    if not p.is_absolute():
+        p = Path(info.extra.get("scene_dir", run_dir)) / p
+    if not p.is_file():
+        raise InputError(f"{run_dir / 'scene.toml'}: obstacle[{k}].texture: file not found: {p}")
+    return p
+
+
+def apply_texture(obj, mesh, entry: dict, k: int, info: RunInfo, run_dir: Path) -> None:
+    """Give an obstacle object its image texture, mapped by the UVs of its render mesh (a trimesh)."""
+    import bpy
+
+    image = texture_path(entry, k, info, run_dir)
+    if image is None:
+        return
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        raise InputError(f"obstacle[{k}].texture: the render mesh has no UV coordinates to map {image.name} with")
+    me = obj.data
+    layer = me.uv_layers.new(name="UVMap")
+    faces = np.asarray(mesh.faces).ravel()  # one loop per face corner, in face order (make_mesh)
+    layer.data.foreach_set("uv", np.ascontiguousarray(np.asarray(uv, np.float32)[faces]).ravel())
+    mat = me.materials[0]
+    nt = mat.node_tree
+    tex = nt.nodes.new("ShaderNodeTexImage")  # unlinked Vector input: the active UV map
+    tex.image = bpy.data.images.load(str(image), check_existing=True)
+    nt.links.new(tex.outputs["Color"], nt.nodes.get("Principled BSDF").inputs["Base Color"])
