@@ -1,9 +1,12 @@
 """Render benchmark: Cycles on the CPU.
 
 A synthetic run with a ~100k-triangle fluid mesh and 20k diffuse particles
-per frame. Prints seconds per preview frame (320×240, 16 samples), scene
-update included, and the time of one final-quality frame (1920×1080,
-[render].samples). Target: preview ≤ 3 s per frame.
+per frame, on the default stage: a glass tank around the domain (the run's
+walls are solid), Blender's physical sky with its sun, the tiled ground.
+Prints seconds per preview frame (320×240, 16 samples), scene update
+included, and the time of one final-quality frame (1920×1080,
+[render].samples). Target: preview ≤ 3 s per frame. Prints the load
+average too: the figures are only comparable on a quiet machine.
 
     python benchmarks/bench_render.py [--frames 4] [--final]
 """
@@ -11,6 +14,7 @@ update included, and the time of one final-quality frame (1920×1080,
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import tempfile
 import time
@@ -56,6 +60,14 @@ def make_run(root: Path, frames: int) -> Path:
     return run, len(base.faces)
 
 
+def child_cpu() -> float:
+    """CPU seconds used so far by finished child processes (the render workers)."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=4)
@@ -68,14 +80,27 @@ def main() -> None:
         t0 = time.perf_counter()
         render_run(run, quality="preview", frames="0:1", movie=False, show_progress=False)
         first = time.perf_counter() - t0  # process start + scene build + one frame
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), child_cpu()
         render_run(run, quality="preview", frames=f"1:{a.frames}", movie=False, show_progress=False)
-        rest = time.perf_counter() - t0
+        rest, cpu = time.perf_counter() - t0, child_cpu() - c0
         per = rest / (a.frames - 1)
-        res = {"triangles": tris, "diffuse": 20000, "preview_first_s": first, "preview_s_per_frame": per}
-        print(f"fluid mesh {tris} triangles, 20000 diffuse particles, Cycles CPU")
+        res = {"triangles": tris, "diffuse": 20000, "preview_first_s": first, "preview_s_per_frame": per,
+               "preview_cpu_s_per_frame": cpu / (a.frames - 1)}
+        from whitecap.io.run import RunInfo
+        from whitecap.render.driver import render_settings
+        from whitecap.render.stage import container_kind
+
+        cfg = render_settings(run)
+        stage = f"container {container_kind(cfg, RunInfo.load(run))}, " + (
+            f"environment {cfg.environment}" if cfg.environment else f"sky {cfg.sky_type}")
+        load = os.getloadavg()
+        res.update(stage=stage, load=load, cores=os.cpu_count())
+        print(f"fluid mesh {tris} triangles, 20000 diffuse particles, Cycles CPU, {stage}")
+        print(f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} on {os.cpu_count()} cores")
         print(f"preview 320x240 16 spp: {per:.2f} s/frame over {a.frames - 1} frames (incl. one scene build "
               f"per call: {first:.2f} s for the first) — target {TARGET_PREVIEW_S} s: {per / TARGET_PREVIEW_S:.2f}x of budget")
+        print(f"  CPU time {cpu / (a.frames - 1):.2f} s per frame (worker start and scene build included), "
+              f"{cpu / (a.frames - 1) / os.cpu_count():.2f} s per frame spread over {os.cpu_count()} idle cores")
         if a.final:
             t0 = time.perf_counter()
             render_run(run, quality="final", frames="0:1", force=True, movie=False, show_progress=False)
