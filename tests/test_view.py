@@ -426,3 +426,32 @@ def test_live_buffers_filled_on_the_device_match_the_host_colour_map():
         np.testing.assert_allclose(buf.pos.to_numpy()[:n], x)
         np.testing.assert_allclose(buf.col.to_numpy()[:n], colormap(s, lo, hi), atol=1e-5)
         assert len(np.unique(buf.col.to_numpy()[:n].round(3), axis=0)) > 100  # a spread of colours, not one
+
+
+def test_saved_frames_colour_each_particle_by_its_speed(tiny_run, tmp_path):
+    """Three blocks at rest, at half and at the full default speed range sqrt(2|g|H) are drawn in
+    the colour map's colours at 0, 1/2 and 1 (compared by chromaticity: lighting scales brightness)."""
+    from whitecap.view.colors import colormap
+    from whitecap.view.draw import GRAVITY, project
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    info = RunInfo.load(run)
+    top = info.domain["upper"][2] - info.domain["lower"][2]
+    v_max = np.sqrt(2 * GRAVITY * top)  # the viewer's default speed range is [0, v_max]
+    ax = np.arange(5) * 0.02
+    block = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) - 0.04
+    centres = np.array([[0.1, 0.1, 0.2], [0.3, 0.1, 0.2], [0.5, 0.1, 0.2]])
+    fractions = (0.0, 0.5, 1.0)
+    pos = np.concatenate([block + c for c in centres])
+    vel = np.concatenate([np.tile([f * v_max, 0.0, 0.0], (len(block), 1)) for f in fractions])
+    write(run / frame_name("fluid", 0), ParticleFrame(pos, vel, density=np.full(len(pos), 1000.0)))
+    img = _img(_render(run, tmp_path / "png", "--frames", 1)[0]).astype(float)
+    ts = np.linspace(0, 1, 101)
+    cmap = colormap(ts, 0.0, 1.0)
+    cmap_chroma = cmap / cmap.sum(1, keepdims=True)
+    for (c, r), f in zip(np.round(project(centres, _camera(run), W, H)).astype(int), fractions):
+        rgb = np.median(img[r - 2:r + 3, c - 2:c + 3].reshape(-1, 3), axis=0)
+        chroma = rgb / rgb.sum()
+        t = ts[np.argmin(np.linalg.norm(cmap_chroma - chroma, axis=1))]
+        assert abs(t - f) < 0.15, (f, t, rgb)
