@@ -192,9 +192,26 @@ def test_orbit_camera_keeps_distance_and_target():
     d = cam.distance
     cam.orbit(0.7, 0.3)
     assert np.linalg.norm(cam.eye - cam.target) == pytest.approx(d)
-    cam.pan(0.1, 0.0)
+    # Pan: eye and target shift together in the view plane by the given fraction of the distance,
+    # so the old target moves on screen with the drag (right for dx > 0, up for dy > 0) by
+    # dx / (tan(fov/2) · aspect) of the half width, and by dy / tan(fov/2) of the half height.
+    from whitecap.view.draw import project
+
+    half = np.tan(np.radians(cam.fov) / 2)
+    for dx, dy in ((0.1, 0.0), (0.0, 0.1)):
+        eye, target = cam.eye.copy(), cam.target.copy()
+        f, _, _ = cam.basis()
+        cam.pan(dx, dy)
+        np.testing.assert_allclose(cam.eye - eye, cam.target - target, atol=1e-12)
+        assert np.linalg.norm(cam.target - target) == pytest.approx(np.hypot(dx, dy) * d)
+        assert abs(np.dot(cam.target - target, f)) < 1e-12
+        np.testing.assert_allclose(cam.basis()[0], f, atol=1e-12)  # same view direction
+        col, row = project(target[None], cam, W, H)[0]
+        assert col == pytest.approx(W / 2 * (1 + dx / (half * W / H)), abs=0.5)
+        assert row == pytest.approx(H / 2 * (1 - dy / half), abs=0.5)
     cam.zoom(0.5)
     assert cam.distance == pytest.approx(d / 2)
+    np.testing.assert_allclose(np.linalg.norm(cam.eye - cam.target), d / 2)
 
 
 def test_obstacle_mesh_is_drawn_where_it_projects(tiny_run, tmp_path):
