@@ -3,7 +3,10 @@
 ``render_run`` builds the Blender scene once per worker process, then for
 each frame swaps in that frame's fluid mesh and diffuse point clouds and
 renders it with Cycles to ``render/frame_NNNNN.png`` (temporary file, then
-rename). Finished frames are skipped on rerun. The movie is encoded with
+rename). Finished frames are skipped on rerun: a frame counts as finished
+when its PNG has this quality's size and ``run.json`` records it as made
+from the run's current simulation (a frame rendered from an earlier
+simulation is rendered again). The run is locked while rendering. The movie is encoded with
 imageio-ffmpeg and the scene is saved as ``render/scene.blend``.
 
 Cycles already uses every core for one frame, so on a small machine one
@@ -21,6 +24,7 @@ from pathlib import Path
 
 from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
+from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
 
@@ -137,12 +141,18 @@ def render_run(
     ``device`` (auto, cpu, gpu) overrides ``[render].device``.
     """
     run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: run directory not found")
+    with run_lock(run_dir, "render"):
+        return _render_run(run_dir, quality, frames, jobs, force, movie, show_progress, device)
+
+
+def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, force: bool, movie: bool,
+                show_progress: bool, device: str | None) -> dict:
     if quality not in ("preview", "final"):
         raise InputError(f"--quality: expected preview or final, got {quality!r}")
     if device not in (None, "auto", "cpu", "gpu"):
         raise InputError(f"--device: expected auto, cpu or gpu, got {device!r}")
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: run directory not found")
     info = RunInfo.load(run_dir)
     meshes = [i for i, _ in info.files("mesh")]
     if not meshes:
@@ -157,7 +167,8 @@ def render_run(
 
         cycles_device("gpu")
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
-    todo = [i for i in wanted if force or not _done(frame_path(run_dir, i), size)]
+    current = {i for i, _ in info.files("render")}  # rendered from this simulation
+    todo = [i for i in wanted if force or i not in current or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
     need_blend = force or not blend.exists()
     (run_dir / "render").mkdir(parents=True, exist_ok=True)
@@ -181,8 +192,9 @@ def render_run(
                 logs.append(log)
                 procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True))
             for p in procs:
-                for line in p.stdout:  # one line per finished frame
+                for line in p.stdout:  # one line per finished frame, recorded at once (resumable)
                     if line.startswith("rendered"):
+                        _record(run_dir, [int(line.split()[1])])
                         bar.advance(task)
             errors = []
             for p, log in zip(procs, logs):
@@ -195,11 +207,15 @@ def render_run(
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if movie:
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
+    _record(run_dir, wanted)
+    return result
+
+
+def _record(run_dir: Path, indices: list[int]) -> None:
     info = RunInfo.load(run_dir)
-    for i in wanted:
+    for i in indices:
         info.set_file(i, "render", f"render/frame_{i:05d}.png")
     info.save(run_dir)
-    return result
 
 
 def build_addon(out: str | Path | None = None) -> Path:
