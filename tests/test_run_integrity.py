@@ -73,6 +73,31 @@ def test_force_makes_mesh_and_export_redo_frames_of_the_old_simulation(tmp_path,
     assert "fluid/fluid_00002.vtp" in manifest["files"]
 
 
+def test_foam_records_its_identity_and_a_new_source_makes_mesh_redo(tmp_path, capsys):
+    a, b = tmp_path / "A", tmp_path / "B"
+    _sim(SCENE_A, a)
+    _sim(SCENE_B, b)
+    # On a run: the diffuse frames are stamped with the run's simulation.
+    assert main(["foam", str(a)]) == 0
+    info = RunInfo.load(a)
+    assert [f["made_from"]["diffuse"] for f in info.frames] == [info.simulation] * 3
+    # A foreign sequence converted into O, meshed, then another sequence into the same O.
+    out = tmp_path / "O"
+    for src, name in ((a, "seqA"), (b, "seqB")):
+        seq = tmp_path / name
+        seq.mkdir()
+        for f in sorted((src / "fluid").iterdir()):
+            shutil.copy(f, seq / f.name)
+    assert main(["foam", str(tmp_path / "seqA"), "--out", str(out), "--radius", "0.01", "--dt", "0.0333333"]) == 0
+    first = RunInfo.load(out).simulation
+    assert main(["mesh", str(out), "--jobs", "1", "--smoothing-iters", "2"]) == 0
+    assert main(["foam", str(tmp_path / "seqB"), "--out", str(out), "--radius", "0.01", "--dt", "0.0333333"]) == 0
+    assert RunInfo.load(out).simulation != first
+    capsys.readouterr()
+    assert main(["mesh", str(out), "--jobs", "1", "--smoothing-iters", "2"]) == 0
+    assert "meshed 3 frames" in capsys.readouterr().out
+
+
 def test_stale_entries_in_run_json_are_not_current(tmp_path):
     """An entry made from another simulation reads as missing, so every reader redoes or ignores it."""
     run = tmp_path / "R"
