@@ -98,6 +98,34 @@ def test_foam_records_its_identity_and_a_new_source_makes_mesh_redo(tmp_path, ca
     assert "meshed 3 frames" in capsys.readouterr().out
 
 
+KILLED_MESH = textwrap.dedent("""
+    import os, signal, sys
+    import whitecap.surface.driver as d
+    from whitecap.pipeline import mesh
+    real, n = d.mesh_frame, []
+    def mesh_then_die(*a, **kw):
+        if len(n) == 2:
+            os.kill(os.getpid(), signal.SIGKILL)
+        n.append(1)
+        return real(*a, **kw)
+    d.mesh_frame = mesh_then_die
+    mesh(sys.argv[1], jobs=1, show_progress=False, mesh_smoothing_iters=2)
+""")
+
+
+def test_mesh_killed_by_sigkill_resumes_after_its_last_frame(tmp_path, capsys):
+    """Each mesh is recorded as it finishes, so identity checks do not cost a killed run its finished frames."""
+    run = tmp_path / "R"
+    _sim(SCENE_A, run)
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    p = subprocess.run([sys.executable, "-c", KILLED_MESH, str(run)], env=env, capture_output=True, timeout=300)
+    assert p.returncode == -9
+    assert [i for i, _ in RunInfo.load(run).files("mesh")] == [0, 1]
+    capsys.readouterr()
+    assert main(["mesh", str(run), "--jobs", "1", "--smoothing-iters", "2"]) == 0
+    assert "meshed 1 frames" in capsys.readouterr().out
+
+
 def test_stale_entries_in_run_json_are_not_current(tmp_path):
     """An entry made from another simulation reads as missing, so every reader redoes or ignores it."""
     run = tmp_path / "R"
