@@ -39,7 +39,8 @@ def _sim(d: dict, out: Path, **kw) -> RunInfo:
 
 def _snapshot(run: Path) -> dict[str, bytes]:
     """Every file of the run but the lock file (whose holder line changes)."""
-    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file() and p.name != LOCK_FILE}
+    files = [p for p in sorted(run.rglob("*")) if p.is_file() and p.name != LOCK_FILE]
+    return {str(p.relative_to(run)): p.read_bytes() for p in files}
 
 
 # ----------------------------------------------------------------------------- 1. identity
