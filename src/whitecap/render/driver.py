@@ -170,7 +170,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
     todo = [i for i in wanted if force or i not in current or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
-    need_blend = force or not blend.exists()
+    made = info.extra.get("blend")
+    need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation)
     (run_dir / "render").mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(int(jobs or 1), len(todo) or 1))
     bar = progress(disable=not show_progress)
@@ -204,6 +205,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                     errors.append((log.read().strip().splitlines() or ["unknown error"])[-1])
             if errors:
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
+            if need_blend:
+                _record(run_dir, [], blend=True)
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if movie:
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
@@ -211,10 +214,13 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     return result
 
 
-def _record(run_dir: Path, indices: list[int]) -> None:
+def _record(run_dir: Path, indices: list[int], blend: bool = False) -> None:
+    """Record rendered frames (and the saved scene) in run.json as made from the current simulation."""
     info = RunInfo.load(run_dir)
     for i in indices:
         info.set_file(i, "render", f"render/frame_{i:05d}.png")
+    if blend:
+        info.extra["blend"] = {"file": "render/scene.blend", "made_from": info.simulation}
     info.save(run_dir)
 
 

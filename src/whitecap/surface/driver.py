@@ -4,8 +4,8 @@ The main process lists the frames, skips those already meshed (unless
 ``force``; in a run, a mesh counts as done only when ``run.json`` records it
 as made from the run's current simulation, so meshes left by an earlier
 simulation are made again), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over a
-process pool and, once the pool is done, records the meshes in ``run.json``
-(one atomic write).
+process pool and records each finished mesh in ``run.json`` (an atomic
+write per frame, from the main process).
 """
 
 from __future__ import annotations
@@ -124,6 +124,9 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
 
         def done(index: int, s: dict) -> None:
             stats[index] = {"index": index, "skipped": False, **s}
+            if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
+                job.stats = [stats[index]]
+                record(job)
             bar.update(task, advance=1, info=f"{s['particles']} particles -> {s['faces']} triangles")
 
         if jobs == 1 or len(todo) <= 1:
@@ -147,7 +150,7 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
 
 
 def record(job: MeshJob) -> RunInfo:
-    """Add the meshes to run.json (main process only, after the pool)."""
+    """Add the meshes of ``job.stats`` to run.json (main process only)."""
     info = RunInfo.load(job.run_dir)
     made = {s["index"] for s in job.stats}  # meshed now, or skipped as current: never a stale file
     for i, _, o, rel in job.frames:
