@@ -58,3 +58,48 @@ def test_interrupt_suggests_only_options_the_command_has(monkeypatch, capsys, tm
     monkeypatch.setattr(pipeline, "simulate", interrupted)
     main(["simulate", str(tmp_path / "x")])
     assert "--resume" in capsys.readouterr().err
+
+
+def _scene_file(tmp_path, text: str):
+    path = tmp_path / "scene.toml"
+    path.write_text('[solver]\nparticle_radius = 0.01\n' + text)
+    return str(path)
+
+
+def test_a_fluid_block_without_particles_is_named_with_the_reason(tmp_path, capsys):
+    import trimesh
+
+    thin = _scene_file(tmp_path, "[[fluid]]\nlower = [0, 0, 0]\nupper = [0.1, 0.1, 0.1]\n"
+                                 "[[fluid]]\nlower = [0.2, 0, 0]\nupper = [0.3, 0.1, 0.015]\n")
+    code = main(["simulate", thin, "--out", str(tmp_path / "a")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: fluid[1] (from [0.2, 0.0, 0.0] to [0.3, 0.1, 0.015]): holds no particle")
+    assert "2r = 0.02 m" in err and "no fluid" not in err
+    box = tmp_path / "box.stl"
+    trimesh.creation.box(extents=[0.2, 0.2, 0.2]).export(str(box))
+    buried = _scene_file(tmp_path, "[[fluid]]\nlower = [0.25, 0.05, 0.05]\nupper = [0.35, 0.15, 0.15]\n"
+                                   f'[[obstacle]]\nmesh = "{box}"\ntranslate = [0.3, 0.1, 0.1]\n')
+    code = main(["simulate", buried, "--out", str(tmp_path / "b")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: fluid[0] (from [0.25, 0.05, 0.05] to [0.35, 0.15, 0.15]): lies entirely inside")
+
+
+def test_unreadable_checkpoint_in_run_suggests_what_run_can_do(tiny_run, tmp_path, capsys):
+    import re
+
+    from whitecap.cli import build_parser
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    (run / "checkpoint.npz").write_bytes(b"not a zip")
+    code = main(["run", str(run / "scene.toml"), "--out", str(run), "--until", "simulate", "--frames", "5"])
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert code != 0 and len(errors) == 1 and "checkpoint.npz" in errors[0], errors
+    err = errors[0]
+    suggested = re.search(r"`whitecap (\w+)([^`]*)`", err)
+    assert suggested, err  # a command the user can type, with options that command has
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices[suggested[1]]
+    known = {o for action in sub._actions for o in action.option_strings}
+    assert set(re.findall(r"--[a-z-]+", suggested[2])) <= known and "without --resume" not in err
