@@ -1,4 +1,5 @@
-"""Operating-system errors and interrupts reach the user as one line, never a traceback."""
+"""Odd input, OS failures and interrupts end in a clear one-line message (or just work), never a
+traceback or a hang."""
 
 from __future__ import annotations
 
@@ -103,3 +104,78 @@ def test_unreadable_checkpoint_in_run_suggests_what_run_can_do(tiny_run, tmp_pat
     sub = next(a for a in build_parser()._actions if a.dest == "command").choices[suggested[1]]
     known = {o for action in sub._actions for o in action.option_strings}
     assert set(re.findall(r"--[a-z-]+", suggested[2])) <= known and "without --resume" not in err
+
+
+def _sequence(folder, frames):
+    """Numbered PLY files from a list of (positions, velocities) pairs."""
+    import numpy as np
+
+    from whitecap.io import ParticleFrame, write
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, (x, v) in enumerate(frames):
+        write(folder / f"fluid_{i:05d}.ply", ParticleFrame(np.asarray(x).reshape(-1, 3), np.asarray(v).reshape(-1, 3)))
+    return folder
+
+
+def _block(n_side=6, r=0.01, speed=2.0, seed=0):
+    import numpy as np
+
+    a = np.arange(n_side) * 2 * r + r
+    x = np.stack(np.meshgrid(a, a, a, indexing="ij"), -1).reshape(-1, 3)
+    v = np.random.default_rng(seed).normal(0, speed, x.shape)
+    return x, v
+
+
+def test_empty_frames_give_empty_output_or_a_clear_message(tmp_path, capsys):
+    import imageio.v3 as iio
+    import numpy as np
+
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)))
+    only_empty = _sequence(tmp_path / "empty", [empty] * 3)
+    code = main(["view", str(only_empty), "--headless", "-o", str(tmp_path / "v0")])
+    assert code == 0, capsys.readouterr().err
+    shots = sorted((tmp_path / "v0").glob("view_*.png"))
+    assert len(shots) == 3
+    img = iio.imread(shots[0])[..., :3].astype(int)
+    drawn = np.abs(img - img[-1, -1]).max(axis=2) > 30
+    assert drawn.mean() < 0.02  # the domain box's lines only, no particle
+    code = main(["foam", str(only_empty), "-o", str(tmp_path / "f0"), "--radius", "0.01", "--dt", "0.03"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err == f"error: {only_empty}: all 3 frames are empty (no particles), so there is nothing " \
+        "to make diffuse particles from"
+    # Empty frames among full ones: the viewer frames the particles, foam counts zero for the empty ones.
+    mixed = _sequence(tmp_path / "mixed", [empty, _block(), empty, _block(seed=1)])
+    assert main(["view", str(mixed), "--headless", "-o", str(tmp_path / "v1"), "--frames", "2"]) == 0
+    img = iio.imread(tmp_path / "v1" / "view_00001.png")[..., :3].astype(int)
+    h, w = img.shape[:2]
+    centre = img[h // 3: 2 * h // 3, w // 3: 2 * w // 3]
+    assert np.ptp(centre, axis=(0, 1)).max() > 60  # the block fills the middle of the picture
+    assert main(["foam", str(mixed), "-o", str(tmp_path / "f1"), "--radius", "0.01", "--dt", "0.03"]) == 0
+    rows = [line.split(",") for line in (tmp_path / "f1" / "diffuse" / "counts.csv").read_text().split()[1:]]
+    assert [r[0] for r in rows] == ["0", "1", "2", "3"]
+    assert sum(map(int, rows[0][2:])) == 0 and sum(map(int, rows[1][2:])) > 0
+
+
+def test_nan_positions_are_refused_by_view_and_export(tiny_run, tmp_path, capsys):
+    import numpy as np
+
+    from whitecap.io import read, write
+
+    x, v = _block()
+    bad = x.copy()
+    bad[7] = np.nan
+    for name, frames, culprit in (("first", [(bad, v), (x, v)], 0), ("later", [(x, v), (x, v), (bad, v)], 2)):
+        seq = _sequence(tmp_path / name, frames)
+        code = main(["view", str(seq), "--headless", "-o", str(tmp_path / f"v_{name}")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err == f"error: {seq / f'fluid_{culprit:05d}.ply'}: positions: 1 particles are NaN " \
+            "or infinite", (name, err)
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    f = read(run / "fluid" / "fluid_00002.ply")
+    f.velocities[3] = np.inf
+    write(run / "fluid" / "fluid_00002.ply", f)
+    code = main(["export", str(run)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or infinite"
