@@ -179,3 +179,23 @@ def test_nan_positions_are_refused_by_view_and_export(tiny_run, tmp_path, capsys
     code = main(["export", str(run)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or infinite"
+
+
+def test_mesh_no_velocity_reads_files_without_one(tmp_path, capsys):
+    import meshio
+    import numpy as np
+
+    from whitecap.io.mesh import read_mesh
+
+    x, _ = _block(n_side=8)
+    for i in range(2):  # VTU files with positions only, as some exporters write them
+        meshio.write(tmp_path / f"p_{i:04d}.vtu", meshio.Mesh(x, [("vertex", np.arange(len(x))[:, None])]))
+    pattern = str(tmp_path / "p_*.vtu")
+    code = main(["mesh", pattern, "--radius", "0.01", "-j", "1", "-o", str(tmp_path / "m0")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith(f"error: {tmp_path / 'p_0000.vtu'}: missing array 'velocity'"), err
+    assert main(["mesh", pattern, "--radius", "0.01", "--no-velocity", "-j", "1", "-o", str(tmp_path / "m1")]) == 0
+    m = read_mesh(tmp_path / "m1" / "fluid_00001.ply")
+    # The surface wraps the block of particles (centres 0.01..0.15, radius 0.01).
+    assert len(m.faces) > 100
+    assert np.allclose(m.vertices.min(0), 0.0, atol=0.01) and np.allclose(m.vertices.max(0), 0.16, atol=0.01)
