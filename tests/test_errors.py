@@ -199,3 +199,69 @@ def test_mesh_no_velocity_reads_files_without_one(tmp_path, capsys):
     # The surface wraps the block of particles (centres 0.01..0.15, radius 0.01).
     assert len(m.faces) > 100
     assert np.allclose(m.vertices.min(0), 0.0, atol=0.01) and np.allclose(m.vertices.max(0), 0.16, atol=0.01)
+
+
+def _children(pid: int) -> list[int]:
+    """Pids whose parent is ``pid`` (from /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_mesh_workers_die_with_a_killed_parent(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import numpy as np
+    import pytest
+
+    if not os.path.isdir("/proc"):
+        pytest.skip("needs /proc to find the worker processes")
+    x, v = _block(n_side=12)
+    seq = _sequence(tmp_path / "seq", [(x + 0.001 * k, v) for k in range(150)])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    parent = subprocess.Popen([sys.executable, "-m", "whitecap.cli", "mesh", str(seq), "--radius", "0.01", "-j", "2",
+                               "-o", str(tmp_path / "mesh")], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        # Wait until both workers are busy: meshes are being written.
+        while time.monotonic() < deadline and parent.poll() is None:
+            workers = [p for p in _children(parent.pid)
+                       if b"multiprocessing" in open(f"/proc/{p}/cmdline", "rb").read()
+                       and b"resource_tracker" not in open(f"/proc/{p}/cmdline", "rb").read()]
+            if len(workers) == 2 and len(list((tmp_path / "mesh").glob("*.ply"))) >= 4:
+                break
+            time.sleep(0.1)
+        assert parent.poll() is None and len(workers) == 2, "the workers never started, or meshing ended too soon"
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 30  # generous: the watchdog looks every half second
+        while time.monotonic() < deadline and any(map(_alive, workers)):
+            time.sleep(0.1)
+        assert not any(map(_alive, workers)), "workers outlived their killed parent"
+        assert len(list((tmp_path / "mesh").glob("*.ply"))) < 150
+    finally:
+        for p in [parent.pid, *workers]:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except OSError:
+                pass

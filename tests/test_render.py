@@ -181,6 +181,42 @@ def test_blender_addon_reports_a_truncated_vtk_instead_of_hanging(tmp_path):
     assert msg in out.stdout  # and the frame-change handler said why
 
 
+def test_render_workers_die_with_a_killed_parent(meshed_run, tmp_path):
+    import signal
+    import time
+
+    from .test_errors import _alive, _children
+
+    run = tmp_path / "run"
+    shutil.copytree(meshed_run, run)
+    # A final-quality frame takes minutes, so within the test the worker writes nothing to the
+    # stdout pipe of its dead parent (which would end it by SIGPIPE anyway).
+    parent = subprocess.Popen([sys.executable, "-m", "whitecap.cli", "render", str(run), "--force", "--no-movie",
+                               "--quality", "final"],
+                              env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and parent.poll() is None and not workers:
+            workers = [p for p in _children(parent.pid) if b"whitecap.render.worker" in Path(f"/proc/{p}/cmdline").read_bytes()]
+            time.sleep(0.1)
+        time.sleep(2)  # let Blender start up and begin rendering
+        assert parent.poll() is None and workers, "the render worker never started, or rendering ended too soon"
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(map(_alive, workers)):
+            time.sleep(0.1)
+        assert not any(map(_alive, workers)), "a Blender worker outlived its killed parent"
+    finally:
+        for p in [parent.pid, *workers]:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except OSError:
+                pass
+
+
 def test_missing_bpy_says_how_to_install(monkeypatch):
     import builtins
 

@@ -23,6 +23,7 @@ from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
 from ..io.run import RunInfo
 from ..progress import progress
+from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
 
@@ -179,7 +180,7 @@ def render_run(
                 ]
                 log = tempfile.TemporaryFile(mode="w+")
                 logs.append(log)
-                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True))
+                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()))
             for p in procs:
                 for line in p.stdout:  # one line per finished frame
                     if line.startswith("rendered"):
