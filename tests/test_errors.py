@@ -17,6 +17,11 @@ def test_output_path_under_a_regular_file_is_one_line_naming_it(tiny_run, tmp_pa
     err = capsys.readouterr().err.strip()
     assert code == 5 and len(err.splitlines()) == 1, err
     assert err.startswith("error: ") and str(blocker) in err and "Not a directory" in err
+    scene = tmp_path / "scene.toml"
+    (scene).write_text("[[fluid]]\nlower = [0, 0, 0]\nupper = [0.1, 0.1, 0.1]\n")
+    code = main(["simulate", str(scene), "--out", str(blocker)])  # the run directory itself is a file
+    err = capsys.readouterr().err.strip()
+    assert code == 5 and err == f"error: {blocker}: a file is in the way of a directory", err
 
 
 def test_disk_full_names_the_file_being_written(tiny_run, tmp_path, monkeypatch, capsys):

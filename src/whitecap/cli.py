@@ -340,6 +340,8 @@ def os_error_message(exc: OSError) -> str:
     """One line naming the path(s) and the cause of an operating-system error."""
     cause = exc.strerror or str(exc) or type(exc).__name__
     paths = [str(os.fsdecode(f)) for f in (exc.filename, exc.filename2) if f is not None]
+    if isinstance(exc, FileExistsError) and paths and os.path.isfile(paths[0]):
+        cause = "a file is in the way of a directory"  # mkdir onto a file says only 'File exists'
     if not paths:
         return cause.replace("\n", " ")
     return (" -> ".join(paths) + f": {cause}").replace("\n", " ")
