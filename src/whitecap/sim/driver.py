@@ -95,8 +95,8 @@ def check_fluid_blocks(scene: Scene, obstacles=None) -> None:
         where = f"fluid[{k}] (from {[round(v, 6) for v in lo]} to {[round(v, 6) for v in hi]})"
         g = block_lattice(scene, b)
         if len(g) == 0:
-            raise InputError(f"{where}: holds no particle: it is thinner than the particle spacing "
-                             f"2r = {2 * r:g} m on some axis; enlarge it or lower solver.particle_radius")
+            raise InputError(f"{where}: holds no particle: it is too small for the particle spacing "
+                             f"2r = {2 * r:g} m; enlarge it or lower solver.particle_radius")
         if obstacles and not obstacles.outside_mask(g.astype(np.float32)).any():
             raise InputError(f"{where}: lies entirely inside the obstacles, so it holds no particle; move it out")
 
