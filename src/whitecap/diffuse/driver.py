@@ -135,6 +135,16 @@ def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo |
     return files, None, known
 
 
+def _first_particles(files: list[tuple[int, Path]], first: ParticleFrame, up: str) -> np.ndarray | None:
+    """Positions of the first frame that has particles (None when every frame is empty)."""
+    for k, (_, path) in enumerate(files):
+        fr = first if k == 0 else read(path, up=up)
+        if len(fr):
+            fr.check_finite()
+            return fr.positions
+    return None
+
+
 def postprocess(
     src: str | Path,
     out: str | Path | None = None,
@@ -210,8 +220,15 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     if first.velocities is None:
         raise InputError(f"{files[0][1]}: missing array 'velocity'")
     if info is None:
-        lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
-        hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
+        if "lower" in known and "upper" in known:
+            lo, hi = known["lower"], known["upper"]
+        else:  # the first frame with particles, grown by half its extent
+            pts = _first_particles(files, first, up)
+            if pts is None:
+                raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
+                                 "make diffuse particles from")
+            lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
+            hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
         info = RunInfo(
             particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
             particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),

@@ -27,6 +27,7 @@ from ..errors import InputError, MissingDependency
 from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
+from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
 
@@ -191,7 +192,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                 ]
                 log = tempfile.TemporaryFile(mode="w+")
                 logs.append(log)
-                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True))
+                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()))
             for p in procs:
                 for line in p.stdout:  # one line per finished frame, recorded at once (resumable)
                     if line.startswith("rendered"):

@@ -79,13 +79,30 @@ def build_solver(scene: Scene, arch: str = "cpu"):
         from .obstacles import load_obstacles
 
         obstacles = load_obstacles(scene)
-        if obstacles:
-            keep = obstacles.outside_mask(pos)
-            pos, vel = pos[keep], vel[keep]
+    check_fluid_blocks(scene, obstacles)
+    if obstacles:
+        keep = obstacles.outside_mask(pos)
+        pos, vel = pos[keep], vel[keep]
     solver = PBFSolver(scene, pos, vel)
     if obstacles:
         solver.colliders.append(obstacles.collider(solver))
     return solver
+
+
+def check_fluid_blocks(scene: Scene, obstacles=None) -> None:
+    """InputError naming a [[fluid]] block that would give no particle at all."""
+    from .pbf import block_lattice
+
+    r = scene.solver.particle_radius
+    for k, b in enumerate(scene.fluid):
+        lo, hi = b.bounds()
+        where = f"fluid[{k}] (from {[round(v, 6) for v in lo]} to {[round(v, 6) for v in hi]})"
+        g = block_lattice(scene, b)
+        if len(g) == 0:
+            raise InputError(f"{where}: holds no particle: it is too small for the particle spacing "
+                             f"2r = {2 * r:g} m; enlarge it or lower solver.particle_radius")
+        if obstacles and not obstacles.outside_mask(g.astype(np.float32)).any():
+            raise InputError(f"{where}: lies entirely inside the obstacles, so it holds no particle; move it out")
 
 
 def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
@@ -104,7 +121,7 @@ def _load_checkpoint(out: Path) -> tuple[int, dict]:
         z = np.load(p)
         data = {k: z[k] for k in z.files}
     except Exception as exc:
-        raise InputError(f"{p}: unreadable checkpoint ({exc}); rerun without --resume") from None
+        raise InputError(f"{p}: unreadable checkpoint ({exc}); start over with `whitecap simulate --force`") from None
     return int(data.pop("frame")), data
 
 

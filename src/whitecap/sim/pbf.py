@@ -276,17 +276,22 @@ def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
 
 
 # ============================================================================ setup
+def block_lattice(scene: Scene, b) -> np.ndarray:
+    """Lattice sites (spacing 2r, one radius in from the faces) of one fluid block, float64."""
+    r = scene.solver.particle_radius
+    lo, hi = b.bounds()
+    axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, 2.0 * r, dtype=np.float64) for a in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    if b.shape == "sphere":
+        g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+    return g
+
+
 def lattice_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """Positions and velocities of the initial fluid: a cubic lattice of spacing 2r."""
-    r = scene.solver.particle_radius
-    d = 2.0 * r
     pos, vel = [], []
     for b in scene.fluid:
-        lo, hi = b.bounds()
-        axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, d, dtype=np.float64) for a in range(3)]
-        g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        if b.shape == "sphere":
-            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+        g = block_lattice(scene, b)
         pos.append(g)
         vel.append(np.broadcast_to(np.asarray(b.velocity, np.float64), g.shape))
     if not pos:

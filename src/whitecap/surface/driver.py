@@ -26,6 +26,7 @@ from ..io.run import RUN_JSON, RunInfo
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
+from ..workers import die_with_parent
 from .reconstruct import MeshParams, mesh_frame, params_from_config
 
 
@@ -136,7 +137,8 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
             # spawn, not fork: the parent may already hold splashsurf's thread
             # pool, which a forked child would inherit in a broken state.
             ctx = get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=die_with_parent,
+                                     initargs=(os.getpid(),)) as pool:
                 pending = {pool.submit(mesh_frame, p, o, job.params): i for i, p, o, _ in todo}
                 try:
                     while pending:

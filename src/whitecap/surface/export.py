@@ -115,9 +115,14 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
         for kind, i, rel in work:
             src = run / rel
             if kind == "mesh":
-                _write_surface(emit("mesh", i), read_mesh(src), to)
+                mesh = read_mesh(src)
+                bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
+                if bad:
+                    raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
+                _write_surface(emit("mesh", i), mesh, to)
             else:
                 frame = wio.read(src)
+                frame.check_finite()
                 _write_points(emit(kind, i), frame, to)
                 if kind == "diffuse" and split_types:
                     if "type" not in frame.arrays:
