@@ -86,9 +86,9 @@ dg = bpy.context.evaluated_depsgraph_get()
 fl = bpy.data.objects["fluid"]
 pts = [fl.matrix_world @ v.co for v in fl.data.vertices]
 uv = np.array([tuple(world_to_camera_view(sc, sc.camera, p))[:2] for p in pts])
-foam = bpy.data.objects["foam"].evaluated_get(dg)
-geom = foam.evaluated_geometry()
-pc = geom.pointcloud
+foam = bpy.data.objects.get("foam")
+geom = foam.evaluated_get(dg).evaluated_geometry() if foam is not None else None  # keep alive while pc is read
+pc = geom.pointcloud if geom is not None else None
 radii = [a.value for a in pc.attributes["radius"].data] if pc is not None else []
 print(json.dumps({
   "uv_min": uv.min(0).tolist(), "uv_max": uv.max(0).tolist(),
@@ -108,7 +108,12 @@ def test_preview_frames_show_the_fluid(meshed_run):
     assert a.shape[:2] == (240, 320)
     assert a.std() > 5, "blank image"
     assert np.abs(a - b).mean() > 0.5, "the two frames are identical"
-    s = blender(INSPECT, meshed_run / "render" / "scene.blend")
+    assert_water_where_the_fluid_is(a, meshed_run)
+
+
+def assert_water_where_the_fluid_is(a: np.ndarray, run: Path) -> None:
+    """The fluid mesh's screen box in image ``a`` is tinted blue beyond the rest of the frame."""
+    s = blender(INSPECT, run / "render" / "scene.blend")
     h, w = a.shape[:2]
     (u0, v0), (u1, v1) = s["uv_min"], s["uv_max"]
     # Image rows run top-down, camera-view v bottom-up.
@@ -118,6 +123,20 @@ def test_preview_frames_show_the_fluid(meshed_run):
     blue = a[..., 2] - a[..., 0]  # water is tinted blue; ground and sky behind it are grey/pale
     assert inside.sum() > 100
     assert blue[inside].mean() > blue[~inside].mean() + 3
+
+
+def test_run_meshed_as_obj_renders_water(tiny_run, tmp_path):
+    """`[mesh] format = "obj"` meshes are read through the io mesh registry, not parsed as PLY."""
+    import imageio.v2 as imageio
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    assert main(["mesh", str(run), "--format", "obj", "--jobs", "1"]) == 0
+    assert RunInfo.load(run).files("mesh")[0][1].endswith(".obj")
+    assert main(["render", str(run), "--quality", "preview", "--frames", "0:1"]) == 0
+    a = imageio.imread(run / "render" / "frame_00000.png")[..., :3].astype(float)
+    assert a.std() > 5, "blank image"
+    assert_water_where_the_fluid_is(a, run)
 
 
 def test_foam_spheres_and_motion_blur(meshed_run):

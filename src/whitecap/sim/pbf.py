@@ -515,8 +515,9 @@ class PBFSolver:
                 )
                 apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
             # Colliders project at the start of each iteration (fused with their
-            # density map, see boundary_density) and once more here, so no
-            # particle ends an iteration inside an obstacle.
+            # density map, see boundary_density) and once more here: the last
+            # Δp pushes particles back inside the contact distance r, and
+            # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
             for c in self.colliders:
                 c.project(self)
         with timer("pbf.velocity"):
