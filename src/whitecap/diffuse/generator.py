@@ -142,7 +142,7 @@ class FoamGenerator:
         fid = _nd(fluid.ids.astype(np.uint32), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n)
-        return fx, fv, fid, (g.x_sorted, fv, g.start, g.order, g._lower, 1.0 / g.spec.cell, g._dims, g.reach, self.h)
+        return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
 
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
