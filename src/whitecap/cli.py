@@ -12,7 +12,10 @@ import argparse
 import os
 import sys
 
+from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
+from .pipeline import RUN_STAGES
+from .surface.export import TARGETS
 
 
 # ============================================================================ simulate
@@ -65,7 +68,7 @@ def _add_foam(sub) -> None:
     )
     p.add_argument("input", help="run directory, sequence directory or glob ('frames/*.vtk')")
     p.add_argument("--out", "-o", help="output run directory (default: the input run itself)")
-    p.add_argument("--preset", choices=["ihmsen2012", "dualsphysics", "splishsplash", "auto"], help="parameter preset")
+    p.add_argument("--preset", choices=choices(Foam, "preset"), help="parameter preset")
     p.add_argument("--params", help="DualSPHysics DiffuseCalculator .ini file with the parameters")
     p.add_argument("--case", help="DualSPHysics case XML (spacing, mass, time step, domain)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input (y for Y-up solvers)")
@@ -109,7 +112,7 @@ def _add_mesh(sub) -> None:
                    help="unweighted Laplacian smoothing")
     p.add_argument("--no-velocity", dest="interpolate_velocity", action="store_const", const=False,
                    help="do not interpolate particle velocity onto vertices")
-    p.add_argument("--format", choices=["ply", "obj"], help="mesh file format (default ply; obj has no velocity)")
+    p.add_argument("--format", choices=choices(Mesh, "format"), help="mesh file format (default ply; obj has no velocity)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
@@ -153,7 +156,7 @@ def _add_export(sub) -> None:
         ".series for ply).",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", choices=["vtk", "ply"], help="vtk: .vtp + .pvd (default); ply: PLY + .series")
+    p.add_argument("--to", default="vtk", choices=TARGETS, help="vtk: .vtp + .pvd (default); ply: PLY + .series")
     p.add_argument("--out", "-o", help="output directory (default RUN/export)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series")
@@ -181,7 +184,7 @@ def _add_view(sub) -> None:
     p.add_argument("--frames", type=int, help="frames to render headless (live: simulated frames; default: all / 1)")
     p.add_argument("--out", "-o", help="output directory for PNGs, screenshots and recordings")
     p.add_argument("--mp4", action="store_true", help="with --headless, also encode OUT/view.mp4")
-    p.add_argument("--color", choices=["speed", "density"], help="colour fluid by speed or density")
+    p.add_argument("--color", choices=choices(View, "color_mode"), help="colour fluid by speed or density")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
     p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
     p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
@@ -221,7 +224,7 @@ def _add_render(sub) -> None:
     p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
-    p.add_argument("--device", choices=["auto", "cpu", "gpu"], help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
     p.set_defaults(func=_cmd_render)
 
 
@@ -264,7 +267,7 @@ def _add_run(sub) -> None:
     )
     p.add_argument("scene", help="scene TOML file")
     p.add_argument("--out", "-o", help="run directory (default: out/<scene name>)")
-    p.add_argument("--until", default="render", choices=["simulate", "mesh", "render"], help="stop after this stage")
+    p.add_argument("--until", default="render", choices=RUN_STAGES, help="stop after this stage")
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")

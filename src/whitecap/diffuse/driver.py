@@ -23,14 +23,15 @@ from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.run import RunInfo, frame_name
 from ..progress import console, progress
-from .generator import TYPES, DiffuseState, FoamGenerator
+from ..io.diffuse_types import COUNT_NAMES
+from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
 __all__ = ["simulation_hook", "postprocess", "FoamGenerator", "FoamParams", "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
-    lines = ["frame,time,spray,foam,bubbles"] + [
+    lines = [",".join(("frame", "time", *COUNT_NAMES))] + [
         f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
     ]
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
@@ -224,5 +225,5 @@ def postprocess(
     info.save(out)
     stage.warn_if_empty()
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
-    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
+    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
     return info

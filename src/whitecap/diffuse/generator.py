@@ -30,7 +30,6 @@ from ..timing import timer
 from . import kernels as K
 from .params import FoamParams
 
-TYPES = ("spray", "foam", "bubbles")
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
 AUTO_PERCENTILES = (95.0, 99.9)  # τmin, τmax of 'auto' from the moving particles' potentials
 

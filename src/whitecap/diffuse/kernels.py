@@ -14,6 +14,7 @@ import math
 
 import taichi as ti
 
+from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..sim.grid import F1, F3, I1, I2, CellGeometry, for_each_neighbor
 
 vec3 = ti.math.vec3
@@ -217,12 +218,13 @@ def fluid_neighbourhood(p: vec3, cells: ti.template(), xs: F3, start: I1, reach:
 
 @ti.func
 def diffuse_type(cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32) -> ti.i32:
-    """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
-    t = 1
+    """SPRAY (fewer than spray_below fluid neighbours), BUBBLE (more than bubble_above), else FOAM
+    (the codes of :mod:`whitecap.io.diffuse_types`)."""
+    t = FOAM
     if cnt < spray_below:
-        t = 0
+        t = SPRAY
     elif cnt > bubble_above:
-        t = 2
+        t = BUBBLE
     return t
 
 
@@ -262,10 +264,10 @@ def advect_diffuse(
             vf = vsum / wsum
         alive = 1
         t = diffuse_type(cnt, spray_below, bubble_above)
-        if t == 0:
+        if t == SPRAY:
             vd[p] += dt * g
             xd[p] += dt * vd[p]
-        elif t == 2:
+        elif t == BUBBLE:
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:

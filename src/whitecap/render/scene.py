@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render
+from ..config import Render, obstacle_transform
 from ..errors import InputError
 from ..io import read
+from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
 
-TYPE_NAMES = ("spray", "foam", "bubbles")
 
 
 @dataclass
@@ -346,7 +346,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     diffuse = {}
     mats = (spray_material(), foam_material(), bubble_material())
     scale = (0.6, 1.0, 0.8)
-    for t, name in enumerate(TYPE_NAMES):
+    for t, name in enumerate(COUNT_NAMES):
         obj = bpy.data.objects.new(name, bpy.data.meshes.new(f"{name}_empty"))
         mod = obj.modifiers.new(name, "NODES")
         mod.node_group = sphere_nodes(f"{name}_spheres", rmin * scale[t], rmax * scale[t], mats[t], seed=t + 1)
@@ -388,12 +388,7 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
     if not path.is_file():
         return
     m = trimesh.load(str(path), force="mesh")
-    T = trimesh.transformations
-    M = T.translation_matrix(entry.get("translate", [0, 0, 0]))
-    rx, ry, rz = [math.radians(a) for a in entry.get("rotate", [0, 0, 0])]
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    S = T.scale_matrix(entry.get("scale", 1.0))
-    m.apply_transform(T.concatenate_matrices(M, R, S))
+    m.apply_transform(obstacle_transform(entry))
     obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
     obj.data.materials.append(obstacle_material(entry))
     bpy.context.scene.collection.objects.link(obj)

@@ -31,7 +31,6 @@ strongly curved parts, smaller than a particle for shapes larger than h.
 
 import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from ..config import Obstacle, Scene
+from ..config import Obstacle, Scene, obstacle_transform
 from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..timing import timer
@@ -79,14 +78,6 @@ def load_mesh(path: Path, repair: bool = False):
     return m
 
 
-def transform_matrix(o: Obstacle) -> np.ndarray:
-    import trimesh.transformations as T
-
-    rx, ry, rz = (math.radians(a) for a in o.rotate)
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    return T.concatenate_matrices(T.translation_matrix(o.translate), R, T.scale_matrix(o.scale))
-
-
 def cache_dir() -> Path:
     return Path(os.environ.get("WHITECAP_CACHE", Path.home() / ".cache" / "whitecap")) / "sdf"
 
@@ -123,7 +114,7 @@ class SDFGrid:
 
 
 def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
-    M = transform_matrix(o)
+    M = obstacle_transform(o)
     dx = o.sdf_resolution * r
     raw = path.read_bytes() if path.is_file() else b""
     key = hashlib.sha256(
