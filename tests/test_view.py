@@ -430,3 +430,27 @@ def test_live_buffers_filled_on_the_device_match_the_host_colour_map():
         np.testing.assert_allclose(buf.pos.to_numpy()[:n], x)
         np.testing.assert_allclose(buf.col.to_numpy()[:n], colormap(s, lo, hi), atol=1e-5)
         assert len(np.unique(buf.col.to_numpy()[:n].round(3), axis=0)) > 100  # a spread of colours, not one
+
+
+def test_window_gets_the_size_and_colour_asked_for(tiny_run, monkeypatch):
+    from whitecap.cli import main
+    from whitecap.view import app
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_window(res, headless, fps_limit=60):
+        seen["size"], seen["headless"] = tuple(res), headless
+        return object()
+
+    def fake_renderer(window, source, cfg):
+        seen["color"] = cfg.color_mode
+        raise Stop
+
+    monkeypatch.setattr(app, "make_window", fake_window)
+    monkeypatch.setattr(app, "_renderer", fake_renderer)
+    with pytest.raises(Stop):
+        main(["view", str(tiny_run), "--size", "321", "243", "--color", "density"])
+    assert seen == {"size": (321, 243), "headless": False, "color": "density"}

@@ -128,21 +128,16 @@ _MESH_OVERRIDES = ("radius_factor", "smoothing_length", "cube_size", "iso_surfac
 def _cmd_mesh(a) -> int:
     import warnings
 
-    from . import pipeline, timing
+    from . import pipeline
 
-    if a.jobs is not None and a.jobs < 1:
-        raise WhitecapError(f"mesh: --jobs must be at least 1 (got {a.jobs})")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
-    timing.reset()
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, **overrides)
+                          up=a.up, profile=a.profile, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
-    if a.profile:
-        print(timing.report("mesh profile"))
     return 0
 
 
@@ -196,17 +191,17 @@ def _add_view(sub) -> None:
 def _cmd_view(a) -> int:
     from . import pipeline
 
+    size = tuple(a.size) if a.size else None
     if a.headless:
         if not a.out:
             raise WhitecapError("view --headless: --out DIR is required")
         paths = pipeline.view(
             a.target, headless=True, out=a.out, frames=a.frames, mp4=a.mp4, arch=a.arch,
-            size=tuple(a.size) if a.size else None, color_mode=a.color, up=a.up, panel=a.panel,
-            legend=not a.no_legend,
+            size=size, color_mode=a.color, up=a.up, panel=a.panel, legend=not a.no_legend,
         )
         print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if a.mp4 else ""))
         return 0
-    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up)
+    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up, size=size, color_mode=a.color)
     return 0
 
 

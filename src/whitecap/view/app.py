@@ -314,14 +314,18 @@ def _fps(source) -> float:
 
 
 def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = "view_out",
+                    size: tuple[int, int] | None = None, color_mode: str | None = None,
                     max_frames: int | None = None, window=None, recording: bool = False) -> ViewerState:
     """Open a window and show the scene (live) or the sequence (playback) until closed.
 
+    ``size`` and ``color_mode`` override the scene's ``[view]`` as in :func:`run_headless`.
     ``max_frames``, ``window`` and ``recording`` let tests drive the loop with an offscreen window.
     Returns the final viewer state.
     """
     source, cfg = open_source(target, arch, up)
-    window = window or make_window(tuple(cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
+    if color_mode:
+        cfg = cfg.model_copy(update={"color_mode": color_mode})
+    window = window or make_window(tuple(size or cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
     rend = _renderer(window, source, cfg)
     state = _new_state(cfg, source)
     state.recording = recording
