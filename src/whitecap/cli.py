@@ -282,13 +282,6 @@ def _cmd_run(a) -> int:
 
 
 # ============================================================================ main
-def _not_yet(name: str):
-    def f(a) -> int:
-        raise WhitecapError(f"'{name}' is not available in this build yet")
-
-    return f
-
-
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 

@@ -58,7 +58,7 @@ def simulate(
 RUN_STAGES = ("simulate", "mesh", "render")
 
 
-def _simulation_state(sc: Scene, out: Path, frames: int) -> str:
+def _simulation_state(out: Path, frames: int) -> str:
     """'new', 'partial' or 'done' for the simulate stage of a run directory."""
     from .sim.driver import CHECKPOINT
 
@@ -105,7 +105,7 @@ def run(
     for k, stage in enumerate(stages, 1):
         console.rule(f"[bold]stage {k}/{len(stages)}: {stage}")
         if stage == "simulate":
-            state = _simulation_state(sc, out, nframes)
+            state = _simulation_state(out, nframes)
             if state == "done":
                 console.print(f"simulate: all {nframes} frames already in {out}")
             else:

@@ -108,7 +108,7 @@ def simulation_hook(scene: Scene) -> FoamStage:
 
 
 # ============================================================================ post-processing
-def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+def _input_frames(src: Path) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
     """Frames of the input plus what is known about the run (radius, dt, domain...)."""
     from ..io.sequence import find_sequence
 
@@ -154,7 +154,7 @@ def postprocess(
     that `whitecap mesh`, `view` and `render` can continue from there.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, up)
+    files, info, known = _input_frames(src)
     if case is not None:
         from ..io.dualsphysics import read_case
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData
 
 from ..errors import InputError
 from .atomic import atomic_path

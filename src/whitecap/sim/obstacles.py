@@ -340,5 +340,5 @@ class ObstacleCollider:
     def project(self, s) -> None:
         obstacle_project(s.n, s.state.p, *self._geo(), s.r)
 
-    def respond(self, s, dt: float) -> None:
+    def respond(self, s) -> None:
         obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.friction, s.r, self.band)

@@ -326,7 +326,7 @@ def available_memory() -> int:
     return 1 << 62
 
 
-def half_space_tables(h: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def half_space_tables(h: float) -> tuple[np.ndarray, np.ndarray]:
     """ψ(d) = ∫_{z > d} W dV, the share of ρ/ρ0 that a solid half space at
     distance d contributes (W integrates to 1), and its derivative ψ'(d), sampled
     on d ∈ [0, h]. Integrated numerically once at set-up, plane by plane; the
@@ -399,7 +399,7 @@ class PBFSolver:
     ``colliders`` are objects with ``apply_forces(solver, dt)`` (before
     prediction), ``add_density_map(solver)`` (start of each iteration: project
     particles out, then add to ψ/∇ψ), ``project(solver)`` (after the last
-    iteration) and ``respond(solver, dt)`` (velocity response): the obstacle
+    iteration) and ``respond(solver)`` (velocity response): the obstacle
     module plugs in there.
     """
 
@@ -433,7 +433,7 @@ class PBFSolver:
         self.domain_lo = vec3(*lo)
         self.domain_hi = vec3(*hi)
         self.gravity = vec3(*scene.domain.gravity)
-        psi, dpsi = half_space_tables(self.h, 2.0 * self.r)
+        psi, dpsi = half_space_tables(self.h)
         self.psi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
         self.dpsi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
         self.psi_table.from_numpy(psi)
@@ -450,7 +450,6 @@ class PBFSolver:
         self.step_count = 0
         self.time = 0.0
         self.stats = StepStats()
-        self._warned_overflow = False
 
     # ---------------------------------------------------------------- parameters
     @property
@@ -517,7 +516,7 @@ class PBFSolver:
         with timer("pbf.velocity"):
             update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
             for c in self.colliders:
-                c.respond(self, dt)
+                c.respond(self)
         if s.vorticity_epsilon > 0 or s.xsph_c > 0:
             # ω and XSPH share one neighbour pass (both read the velocities
             # after the position update); confinement then uses ω of the
