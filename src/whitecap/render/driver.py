@@ -73,7 +73,7 @@ def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int |
     info = RunInfo.load(run_dir)
     cfg = render_settings(run_dir, device)
     mesh_frames = [i for i, _ in info.files("mesh")]
-    h = build_scene(run_dir, info, cfg, quality, min(mesh_frames), max(mesh_frames))
+    h = build_scene(info, cfg, quality, min(mesh_frames), max(mesh_frames))
     sc = bpy.context.scene
     if threads:
         sc.render.threads_mode = "FIXED"
