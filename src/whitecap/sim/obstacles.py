@@ -49,6 +49,12 @@ ivec3 = ti.math.ivec3
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
 SDF_CACHE_VERSION = 1
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
+# Width of the contact band of the velocity response, × r: a particle counts as touching
+# while sdf < r + CONTACT_BAND·r. The position projection leaves particles at sdf = r
+# exactly; the band keeps them in contact despite the trilinear SDF's interpolation
+# error and float rounding, and is thin enough (a twentieth of r) not to slow particles
+# that merely pass close by.
+CONTACT_BAND = 0.05
 
 
 # ============================================================================ host side
@@ -323,7 +329,7 @@ class ObstacleCollider:
         self.box_hi = arr([g.aabb_hi + h for g in grids], "v")
         self.stiffness = arr([o.stiffness for o in obst.entries], "f")
         self.friction = arr([o.friction for o in obst.entries], "f")
-        self.band = 0.05 * solver.r
+        self.band = CONTACT_BAND * solver.r
 
     def _geo(self):
         return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi

@@ -316,6 +316,19 @@ def bytes_per_particle(max_neighbors: int) -> int:
     return 4 * (7 * 3 + 5) + 4 * (7 + max_neighbors)
 
 
+# A run may plan to use at most this share of the memory that is free when it starts:
+# the rest stays for the interpreter, NumPy copies of frames being written, Taichi's
+# runtime, the foam stage and the operating system, so a run that passes the check
+# does not push the machine into swap.
+MEMORY_HEADROOM = 0.8
+
+
+def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
+    """(whether ``n`` particles fit in MEMORY_HEADROOM of the free memory, the bytes they need)."""
+    need = n * bytes_per_particle(max_neighbors)
+    return need <= MEMORY_HEADROOM * available_memory(), need
+
+
 def available_memory() -> int:
     try:
         for line in open("/proc/meminfo"):
@@ -409,8 +422,8 @@ class PBFSolver:
         n = len(positions)
         if n == 0:
             raise WhitecapError("the scene has no fluid: add a [[fluid]] block")
-        need = n * bytes_per_particle(s.max_neighbors)
-        if need > 0.8 * available_memory():
+        fits, need = fits_in_memory(n, s.max_neighbors)
+        if not fits:
             raise WhitecapError(
                 f"{n} particles need about {need / 2**30:.1f} GiB, more than this machine has free; "
                 "increase solver.particle_radius or shrink the fluid blocks"
