@@ -26,14 +26,15 @@ from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
 from ..io.run import RunInfo, frame_name
 from ..progress import console, progress
-from .generator import TYPES, DiffuseState, FoamGenerator
+from ..io.diffuse_types import COUNT_NAMES
+from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
 __all__ = ["simulation_hook", "postprocess", "FoamGenerator", "FoamParams", "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
-    lines = ["frame,time,spray,foam,bubbles"] + [
+    lines = [",".join(("frame", "time", *COUNT_NAMES))] + [
         f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
     ]
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
@@ -110,7 +111,7 @@ def simulation_hook(scene: Scene) -> FoamStage:
 
 
 # ============================================================================ post-processing
-def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+def _input_frames(src: Path) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
     """Frames of the input plus what is known about the run (radius, dt, domain...)."""
     from ..io.sequence import find_sequence
 
@@ -166,7 +167,7 @@ def postprocess(
     that `whitecap mesh`, `view` and `render` can continue from there.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, up)
+    files, info, known = _input_frames(src)
     if case is not None:
         from ..io.dualsphysics import read_case
 
@@ -261,5 +262,5 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     info.save(out)
     stage.warn_if_empty()
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
-    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
+    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
     return info

@@ -78,7 +78,7 @@ def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int |
     info = RunInfo.load(run_dir)
     cfg = render_settings(run_dir, device)
     mesh_frames = [i for i, _ in info.files("mesh")]
-    h = build_scene(run_dir, info, cfg, quality, min(mesh_frames), max(mesh_frames))
+    h = build_scene(info, cfg, quality, min(mesh_frames), max(mesh_frames))
     sc = bpy.context.scene
     if threads:
         sc.render.threads_mode = "FIXED"
@@ -114,17 +114,11 @@ def _done(png: Path, size: tuple[int, int]) -> bool:
 
 
 def encode_movie(run_dir: Path, fps: float, indices: list[int] | None = None) -> Path:
-    import imageio.v2 as imageio
-
-    from ..io.atomic import atomic_path
+    """render/movie.mp4 from the rendered frames (all of them, or ``indices``)."""
+    from ..io.movie import encode_mp4
 
     frames = [frame_path(run_dir, i) for i in indices] if indices else sorted((run_dir / "render").glob("frame_*.png"))
-    movie = run_dir / "render" / "movie.mp4"
-    with atomic_path(movie) as tmp:
-        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8, macro_block_size=8, format="FFMPEG") as w:
-            for f in frames:
-                w.append_data(imageio.imread(f))
-    return movie
+    return encode_mp4(frames, run_dir / "render" / "movie.mp4", fps)
 
 
 def render_run(

@@ -63,13 +63,13 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
 
 def build_solver(scene: Scene, arch: str = "cpu"):
     """Initialise Taichi and build the solver with obstacles from the scene."""
-    from .pbf import PBFSolver, estimate_particle_count, lattice_points, bytes_per_particle, available_memory
+    from .pbf import PBFSolver, estimate_particle_count, fits_in_memory, lattice_points
 
     n_est = estimate_particle_count(scene)
-    if n_est * bytes_per_particle(scene.solver.max_neighbors) > 0.8 * available_memory():
+    fits, need = fits_in_memory(n_est, scene.solver.max_neighbors)
+    if not fits:
         raise WhitecapError(
-            f"the fluid blocks hold about {n_est:,} particles, needing about "
-            f"{n_est * bytes_per_particle(scene.solver.max_neighbors) / 2**30:.1f} GiB, "
+            f"the fluid blocks hold about {n_est:,} particles, needing about {need / 2**30:.1f} GiB, "
             "more than this machine has free; increase solver.particle_radius or shrink the fluid"
         )
     runtime.init(arch)

@@ -15,14 +15,14 @@ series of an earlier simulation is left behind.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
-import json
-
 from .. import io as wio
 from ..errors import InputError
+from ..io.diffuse_types import TYPE_NAMES
 from ..io.frame import ParticleFrame
 from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
 from ..io.pvd import write_pvd, write_series
@@ -33,8 +33,7 @@ from ..io.vtk_xml import write_vtp
 from ..progress import progress
 
 #: diffuse particle ``type`` codes of the run-directory contract
-DIFFUSE_TYPES = {0: "spray", 1: "foam", 2: "bubble"}
-FORMATS = ("vtk", "ply")
+TARGETS = ("vtk", "ply")  # vtk: .vtp/.vtu + .pvd; ply: PLY + .series
 MANIFEST = "export.json"
 
 
@@ -85,8 +84,8 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     Returns {series name: collection path}. Kinds the run does not have are
     skipped; a run with none of them is an error.
     """
-    if to not in FORMATS:
-        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(FORMATS)})")
+    if to not in TARGETS:
+        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(TARGETS)})")
     run = Path(run)
     if not run.is_dir():
         raise InputError(f"{run}: no such run directory")
@@ -128,7 +127,7 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
                     if "type" not in frame.arrays:
                         raise InputError(f"{src}: missing array 'type' (needed by --split-types)")
                     t = frame.arrays["type"]
-                    for code, label in DIFFUSE_TYPES.items():
+                    for code, label in enumerate(TYPE_NAMES):
                         _write_points(emit(f"diffuse_{label}", i), _subset(frame, t == code), to)
             bar.update(task, advance=1, info=rel)
 

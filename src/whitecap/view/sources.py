@@ -53,11 +53,11 @@ class Frame:
         return self.device.n if self.device is not None else len(self.positions)
 
     def counts(self) -> dict[str, int]:
-        from .colors import DIFFUSE_NAMES
+        from ..io.diffuse_types import TYPE_NAMES
 
         c = {"fluid": self.n_fluid}
         if self.diffuse_type is not None:
-            for t, name in enumerate(DIFFUSE_NAMES):
+            for t, name in enumerate(TYPE_NAMES):
                 c[name] = int((self.diffuse_type == t).sum())
         return c
 
