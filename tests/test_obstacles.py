@@ -209,6 +209,42 @@ def test_not_watertight_is_a_clear_error(tmp_path, capsys):
         obs.load_obstacles(sc)
 
 
+def test_inconsistent_winding_is_refused_or_repaired(tmp_path, capsys):
+    # A closed sphere with ten faces wound the wrong way is still watertight, but the
+    # signed distance flips sign across those faces, so the obstacle acts inside out.
+    R, at = 0.05, np.array([0.3, 0.2, 0.2])
+    m = trimesh.creation.icosphere(subdivisions=2, radius=R)
+    faces = np.asarray(m.faces).copy()
+    faces[:10] = faces[:10, ::-1]
+    path = save(trimesh.Trimesh(m.vertices, faces, process=False), tmp_path / "flipped.obj")
+    scene = tmp_path / "s.toml"
+    scene.write_text(f'[[fluid]]\nlower = [0, 0, 0]\nupper = [0.1, 0.1, 0.1]\n[[obstacle]]\nmesh = "{path}"\n'
+                     f"translate = {at.tolist()}\n")
+    code = main(["simulate", str(scene), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1, err
+    assert "flipped.obj" in err and "inconsistent winding: 10 of 320 faces" in err and "repair = true" in err
+    assert not (tmp_path / "o" / "run.json").exists()
+    # repair = true reorients them: the field is negative inside the ball and positive outside.
+    sc = scene_from_dict({"obstacle": [{"mesh": path, "repair": True, "translate": at.tolist()}]})
+    g = obs.build_sdf(sc.obstacle[0], sc.resolve(path), 0.01, pad=0.04)
+    p = np.random.default_rng(2).uniform(-0.08, 0.08, (3000, 3))
+    exact = np.linalg.norm(p, axis=1) - R
+    far = np.abs(exact) > 0.005  # away from the facets of the icosphere
+    assert (np.sign(g.sample(p + at)) == np.sign(exact))[far].all()
+
+
+def test_nan_vertex_is_named_as_such(tmp_path):
+    text = trimesh.creation.box(extents=[0.1, 0.1, 0.1]).export(file_type="obj").splitlines()
+    k = next(i for i, line in enumerate(text) if line.startswith("v "))
+    text[k + 2] = "v nan 0.05 0.05"
+    path = tmp_path / "nan.obj"
+    path.write_text("\n".join(text) + "\n")
+    with pytest.raises(InputError) as e:
+        obs.load_mesh(path)
+    assert str(e.value) == f"{path}: 1 vertices are NaN or infinite (the first is vertex 3)"
+
+
 def test_sdf_cache_is_reused(tmp_path, monkeypatch):
     path = save(trimesh.creation.icosphere(subdivisions=2, radius=0.05), tmp_path / "s.stl")
     sc = scene_from_dict({"obstacle": [{"mesh": path, "translate": [0.3, 0.2, 0.2]}]})

@@ -112,3 +112,19 @@ def test_too_many_particles_refused_before_allocating(tmp_path, capsys):
     code = main(["simulate", str(p), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code != 0 and "more than this machine has free" in err and "particles" in err
+
+
+def test_cli_choices_are_the_scene_models():
+    from whitecap.cli import build_parser
+    from whitecap.config import Foam, Mesh, choices
+    from whitecap.diffuse.params import resolve
+    from whitecap.pipeline import RUN_STAGES
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    opt = {(cmd, o.dest): o.choices for cmd, p in sub.items() for o in p._actions if o.choices}
+    assert tuple(opt[("foam", "preset")]) == choices(Foam, "preset")
+    assert tuple(opt[("mesh", "format")]) == choices(Mesh, "format") == ("ply", "obj")
+    assert tuple(opt[("run", "until")]) == RUN_STAGES
+    for name in choices(Foam, "preset"):  # every preset the scene and CLI accept has values
+        assert resolve(preset=name).spray_below > 0

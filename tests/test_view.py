@@ -177,9 +177,13 @@ def test_dualsphysics_sequence_plays_back(tmp_path):
 
 
 def test_obstacle_transform_rotates_x_then_y_then_z():
-    from whitecap.view.geometry import obstacle_transform
+    from whitecap.config import Obstacle, obstacle_transform
 
-    m = obstacle_transform([1.0, 0.0, 0.0], [90.0, 90.0, 0.0], 2.0)
+    m = obstacle_transform({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0})
+    # The scene model and its run.json dict place an obstacle alike; missing keys are the defaults.
+    o = Obstacle(mesh="m.obj", translate=[1.0, 0.0, 0.0], rotate=[90.0, 90.0, 0.0], scale=2.0)
+    np.testing.assert_array_equal(obstacle_transform(o), m)
+    np.testing.assert_array_equal(obstacle_transform({"mesh": "m.obj"}), np.eye(4))
     # (0,1,0) -> scale 2 -> Rx90 -> (0,0,2) -> Ry90 -> (2,0,0) -> +translate
     np.testing.assert_allclose((m @ [0, 1, 0, 1])[:3], [3.0, 0.0, 0.0], atol=1e-9)
 
@@ -472,3 +476,27 @@ def test_saved_frames_colour_each_particle_by_its_speed(tiny_run, tmp_path):
         chroma = rgb / rgb.sum()
         t = ts[np.argmin(np.linalg.norm(cmap_chroma - chroma, axis=1))]
         assert abs(t - f) < 0.15, (f, t, rgb)
+
+
+def test_window_gets_the_size_and_colour_asked_for(tiny_run, monkeypatch):
+    from whitecap.cli import main
+    from whitecap.view import app
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_window(res, headless, fps_limit=60):
+        seen["size"], seen["headless"] = tuple(res), headless
+        return object()
+
+    def fake_renderer(window, source, cfg):
+        seen["color"] = cfg.color_mode
+        raise Stop
+
+    monkeypatch.setattr(app, "make_window", fake_window)
+    monkeypatch.setattr(app, "_renderer", fake_renderer)
+    with pytest.raises(Stop):
+        main(["view", str(tiny_run), "--size", "321", "243", "--color", "density"])
+    assert seen == {"size": (321, 243), "headless": False, "color": "density"}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import configparser
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from ..config import Foam
@@ -121,5 +121,3 @@ def read_ini(path: str | Path) -> dict:
     return out
 
 
-def with_thresholds(p: FoamParams, **thresholds) -> FoamParams:
-    return replace(p, **thresholds)
