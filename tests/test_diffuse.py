@@ -493,6 +493,32 @@ def test_foamgenerator_generates_its_rounded_count_with_its_lifetimes():
 
 
 
+@pytest.mark.parametrize("preset,keeps", [("splishsplash", True), ("ihmsen2012", False)])
+def test_foam_moves_with_the_fluid_and_keeps_its_own_velocity_only_as_foamgenerator_does(preset, keeps):
+    # A foam particle on a block of fluid moving at u: it moves by u dt in both models; its own
+    # velocity becomes u in whitecap's, and stays what it was in FoamGenerator's (so foam that turns
+    # into spray leaves with it).
+    from dataclasses import replace
+
+    from whitecap.diffuse.generator import DiffuseState, FoamGenerator
+
+    u, dt, r = np.array([0.3, 0.0, 0.1], np.float32), 0.02, 0.01
+    x = _lattice(10, r)
+    fr = io.ParticleFrame(positions=x, velocities=np.tile(u, (len(x), 1)), ids=np.arange(len(x), dtype=np.uint32))
+    p = replace(resolve(preset=preset), ta_min=1e3, ta_max=2e3, wc_min=1e3, wc_max=2e3)  # no generation
+    gen = FoamGenerator(p, r, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=1)
+    gen.state = DiffuseState.empty()
+    gen.state.tau = np.array([1e3, 2e3, 1e3, 2e3, 1e3, 2e3, 1e3, 2e3], np.float32) if keeps else None
+    x0 = np.array([[0.205, 0.205, x[:, 2].max() + r]], np.float32)  # at the surface: 6 to 20 fluid neighbours
+    v0 = np.array([[0.0, 0.0, 1.5]], np.float32)
+    gen.state.positions, gen.state.velocities, gen.state.lifetime = x0, v0, np.array([3.0], np.float32)
+    gen.state.ids = np.array([0], np.uint32)
+    out = gen.step(fr, 1, dt)
+    assert len(out) == 1 and out.arrays["type"][0] == 1  # still foam
+    np.testing.assert_allclose(out.positions[0], x0[0] + dt * u, atol=1e-6)
+    np.testing.assert_allclose(out.velocities[0], v0[0] if keeps else u, atol=1e-6)
+
+
 def test_foamgenerator_mode_needs_the_whole_sequence_so_the_simulation_refuses_it(tmp_path, capsys):
     d = tiny_scene_dict(output={"frames": 2}, foam={"preset": "splishsplash"})
     with pytest.raises(InputError, match="whitecap foam RUN --preset splishsplash"):

@@ -181,7 +181,8 @@ class FoamGenerator:
         life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
         kind = ti.ndarray(ti.i32, nd)
         K.advect_diffuse(
-            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind
+            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
+            int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
         )
         k = keep.to_numpy()[:nd].astype(bool)
         self._old_kind = kind.to_numpy()[:nd][k].astype(np.uint8)

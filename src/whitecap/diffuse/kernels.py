@@ -272,10 +272,13 @@ def advect_diffuse(
     hi: vec3,
     keep: I1,
     kind: I1,
+    foam_keeps_velocity: ti.i32,
 ):
     """Classify by fluid-neighbour count and advect each type its own way:
     spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
-    velocity ṽ_f, its lifetime counting down; bubbles
+    velocity ṽ_f (moving with it; its own v is set to ṽ_f, or kept as it was with
+    ``foam_keeps_velocity``, as SPlisHSPlasH's FoamGenerator does, so foam that
+    turns into spray leaves with its earlier velocity), its lifetime counting down; bubbles
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
     that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
@@ -292,7 +295,8 @@ def advect_diffuse(
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:
-            vd[p] = vf
+            if not foam_keeps_velocity:
+                vd[p] = vf
             xd[p] += dt * vf
             life[p] -= dt
             if life[p] <= 0.0:
