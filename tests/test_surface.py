@@ -230,3 +230,12 @@ def test_canonical_order_ignores_vertex_and_face_order():
     tri = set().union(*(rotations(t) for t in np.argsort(o1)[f]))
     assert all(tuple(t) in tri for t in f1)
     assert sorted(min(rotations(t)) for t in np.argsort(o1)[f]) == [tuple(t) for t in f1]
+
+
+def test_api_checks_jobs_and_profiles_like_the_cli(run_copy, capsys):
+    with pytest.raises(InputError, match="--jobs must be at least 1"):
+        mesh(run_copy, jobs=0, show_progress=False)
+    assert not (run_copy / "mesh").exists()
+    stats = mesh(run_copy, jobs=1, profile=True, show_progress=False)
+    out = capsys.readouterr().out
+    assert len(stats) == 4 and "mesh profile" in out and "mesh.splashsurf" in out

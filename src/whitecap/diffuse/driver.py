@@ -14,6 +14,8 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -23,16 +25,18 @@ import numpy as np
 from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
+from ..io.lock import run_lock
 from ..io.run import RunInfo, frame_name
 from ..progress import console, progress
-from .generator import TYPES, DiffuseState, FoamGenerator
+from ..io.diffuse_types import COUNT_NAMES
+from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
 __all__ = ["simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams", "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
-    lines = ["frame,time,spray,foam,bubbles"] + [
+    lines = [",".join(("frame", "time", *COUNT_NAMES))] + [
         f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
     ]
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
@@ -141,7 +145,7 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: s
     return tau
 
 
-def _input_frames(src: Path, up: str, frames: list | None = None) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
     """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...)."""
     from ..io.sequence import find_sequence
 
@@ -164,6 +168,16 @@ def _input_frames(src: Path, up: str, frames: list | None = None) -> tuple[list[
         known.update(radius=case.particle_radius, mass=case.mass, dt=case.time_out, rest_density=case.rho0,
                      gravity=case.gravity, lower=case.lower, upper=case.upper, case=str(xmls[0]))
     return files, None, known
+
+
+def _first_particles(files: list[tuple[int, Path]], first: ParticleFrame, up: str) -> np.ndarray | None:
+    """Positions of the first frame that has particles (None when every frame is empty)."""
+    for k, (_, path) in enumerate(files):
+        fr = first if k == 0 else read(path, up=up)
+        if len(fr):
+            fr.check_finite()
+            return fr.positions
+    return None
 
 
 def postprocess(
@@ -193,7 +207,7 @@ def postprocess(
     that `whitecap mesh`, `view` and `render` can continue from there.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, up, frames)
+    files, info, known = _input_frames(src, frames)
     if case is not None:
         from ..io.dualsphysics import read_case
 
@@ -229,22 +243,46 @@ def postprocess(
         raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
 
     src_is_run = info is not None
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "foam"):
+        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress)
+
+
+def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
+    """Identity of a foreign sequence: its files' names, sizes and modification times."""
+    stats = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for _, path in files]
+    return hashlib.sha256(json.dumps([up, stats]).encode()).hexdigest()[:16]
+
+
+def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
+                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool) -> RunInfo:
+    src_is_run = info is not None
+    if src_is_run:  # read again under the lock: what is current cannot change from here on
+        info = RunInfo.load(src)
+        files = [(i, src / rel) for i, rel in info.files("fluid")]
     first = read(files[0][1], **({"up": up} if info is None else {}))
     if first.velocities is None:
         raise InputError(f"{files[0][1]}: missing array 'velocity'")
     if info is None:
-        lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
-        hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
+        if "lower" in known and "upper" in known:
+            lo, hi = known["lower"], known["upper"]
+        else:  # the first frame with particles, grown by half its extent
+            pts = _first_particles(files, first, up)
+            if pts is None:
+                raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
+                                 "make diffuse particles from")
+            lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
+            hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
         info = RunInfo(
             particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
             particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
             domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
             extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
         )
+        info.simulation = _source_identity(files, up)
     # Results for a whitecap run go into that run; anywhere else the fluid
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
-    out.mkdir(parents=True, exist_ok=True)
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, slots_per_particle=max(p.slots_per_particle, math.ceil(2 * p.k_ta * frame_dt + 0.5)),
                     max_particles=max(p.max_particles, FOAMGENERATOR_CAPACITY * len(first)))
@@ -275,7 +313,7 @@ def postprocess(
     info.extra["out"] = str(out)  # for the caller's message; not saved
     stage.warn_if_empty()
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
-    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
+    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
     return info
 
 

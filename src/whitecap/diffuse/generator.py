@@ -31,7 +31,6 @@ from . import kernels as K
 from . import splishsplash as SP
 from .params import FoamParams
 
-TYPES = ("spray", "foam", "bubbles")
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
 AUTO_PERCENTILES = (95.0, 99.9)  # τmin, τmax of 'auto' from the moving particles' potentials
 
@@ -143,7 +142,7 @@ class FoamGenerator:
         fid = _nd(fluid.ids.astype(np.uint32), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n)
-        return fx, fv, fid, (g.x_sorted, fv, g.start, g.order, g._lower, 1.0 / g.spec.cell, g._dims, g.reach, self.h)
+        return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
 
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
@@ -153,13 +152,13 @@ class FoamGenerator:
         with timer("foam.neighbours"):
             fx, fv, fid, args = self._prepare(fluid, n)
         with timer("foam.advect"):
-            old = self._advect(fx, fv, args, dt)
+            old = self._advect(args, dt)
         with timer("foam.generate"):
             new = self._generate(fluid, fx, fv, fid, n, index, dt)
         with timer("foam.compact"):
             self._compact(old, new, index)
         with timer("foam.classify"):
-            kind = self._classify(fx, fv, args)
+            kind = self._classify(args)
         nd = len(st.positions)
         c = [int((kind == t).sum()) for t in range(3)]
         time_ = fluid.time if fluid.time is not None else index * dt
@@ -169,7 +168,7 @@ class FoamGenerator:
             arrays={"type": kind, "lifetime": st.lifetime, "radius": np.full(nd, self.p.radius * self.r, np.float32)},
         )
 
-    def _advect(self, fx, fv, args, dt):
+    def _advect(self, args, dt):
         """(1) classify the existing diffuse particles by their fluid neighbours and advect by type."""
         p, st = self.p, self.state
         nd = len(st.positions)
@@ -267,7 +266,7 @@ class FoamGenerator:
                 st.positions, st.velocities = st.positions[keep], st.velocities[keep]
                 st.lifetime, st.ids = st.lifetime[keep], st.ids[keep]
 
-    def _classify(self, fx, fv, args) -> np.ndarray:
+    def _classify(self, args) -> np.ndarray:
         """(4) spray / foam / bubble for output: survivors keep the type they moved as
         this frame; new particles are classified by their fluid neighbours."""
         st, p = self.state, self.p

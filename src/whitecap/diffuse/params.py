@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import configparser
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -309,5 +309,3 @@ def _read_job(p: Path, raw: dict) -> IniJob:
     )
 
 
-def with_thresholds(p: FoamParams, **thresholds) -> FoamParams:
-    return replace(p, **thresholds)
