@@ -639,3 +639,17 @@ def test_one_command_runs_the_job_the_ini_describes(tmp_path, capsys):
         assert (d.positions <= [0.4, 0.7, 0.5]).all() and (d.positions >= 0).all()
     fluid = io.read(out / "fluid/fluid_00014.ply")
     assert made > 0 and (fluid.positions[:, 0] > 0.45).any()  # the fluid reaches past the box; its foam does not
+
+
+def test_an_ending_time_step_past_the_last_file_stops_there_and_says_so(tmp_path, capsys):
+    # Like the VisualSPHysics simulator the run ends at the first missing frame, but not silently.
+    ini = tmp_path / "foam.ini"
+    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out="o", xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"),
+                            custom="no", first=13, last=40))
+    assert main(["foam", "--params", str(ini)]) == 0
+    err = capsys.readouterr().err
+    warn = [ln for ln in err.splitlines() if "EndingTimeStep" in ln]
+    assert len(warn) == 1 and "PartFluid_0015.vtk" in warn[0] and "13..14" in warn[0]
+    info = RunInfo.load(tmp_path / "o")
+    assert [i for i, _ in info.files("diffuse")] == [13, 14]
+    assert info.domain["upper"] != [0.4, 0.7, 0.5]  # CustomDomain = no: the case XML's domain
