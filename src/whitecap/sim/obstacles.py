@@ -43,7 +43,6 @@ from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..timing import timer
 from .grid import F1, F3, I1
-from .pbf import lookup
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
@@ -263,8 +262,15 @@ def obstacle_project_and_density_map(
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
                 if d < h:
                     gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
-                    psi[i] += lookup(psi_table, d, h)  # d < 0 reads ψ(0), as lookup clamps d/h to [0, 1]
-                    grad_psi[i] += lookup(dpsi_table, d, h) * gn
+                    # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
+                    # table size is a compile-time constant) rounds differently, and runs with
+                    # obstacles would no longer give the bytes they gave before.
+                    dd = ti.max(d, 0.0)
+                    t = ti.math.clamp(dd / h, 0.0, 1.0) * (psi_table.shape[0] - 1)
+                    k = ti.min(ti.cast(ti.floor(t), ti.i32), psi_table.shape[0] - 2)
+                    f = t - k
+                    psi[i] += (1.0 - f) * psi_table[k] + f * psi_table[k + 1]
+                    grad_psi[i] += ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
 
 
 @ti.kernel
