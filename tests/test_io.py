@@ -131,6 +131,39 @@ def test_two_fluids_in_one_folder_ask_for_a_glob(tmp_path):
     assert [(i, p.name) for i, p in find_sequence(hint)] == [(1, "ParticleData_Fluid_1.npz"), (2, "ParticleData_Fluid_2.npz")]
 
 
+# The output contract (README, "simulate" and "foam"): binary little-endian PLY, these properties in
+# this order with these types. Readers cast, so only the file itself shows a wrong type.
+FLUID_PLY = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
+             ("density", "<f4"), ("id", "<u4")]
+DIFFUSE_PLY = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
+               ("type", "|u1"), ("lifetime", "<f4"), ("radius", "<f4"), ("id", "<u4")]
+
+
+def test_run_files_have_the_contract_types(tiny_run, tmp_path):
+    from plyfile import PlyData
+
+    from whitecap.io.mesh import SurfaceMesh, write_mesh
+    from whitecap.io.run import RunInfo
+
+    info = RunInfo.load(tiny_run)
+    for stage, layout in (("fluid", FLUID_PLY), ("diffuse", DIFFUSE_PLY)):
+        files = info.files(stage)
+        assert files, stage
+        for _, rel in files:
+            ply = PlyData.read(str(tiny_run / rel))
+            assert not ply.text and ply.byte_order == "<", rel
+            assert [e.name for e in ply.elements] == ["vertex"], rel
+            assert ply["vertex"].data.dtype.descr == layout, rel
+    # Surface meshes: vertex x y z nx ny nz vx vy vz float32, triangles as uchar count + int indices.
+    m = SurfaceMesh(np.eye(3), [[0, 1, 2]], np.eye(3), {"velocity": np.ones((3, 3))})
+    write_mesh(tmp_path / "m.ply", m)
+    ply = PlyData.read(str(tmp_path / "m.ply"))
+    assert not ply.text and ply.byte_order == "<"
+    assert ply["vertex"].data.dtype.descr == [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")]
+    (prop,) = ply["face"].properties
+    assert (prop.name, prop.len_dtype, prop.val_dtype) == ("vertex_indices", "u1", "i4")
+
+
 def test_one_registry_tells_particles_from_meshes(tmp_path):
     from whitecap.io.mesh import SurfaceMesh
     from whitecap.io.registry import MESH, PARTICLES, format_for, formats

@@ -307,11 +307,35 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("interrupted; rerun with --resume to continue from the last complete frame", file=sys.stderr)
+        print("interrupted" + _RESUME_HINT.get(a.command, ""), file=sys.stderr)
         return 130
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except OSError as exc:  # disk full, read-only directory, a file where a folder should be...
+        print(f"error: {os_error_message(exc)}", file=sys.stderr)
+        return OS_ERROR_EXIT
+
+
+# How each command continues after Ctrl-C (only those that keep finished work).
+_RESUME_HINT = {
+    "simulate": "; rerun with --resume to continue from the last checkpoint",
+    "run": "; rerun the same command to continue where it stopped",
+    "mesh": "; rerun the same command: frames already meshed are skipped",
+    "render": "; rerun the same command: frames already rendered are skipped",
+}
+OS_ERROR_EXIT = 5
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line naming the path(s) and the cause of an operating-system error."""
+    cause = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(os.fsdecode(f)) for f in (exc.filename, exc.filename2) if f is not None]
+    if isinstance(exc, FileExistsError) and paths and os.path.isfile(paths[0]):
+        cause = "a file is in the way of a directory"  # mkdir onto a file says only 'File exists'
+    if not paths:
+        return cause.replace("\n", " ")
+    return (" -> ".join(paths) + f": {cause}").replace("\n", " ")
 
 
 if __name__ == "__main__":  # pragma: no cover

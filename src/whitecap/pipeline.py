@@ -106,6 +106,10 @@ def run(
         console.rule(f"[bold]stage {k}/{len(stages)}: {stage}")
         if stage == "simulate":
             state = _simulation_state(out, nframes)
+            if state != "new":  # continuing a run of another scene would mix two simulations
+                from .sim.driver import refuse_changed_scene
+
+                refuse_changed_scene(sc, out)
             if state == "done":
                 console.print(f"simulate: all {nframes} frames already in {out}")
             else:

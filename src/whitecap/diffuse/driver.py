@@ -14,6 +14,8 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,7 @@ import numpy as np
 from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
+from ..io.lock import run_lock
 from ..io.run import RunInfo, frame_name
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
@@ -133,6 +136,16 @@ def _input_frames(src: Path) -> tuple[list[tuple[int, Path]], RunInfo | None, di
     return files, None, known
 
 
+def _first_particles(files: list[tuple[int, Path]], first: ParticleFrame, up: str) -> np.ndarray | None:
+    """Positions of the first frame that has particles (None when every frame is empty)."""
+    for k, (_, path) in enumerate(files):
+        fr = first if k == 0 else read(path, up=up)
+        if len(fr):
+            fr.check_finite()
+            return fr.positions
+    return None
+
+
 def postprocess(
     src: str | Path,
     out: str | Path | None = None,
@@ -187,22 +200,46 @@ def postprocess(
         raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
 
     src_is_run = info is not None
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "foam"):
+        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress)
+
+
+def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
+    """Identity of a foreign sequence: its files' names, sizes and modification times."""
+    stats = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for _, path in files]
+    return hashlib.sha256(json.dumps([up, stats]).encode()).hexdigest()[:16]
+
+
+def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
+                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool) -> RunInfo:
+    src_is_run = info is not None
+    if src_is_run:  # read again under the lock: what is current cannot change from here on
+        info = RunInfo.load(src)
+        files = [(i, src / rel) for i, rel in info.files("fluid")]
     first = read(files[0][1], **({"up": up} if info is None else {}))
     if first.velocities is None:
         raise InputError(f"{files[0][1]}: missing array 'velocity'")
     if info is None:
-        lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
-        hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
+        if "lower" in known and "upper" in known:
+            lo, hi = known["lower"], known["upper"]
+        else:  # the first frame with particles, grown by half its extent
+            pts = _first_particles(files, first, up)
+            if pts is None:
+                raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
+                                 "make diffuse particles from")
+            lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
+            hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
         info = RunInfo(
             particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
             particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
             domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
             extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
         )
+        info.simulation = _source_identity(files, up)
     # Results for a whitecap run go into that run; anywhere else the fluid
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
-    out.mkdir(parents=True, exist_ok=True)
     stage = FoamStage(p, seed, verbose=True, obstacles=grids)
     stage.start(info)
     bar = progress(disable=not show_progress)

@@ -40,11 +40,12 @@ class SceneHandles:
 
 
 # ---------------------------------------------------------------------------- meshes
-def read_mesh_ply(path: Path):
-    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a contract mesh PLY."""
-    from ..io.mesh_ply import read_mesh_ply as read_surface
+def read_surface(path: Path):
+    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
+    registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
+    from ..io.mesh import read_mesh
 
-    m = read_surface(path)
+    m = read_mesh(path)
     return m.vertices, m.faces, m.arrays.get("velocity")
 
 
@@ -458,7 +459,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     files = frame["files"]
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
-        verts, faces, vel = read_mesh_ply(run_dir / files["mesh"])
+        verts, faces, vel = read_surface(run_dir / files["mesh"])
         fill_mesh(h.fluid.data, verts, faces, vel)
         stats["triangles"] = len(faces)
     if "diffuse" in files:

@@ -47,7 +47,7 @@ from .grid import F1, F3, I1
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
-SDF_CACHE_VERSION = 1
+SDF_CACHE_VERSION = 2  # 2: meshes with inconsistent winding are refused or repaired
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # Width of the contact band of the velocity response, × r: a particle counts as touching
 # while sdf < r + CONTACT_BAND·r. The position projection leaves particles at sdf = r
@@ -65,11 +65,16 @@ def load_mesh(path: Path, repair: bool = False):
     if not path.is_file():
         raise InputError(f"{path}: obstacle mesh file not found")
     try:
-        m = trimesh.load(str(path), force="mesh", process=True)
+        m = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:
         raise InputError(f"{path}: not a readable mesh ({exc})") from None
     if m is None or len(m.faces) == 0:
         raise InputError(f"{path}: the mesh is empty (no triangles)")
+    bad = ~np.isfinite(np.asarray(m.vertices)).all(axis=1)
+    if bad.any():  # processing would drop them and report the hole they leave
+        raise InputError(f"{path}: {int(bad.sum())} vertices are NaN or infinite (the first is vertex "
+                         f"{int(np.argmax(bad)) + 1})")
+    m.process()  # merge duplicate vertices, as a loader with process=True does
     if not m.is_watertight:
         if repair:
             trimesh.repair.fill_holes(m)
@@ -79,7 +84,17 @@ def load_mesh(path: Path, repair: bool = False):
             open_edges = len(trimesh.grouping.group_rows(m.edges_sorted, require_count=1))
             hint = "" if repair else "; set repair = true to try to close it"
             raise InputError(f"{path}: mesh is not watertight: {open_edges} open edges{hint}")
-    if m.volume < 0:
+    if not m.is_winding_consistent:
+        # Faces wound against their neighbours make the signed distance flip sign across
+        # them: the obstacle would hold water inside and push it away outside.
+        fixed = m.copy()
+        trimesh.repair.fix_normals(fixed)  # consistent winding, outward (positive volume)
+        flipped = int((np.asarray(fixed.faces) != np.asarray(m.faces)).any(axis=1).sum())
+        if not repair:
+            raise InputError(f"{path}: inconsistent winding: {flipped} of {len(m.faces)} faces are wound "
+                             "against their neighbours; set repair = true to reorient them")
+        m = fixed
+    if m.volume < 0:  # consistently inside out: turn it outward
         m.invert()
     return m
 

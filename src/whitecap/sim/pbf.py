@@ -264,17 +264,22 @@ def max_speed_and_nans(n: ti.i32, x: F3, v: F3) -> ti.math.vec2:
 
 
 # ============================================================================ setup
+def block_lattice(scene: Scene, b) -> np.ndarray:
+    """Lattice sites (spacing 2r, one radius in from the faces) of one fluid block, float64."""
+    r = scene.solver.particle_radius
+    lo, hi = b.bounds()
+    axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, 2.0 * r, dtype=np.float64) for a in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    if b.shape == "sphere":
+        g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+    return g
+
+
 def lattice_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """Positions and velocities of the initial fluid: a cubic lattice of spacing 2r."""
-    r = scene.solver.particle_radius
-    d = 2.0 * r
     pos, vel = [], []
     for b in scene.fluid:
-        lo, hi = b.bounds()
-        axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, d, dtype=np.float64) for a in range(3)]
-        g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        if b.shape == "sphere":
-            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+        g = block_lattice(scene, b)
         pos.append(g)
         vel.append(np.broadcast_to(np.asarray(b.velocity, np.float64), g.shape))
     if not pos:
@@ -510,8 +515,9 @@ class PBFSolver:
                 )
                 apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
             # Colliders project at the start of each iteration (fused with their
-            # density map, see boundary_density) and once more here, so no
-            # particle ends an iteration inside an obstacle.
+            # density map, see boundary_density) and once more here: the last
+            # Δp pushes particles back inside the contact distance r, and
+            # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
             for c in self.colliders:
                 c.project(self)
         with timer("pbf.velocity"):

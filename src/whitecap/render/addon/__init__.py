@@ -65,15 +65,22 @@ def read_vtk_legacy(path):
         pos = end + 1
         return line
 
+    def truncated(got, count):
+        return ValueError(f"{path}: the file ends after {got} of {count} values (truncated?)")
+
     def read_values(count, typ):
         nonlocal pos
         if binary:
             fmt, size = sizes.get(typ.lower(), (">f", 4))
-            vals = struct.unpack(">" + fmt[1] * count, data[pos:pos + size * count])
+            chunk = data[pos:pos + size * count]
+            if len(chunk) < size * count:
+                raise truncated(len(chunk) // size, count)
             pos += size * count
-            return list(vals)
+            return list(struct.unpack(">" + fmt[1] * count, chunk))
         vals = []
         while len(vals) < count:
+            if pos >= len(data):  # without this, a truncated file loops here for ever
+                raise truncated(len(vals), count)
             vals += [float(t) for t in next_line().split()]
         return vals
 
