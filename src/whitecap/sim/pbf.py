@@ -37,7 +37,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
-from .grid import F1, F3, I1, I2, NeighborGrid, grid_spec
+from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
@@ -261,18 +261,6 @@ def max_speed_and_nans(n: ti.i32, x: F3, v: F3) -> ti.math.vec2:
         else:
             ti.atomic_max(vmax, s)
     return ti.math.vec2(vmax, bad)
-
-
-@ti.kernel
-def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
-    for k in range(n):
-        dst[k] = src[order[k]]
-
-
-@ti.kernel
-def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
-    for k in range(n):
-        dst[k] = src[order[k]]
 
 
 # ============================================================================ setup
