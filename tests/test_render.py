@@ -371,3 +371,15 @@ def test_motion_blur_follows_the_vertex_velocity_attribute(meshed_run, tmp_path)
     s = blender(BLUR, meshed_run / "render" / "scene.blend", tmp_path)
     # measured: blurred 3.5e-3, unblurred 6e-6 (mean absolute change of linear RGB)
     assert s["blurred"] > 1e-3 and s["blurred"] > 50 * s["unblurred"], s
+
+
+def test_addon_copy_of_the_velocity_names_matches_whitecap():
+    # The add-on ships alone (no whitecap inside Blender), so it carries a copy.
+    import ast
+
+    from whitecap.io.registry import VELOCITY_NAMES
+
+    src = (Path(__file__).parents[1] / "src/whitecap/render/addon/__init__.py").read_text()
+    copies = [ast.literal_eval(n.value) for n in ast.parse(src).body
+              if isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "VELOCITY_NAMES" for t in n.targets)]
+    assert copies == [VELOCITY_NAMES]

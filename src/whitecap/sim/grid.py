@@ -120,9 +120,17 @@ def _sort_cells(ncells: ti.i32, start: I1, order: I1):
 
 
 @ti.kernel
-def _gather_sorted(n: ti.i32, order: I1, x: F3, x_sorted: F3):
-    for s in range(n):
-        x_sorted[s] = x[order[s]]
+def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
+    """dst[k] = src[order[k]]: a per-particle array put into cell order."""
+    for k in range(n):
+        dst[k] = src[order[k]]
+
+
+@ti.kernel
+def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
+    """dst[k] = src[order[k]] for an integer array."""
+    for k in range(n):
+        dst[k] = src[order[k]]
 
 
 @ti.func
@@ -256,7 +264,7 @@ class NeighborGrid:
     def build(self, x, n: int) -> int:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
         self.sort(x, n)
-        _gather_sorted(n, self.order, x, self.x_sorted)
+        gather_vec3(n, self.order, x, self.x_sorted)
         self.overflow = int(
             _build_lists(n, *self.query_args(), self.h, self.order, self.nb_count, self.nb)
         )

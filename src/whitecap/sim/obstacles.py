@@ -277,6 +277,9 @@ def obstacle_project_and_density_map(
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
                 if d < h:
                     gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
+                    # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
+                    # table size is a compile-time constant) rounds differently, and runs with
+                    # obstacles would no longer give the bytes they gave before.
                     dd = ti.max(d, 0.0)
                     t = ti.math.clamp(dd / h, 0.0, 1.0) * (psi_table.shape[0] - 1)
                     k = ti.min(ti.cast(ti.floor(t), ti.i32), psi_table.shape[0] - 2)

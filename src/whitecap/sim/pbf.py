@@ -37,7 +37,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
-from .grid import F1, F3, I1, I2, NeighborGrid, grid_spec
+from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
@@ -263,18 +263,6 @@ def max_speed_and_nans(n: ti.i32, x: F3, v: F3) -> ti.math.vec2:
     return ti.math.vec2(vmax, bad)
 
 
-@ti.kernel
-def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
-    for k in range(n):
-        dst[k] = src[order[k]]
-
-
-@ti.kernel
-def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
-    for k in range(n):
-        dst[k] = src[order[k]]
-
-
 # ============================================================================ setup
 def block_lattice(scene: Scene, b) -> np.ndarray:
     """Lattice sites (spacing 2r, one radius in from the faces) of one fluid block, float64."""
@@ -336,9 +324,10 @@ def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
 
 def available_memory() -> int:
     try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 1 << 62
