@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render
+from ..config import Render, obstacle_transform
 from ..errors import InputError
-from ..io import read
+from ..io import read, read_mesh
+from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
 from . import stage
 
-TYPE_NAMES = ("spray", "foam", "bubbles")
 
 
 @dataclass
@@ -41,11 +41,10 @@ class SceneHandles:
 
 
 # ---------------------------------------------------------------------------- meshes
-def read_mesh_ply(path: Path):
-    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a contract mesh PLY."""
-    from ..io.mesh_ply import read_mesh_ply as read_surface
-
-    m = read_surface(path)
+def read_surface(path: Path):
+    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
+    registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
+    m = read_mesh(path)
     return m.vertices, m.faces, m.arrays.get("velocity")
 
 
@@ -253,14 +252,40 @@ def cycles_device(want: str) -> str:
     return "CPU"
 
 
-def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: int, last: int) -> SceneHandles:
+def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
+                run_dir: Path | None = None) -> SceneHandles:
+    """A fresh Blender scene for frames first..last of a run: Cycles settings, the
+    stage (sky or HDRI and sun, ground, container: render/stage.py), the fluid and
+    diffuse objects (filled per frame), obstacles, the camera path and compositing.
+    ``run_dir`` lets the camera frame the fluid's bounds over the run and resolves
+    relative image paths (without it the camera frames the domain)."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
+    _configure_cycles(sc, cfg, quality == "preview")
+    _configure_output(sc, info.frame_rate, first, last)
+    stage.set_exposure(sc, cfg)
+    stage.add_environment(sc, cfg, stage.environment_path(cfg, info, run_dir or Path(".")))
+    if cfg.ground:
+        stage.add_ground(sc, cfg, info)
+    stage.add_container(sc, cfg, info)
+    water = water_material(cfg)
+    fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
+    fluid.data.materials.append(water)
+    sc.collection.objects.link(fluid)
+    diffuse = _add_diffuse_objects(sc, cfg, info)
+    for k, entry in enumerate(info.obstacles):
+        _add_obstacle(entry, k, info, run_dir)
+    cam = _add_camera(sc, cfg, info, first, last, run_dir)
+    _compositing(sc, cfg)
+    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+
+
+def _configure_cycles(sc, cfg: Render, preview: bool) -> None:
+    """Cycles on the chosen device; resolution, samples, bounces and denoising for the quality."""
     sc.render.engine = "CYCLES"
     sc.cycles.device = cycles_device(cfg.device)
-    preview = quality == "preview"
     w, h = cfg.preview_resolution if preview else cfg.resolution
     sc.render.resolution_x, sc.render.resolution_y = int(w), int(h)
     sc.render.resolution_percentage = 100
@@ -287,37 +312,39 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
         sc.cycles.denoising_quality = "FAST"
     sc.render.use_motion_blur = bool(cfg.motion_blur)
     sc.render.motion_blur_shutter = cfg.shutter
-    fps = info.frame_rate
+
+
+def _configure_output(sc, fps: float, first: int, last: int) -> None:
+    """Frame rate (fractional rates through fps_base), frame range and PNG output."""
     sc.render.fps = max(1, int(round(fps)))
     sc.render.fps_base = sc.render.fps / fps
     sc.frame_start, sc.frame_end = first, last
     sc.render.image_settings.file_format = "PNG"
     sc.render.film_transparent = False
-    stage.set_exposure(sc, cfg)
-    stage.add_environment(sc, cfg, stage.environment_path(cfg, info, run_dir))
-    if cfg.ground:
-        stage.add_ground(sc, cfg, info)
-    stage.add_container(sc, cfg, info)
 
-    water = water_material(cfg)
-    fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
-    fluid.data.materials.append(water)
-    sc.collection.objects.link(fluid)
+
+def _add_diffuse_objects(sc, cfg: Render, info: RunInfo) -> dict:
+    """One point-cloud object per diffuse type, drawn as spheres; type code -> object."""
+    import bpy
 
     r = info.particle_radius
     rmin, rmax = cfg.foam_radius if cfg.foam_radius else (0.4 * r, 0.9 * r)
     diffuse = {}
     mats = (spray_material(), foam_material(), bubble_material())
     scale = (0.6, 1.0, 0.8)
-    for t, name in enumerate(TYPE_NAMES):
+    for t, name in enumerate(COUNT_NAMES):
         obj = bpy.data.objects.new(name, bpy.data.meshes.new(f"{name}_empty"))
         mod = obj.modifiers.new(name, "NODES")
         mod.node_group = sphere_nodes(f"{name}_spheres", rmin * scale[t], rmax * scale[t], mats[t], seed=t + 1)
         sc.collection.objects.link(obj)
         diffuse[t] = obj
+    return diffuse
 
-    for k, entry in enumerate(info.obstacles):
-        _add_obstacle(entry, k, info, run_dir)
+
+def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: Path | None):
+    """The camera, keyframed from start to end (and around the orbit) over first..last;
+    without camera keys it frames the fluid and the obstacles (stage.camera_path)."""
+    import bpy
 
     cam_data = bpy.data.cameras.new("camera")
     cam_data.lens = cfg.lens
@@ -325,7 +352,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     sc.collection.objects.link(cam)
     sc.camera = cam
     bounds = stage.scene_bounds(run_dir, info, [o for o in sc.objects if o.name.startswith("obstacle_")])
-    start, end, target = stage.camera_path(cfg, info, bounds, aspect=w / h)
+    start, end, target = stage.camera_path(cfg, info, bounds, aspect=sc.render.resolution_x / sc.render.resolution_y)
     cam_data.clip_start = 1e-3 * float(np.linalg.norm(np.subtract(start, target)))
     cam_data.clip_end = 1e3 * float(np.linalg.norm(np.subtract(start, target)))
     stage.depth_of_field(cam, cfg, _look_at(cam, target))
@@ -339,11 +366,10 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
             p = np.array(target) + rot @ d
         cam.location = p.tolist()
         cam.keyframe_insert("location", frame=frame)
-    _compositing(sc, cfg)
-    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+    return cam
 
 
-def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path) -> None:
+def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None) -> None:
     """The high-poly render mesh of an obstacle, with the scene's transform."""
     import bpy
     import trimesh
@@ -354,15 +380,10 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path) -> None:
     if not path.is_file():
         return
     m = trimesh.load(str(path), force="mesh")
-    T = trimesh.transformations
-    M = T.translation_matrix(entry.get("translate", [0, 0, 0]))
-    rx, ry, rz = [math.radians(a) for a in entry.get("rotate", [0, 0, 0])]
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    S = T.scale_matrix(entry.get("scale", 1.0))
-    m.apply_transform(T.concatenate_matrices(M, R, S))
+    m.apply_transform(obstacle_transform(entry))
     obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
     obj.data.materials.append(obstacle_material(entry))
-    stage.apply_texture(obj, m, entry, k, info, run_dir)
+    stage.apply_texture(obj, m, entry, k, info, run_dir or Path("."))
     bpy.context.scene.collection.objects.link(obj)
 
 
@@ -396,7 +417,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     files = frame["files"]
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
-        verts, faces, vel = read_mesh_ply(run_dir / files["mesh"])
+        verts, faces, vel = read_surface(run_dir / files["mesh"])
         fill_mesh(h.fluid.data, verts, faces, vel)
         stats["triangles"] = len(faces)
     if "diffuse" in files:

@@ -105,7 +105,7 @@ def fluid_bounds(run_dir: Path, info: RunInfo) -> tuple[np.ndarray, np.ndarray] 
     """Bounds of the fluid over the run: the union of per-frame bounds of up to
     FRAMING_SAMPLES meshes (or particle files where there are no meshes), each
     trimmed by FRAMING_TRIM on both sides. None when no frame has any fluid."""
-    from ..io import read
+    from ..io import read, read_mesh
 
     kind = "mesh" if info.files("mesh") else "fluid"
     files = info.files(kind)
@@ -116,8 +116,6 @@ def fluid_bounds(run_dir: Path, info: RunInfo) -> tuple[np.ndarray, np.ndarray] 
     for k in pick:
         path = run_dir / files[k][1]
         if kind == "mesh":
-            from ..io.mesh import read_mesh
-
             pts = read_mesh(path).vertices
         else:
             pts = read(path).positions
@@ -355,9 +353,9 @@ def _nice_tile(x: float) -> float:
     return min((m * 10.0**k for m in (1, 2, 5, 10)), key=lambda t: abs(math.log(t / x)))
 
 
-def scene_bounds(run_dir: Path, info: RunInfo, obstacles=()) -> tuple[np.ndarray, np.ndarray]:
+def scene_bounds(run_dir: Path | None, info: RunInfo, obstacles=()) -> tuple[np.ndarray, np.ndarray]:
     """What the default camera frames: the fluid over the run plus the obstacle objects' boxes."""
-    b = fluid_bounds(run_dir, info)
+    b = fluid_bounds(run_dir, info) if run_dir is not None else None
     lo, hi = (b if b is not None else (np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)))
     for obj in obstacles:
         from mathutils import Vector
