@@ -266,7 +266,7 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     _configure_cycles(sc, cfg, quality == "preview")
     _configure_output(sc, info.frame_rate, first, last)
     stage.set_exposure(sc, cfg)
-    stage.add_environment(sc, cfg, stage.environment_path(cfg, info, run_dir or Path(".")))
+    stage.add_environment(sc, cfg, stage.environment_path(cfg, info, run_dir or Path(".")), quality == "preview")
     if cfg.ground:
         stage.add_ground(sc, cfg, info)
     stage.add_container(sc, cfg, info)
