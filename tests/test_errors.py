@@ -7,6 +7,8 @@ import errno
 import os
 import shutil
 
+import pytest
+
 from whitecap.cli import main
 
 
@@ -228,14 +230,12 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def test_mesh_workers_die_with_a_killed_parent(tmp_path):
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGTERM"])
+def test_mesh_workers_die_with_a_killed_parent(tmp_path, sig):
     import signal
     import subprocess
     import sys
     import time
-
-    import numpy as np
-    import pytest
 
     if not os.path.isdir("/proc"):
         pytest.skip("needs /proc to find the worker processes")
@@ -257,7 +257,7 @@ def test_mesh_workers_die_with_a_killed_parent(tmp_path):
                 break
             time.sleep(0.1)
         assert parent.poll() is None and len(workers) == 2, "the workers never started, or meshing ended too soon"
-        os.kill(parent.pid, signal.SIGKILL)
+        os.kill(parent.pid, getattr(signal, sig))
         parent.wait()
         deadline = time.monotonic() + 30  # generous: the watchdog looks every half second
         while time.monotonic() < deadline and any(map(_alive, workers)):
@@ -269,4 +269,47 @@ def test_mesh_workers_die_with_a_killed_parent(tmp_path):
             try:
                 os.kill(p, signal.SIGKILL)
             except OSError:
+                pass
+
+
+WATCHED = r"""
+import sys, time
+import whitecap.workers as w
+w.PR_SET_PDEATHSIG = 0  # an invalid prctl option: only the watchdog thread is left
+w.die_with_parent(int(sys.argv[1]))
+print("ready", flush=True)
+time.sleep(300)
+"""
+STARTER = r"""
+import os, subprocess, sys, time
+child = subprocess.Popen([sys.executable, "-c", sys.argv[1], str(os.getpid())])
+print(child.pid, flush=True)
+time.sleep(300)
+"""
+
+
+def test_the_parent_watchdog_alone_ends_an_orphan(tmp_path):
+    # Where the kernel cannot be asked (not Linux), the watchdog thread must do it.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    starter = subprocess.Popen([sys.executable, "-c", STARTER, WATCHED], stdout=subprocess.PIPE, text=True, env=env)
+    child = None
+    try:
+        child = int(starter.stdout.readline())
+        assert starter.stdout.readline().strip() == "ready"
+        os.kill(starter.pid, signal.SIGKILL)
+        starter.wait()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and _alive(child):
+            time.sleep(0.1)
+        assert not _alive(child), "the orphan outlived its parent"
+    finally:
+        for p in (starter.pid, child):
+            try:
+                os.kill(p, signal.SIGKILL)
+            except (OSError, TypeError):
                 pass

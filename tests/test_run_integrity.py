@@ -172,7 +172,7 @@ def test_force_with_a_failing_setup_keeps_the_old_run(tmp_path, monkeypatch, bad
     before = _snapshot(run)
     if bad == "no fluid":  # a block thinner than one particle spacing
         d = tiny_scene_dict(fluid=[{"lower": [0, 0, 0], "upper": [0.2, 0.2, 0.005]}], foam={"enabled": False})
-        match = "no fluid"
+        match = "holds no particle"
     elif bad == "too many particles":
         import whitecap.sim.pbf as pbf
 
@@ -188,7 +188,7 @@ def test_force_with_a_failing_setup_keeps_the_old_run(tmp_path, monkeypatch, bad
 
 def test_failing_setup_in_a_new_directory_leaves_nothing(tmp_path):
     d = tiny_scene_dict(fluid=[{"lower": [0, 0, 0], "upper": [0.2, 0.2, 0.005]}], foam={"enabled": False})
-    with pytest.raises(WhitecapError, match="no fluid"):
+    with pytest.raises(WhitecapError, match="holds no particle"):
         _sim(d, tmp_path / "new")
     assert not (tmp_path / "new").exists()
 

@@ -66,10 +66,14 @@ def _add_foam(sub) -> None:
         "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
         "diffuse/counts.csv.",
     )
-    p.add_argument("input", help="run directory, sequence directory or glob ('frames/*.vtk')")
+    p.add_argument("input", nargs="?", help="run directory, sequence directory or glob ('frames/*.vtk'); "
+                   "may be left out when --params names it ([PATHS] InputDataPath)")
     p.add_argument("--out", "-o", help="output run directory (default: the input run itself)")
-    p.add_argument("--preset", choices=choices(Foam, "preset"), help="parameter preset")
-    p.add_argument("--params", help="DualSPHysics DiffuseCalculator .ini file with the parameters")
+    p.add_argument("--preset", choices=choices(Foam, "preset"),
+                   help="parameter preset (splishsplash: FoamGenerator's default, automatic mode)")
+    p.add_argument("--params", help="parameter .ini: the VisualSPHysics foam simulator's file DualSPHysics users have "
+                   "(its [PATHS], [TIMESTEPS] and [DOMAIN] give the job: `whitecap foam --params FILE` runs it), "
+                   "or DiffuseCalculator-style keys (TaMin, KTa...)")
     p.add_argument("--case", help="DualSPHysics case XML (spacing, mass, time step, domain)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input (y for Y-up solvers)")
     p.add_argument("--dt", type=float, help="time between frames [s] when the input does not say")
@@ -83,7 +87,7 @@ def _cmd_foam(a) -> int:
 
     info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
                          radius=a.radius, seed=a.seed)
-    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {a.out or a.input}")
+    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {info.extra.get('out', a.out or a.input)}")
     return 0
 
 

@@ -160,7 +160,7 @@ class Foam(_Section):
     """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
-    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "auto"] = Field(
+    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-manual", "auto"] = Field(
         "ihmsen2012",
         description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
         "thresholds from percentiles of each potential over the first frame with motion",

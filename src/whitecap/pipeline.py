@@ -199,7 +199,7 @@ def blender_addon(out: str | Path | None = None) -> Path:
 
 # ============================================================================ foam (post-processing)
 def foam(
-    input: str | Path,
+    input: str | Path | None = None,
     out: str | Path | None = None,
     preset: str | None = None,
     ini: str | Path | None = None,
@@ -210,11 +210,24 @@ def foam(
     seed: int | None = None,
     show_progress: bool = True,
 ) -> RunInfo:
-    """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`)."""
+    """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
+
+    With ``ini`` (a parameter file), ``input`` may be left out when the file names
+    the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
+    :func:`whitecap.diffuse.postprocess_params_file`.
+    """
+    from .errors import InputError
+
+    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress)
+    if ini is not None:
+        from .diffuse import postprocess_params_file
+
+        return postprocess_params_file(ini, src=input, out=out, case=case, **kw)
+    if input is None:
+        raise InputError("foam: give the INPUT sequence, or --params FILE naming it ([PATHS] InputDataPath)")
     from .diffuse import postprocess
 
-    return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
-                       show_progress=show_progress)
+    return postprocess(input, out=out, case=case, **kw)
 
 
 # ============================================================================ view

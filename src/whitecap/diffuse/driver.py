@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +32,7 @@ from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
-__all__ = ["simulation_hook", "postprocess", "FoamGenerator", "FoamParams", "resolve"]
+__all__ = ["simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams", "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
@@ -107,15 +109,47 @@ def obstacle_grids(scene: Scene) -> list:
 
 def simulation_hook(scene: Scene) -> FoamStage:
     """The frame hook `simulate` uses when [foam] is enabled."""
-    return FoamStage(resolve(scene.foam), scene.seed, obstacles=obstacle_grids(scene))
+    p = resolve(scene.foam)
+    if p.model == "foamgenerator":
+        raise InputError(
+            f"foam.preset: {scene.foam.preset!r} is FoamGenerator's automatic mode, whose limits come from the whole "
+            "sequence; simulate with [foam] enabled = false, then run `whitecap foam RUN --preset splishsplash` "
+            "(or use 'splishsplash-manual' in the simulation)"
+        )
+    return FoamStage(p, scene.seed, obstacles=obstacle_grids(scene))
 
 
 # ============================================================================ post-processing
-def _input_frames(src: Path) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
-    """Frames of the input plus what is known about the run (radius, dt, domain...)."""
+FOAMGENERATOR_CAPACITY = 100  # diffuse particles per fluid particle the 'splishsplash' preset makes room for
+
+
+def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: str | None, show_progress: bool):
+    """FoamGenerator's pass 1: the clamping limits from the per-frame maxima over the whole input."""
+    from . import splishsplash as SP
+
+    maxima = []
+    bar = progress(disable=not show_progress)
+    with bar:
+        task = bar.add_task("foam limits", total=len(files), info="")
+        for _, path in files:
+            fr = first if path == files[0][1] else read(path, **({"up": up} if up else {}))
+            if fr.velocities is None:
+                raise InputError(f"{path}: missing array 'velocity'")
+            maxima.append(SP.frame_maxima(gen, fr))
+            bar.update(task, advance=1)
+    tau = SP.limits_from_maxima(np.array(maxima), gen.r)
+    console.print(
+        f"foam limits (FoamGenerator automatic mode, mean of {len(files)} per-frame maxima): trapped air "
+        f"{tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest {tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J"
+    )
+    return tau
+
+
+def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+    """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...)."""
     from ..io.sequence import find_sequence
 
-    if src.is_dir() and (src / "run.json").exists():
+    if frames is None and src.is_dir() and (src / "run.json").exists():
         info = RunInfo.load(src)
         files = [(i, src / rel) for i, rel in info.files("fluid")]
         if not files:
@@ -123,7 +157,7 @@ def _input_frames(src: Path) -> tuple[list[tuple[int, Path]], RunInfo | None, di
         return files, info, {}
     if not src.exists() and not any(c in str(src) for c in "*?["):
         raise InputError(f"{src}: no such file or directory")
-    files = find_sequence(src)
+    files = list(frames) if frames is not None else find_sequence(src)
     known: dict = {}
     folder = src if src.is_dir() else src.parent
     xmls = sorted(folder.glob("*.xml")) if folder.is_dir() else []
@@ -158,8 +192,14 @@ def postprocess(
     seed: int | None = None,
     case: str | Path | None = None,
     show_progress: bool = True,
+    frames: list[tuple[int, Path]] | None = None,
+    domain: tuple | None = None,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
+
+    ``frames`` ((index, path) pairs) replaces the files found at ``src``, and
+    ``domain`` ((lower, upper) [m]) the domain of a foreign sequence: diffuse
+    particles outside it are removed.
 
     For a whitecap run, the run's own [foam] settings and seed are used unless
     overridden, and results land in the run itself (``out`` defaults to it).
@@ -167,13 +207,15 @@ def postprocess(
     that `whitecap mesh`, `view` and `render` can continue from there.
     """
     src = Path(src)
-    files, info, known = _input_frames(src)
+    files, info, known = _input_frames(src, frames)
     if case is not None:
         from ..io.dualsphysics import read_case
 
         c = read_case(case)
         known.update(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
-                     lower=c.lower, upper=c.upper)
+                     lower=c.lower, upper=c.upper, case=str(case))
+    if domain is not None:
+        known.update(lower=list(map(float, domain[0])), upper=list(map(float, domain[1])))
     foam_cfg = Foam()
     run_seed = 0
     grids: list = []
@@ -189,7 +231,8 @@ def postprocess(
     elif out is None:
         raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
     out = Path(out)
-    p = params or resolve(foam_cfg, ini=ini, preset=preset)
+    p = params or resolve(foam_cfg, ini=ini, preset=preset,
+                          particle_mass=info.particle_mass if info is not None else known.get("mass"))
     seed = run_seed if seed is None else seed
 
     frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
@@ -240,8 +283,15 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     # Results for a whitecap run go into that run; anywhere else the fluid
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
+    if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
+        p = replace(p, slots_per_particle=max(p.slots_per_particle, math.ceil(2 * p.k_ta * frame_dt + 0.5)),
+                    max_particles=max(p.max_particles, FOAMGENERATOR_CAPACITY * len(first)))
     stage = FoamStage(p, seed, verbose=True, obstacles=grids)
     stage.start(info)
+    if p.model == "foamgenerator":
+        tau = _foamgenerator_limits(stage.gen, files, first, up if not src_is_run else None, show_progress)
+        stage.gen.state.tau = tau
+        info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     bar = progress(disable=not show_progress)
     with bar:
         task = bar.add_task("foam", total=len(files), info="")
@@ -260,7 +310,90 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
             c = stage.gen.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
     info.save(out)
+    info.extra["out"] = str(out)  # for the caller's message; not saved
     stage.warn_if_empty()
     tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
     return info
+
+
+def postprocess_params_file(
+    ini: str | Path,
+    src: str | Path | None = None,
+    out: str | Path | None = None,
+    case: str | Path | None = None,
+    **kw,
+) -> RunInfo:
+    """`whitecap foam [INPUT] --params FILE`: what a parameter file describes, then :func:`postprocess`.
+
+    A VisualSPHysics foam .ini (the file DualSPHysics users have) also names the
+    job: input frames (InputDataPath, InputFilesPrefix, ZeroPadding and
+    [TIMESTEPS]), output folder (OutputDataPath), case XML (XmlFile) and a
+    custom domain. Arguments given here replace the file's.
+    """
+    from ..io.sequence import find_sequence
+    from .params import read_ini
+
+    f = read_ini(ini)
+    job = f.job
+    if job is None:
+        if src is None:
+            raise InputError(f"{f.path}: no [PATHS] InputDataPath; give the INPUT sequence as well")
+        return postprocess(src, out=out, ini=f, case=case, **kw)
+    if job.exclusion_zone:
+        raise InputError(f"{f.path}: [PATHS] ExclusionZoneFile = {job.exclusion_zone}: exclusion zones are not "
+                         "supported; leave it empty (a [DOMAIN] CustomDomain box is)")
+    frames = None
+    if src is None:
+        if job.input_dir is None:
+            raise InputError(f"{f.path}: [PATHS] InputDataPath: missing; set it or give the INPUT sequence")
+        if not job.input_dir.is_dir():
+            raise InputError(f"{f.path}: [PATHS] InputDataPath = {job.input_dir}: no such directory")
+        src = job.input_dir
+        if job.first is not None:
+            frames = _job_frames(f.path, job)
+        else:
+            pattern = job.input_dir / f"{job.prefix}{'[0-9]' * job.zero_padding}*.vtk"
+            frames = [(i, q) for i, q in find_sequence(pattern) if job.last is None or i <= job.last]
+    elif job.first is not None or job.last is not None:
+        src_p = Path(src)
+        if not (src_p.is_dir() and (src_p / "run.json").exists()):
+            lo, hi = job.first or 0, job.last if job.last is not None else float("inf")
+            frames = [(i, q) for i, q in find_sequence(src_p) if lo <= i <= hi]
+            if not frames:
+                raise InputError(f"{f.path}: [TIMESTEPS]: no frame of {src} lies in {lo}..{hi}")
+    if out is None:
+        if job.out is None:
+            raise InputError(f"{f.path}: [PATHS] OutputDataPath: missing; set it or pass --out")
+        out = job.out
+    if case is None and job.xml is not None:
+        if not job.xml.is_file():
+            raise InputError(f"{f.path}: [PATHS] XmlFile = {job.xml}: file not found")
+        case = job.xml
+    notes = [f"[OUTPUT] {', '.join(job.outputs)}"] if job.outputs else []
+    if job.out_prefix:
+        notes.append(f"[PATHS] FilesOutputPrefix = {job.out_prefix}")
+    if notes:
+        console.print(f"note: {f.path}: {'; '.join(notes)}: whitecap writes {out}/diffuse/diffuse_NNNNN.ply "
+                      f"(`whitecap export {out} --to vtk` for VTK)", soft_wrap=True)
+    return postprocess(src, out=out, ini=f, case=case, frames=frames, domain=job.domain, **kw)
+
+
+def _job_frames(path: Path, job) -> list[tuple[int, Path]]:
+    """Frames StartingTimeStep..EndingTimeStep; like the VisualSPHysics simulator, the run ends
+    at the first missing file (said once), and the first one must exist."""
+    first = job.frame_path(job.first)
+    if not first.is_file():
+        raise InputError(f"{path}: [TIMESTEPS] StartingTimeStep = {job.first}: {first} not found")
+    frames = []
+    i = job.first
+    while job.last is None or i <= job.last:
+        q = job.frame_path(i)
+        if not q.is_file():
+            if job.last is not None:
+                console.print(f"[yellow]warning:[/] {path}: [TIMESTEPS] EndingTimeStep = {job.last} but {q.name} "
+                              f"is missing; frames {job.first}..{i - 1} are used", soft_wrap=True)
+            break
+        frames.append((i, q))
+        i += 1
+    return frames

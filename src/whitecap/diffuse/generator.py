@@ -28,6 +28,7 @@ from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
 from ..timing import timer
 from . import kernels as K
+from . import splishsplash as SP
 from .params import FoamParams
 
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
@@ -179,7 +180,8 @@ class FoamGenerator:
         life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
         kind = ti.ndarray(ti.i32, nd)
         K.advect_diffuse(
-            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind
+            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
+            int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
         )
         k = keep.to_numpy()[:nd].astype(bool)
         self._old_kind = kind.to_numpy()[:nd][k].astype(np.uint8)
@@ -191,8 +193,13 @@ class FoamGenerator:
         m = max(n, 1)
         normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
         v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
-        K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-        K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
+        if p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
+            v_diff, crest, e_k = SP.frame_potentials(self, fx, fv, n)
+            vort.fill(0.0)
+            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
+        else:
+            K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+            K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
         if p.auto and st.tau is None:
             pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
             self._auto_thresholds(pots, np.linalg.norm(fluid.velocities, axis=1), index)
@@ -206,6 +213,7 @@ class FoamGenerator:
         lost = K.generate(
             n, fx, fv, fid, v_diff, crest, e_k, vort, tau, p.k_ta, p.k_wc, p.k_vo, p.lifetime_min, p.lifetime_max,
             p.lifetime_multiplier, self.r, dt, self.seed, index & 0xFFFFFFFF, S, ox, ov, ol, cnt,
+            int(p.model == "foamgenerator"),
         )
         # Slot s of particle i is valid when s < count[i]; only particles that generated are read back.
         counts = cnt.to_numpy()[:n]
@@ -214,7 +222,15 @@ class FoamGenerator:
             return z, z, np.zeros(0, np.float32), int(lost)
         rows = np.flatnonzero(counts)
         idx = (rows[:, None] * S + np.arange(S)[None, :])[np.arange(S)[None, :] < counts[rows, None]]
-        return ox.to_numpy()[idx], ov.to_numpy()[idx], ol.to_numpy()[idx], int(lost)
+        life = ol.to_numpy()[idx]
+        if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
+            tau = self.thresholds()
+            src = np.repeat(rows, counts[rows])
+            e = e_k.to_numpy()[:n][src].astype(np.float64)
+            i_k = (np.minimum(e, tau[5]) - np.minimum(e, tau[4])) / (tau[5] - tau[4])
+            x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
+            life = SP.lifetimes(x01, i_k, float(tau[5]), p.lifetime_min, p.lifetime_max)
+        return ox.to_numpy()[idx], ov.to_numpy()[idx], life, int(lost)
 
     def _compact(self, old, new, index) -> None:
         """(3) survivors first, then the new particles in slot order: a fixed order, no global counter."""
@@ -238,15 +254,17 @@ class FoamGenerator:
         st.velocities = np.concatenate([old[1], new_v]).astype(np.float32)
         st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
         st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
-        if self.obstacles and len(st.positions):
-            outside = np.ones(len(st.positions), bool)
+        if len(st.positions):
+            # Inside the domain and outside every obstacle; new particles born outside
+            # the domain go at once, as moved ones do in _advect.
+            keep = ((st.positions >= self.lo) & (st.positions <= self.hi)).all(axis=1)
             for g in self.obstacles:
-                outside &= g.sample(st.positions) > 0.0
-            if not outside.all():
+                keep &= g.sample(st.positions) > 0.0
+            if not keep.all():
                 n_old = len(old[0])
-                self._old_kind = self._old_kind[outside[:n_old]]
-                st.positions, st.velocities = st.positions[outside], st.velocities[outside]
-                st.lifetime, st.ids = st.lifetime[outside], st.ids[outside]
+                self._old_kind = self._old_kind[keep[:n_old]]
+                st.positions, st.velocities = st.positions[keep], st.velocities[keep]
+                st.lifetime, st.ids = st.lifetime[keep], st.ids[keep]
 
     def _classify(self, args) -> np.ndarray:
         """(4) spray / foam / bubble for output: survivors keep the type they moved as

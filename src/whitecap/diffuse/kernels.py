@@ -144,9 +144,11 @@ def generate(
     out_v: F3,
     out_life: F1,
     count: I1,
+    round_half_up: ti.i32,
 ) -> ti.i32:
     """n_d = I_k (k_ta I_ta + k_wc I_wc + k_vo I_vo) Δt new particles per fluid
-    particle (fraction rounded stochastically), each sampled uniformly in a
+    particle (fraction rounded stochastically, or to the nearest integer with
+    ``round_half_up`` as SPlisHSPlasH's FoamGenerator does), each sampled uniformly in a
     cylinder of radius r_V and height |Δt v_f| along v̂_f:
         r = r_V √X_r, θ = 2π X_θ, h = X_h |Δt v_f|,
         x_d = x_f + r cosθ e1' + r sinθ e2' + h v̂_f,  v_d = r cosθ e1' + r sinθ e2' + v_f.
@@ -161,7 +163,9 @@ def generate(
         nd = i_k * (k_ta * i_ta + k_wc * i_wc + k_vo * i_vo) * dt
         pid = ids[i]
         m = ti.cast(ti.floor(nd), ti.i32)
-        if rand01(seed, frame, pid, ti.u32(0xFFFF), ti.u32(0)) < nd - m:
+        if round_half_up:
+            m = ti.cast(ti.floor(nd + 0.5), ti.i32)
+        elif rand01(seed, frame, pid, ti.u32(0xFFFF), ti.u32(0)) < nd - m:
             m += 1
         if m > slots:
             lost += m - slots
@@ -194,6 +198,14 @@ def generate(
             out_life[k] = life
         count[i] = m
     return lost
+
+
+@ti.kernel
+def zero_below(n: ti.i32, nb_count: I1, min_count: ti.i32, a: F1):
+    """a_i = 0 where particle i has fewer than ``min_count`` neighbours."""
+    for i in range(n):
+        if nb_count[i] < min_count:
+            a[i] = 0.0
 
 
 @ti.func
@@ -256,10 +268,13 @@ def advect_diffuse(
     hi: vec3,
     keep: I1,
     kind: I1,
+    foam_keeps_velocity: ti.i32,
 ):
     """Classify by fluid-neighbour count and advect each type its own way:
     spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
-    velocity ṽ_f, its lifetime counting down; bubbles
+    velocity ṽ_f (moving with it; its own v is set to ṽ_f, or kept as it was with
+    ``foam_keeps_velocity``, as SPlisHSPlasH's FoamGenerator does, so foam that
+    turns into spray leaves with its earlier velocity), its lifetime counting down; bubbles
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
     that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
@@ -276,7 +291,8 @@ def advect_diffuse(
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:
-            vd[p] = vf
+            if not foam_keeps_velocity:
+                vd[p] = vf
             xd[p] += dt * vf
             life[p] -= dt
             if life[p] <= 0.0:

@@ -324,9 +324,10 @@ def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
 
 def available_memory() -> int:
     try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 1 << 62
