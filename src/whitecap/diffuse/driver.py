@@ -83,12 +83,22 @@ class FoamStage:
             if self.gen is not None:
                 self.gen.state = self._pending
 
+    def finish(self) -> None:
+        """Say the peak diffuse-to-fluid ratio reached (and the budget it aimed for)."""
+        if self.gen is not None and self.gen.state.counts:
+            console.print(self.gen.peak_report())
+
     def warn_if_empty(self) -> None:
         rows = self.gen.state.counts if self.gen else []
-        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
+        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0 and self.params.auto:
+            console.print(
+                "[yellow]warning:[/] no diffuse particles were generated: 'auto' found no water moving faster "
+                "than air entrainment needs (about 1 m/s, foam.ke_min). Set the thresholds to make some anyway."
+            )
+        elif rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
             console.print(
                 "[yellow]warning:[/] no diffuse particles were generated: the flow never exceeded the clamping "
-                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\"."
+                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\" (the default)."
             )
 
 
@@ -144,6 +154,7 @@ def postprocess(
     seed: int | None = None,
     case: str | Path | None = None,
     show_progress: bool = True,
+    look_ahead: bool = True,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
 
@@ -151,18 +162,46 @@ def postprocess(
     overridden, and results land in the run itself (``out`` defaults to it).
     For other sequences the fluid frames are converted into ``out/fluid`` so
     that `whitecap mesh`, `view` and `render` can continue from there.
+    'auto' reads frames sampled across the whole sequence first (``look_ahead``);
+    without it, it keeps the simulation's running estimate, as inside ``simulate``.
     """
     src = Path(src)
     files, info, known = _input_frames(src, up)
     if case is not None:
-        from ..io.dualsphysics import read_case
+        known.update(_case_values(case))
+    foam_cfg, run_seed, grids, out = _run_settings(src, info, out)
+    p = params or resolve(foam_cfg, ini=ini, preset=preset)
+    seed = run_seed if seed is None else seed
+    frame_dt, r = _frame_dt_and_radius(src, info, known, dt, radius)
+    reader = _Reader(files, up if info is None else None)
+    src_is_run = info is not None
+    if info is None:
+        info = _foreign_run_info(reader.first(), known, r, frame_dt, src, seed)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
+    stage.start(info)
+    if p.auto and look_ahead:
+        _calibrate(stage, reader, info, frame_dt, src_is_run)
+    # Results for a whitecap run go into that run; anywhere else the fluid
+    # frames are copied along so the output is a complete run directory.
+    convert = out.resolve() != src.resolve()
+    _run_frames(stage, reader, info, out, frame_dt, src_is_run, convert, show_progress)
+    info.save(out)
+    _report(stage)
+    return info
 
-        c = read_case(case)
-        known.update(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
-                     lower=c.lower, upper=c.upper)
-    foam_cfg = Foam()
-    run_seed = 0
-    grids: list = []
+
+def _case_values(case: str | Path) -> dict:
+    from ..io.dualsphysics import read_case
+
+    c = read_case(case)
+    return dict(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
+                lower=c.lower, upper=c.upper)
+
+
+def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list, Path]:
+    """A whitecap run's own [foam] section, seed and obstacles; where the results go."""
+    foam_cfg, run_seed, grids = Foam(), 0, []
     if info is not None:
         scene_file = src / "scene.toml"
         if scene_file.is_file():
@@ -174,45 +213,86 @@ def postprocess(
         out = Path(out) if out is not None else src
     elif out is None:
         raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
-    out = Path(out)
-    p = params or resolve(foam_cfg, ini=ini, preset=preset)
-    seed = run_seed if seed is None else seed
+    return foam_cfg, run_seed, grids, Path(out)
 
+
+def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radius) -> tuple[float, float]:
     frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
     if not frame_dt or frame_dt <= 0:
         raise InputError(f"{src}: the time between frames is unknown; pass --dt SECONDS")
     r = radius or (info.particle_radius if info else known.get("radius"))
     if not r or r <= 0:
         raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
+    return frame_dt, r
 
-    src_is_run = info is not None
-    first = read(files[0][1], **({"up": up} if info is None else {}))
-    if first.velocities is None:
-        raise InputError(f"{files[0][1]}: missing array 'velocity'")
-    if info is None:
-        lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
-        hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
-        info = RunInfo(
-            particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
-            particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
-            domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
-            extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
-        )
-    # Results for a whitecap run go into that run; anywhere else the fluid
-    # frames are copied along so the output is a complete run directory.
-    convert = out.resolve() != src.resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
-    stage.start(info)
+
+class _Reader:
+    """The input's frames, each checked for velocities; the first and the sampled ones are kept."""
+
+    def __init__(self, files: list[tuple[int, Path]], up: str | None):
+        self.files = files
+        self.kw = {"up": up} if up is not None else {}
+        self.cache: dict[int, ParticleFrame] = {}
+
+    def read(self, k: int, keep: bool = False) -> ParticleFrame:
+        if k in self.cache:
+            return self.cache.pop(k) if not keep else self.cache[k]
+        path = self.files[k][1]
+        fr = read(path, **self.kw)
+        if fr.velocities is None:
+            raise InputError(f"{path}: missing array 'velocity'")
+        fr.check_finite()
+        if keep:
+            self.cache[k] = fr
+        return fr
+
+    def first(self) -> ParticleFrame:
+        return self.read(0, keep=True)
+
+
+def _foreign_run_info(first: ParticleFrame, known: dict, r: float, frame_dt: float, src: Path, seed: int) -> RunInfo:
+    """A run.json for a sequence from another solver: the domain from its case file or the first frame."""
+    lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
+    hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
+    return RunInfo(
+        particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
+        particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
+        domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
+        extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
+    )
+
+
+def _frame_time(info: RunInfo, index: int, frame_dt: float, src_is_run: bool) -> float:
+    return info.frame(index)["time"] if src_is_run else index * frame_dt
+
+
+def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float, src_is_run: bool) -> None:
+    """'auto' from the whole sequence: potentials of frames sampled evenly across it."""
+    from .budget import SAMPLE_FRAMES
+
+    nf = len(reader.files)
+    picks = sorted(set(np.linspace(0, nf - 1, min(SAMPLE_FRAMES, nf)).round().astype(int).tolist()))
+    samples = []
+    for k in picks:
+        fr = reader.read(k, keep=k == 0)
+        fr.time = _frame_time(info, reader.files[k][0], frame_dt, src_is_run)
+        samples.append(fr)
+    times = np.array([_frame_time(info, i, frame_dt, src_is_run) for i, _ in reader.files], np.float64)
+    # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
+    n_s = np.array([len(f) for f in samples], np.float64)
+    n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
+    stage.gen.calibrate(samples, times, n_fluid, frame_dt)
+
+
+def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, src_is_run: bool,
+                convert: bool, show_progress: bool) -> None:
+    """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
     bar = progress(disable=not show_progress)
     with bar:
-        task = bar.add_task("foam", total=len(files), info="")
-        for index, path in files:
-            fr = first if path == files[0][1] else read(path, **({"up": up} if not src_is_run else {}))
-            if fr.velocities is None:
-                raise InputError(f"{path}: missing array 'velocity'")
-            fr.check_finite()
-            fr.time = info.frame(index)["time"] if src_is_run else index * frame_dt
+        task = bar.add_task("foam", total=len(reader.files), info="")
+        for k, (index, _) in enumerate(reader.files):
+            fr = reader.read(k)
+            fr.time = _frame_time(info, index, frame_dt, src_is_run)
             if convert:
                 rel = frame_name("fluid", index)
                 write(out / rel, fr)
@@ -221,8 +301,11 @@ def postprocess(
             info.set_file(index, "diffuse", rel, fr.time)
             c = stage.gen.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
-    info.save(out)
+
+
+def _report(stage: FoamStage) -> None:
     stage.warn_if_empty()
-    tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
+    stage.finish()
+    counts = stage.gen.state.counts
+    tot = np.array([r_[2:] for r_ in counts]).sum(0) if counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
-    return info
