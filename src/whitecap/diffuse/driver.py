@@ -268,10 +268,10 @@ def _frame_time(info: RunInfo, index: int, frame_dt: float, src_is_run: bool) ->
 
 def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float, src_is_run: bool) -> None:
     """'auto' from the whole sequence: potentials of frames sampled evenly across it."""
-    from .budget import SAMPLE_FRAMES
+    from .budget import sample_count
 
     nf = len(reader.files)
-    picks = sorted(set(np.linspace(0, nf - 1, min(SAMPLE_FRAMES, nf)).round().astype(int).tolist()))
+    picks = sorted(set(np.linspace(0, nf - 1, sample_count(nf)).round().astype(int).tolist()))
     samples = []
     for k in picks:
         fr = reader.read(k, keep=k == 0)
