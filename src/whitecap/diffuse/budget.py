@@ -18,7 +18,8 @@ With G_f the particles born in frame f at s = 1,
     s      = budget / max_f N_d(f) / N_fluid(f)
 
 Post-processing evaluates N_d on every frame from G interpolated between the
-sampled frames. The simulation cannot: it takes the mean rate over the last
+sampled frames; then, frame by frame, with that frame's real G and the survival
+corrected by the live count over its prediction (rescale). The simulation cannot: it takes the mean rate over the last
 ∫S seconds (over the frames since motion began, where fewer) as lasting, and
 the highest such estimate so far as the peak (running_peak).
 """
@@ -120,6 +121,31 @@ def predicted_ratio(times: np.ndarray, rate: np.ndarray, fluid: np.ndarray, p, d
     age = times[:, None] - times[None, :]
     s = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
     return (s @ rate) / np.maximum(fluid, 1)
+
+
+# The model's survival is corrected by the live count over its prediction once it predicts
+# at least this many particles, and by no more than a factor CORRECTION_LIMIT either way.
+MIN_PREDICTED = 100.0
+CORRECTION_LIMIT = 4.0
+
+
+def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: float) -> float:
+    """One scale for the whole run, set again before frame k = len(s_past): the births G
+    (real up to k, interpolated after) convolved with the survival S, times c, the live count
+    after frame k − 1 over what the model predicted for it with the scales used so far;
+    s = budget / max_f c N_d(f) / N_fluid(f). The count keeps following the violence (one
+    scale, not a controller holding it at the budget) while the model learns how long
+    particles really live here."""
+    k = len(s_past)
+    age = times[:, None] - times[None, :]
+    surv = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
+    c = 1.0
+    if k > 0:
+        model = float(surv[k - 1, :k] @ (s_past * rate[:k]))
+        if model >= MIN_PREDICTED:
+            c = float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
+    peak = float(((surv @ rate) / np.maximum(n_fluid, 1)).max()) * c
+    return p.budget / peak if peak > 0 else s_now
 
 
 def running_peak(rates: np.ndarray, p, dt: float) -> float:

@@ -176,10 +176,13 @@ class FoamGenerator:
     def _moving(self, fluid: ParticleFrame) -> np.ndarray:
         return np.linalg.norm(fluid.velocities, axis=1) > B.moving_speed(self.g_norm, self.h)
 
-    def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float) -> None:
+    def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
+                  indices: list[int] | None = None) -> None:
         """Post-processing 'auto': thresholds from the potentials pooled over frames sampled
         across the run (``samples``), then the scale that puts the predicted peak on the
-        budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``)."""
+        budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``; frame
+        numbers ``indices``). As frames are processed their real birth rates replace the
+        interpolated ones and the scale is set again (see _replan)."""
         got = [self.potentials(f) for f in samples]
         pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
         tau = self._auto_tau(pooled, np.concatenate([g[1] for g in got]))
@@ -189,11 +192,35 @@ class FoamGenerator:
             t_s = np.array([f.time for f in samples], np.float64)
             rate_s = np.array([B.birth_rate(g[0], tau, k0, dt) for g in got])
             rate = np.interp(times, t_s, rate_s)
-            ratio = B.predicted_ratio(np.asarray(times, np.float64), rate, np.asarray(n_fluid, np.float64), self.p, dt)
-            peak = float(ratio.max()) if len(ratio) else 0.0
-            self.state.scale = self.p.budget / peak if peak > 0 else 1.0
+            self._plan = (np.asarray(times, np.float64), rate, np.asarray(n_fluid, np.float64),
+                          {int(i): k for k, i in enumerate(indices if indices is not None else range(len(times)))})
+            self._set_scale(dt)
         self.looked_ahead = True
         self._say_auto(f"whole run, {len(samples)} frames sampled")
+
+    def _set_scale(self, dt: float) -> None:
+        times, rate, n_fluid, _ = self._plan
+        ratio = B.predicted_ratio(times, rate, n_fluid, self.p, dt)
+        peak = float(ratio.max()) if len(ratio) else 0.0
+        self.state.scale = self.p.budget / peak if peak > 0 else 1.0
+        self._scales = np.full(len(times), np.nan)
+
+    def _replan(self, index: int, dt: float) -> None:
+        """Post-processing 'auto': this frame's real birth rate replaces the interpolated one,
+        the frames done so far correct the model's survival (live count / predicted), and the
+        scale for the rest of the run is set so the corrected prediction peaks on the budget."""
+        plan = getattr(self, "_plan", None)
+        if plan is None or index not in plan[3]:
+            return
+        times, rate, n_fluid, pos = plan
+        k = pos[index]
+        k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
+        rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
+        s_past = np.nan_to_num(self._scales[:k])
+        counts = self.state.counts
+        alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
+        self.state.scale = B.rescale(times, rate, n_fluid, s_past, alive, self.p, dt, self.state.scale)
+        self._scales[k] = self.state.scale
 
     def _running_auto(self, n: int, index: int, dt: float, fluid: ParticleFrame) -> None:
         """Simulation 'auto': the thresholds and the expected peak only rise with what the flow
@@ -349,6 +376,8 @@ class FoamGenerator:
         v_diff, crest, e_k, vort = pots
         if p.auto and not self.looked_ahead:
             self._running_auto(n, index, dt, fluid)
+        elif p.auto and self._scaled():
+            self._replan(index, dt)
         tau = _nd(self.thresholds(), ti.f32)
         mult = np.asarray(p.type_multipliers, np.float64)
         most = float(mult.max())
