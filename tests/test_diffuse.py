@@ -51,7 +51,7 @@ def settled_tank(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.mark.parametrize("preset", ["ihmsen2012", "splishsplash", "dualsphysics", "auto"])
+@pytest.mark.parametrize("preset", ["ihmsen2012", "splishsplash", "splishsplash-manual", "dualsphysics", "auto"])
 def test_still_water_makes_no_foam(settled_tank, tmp_path, preset):
     pattern = str(settled_tank / "fluid" / "fluid_0004[5-9].ply")
     info = postprocess(pattern, out=tmp_path, preset=preset, dt=1 / 30, radius=0.01, show_progress=False)
@@ -141,13 +141,35 @@ def test_foam_lifetime_falls_and_foam_disappears_at_zero(foam_run):
     assert len(was) > 10
     drops = np.array([a.arrays["lifetime"][n] - b.arrays["lifetime"][m] for n, m in was])
     assert np.allclose(drops, dt, atol=1e-5)
-    # Foam about to expire is gone the frame after; no foam is kept at or below zero.
-    dying = [int(k) for n, k in enumerate(a.ids) if foam_a[n] and a.arrays["lifetime"][n] <= dt + 1e-6]
-    gone = [k for k in dying if k not in ids_b or b.arrays["type"][ids_b[k]] != 1]
-    assert len(gone) >= 0.8 * len(dying)
     for i in range(13):
         d = diffuse(foam_run, i)
         assert (d.arrays["lifetime"][d.arrays["type"] == 1] > -1e-6).all()
+
+
+def test_short_lived_foam_expires(foam_run, tmp_path):
+    """Foam lives 0.05-0.1 s here (1.5-3 frames): foam with at most one frame left is gone the
+    frame after, while longer-lived foam carries on with dt less."""
+    from whitecap.config import Foam
+
+    params = resolve(Foam(**FOAM, lifetime_min=0.05, lifetime_max=0.1))
+    out = tmp_path / "short"
+    info = postprocess(foam_run, out=out, params=params, show_progress=False)
+    dt = 1 / info.frame_rate
+    dying = survived = 0
+    for i in range(4, 12):
+        a, b = diffuse(out, i), diffuse(out, i + 1)
+        foam_a = a.arrays["type"] == 1
+        assert (a.arrays["lifetime"][foam_a] <= 0.1 + 1e-6).all()
+        assert (a.arrays["lifetime"][foam_a] > 0).all()  # none kept at or below zero
+        foam_b = {int(k): float(life) for k, life, t in zip(b.ids, b.arrays["lifetime"], b.arrays["type"]) if t == 1}
+        for k, life in zip(a.ids[foam_a], a.arrays["lifetime"][foam_a]):
+            if life <= dt - 1e-6:  # runs out during the next frame
+                dying += 1
+                assert int(k) not in foam_b, (i, int(k), life)
+            elif int(k) in foam_b:
+                survived += 1
+                assert foam_b[int(k)] == pytest.approx(life - dt, abs=1e-5)
+    assert dying > 20 and survived > 20, (dying, survived)
 
 
 def test_in_simulation_equals_post_processing_byte_for_byte(foam_run, tmp_path):
@@ -227,10 +249,13 @@ def test_presets_and_ini(tmp_path):
     assert (p.ta_min, p.ta_max, p.wc_min, p.wc_max, p.ke_min, p.ke_max) == (5, 20, 2, 8, 5, 50)
     assert (p.k_ta, p.k_wc, p.spray_below, p.bubble_above, p.lifetime_multiplier, p.buoyancy, p.drag) == (
         40, 40, 6, 9, 10, 0.8, 0.5)
-    s = resolve(preset="splishsplash")
+    s = resolve(preset="splishsplash-manual")  # FoamGenerator's --no-auto numbers
     assert (s.vo_min, s.vo_max, s.k_ta, s.k_wc, s.k_vo, s.lifetime_min, s.lifetime_max, s.buoyancy, s.drag,
-            s.spray_below, s.bubble_above) == (5, 20, 4000, 50000, 4000, 2, 5, 2.0, 0.8, 6, 20)
-    assert set(PRESETS) >= {"ihmsen2012", "dualsphysics", "splishsplash", "auto"}
+            s.spray_below, s.bubble_above, s.model) == (5, 20, 4000, 50000, 4000, 2, 5, 2.0, 0.8, 6, 20, "ihmsen2012")
+    a = resolve(preset="splishsplash")  # FoamGenerator's default: automatic mode, factors 1 x foamscale 1000
+    assert (a.model, a.k_ta, a.k_wc, a.k_vo, a.lifetime_min, a.lifetime_max, a.spray_below, a.bubble_above) == (
+        "foamgenerator", 1000, 1000, 0, 2, 5, 6, 20)
+    assert set(PRESETS) >= {"ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-manual", "auto"}
     ini = tmp_path / "case.ini"
     ini.write_text("[DiffuseCalculator]\nTaMin = 3\nTaMax = 12\nKTa = 77\nSprayMax = 4\n")
     q = resolve(ini=ini, preset="dualsphysics")
@@ -254,9 +279,12 @@ def test_splishsplash_partio_sequence_gives_the_same_foam_as_the_same_frames_in_
         write_partio_bgeo(tmp_path / "partio" / f"ParticleData_Fluid_{i}.bgeo", y_up(f.positions),
                           {"id": f.ids.astype(np.int32), "velocity": y_up(f.velocities), "density": f.density})
     info = RunInfo.load(foam_run)
-    common = ["--dt", str(1.0 / info.frame_rate), "--radius", str(info.particle_radius), "--preset", "auto"]
-    assert main(["foam", str(tmp_path / "partio"), "--out", str(tmp_path / "a"), "--up", "y", *common]) == 0
-    assert main(["foam", str(foam_run / "fluid"), "--out", str(tmp_path / "b"), *common]) == 0
+    # The run's own domain: guessed from the first frame (the water column), it would drop the
+    # diffuse particles of the flow that has left it, where 'auto' finds the violence.
+    common = dict(dt=1.0 / info.frame_rate, radius=info.particle_radius, preset="auto", show_progress=False,
+                  domain=(info.domain["lower"], info.domain["upper"]))
+    postprocess(tmp_path / "partio", out=tmp_path / "a", up="y", **common)
+    postprocess(foam_run / "fluid", out=tmp_path / "b", **common)
     made = 0
     for i in range(13):
         name = f"diffuse/diffuse_{i:05d}.ply"
@@ -333,7 +361,7 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01):
     ek = _nd(np.ones(n, np.float32), ti.f32)  # above ke_max: I_k = 1
     cnt, rate = ti.ndarray(ti.i32, n), ti.ndarray(ti.f32, n)
     K.birth_counts(n, ids, _nd(np.asarray(v_diff, np.float32), ti.f32), _nd(zeros, ti.f32), ek, _nd(zeros, ti.f32),
-                   tau, k_ta, 0.0, 0.0, dt, 7, 3, 0, cnt, rate)
+                   tau, k_ta, 0.0, 0.0, dt, 7, 3, 0, cnt, rate, 0)
     counts = cnt.to_numpy()
     total = int(counts.sum())
     offset = _nd(np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32), ti.i32)
@@ -458,3 +486,302 @@ def test_a_capacity_below_the_budget_warns(tmp_path, capsys):
     err = capsys.readouterr().err
     # Said at the start, from the budget (before any frame saturates), and again when it does.
     assert "foam.budget = 2 asks for about" in err and "beyond foam.max_particles = 1,000" in err, err
+
+
+# ------------------------------------------------------------------ SPlisHSPlasH FoamGenerator's automatic mode
+def _block_frame(scale: float, r: float = 0.01, n: int = 8):
+    """A (slightly jittered) lattice block of water with a sheared, rising velocity field, scaled by ``scale``."""
+    x = _lattice(n, r) + np.random.default_rng(7).uniform(-0.05 * r, 0.05 * r, (n**3, 3)).astype(np.float32)
+    z = (x[:, 2] - x[:, 2].min()) / (2 * r * (n - 1))
+    v = np.stack([1.5 * z, 0.3 * np.sin(9 * x[:, 0]), 0.8 * z * z], axis=1).astype(np.float32) * scale
+    return io.ParticleFrame(positions=x, velocities=v, ids=np.arange(len(x), dtype=np.uint32))
+
+
+def _fg_reference(gen, frame):
+    """FoamGenerator's formulas in NumPy, on whitecap's neighbour lists (main.cpp: computeDensities,
+    computeNormals, determineValues): cubic spline of support h, m = 0.8 (2r)³ 1000."""
+    from whitecap.diffuse import splishsplash as SP
+
+    n = len(frame)
+    gen._prepare(frame, n)
+    cnt = gen.grid.nb_count.to_numpy()[:n]
+    nb = gen.grid.nb.to_numpy()[:n]
+    x, v, h, m = frame.positions.astype(np.float64), frame.velocities.astype(np.float64), gen.h, SP.particle_mass(gen.r)
+
+    def W(d):
+        q = np.linalg.norm(d, axis=-1) / h
+        s = 8 / (np.pi * h**3)
+        return np.where(q <= 0.5, s * (6 * q**3 - 6 * q**2 + 1), np.where(q <= 1, s * 2 * (1 - q) ** 3, 0.0))
+
+    def gradW(d):
+        r_ = np.linalg.norm(d, axis=-1, keepdims=True)
+        q = r_ / h
+        dq = np.where(q <= 0.5, q * (3 * q - 2), -((1 - q) ** 2))
+        return np.where((q <= 1) & (r_ > 0), 48 / (np.pi * h**3) * dq * d / np.maximum(r_ * h, 1e-30), 0.0)
+
+    rho = np.array([m * W(np.zeros(3)) + m * W(x[i] - x[nb[i, : cnt[i]]]).sum() for i in range(n)])
+    nrm = np.zeros((n, 3))
+    for i in range(n):
+        if cnt[i] <= 20:
+            j = nb[i, : cnt[i]]
+            g = -(m / rho[j, None] * gradW(x[i] - x[j])).sum(0)
+            nrm[i] = g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else 0
+    vd, kap = np.zeros(n), np.zeros(n)
+    for i in range(n):
+        j = nb[i, : cnt[i]]
+        vol = m / rho[j]
+        xij = x[i] - x[j]
+        xh = xij / np.linalg.norm(xij, axis=1, keepdims=True)
+        vij = v[i] - v[j]
+        vl = np.linalg.norm(vij, axis=1)
+        vh = np.where(vl[:, None] > 1e-6, vij / np.maximum(vl, 1e-30)[:, None], vij)
+        vd[i] = (vol * vl * (1 - (vh * xh).sum(1)) * W(xij)).sum()
+        behind = (xh @ nrm[i]) > 0
+        kap[i] = (vol * (1 - nrm[j] @ nrm[i]) * W(xij))[behind].sum()
+        sl = np.linalg.norm(v[i])
+        if sl == 0 or v[i] @ nrm[i] / sl < 0.6:
+            kap[i] = 0
+    return vd, kap, 0.5 * m * (v**2).sum(1), cnt
+
+
+def _fg_generator(r=0.01):
+    from whitecap.diffuse.generator import FoamGenerator
+
+    p = resolve(preset="splishsplash")
+    from dataclasses import replace
+
+    return FoamGenerator(replace(p, slots_per_particle=64), r, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=3)
+
+
+def test_foamgenerator_potentials_follow_its_formulas():
+    # The cubic-spline potentials of FoamGenerator (SPH volumes, normals only for <= 20 neighbours,
+    # crest only when moving along the normal, energy 1/2 m v^2 in joules) against a NumPy transcription.
+    from whitecap.diffuse import splishsplash as SP
+
+    gen, fr = _fg_generator(), _block_frame(1.0)
+    vd, kap, e, cnt = _fg_reference(gen, fr)
+    n = len(fr)
+    fx, fv, _, _ = gen._prepare(fr, n)
+    got = [a.to_numpy()[:n] for a in SP.frame_potentials(gen, fx, fv, n)]
+    assert (kap > 0).sum() > 10 and (cnt > 20).sum() > 10  # crests exist and interior particles have no normal
+    for ours, ref in zip(got, (vd, kap, e)):
+        np.testing.assert_allclose(ours, ref, rtol=2e-4, atol=1e-6 * ref.max())
+
+
+def test_foamgenerator_limits_are_the_mean_of_per_frame_maxima_over_the_whole_sequence(tmp_path):
+    # Three frames of one flow at speeds 1, 2, 3: the energy maxima scale as 1, 4, 9 and the trapped-air
+    # maxima as 1, 2, 3, so FoamGenerator's limits are tau_max = 14/3 and 2 times the first frame's,
+    # tau_min = 0.1 tau_max -- not the first frame's (a gentle start is not the scale).
+    from whitecap.diffuse import splishsplash as SP
+
+    gen = _fg_generator()
+    first = SP.frame_maxima(gen, _block_frame(1.0))
+    for k in (1, 2, 3):
+        f = _block_frame(float(k))
+        io.write(tmp_path / "seq" / f"frame_{k:04d}.ply", f)
+    info = postprocess(tmp_path / "seq", out=tmp_path / "o", preset="splishsplash", dt=0.02, radius=0.01,
+                       show_progress=False)
+    tau = np.asarray(info.extra["foam_limits"], np.float64)
+    assert RunInfo.load(tmp_path / "o").extra["foam_limits"] == info.extra["foam_limits"]  # recorded in run.json
+    np.testing.assert_allclose(tau[[1, 5]], [2 * first[0], 14 / 3 * first[2]], rtol=1e-4)
+    np.testing.assert_allclose(tau[[0, 2, 4]], 0.1 * tau[[1, 3, 5]], rtol=1e-6)
+    assert tau[3] > 0
+
+
+def test_foamgenerator_limits_on_a_sequence_without_crests_or_motion_stay_finite_and_generate_nothing():
+    # A potential that is 0 in every frame gives limits with I = 0 (FoamGenerator would divide 0 by 0),
+    # and the energy limit never falls below 1/2 m (1 m/s)^2, so a resting tank's jitter is not foam.
+    from whitecap.diffuse import splishsplash as SP
+
+    tau = SP.limits_from_maxima(np.array([[0.2, 0.0, 1e-7], [0.4, 0.0, 3e-7]]), 0.01).astype(np.float64)
+    assert np.isfinite(tau).all() and tau[1] == pytest.approx(0.3) and tau[0] == pytest.approx(0.03)
+    assert tau[5] == pytest.approx(0.5 * SP.particle_mass(0.01) * SP.ENTRAINMENT_SPEED**2)
+    assert tau[3] > tau[2] >= 0 and (min(0.0, tau[3]) - min(0.0, tau[2])) / (tau[3] - tau[2]) == 0.0
+
+
+def test_foamgenerator_generates_its_rounded_count_with_its_lifetimes():
+    # n_d = floor(foamscale I_k (I_ta + I_wc) dt + 1/2) per fluid particle with >= 15 neighbours, and
+    # lifetime l_min + I_k / tau_max_k X (l_max - l_min): FoamGenerator's generation, particle for particle.
+    gen, fr, dt = _fg_generator(), _block_frame(2.0), 0.02
+    vd, kap, e, cnt = _fg_reference(gen, fr)
+    tau = np.array([0.1 * vd.max(), vd.max(), 0.1 * kap.max(), kap.max(), 0.1 * e.max(), e.max(), 1, 2], np.float32)
+    gen.state.tau = tau
+
+    def phi(i, lo, hi):
+        return (np.minimum(i, hi) - np.minimum(i, lo)) / (hi - lo)
+
+    t = tau.astype(np.float64)
+    i_k = phi(e, t[4], t[5])
+    nd = np.floor(1000.0 * i_k * (phi(vd, t[0], t[1]) + phi(kap, t[2], t[3])) * dt + 0.5) * (cnt >= 15)
+    out = gen.step(fr, 0, dt)
+    assert nd.sum() > 100 and (cnt < 15).any() and len(out) == int(nd.sum())
+    # New particles come in fluid order, nd[i] each: X = (life - l_min) / ((I_k / tau_max_k)(l_max - l_min))
+    # must be uniform in [0, 1); the energy limit is in joules, so small particles' foam outlives l_max.
+    src = np.repeat(np.arange(len(fr)), nd.astype(int))
+    x01 = (out.arrays["lifetime"] - 2.0) / (3.0 * i_k[src] / t[5])
+    assert x01.min() >= -1e-5 and x01.max() < 1 + 1e-5 and abs(x01.mean() - 0.5) < 0.05
+    assert out.arrays["lifetime"].max() > 5.0
+
+
+
+
+@pytest.mark.parametrize("preset,keeps", [("splishsplash", True), ("ihmsen2012", False)])
+def test_foam_moves_with_the_fluid_and_keeps_its_own_velocity_only_as_foamgenerator_does(preset, keeps):
+    # A foam particle on a block of fluid moving at u: it moves by u dt in both models; its own
+    # velocity becomes u in whitecap's, and stays what it was in FoamGenerator's (so foam that turns
+    # into spray leaves with it).
+    from dataclasses import replace
+
+    from whitecap.diffuse.generator import DiffuseState, FoamGenerator
+
+    u, dt, r = np.array([0.3, 0.0, 0.1], np.float32), 0.02, 0.01
+    x = _lattice(10, r)
+    fr = io.ParticleFrame(positions=x, velocities=np.tile(u, (len(x), 1)), ids=np.arange(len(x), dtype=np.uint32))
+    p = replace(resolve(preset=preset), ta_min=1e3, ta_max=2e3, wc_min=1e3, wc_max=2e3)  # no generation
+    gen = FoamGenerator(p, r, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=1)
+    gen.state = DiffuseState.empty()
+    gen.state.tau = np.array([1e3, 2e3, 1e3, 2e3, 1e3, 2e3, 1e3, 2e3], np.float32) if keeps else None
+    x0 = np.array([[0.205, 0.205, x[:, 2].max() + r]], np.float32)  # at the surface: 6 to 20 fluid neighbours
+    v0 = np.array([[0.0, 0.0, 1.5]], np.float32)
+    gen.state.positions, gen.state.velocities, gen.state.lifetime = x0, v0, np.array([3.0], np.float32)
+    gen.state.ids = np.array([0], np.uint32)
+    out = gen.step(fr, 1, dt)
+    assert len(out) == 1 and out.arrays["type"][0] == 1  # still foam
+    np.testing.assert_allclose(out.positions[0], x0[0] + dt * u, atol=1e-6)
+    np.testing.assert_allclose(out.velocities[0], v0[0] if keeps else u, atol=1e-6)
+
+
+def test_foamgenerator_mode_needs_the_whole_sequence_so_the_simulation_refuses_it(tmp_path, capsys):
+    d = tiny_scene_dict(output={"frames": 2}, foam={"preset": "splishsplash"})
+    with pytest.raises(InputError, match="whitecap foam RUN --preset splishsplash"):
+        simulate(scene_from_dict(d), out=tmp_path, show_progress=False)
+
+
+# ------------------------------------------------------------------ the DualSPHysics user's .ini (VisualSPHysics)
+EXAMPLE_INI = """[TIMESTEPS]
+StartingTimeStep = 200
+EndingTimeStep = 550
+
+[FOAMPARAMETERS]
+MinTrappedAirThreshold = 5.
+MaxTrappedAirThreshold = 20.
+MinWaveCrestsThreshold = 2.
+MaxWaveCrestsThreshold = 8.
+MinKineticEnergyThreshold = 5.0
+MaxKineticPowerThreshold = 50.0
+DiffuseTrappedAirMultiplier = 40.0
+DiffuseWaveCrestsMultiplier = 40.0
+"""
+
+
+def full_ini(inp: str = "parts", out: str = "foamout", xml: str = "case/Case.xml", custom: str = "yes",
+             first: int = 12, last: int = 14, **foam) -> str:
+    """Every key of the VisualSPHysics foam simulator's file."""
+    fp = dict(MinTrappedAirThreshold=0.5, MaxTrappedAirThreshold=4.0, MinWaveCrestsThreshold=0.3,
+              MaxWaveCrestsThreshold=3.0, MinKineticEnergyThreshold=0.0008, MaxKineticEnergyThreshold=0.016,
+              DiffuseTrappedAirMultiplier=400.0, DiffuseWaveCrestsMultiplier=300.0, SprayDensity=5,
+              BubblesDensity=18, LifefimeMultiplier=12, BuoyancyControl=0.7, DragControl=0.4)
+    fp.update(foam)
+    return (
+        f"[PATHS]\nInputDataPath = {inp}\nInputFilesPrefix = PartFluid_\nZeroPadding = 4\nOutputDataPath = {out}\n"
+        f"FilesOutputPrefix = Diffuse_\n# no exclusion zone\nExclusionZoneFile =\nXmlFile = {xml}\n\n"
+        "[OUTPUT]\nTextFiles = no\nPlyFiles = no\nVtkFiles = yes\nVtkDiffuseData = no\nVtkFluidData = no\n\n"
+        f"[TIMESTEPS]\nStartingTimeStep = {first}\nEndingTimeStep = {last}\n\n[FOAMPARAMETERS]\n"
+        + "".join(f"{k} = {v}\n" for k, v in fp.items())
+        + f"\n[DOMAIN]\nCustomDomain = {custom}\nDomainMinx = 0.0\nDomainMiny = 0.0\nDomainMinz = 0.0\n"
+        "DomainMaxx = 0.4\nDomainMaxy = 0.7\nDomainMaxz = 0.5\n"
+    )
+
+
+def test_the_dualsphysics_example_ini_parses_to_its_parameters(tmp_path, capsys):
+    ini = tmp_path / "example.ini"
+    ini.write_text(EXAMPLE_INI)
+    f = read_ini(ini)
+    assert capsys.readouterr().err == ""  # every key understood
+    assert f.job.first == 200 and f.job.last == 550 and f.job.input_dir is None
+    m = 0.008  # kg, massfluid of the case: the energy thresholds are 1/2 m v^2 of one particle
+    p = resolve(ini=ini, preset="dualsphysics", particle_mass=m)
+    assert (p.ta_min, p.ta_max, p.wc_min, p.wc_max, p.k_ta, p.k_wc) == (5, 20, 2, 8, 40, 40)
+    assert p.ke_min == pytest.approx(5.0 / m) and p.ke_max == pytest.approx(50.0 / m)
+    with pytest.raises(InputError, match=r"MinKineticEnergyThreshold.*particle mass is unknown"):
+        resolve(ini=ini)
+
+
+def test_a_full_visualsphysics_ini_parses_to_every_parameter_and_the_job(tmp_path, capsys):
+    ini = tmp_path / "cfg" / "full.ini"
+    ini.parent.mkdir()
+    ini.write_text(full_ini() + "Colour = blue\n[EXTRA]\nWind = 3\n")
+    f = read_ini(ini)
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "[DOMAIN] Colour" in err and "[EXTRA] Wind" in err  # one warning line
+    assert f.unknown == ("[DOMAIN] Colour", "[EXTRA] Wind")
+    p = resolve(ini=f, particle_mass=0.002)
+    assert (p.ta_min, p.ta_max, p.wc_min, p.wc_max, p.k_ta, p.k_wc) == (0.5, 4.0, 0.3, 3.0, 400, 300)
+    assert (p.spray_below, p.bubble_above, p.lifetime_multiplier, p.buoyancy, p.drag) == (5, 18, 12, 0.7, 0.4)
+    assert (p.ke_min, p.ke_max) == (pytest.approx(0.4), pytest.approx(8.0))
+    j = f.job
+    assert (j.input_dir, j.out, j.xml) == (ini.parent / "parts", ini.parent / "foamout", ini.parent / "case/Case.xml")
+    assert (j.prefix, j.zero_padding, j.first, j.last, j.out_prefix, j.exclusion_zone) == (
+        "PartFluid_", 4, 12, 14, "Diffuse_", "")
+    assert j.domain == ([0, 0, 0], [0.4, 0.7, 0.5]) and j.outputs == ("VtkFiles",)
+    assert j.frame_path(7).name == "PartFluid_0007.vtk"
+
+
+@pytest.mark.parametrize("section,key,bad,message", [
+    ("FOAMPARAMETERS", "SprayDensity", "six", "expected a number"),
+    ("FOAMPARAMETERS", "DragControl", "-1", "expected a finite number >= 0"),
+    ("PATHS", "ZeroPadding", "four", "expected a whole number"),
+    ("TIMESTEPS", "EndingTimeStep", "3", "before StartingTimeStep"),
+    ("DOMAIN", "DomainMaxx", "-1", "must be greater than DomainMinx"),
+    ("DOMAIN", "CustomDomain", "perhaps", "expected yes or no"),
+    ("PATHS", "ExclusionZoneFile", "zone.vtk", "exclusion zones are not supported"),
+    ("PATHS", "InputDataPath", "nowhere", "no such directory"),
+])
+def test_bad_ini_values_are_one_line_errors_naming_file_section_and_key(tmp_path, capsys, section, key, bad, message):
+    import re
+
+    ini = tmp_path / "bad.ini"
+    text = full_ini(inp=str(DATA / "dualsphysics"), xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"))
+    text, n = re.subn(rf"(?m)^{key} =.*$", f"{key} = {bad}", text)
+    assert n == 1
+    ini.write_text(text)
+    assert main(["foam", "--params", str(ini)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(ini) in err and f"[{section}] {key}" in err and message in err, err
+
+
+def test_one_command_runs_the_job_the_ini_describes(tmp_path, capsys):
+    # `whitecap foam --params FILE` alone: frames 13..14 of the PartFluid sequence, the case XML,
+    # the output folder (relative to the file) and a custom domain that cuts the tank at x = 0.4 m.
+    ini = tmp_path / "job" / "foam.ini"
+    ini.parent.mkdir()
+    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out="../result",
+                            xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"), first=13, last=14))
+    assert main(["foam", "--params", str(ini)]) == 0
+    out = tmp_path / "result"
+    assert str(out) in capsys.readouterr().out
+    info = RunInfo.load(out)
+    assert [i for i, _ in info.files("diffuse")] == [13, 14] and [i for i, _ in info.files("fluid")] == [13, 14]
+    assert info.extra["case"].endswith("CaseDambreak.xml") and info.particle_radius == pytest.approx(0.01)
+    assert info.domain == {"lower": [0, 0, 0], "upper": [0.4, 0.7, 0.5]}
+    made = 0
+    for i in (13, 14):
+        d = io.read(out / f"diffuse/diffuse_{i:05d}.ply")
+        made += len(d)
+        assert (d.positions <= [0.4, 0.7, 0.5]).all() and (d.positions >= 0).all()
+    fluid = io.read(out / "fluid/fluid_00014.ply")
+    assert made > 0 and (fluid.positions[:, 0] > 0.45).any()  # the fluid reaches past the box; its foam does not
+
+
+def test_an_ending_time_step_past_the_last_file_stops_there_and_says_so(tmp_path, capsys):
+    # Like the VisualSPHysics simulator the run ends at the first missing frame, but not silently.
+    ini = tmp_path / "foam.ini"
+    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out="o", xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"),
+                            custom="no", first=13, last=40))
+    assert main(["foam", "--params", str(ini)]) == 0
+    err = capsys.readouterr().err
+    warn = [ln for ln in err.splitlines() if "EndingTimeStep" in ln]
+    assert len(warn) == 1 and "PartFluid_0015.vtk" in warn[0] and "13..14" in warn[0]
+    info = RunInfo.load(tmp_path / "o")
+    assert [i for i, _ in info.files("diffuse")] == [13, 14]
+    assert info.domain["upper"] != [0.4, 0.7, 0.5]  # CustomDomain = no: the case XML's domain

@@ -129,3 +129,70 @@ def test_two_fluids_in_one_folder_ask_for_a_glob(tmp_path):
         find_sequence(tmp_path)
     hint = str(tmp_path / "ParticleData_Fluid_*.npz")
     assert [(i, p.name) for i, p in find_sequence(hint)] == [(1, "ParticleData_Fluid_1.npz"), (2, "ParticleData_Fluid_2.npz")]
+
+
+# The output contract (README, "simulate" and "foam"): binary little-endian PLY, these properties in
+# this order with these types. Readers cast, so only the file itself shows a wrong type.
+FLUID_PLY = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
+             ("density", "<f4"), ("id", "<u4")]
+DIFFUSE_PLY = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
+               ("type", "|u1"), ("lifetime", "<f4"), ("radius", "<f4"), ("id", "<u4")]
+
+
+def test_run_files_have_the_contract_types(tiny_run, tmp_path):
+    from plyfile import PlyData
+
+    from whitecap.io.mesh import SurfaceMesh, write_mesh
+    from whitecap.io.run import RunInfo
+
+    info = RunInfo.load(tiny_run)
+    for stage, layout in (("fluid", FLUID_PLY), ("diffuse", DIFFUSE_PLY)):
+        files = info.files(stage)
+        assert files, stage
+        for _, rel in files:
+            ply = PlyData.read(str(tiny_run / rel))
+            assert not ply.text and ply.byte_order == "<", rel
+            assert [e.name for e in ply.elements] == ["vertex"], rel
+            assert ply["vertex"].data.dtype.descr == layout, rel
+    # Surface meshes: vertex x y z nx ny nz vx vy vz float32, triangles as uchar count + int indices.
+    m = SurfaceMesh(np.eye(3), [[0, 1, 2]], np.eye(3), {"velocity": np.ones((3, 3))})
+    write_mesh(tmp_path / "m.ply", m)
+    ply = PlyData.read(str(tmp_path / "m.ply"))
+    assert not ply.text and ply.byte_order == "<"
+    assert ply["vertex"].data.dtype.descr == [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")]
+    (prop,) = ply["face"].properties
+    assert (prop.name, prop.len_dtype, prop.val_dtype) == ("vertex_indices", "u1", "i4")
+
+
+def test_one_registry_tells_particles_from_meshes(tmp_path):
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.io.registry import MESH, PARTICLES, format_for, formats
+    from whitecap.io.sequence import find_sequence
+
+    # .ply is both; the kind asked for decides which reader runs.
+    assert format_for("a.ply").kind == PARTICLES and format_for("a.ply", kind=MESH).kind == MESH
+    assert {"ply", "obj"} <= set(formats(MESH)) and "obj" not in formats(PARTICLES)
+    m = SurfaceMesh(np.eye(3), [[0, 1, 2]], arrays={"velocity": np.ones((3, 3))})
+    for ext in ("ply", "obj"):
+        io.write_mesh(tmp_path / f"m.{ext}", m)
+        back = io.read_mesh(tmp_path / f"m.{ext}")
+        assert isinstance(back, SurfaceMesh) and np.array_equal(back.faces, m.faces)
+    with pytest.raises(InputError, match="m.obj: no reader for this file type"):
+        io.read(tmp_path / "m.obj")  # a mesh is not a particle frame
+    io.write(tmp_path / "x.vtu", frame())
+    with pytest.raises(InputError, match="x.vtu: no reader.*mesh formats known: obj, ply"):
+        io.read_mesh(tmp_path / "x.vtu")
+    # A folder of OBJ meshes is not a particle sequence.
+    (tmp_path / "seq").mkdir()
+    io.write_mesh(tmp_path / "seq" / "m_0001.obj", m)
+    with pytest.raises(InputError):
+        find_sequence(tmp_path / "seq")
+
+
+def test_find_array_matches_aliases_case_insensitively_in_order():
+    from whitecap.io.registry import DENSITY_NAMES, VELOCITY_NAMES
+
+    assert io.find_array({"Vel": 1, "v": 2}, VELOCITY_NAMES) == "Vel"  # DualSPHysics' name first
+    assert io.find_array({"VELOCITY": 1, "V": 2}, VELOCITY_NAMES) == "VELOCITY"
+    assert io.find_array({"Rho": 1, "Rhop": 2}, DENSITY_NAMES) == "Rhop"
+    assert io.find_array({"speed": 1}, VELOCITY_NAMES) is None

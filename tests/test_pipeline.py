@@ -84,7 +84,22 @@ def test_run_all_stages_with_interrupt_and_resume(tmp_path, monkeypatch, capsys)
 
 
 def test_run_rejects_unknown_stage(tmp_path, capsys):
+    from whitecap import pipeline
+    from whitecap.errors import InputError
+
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE)
-    with pytest.raises(SystemExit):
-        main(["run", str(scene), "--until", "paint"])
+    out = tmp_path / "out"
+    try:
+        code = main(["run", str(scene), "--out", str(out), "--until", "paint"])
+    except SystemExit as exc:  # argparse's choices
+        code = exc.code
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2
+    assert "--until" in last and "paint" in last and all(s in last for s in ("simulate", "mesh", "render")), last
+    assert not out.exists()
+    # The API says the same, before touching the output directory.
+    with pytest.raises(InputError) as e:
+        pipeline.run(str(scene), out=out, until="paint", show_progress=False)
+    assert "--until" in str(e.value) and "'paint'" in str(e.value) and "simulate, mesh, render" in str(e.value)
+    assert not out.exists()

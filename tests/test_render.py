@@ -86,9 +86,9 @@ dg = bpy.context.evaluated_depsgraph_get()
 fl = bpy.data.objects["fluid"]
 pts = [fl.matrix_world @ v.co for v in fl.data.vertices]
 uv = np.array([tuple(world_to_camera_view(sc, sc.camera, p))[:2] for p in pts])
-foam = bpy.data.objects["foam"].evaluated_get(dg)
-geom = foam.evaluated_geometry()
-pc = geom.pointcloud
+foam = bpy.data.objects.get("foam")
+geom = foam.evaluated_get(dg).evaluated_geometry() if foam is not None else None  # keep alive while pc is read
+pc = geom.pointcloud if geom is not None else None
 radii = [a.value for a in pc.attributes["radius"].data] if pc is not None else []
 print(json.dumps({
   "uv_min": uv.min(0).tolist(), "uv_max": uv.max(0).tolist(),
@@ -108,7 +108,12 @@ def test_preview_frames_show_the_fluid(meshed_run):
     assert a.shape[:2] == (240, 320)
     assert a.std() > 5, "blank image"
     assert np.abs(a - b).mean() > 0.5, "the two frames are identical"
-    s = blender(INSPECT, meshed_run / "render" / "scene.blend")
+    assert_water_where_the_fluid_is(a, meshed_run)
+
+
+def assert_water_where_the_fluid_is(a: np.ndarray, run: Path) -> None:
+    """The fluid mesh's screen box in image ``a`` is tinted blue beyond the rest of the frame."""
+    s = blender(INSPECT, run / "render" / "scene.blend")
     h, w = a.shape[:2]
     (u0, v0), (u1, v1) = s["uv_min"], s["uv_max"]
     # Image rows run top-down, camera-view v bottom-up.
@@ -118,6 +123,20 @@ def test_preview_frames_show_the_fluid(meshed_run):
     blue = a[..., 2] - a[..., 0]  # water is tinted blue; ground and sky behind it are grey/pale
     assert inside.sum() > 100
     assert blue[inside].mean() > blue[~inside].mean() + 3
+
+
+def test_run_meshed_as_obj_renders_water(tiny_run, tmp_path):
+    """`[mesh] format = "obj"` meshes are read through the io mesh registry, not parsed as PLY."""
+    import imageio.v2 as imageio
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    assert main(["mesh", str(run), "--format", "obj", "--jobs", "1"]) == 0
+    assert RunInfo.load(run).files("mesh")[0][1].endswith(".obj")
+    assert main(["render", str(run), "--quality", "preview", "--frames", "0:1"]) == 0
+    a = imageio.imread(run / "render" / "frame_00000.png")[..., :3].astype(float)
+    assert a.std() > 5, "blank image"
+    assert_water_where_the_fluid_is(a, run)
 
 
 def test_foam_spheres_and_motion_blur(meshed_run):
@@ -144,6 +163,78 @@ def test_no_meshes_says_run_mesh_first(tiny_run, capsys):
     assert main(["render", str(tiny_run)]) != 0
     err = capsys.readouterr().err
     assert "whitecap mesh" in err and str(tiny_run) in err and len(err.strip().splitlines()) == 1
+
+
+TRUNCATED = r"""
+import sys, json, importlib.util, bpy
+spec = importlib.util.spec_from_file_location("whitecap_sequences", sys.argv[1])
+addon = importlib.util.module_from_spec(spec); sys.modules["whitecap_sequences"] = addon; spec.loader.exec_module(addon)
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon.register()
+bpy.ops.whitecap.load(filepath=sys.argv[2])
+sc = bpy.context.scene
+obj = [o for o in sc.objects if o.whitecap_seq.enabled][-1]
+sc.frame_set(sc.frame_start)
+n0 = len(obj.data.vertices)
+sc.frame_set(sc.frame_start + 1)  # the truncated frame: the handler must return, not spin
+try:
+    addon.read_vtk_legacy(sys.argv[3]); err = None
+except ValueError as exc:
+    err = str(exc)
+print(json.dumps({"n0": n0, "n1": len(obj.data.vertices), "error": err}))
+"""
+
+
+def test_blender_addon_reports_a_truncated_vtk_instead_of_hanging(tmp_path):
+    head = "# vtk DataFile Version 4.2\nwhitecap test\nASCII\nDATASET POLYDATA\nPOINTS 4 float\n"
+    full = head + "0 0 0\n1 0 0\n0 1 0\n0 0 1\nPOLYGONS 1 4\n3 0 1 2\n"
+    (tmp_path / "surf_0000.vtk").write_text(full)
+    (tmp_path / "surf_0001.vtk").write_text(head + "0 0 0\n1 0 0\n")  # cut off after two of four points
+    addon = SRC / "whitecap" / "render" / "addon" / "__init__.py"
+    out = subprocess.run([sys.executable, "-c", TRUNCATED, str(addon), str(tmp_path / "surf_0000.vtk"),
+                          str(tmp_path / "surf_0001.vtk")], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(SRC)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads([ln for ln in out.stdout.splitlines() if ln.startswith("{")][-1])
+    msg = f"{tmp_path / 'surf_0001.vtk'}: the file ends after 6 of 12 values (truncated?)"
+    assert res == {"n0": 4, "n1": 4, "error": msg}  # the object keeps its last good frame
+    assert msg in out.stdout  # and the frame-change handler said why
+
+
+def test_render_workers_die_with_a_killed_parent(meshed_run, tmp_path):
+    import signal
+    import time
+
+    from .test_errors import _alive, _children
+
+    run = tmp_path / "run"
+    shutil.copytree(meshed_run, run)
+    # A final-quality frame takes minutes, so within the test the worker writes nothing to the
+    # stdout pipe of its dead parent (which would end it by SIGPIPE anyway).
+    parent = subprocess.Popen([sys.executable, "-m", "whitecap.cli", "render", str(run), "--force", "--no-movie",
+                               "--quality", "final"],
+                              env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and parent.poll() is None and not workers:
+            workers = [p for p in _children(parent.pid) if b"whitecap.render.worker" in Path(f"/proc/{p}/cmdline").read_bytes()]
+            time.sleep(0.1)
+        time.sleep(2)  # let Blender start up and begin rendering
+        assert parent.poll() is None and workers, "the render worker never started, or rendering ended too soon"
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(map(_alive, workers)):
+            time.sleep(0.1)
+        assert not any(map(_alive, workers)), "a Blender worker outlived its killed parent"
+    finally:
+        for p in [parent.pid, *workers]:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except OSError:
+                pass
 
 
 def test_missing_bpy_says_how_to_install(monkeypatch):
@@ -316,3 +407,15 @@ def test_render_copies_are_jittered_and_keep_their_place():
     # Frame b: every particle moved by 0.5 and listed in another order; its copies went along.
     key = lambda p: p[np.lexsort(np.round(p, 6).T)]
     assert np.allclose(key(b - 0.5), key(a), atol=1e-5)
+
+
+def test_addon_copy_of_the_velocity_names_matches_whitecap():
+    # The add-on ships alone (no whitecap inside Blender), so it carries a copy.
+    import ast
+
+    from whitecap.io.registry import VELOCITY_NAMES
+
+    src = (Path(__file__).parents[1] / "src/whitecap/render/addon/__init__.py").read_text()
+    copies = [ast.literal_eval(n.value) for n in ast.parse(src).body
+              if isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "VELOCITY_NAMES" for t in n.targets)]
+    assert copies == [VELOCITY_NAMES]

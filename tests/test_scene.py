@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from whitecap.cli import main
@@ -27,13 +30,47 @@ def test_defaults_round_trip(capsys):
     assert again.model_dump() == default_scene().model_dump()
 
 
-def test_shipped_scenes_validate():
-    from pathlib import Path
+ROOT = Path(__file__).resolve().parents[1]
+STATED = re.compile(r"([\d,.]+)(k?) particles")
 
-    scenes = sorted((Path(__file__).parents[1] / "scenes").glob("*.toml"))
-    assert scenes
-    for s in scenes:
-        load_scene(s)
+
+def stated_count(text: str) -> float:
+    """The particle count a comment or README line states: '10,044 particles', 'about 15k particles'."""
+    m = STATED.search(text)
+    assert m, f"no particle count in {text!r}"
+    return float(m.group(1).replace(",", "")) * (1000 if m.group(2) else 1)
+
+
+def test_shipped_scenes_validate():
+    """Each shipped scene resolves to fluid inside its domain, its obstacle files exist, and the
+    particle count its header and the README state is the one the solver starts with (within 5 %)."""
+    from whitecap.sim import runtime
+    from whitecap.sim.obstacles import load_obstacles
+    from whitecap.sim.pbf import lattice_points
+
+    scenes = sorted((ROOT / "scenes").glob("*.toml"))
+    assert {p.stem for p in scenes} >= {"dam_break", "bunny", "wave_tank"}
+    readme = (ROOT / "README.md").read_text()
+    runtime.init("cpu")
+    for path in scenes:
+        scene = load_scene(path)
+        assert scene.name == path.stem
+        pos, _ = lattice_points(scene)
+        lo, hi = np.asarray(scene.domain.lower), np.asarray(scene.domain.upper)
+        assert len(pos) > 0 and (pos >= lo).all() and (pos <= hi).all(), path.name
+        for o in scene.obstacle:
+            for f in (o.mesh, o.render_mesh):
+                assert f is None or scene.resolve(f).is_file(), f"{path.name}: {f} missing"
+        if scene.obstacle:
+            pos = pos[load_obstacles(scene).outside_mask(pos)]
+        n = len(pos)
+        header = "\n".join(ln for ln in path.read_text().splitlines() if ln.startswith("#"))
+        assert stated_count(header) == pytest.approx(n, rel=0.05), f"{path.name} header vs {n} particles"
+        row = [ln for ln in readme.splitlines() if ln.startswith(f"| `scenes/{path.name}`")]
+        if row and "particles" in row[0]:
+            assert stated_count(row[0]) == pytest.approx(n, rel=0.05), f"README row for {path.name} vs {n}"
+    # The validation scene's count, exactly.
+    assert len(lattice_points(load_scene(ROOT / "scenes" / "dam_break.toml"))[0]) == 10_044
 
 
 @pytest.mark.parametrize(
@@ -75,3 +112,19 @@ def test_too_many_particles_refused_before_allocating(tmp_path, capsys):
     code = main(["simulate", str(p), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code != 0 and "more than this machine has free" in err and "particles" in err
+
+
+def test_cli_choices_are_the_scene_models():
+    from whitecap.cli import build_parser
+    from whitecap.config import Foam, Mesh, choices
+    from whitecap.diffuse.params import resolve
+    from whitecap.pipeline import RUN_STAGES
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    opt = {(cmd, o.dest): o.choices for cmd, p in sub.items() for o in p._actions if o.choices}
+    assert tuple(opt[("foam", "preset")]) == choices(Foam, "preset")
+    assert tuple(opt[("mesh", "format")]) == choices(Mesh, "format") == ("ply", "obj")
+    assert tuple(opt[("run", "until")]) == RUN_STAGES
+    for name in choices(Foam, "preset"):  # every preset the scene and CLI accept has values
+        assert resolve(preset=name).spray_below > 0

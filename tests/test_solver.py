@@ -51,6 +51,34 @@ def test_rest_state_settles():
     assert abs(rho[near_wall].mean() / rho0 - 1) < 0.03
 
 
+def test_wall_layer_rests_at_the_density_of_the_water_above_it():
+    """The walls' density share ψ and its gradient ∇ψ (in ∇_i C_i of λ, and in Δp as λ_i ∇ψ_i) stand in
+    for the fluid missing beyond a wall: the layer resting on the floor, a distance r above it, is at the
+    density of the layers above. Without ∇ψ in λ the wall layer's correction is too weak, without it in Δp
+    the wall does not push back at all: either way the wall layer ends up 2-4 ‰ denser than the water
+    above it (measured), against under 1 ‰ with both."""
+    r = 0.01
+    sc = scene_from_dict(
+        {
+            "domain": {"upper": [0.12, 0.12, 0.4]},
+            "solver": {"particle_radius": r, "iterations": 8},
+            "fluid": [{"lower": [0, 0, 0], "upper": [0.12, 0.12, 0.3]}],
+        }
+    )
+    s = build_solver(sc)
+    layers = []
+    for f in range(1, 46):  # 1.5 s: settled after 1 s; average the last 0.5 s
+        s.advance_frame(f)
+        if f > 30:
+            a = s.arrays()
+            z, rho = a["positions"][:, 2], a["density"] / sc.solver.rest_density
+            layers.append([rho[(z >= 2 * k * r) & (z < 2 * (k + 1) * r)].mean() for k in range(5)])
+    m = np.mean(layers, axis=0)
+    assert abs(m[1:].mean() - 1) < 0.005, m  # the water above is near rest density
+    excess = m[0] - m[1:].mean()
+    assert abs(excess) < 1.5e-3, f"wall layer {m[0]:.4f} vs {m[1:].mean():.4f} above it"
+
+
 def test_mass_and_ids_preserved(tiny_run):
     info = RunInfo.load(tiny_run)
     files = info.files("fluid")

@@ -99,9 +99,15 @@ def test_empty_frame_gives_empty_mesh(tmp_path):
     write_vtp(tmp_path / "empty.vtp", m.vertices, {"velocity": m.arrays["velocity"]}, triangles=m.faces)
     pts, arrays, tris = read_vtp(tmp_path / "empty.vtp")
     assert len(pts) == len(tris) == 0
-    # obj too
+    # OBJ too: a file that our reader and an independent one (trimesh) parse as an empty mesh,
+    # with no vertex or face statement in it.
     mesh_frame(src, tmp_path / "empty.obj", MeshParams(particle_radius=R_SIM))
-    assert (tmp_path / "empty.obj").is_file()
+    m = read_mesh(tmp_path / "empty.obj")
+    assert m.vertices.shape == (0, 3) and m.faces.shape == (0, 3)
+    statements = [ln.split()[0] for ln in (tmp_path / "empty.obj").read_text().splitlines() if ln.strip()]
+    assert all(st == "#" or st.startswith("#") for st in statements), statements
+    other = trimesh.load(tmp_path / "empty.obj", file_type="obj", process=False, force="mesh")
+    assert len(other.vertices) == 0 and len(other.faces) == 0
 
 
 @pytest.fixture
@@ -230,3 +236,12 @@ def test_canonical_order_ignores_vertex_and_face_order():
     tri = set().union(*(rotations(t) for t in np.argsort(o1)[f]))
     assert all(tuple(t) in tri for t in f1)
     assert sorted(min(rotations(t)) for t in np.argsort(o1)[f]) == [tuple(t) for t in f1]
+
+
+def test_api_checks_jobs_and_profiles_like_the_cli(run_copy, capsys):
+    with pytest.raises(InputError, match="--jobs must be at least 1"):
+        mesh(run_copy, jobs=0, show_progress=False)
+    assert not (run_copy / "mesh").exists()
+    stats = mesh(run_copy, jobs=1, profile=True, show_progress=False)
+    out = capsys.readouterr().out
+    assert len(stats) == 4 and "mesh profile" in out and "mesh.splashsurf" in out

@@ -177,9 +177,13 @@ def test_dualsphysics_sequence_plays_back(tmp_path):
 
 
 def test_obstacle_transform_rotates_x_then_y_then_z():
-    from whitecap.view.geometry import obstacle_transform
+    from whitecap.config import Obstacle, obstacle_transform
 
-    m = obstacle_transform([1.0, 0.0, 0.0], [90.0, 90.0, 0.0], 2.0)
+    m = obstacle_transform({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0})
+    # The scene model and its run.json dict place an obstacle alike; missing keys are the defaults.
+    o = Obstacle(mesh="m.obj", translate=[1.0, 0.0, 0.0], rotate=[90.0, 90.0, 0.0], scale=2.0)
+    np.testing.assert_array_equal(obstacle_transform(o), m)
+    np.testing.assert_array_equal(obstacle_transform({"mesh": "m.obj"}), np.eye(4))
     # (0,1,0) -> scale 2 -> Rx90 -> (0,0,2) -> Ry90 -> (2,0,0) -> +translate
     np.testing.assert_allclose((m @ [0, 1, 0, 1])[:3], [3.0, 0.0, 0.0], atol=1e-9)
 
@@ -192,9 +196,26 @@ def test_orbit_camera_keeps_distance_and_target():
     d = cam.distance
     cam.orbit(0.7, 0.3)
     assert np.linalg.norm(cam.eye - cam.target) == pytest.approx(d)
-    cam.pan(0.1, 0.0)
+    # Pan: eye and target shift together in the view plane by the given fraction of the distance,
+    # so the old target moves on screen with the drag (right for dx > 0, up for dy > 0) by
+    # dx / (tan(fov/2) · aspect) of the half width, and by dy / tan(fov/2) of the half height.
+    from whitecap.view.draw import project
+
+    half = np.tan(np.radians(cam.fov) / 2)
+    for dx, dy in ((0.1, 0.0), (0.0, 0.1)):
+        eye, target = cam.eye.copy(), cam.target.copy()
+        f, _, _ = cam.basis()
+        cam.pan(dx, dy)
+        np.testing.assert_allclose(cam.eye - eye, cam.target - target, atol=1e-12)
+        assert np.linalg.norm(cam.target - target) == pytest.approx(np.hypot(dx, dy) * d)
+        assert abs(np.dot(cam.target - target, f)) < 1e-12
+        np.testing.assert_allclose(cam.basis()[0], f, atol=1e-12)  # same view direction
+        col, row = project(target[None], cam, W, H)[0]
+        assert col == pytest.approx(W / 2 * (1 + dx / (half * W / H)), abs=0.5)
+        assert row == pytest.approx(H / 2 * (1 - dy / half), abs=0.5)
     cam.zoom(0.5)
     assert cam.distance == pytest.approx(d / 2)
+    np.testing.assert_allclose(np.linalg.norm(cam.eye - cam.target), d / 2)
 
 
 def test_obstacle_mesh_is_drawn_where_it_projects(tiny_run, tmp_path):
@@ -426,3 +447,56 @@ def test_live_buffers_filled_on_the_device_match_the_host_colour_map():
         np.testing.assert_allclose(buf.pos.to_numpy()[:n], x)
         np.testing.assert_allclose(buf.col.to_numpy()[:n], colormap(s, lo, hi), atol=1e-5)
         assert len(np.unique(buf.col.to_numpy()[:n].round(3), axis=0)) > 100  # a spread of colours, not one
+
+
+def test_saved_frames_colour_each_particle_by_its_speed(tiny_run, tmp_path):
+    """Three blocks at rest, at half and at the full default speed range sqrt(2|g|H) are drawn in
+    the colour map's colours at 0, 1/2 and 1 (compared by chromaticity: lighting scales brightness)."""
+    from whitecap.view.colors import colormap
+    from whitecap.view.draw import GRAVITY, project
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    info = RunInfo.load(run)
+    top = info.domain["upper"][2] - info.domain["lower"][2]
+    v_max = np.sqrt(2 * GRAVITY * top)  # the viewer's default speed range is [0, v_max]
+    ax = np.arange(5) * 0.02
+    block = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) - 0.04
+    centres = np.array([[0.1, 0.1, 0.2], [0.3, 0.1, 0.2], [0.5, 0.1, 0.2]])
+    fractions = (0.0, 0.5, 1.0)
+    pos = np.concatenate([block + c for c in centres])
+    vel = np.concatenate([np.tile([f * v_max, 0.0, 0.0], (len(block), 1)) for f in fractions])
+    write(run / frame_name("fluid", 0), ParticleFrame(pos, vel, density=np.full(len(pos), 1000.0)))
+    img = _img(_render(run, tmp_path / "png", "--frames", 1)[0]).astype(float)
+    ts = np.linspace(0, 1, 101)
+    cmap = colormap(ts, 0.0, 1.0)
+    cmap_chroma = cmap / cmap.sum(1, keepdims=True)
+    for (c, r), f in zip(np.round(project(centres, _camera(run), W, H)).astype(int), fractions):
+        rgb = np.median(img[r - 2:r + 3, c - 2:c + 3].reshape(-1, 3), axis=0)
+        chroma = rgb / rgb.sum()
+        t = ts[np.argmin(np.linalg.norm(cmap_chroma - chroma, axis=1))]
+        assert abs(t - f) < 0.15, (f, t, rgb)
+
+
+def test_window_gets_the_size_and_colour_asked_for(tiny_run, monkeypatch):
+    from whitecap.cli import main
+    from whitecap.view import app
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_window(res, headless, fps_limit=60):
+        seen["size"], seen["headless"] = tuple(res), headless
+        return object()
+
+    def fake_renderer(window, source, cfg):
+        seen["color"] = cfg.color_mode
+        raise Stop
+
+    monkeypatch.setattr(app, "make_window", fake_window)
+    monkeypatch.setattr(app, "_renderer", fake_renderer)
+    with pytest.raises(Stop):
+        main(["view", str(tiny_run), "--size", "321", "243", "--color", "density"])
+    assert seen == {"size": (321, 243), "headless": False, "color": "density"}

@@ -12,7 +12,10 @@ import argparse
 import os
 import sys
 
+from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
+from .pipeline import RUN_STAGES
+from .surface.export import TARGETS
 
 
 # ============================================================================ simulate
@@ -63,10 +66,14 @@ def _add_foam(sub) -> None:
         "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
         "diffuse/counts.csv.",
     )
-    p.add_argument("input", help="run directory, sequence directory or glob ('frames/*.vtk')")
+    p.add_argument("input", nargs="?", help="run directory, sequence directory or glob ('frames/*.vtk'); "
+                   "may be left out when --params names it ([PATHS] InputDataPath)")
     p.add_argument("--out", "-o", help="output run directory (default: the input run itself)")
-    p.add_argument("--preset", choices=["ihmsen2012", "dualsphysics", "splishsplash", "auto"], help="parameter preset")
-    p.add_argument("--params", help="DualSPHysics DiffuseCalculator .ini file with the parameters")
+    p.add_argument("--preset", choices=choices(Foam, "preset"),
+                   help="parameter preset (splishsplash: FoamGenerator's default, automatic mode)")
+    p.add_argument("--params", help="parameter .ini: the VisualSPHysics foam simulator's file DualSPHysics users have "
+                   "(its [PATHS], [TIMESTEPS] and [DOMAIN] give the job: `whitecap foam --params FILE` runs it), "
+                   "or DiffuseCalculator-style keys (TaMin, KTa...)")
     p.add_argument("--case", help="DualSPHysics case XML (spacing, mass, time step, domain)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input (y for Y-up solvers)")
     p.add_argument("--dt", type=float, help="time between frames [s] when the input does not say")
@@ -80,7 +87,7 @@ def _cmd_foam(a) -> int:
 
     info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
                          radius=a.radius, seed=a.seed)
-    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {a.out or a.input}")
+    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {info.extra.get('out', a.out or a.input)}")
     return 0
 
 
@@ -109,7 +116,7 @@ def _add_mesh(sub) -> None:
                    help="unweighted Laplacian smoothing")
     p.add_argument("--no-velocity", dest="interpolate_velocity", action="store_const", const=False,
                    help="do not interpolate particle velocity onto vertices")
-    p.add_argument("--format", choices=["ply", "obj"], help="mesh file format (default ply; obj has no velocity)")
+    p.add_argument("--format", choices=choices(Mesh, "format"), help="mesh file format (default ply; obj has no velocity)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
@@ -125,21 +132,16 @@ _MESH_OVERRIDES = ("radius_factor", "smoothing_length", "cube_size", "iso_surfac
 def _cmd_mesh(a) -> int:
     import warnings
 
-    from . import pipeline, timing
+    from . import pipeline
 
-    if a.jobs is not None and a.jobs < 1:
-        raise WhitecapError(f"mesh: --jobs must be at least 1 (got {a.jobs})")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
-    timing.reset()
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, **overrides)
+                          up=a.up, profile=a.profile, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
-    if a.profile:
-        print(timing.report("mesh profile"))
     return 0
 
 
@@ -153,7 +155,7 @@ def _add_export(sub) -> None:
         ".series for ply).",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", choices=["vtk", "ply"], help="vtk: .vtp + .pvd (default); ply: PLY + .series")
+    p.add_argument("--to", default="vtk", choices=TARGETS, help="vtk: .vtp + .pvd (default); ply: PLY + .series")
     p.add_argument("--out", "-o", help="output directory (default RUN/export)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series")
@@ -181,7 +183,7 @@ def _add_view(sub) -> None:
     p.add_argument("--frames", type=int, help="frames to render headless (live: simulated frames; default: all / 1)")
     p.add_argument("--out", "-o", help="output directory for PNGs, screenshots and recordings")
     p.add_argument("--mp4", action="store_true", help="with --headless, also encode OUT/view.mp4")
-    p.add_argument("--color", choices=["speed", "density"], help="colour fluid by speed or density")
+    p.add_argument("--color", choices=choices(View, "color_mode"), help="colour fluid by speed or density")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
     p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
     p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
@@ -193,17 +195,17 @@ def _add_view(sub) -> None:
 def _cmd_view(a) -> int:
     from . import pipeline
 
+    size = tuple(a.size) if a.size else None
     if a.headless:
         if not a.out:
             raise WhitecapError("view --headless: --out DIR is required")
         paths = pipeline.view(
             a.target, headless=True, out=a.out, frames=a.frames, mp4=a.mp4, arch=a.arch,
-            size=tuple(a.size) if a.size else None, color_mode=a.color, up=a.up, panel=a.panel,
-            legend=not a.no_legend,
+            size=size, color_mode=a.color, up=a.up, panel=a.panel, legend=not a.no_legend,
         )
         print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if a.mp4 else ""))
         return 0
-    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up)
+    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up, size=size, color_mode=a.color)
     return 0
 
 
@@ -221,7 +223,7 @@ def _add_render(sub) -> None:
     p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
-    p.add_argument("--device", choices=["auto", "cpu", "gpu"], help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
     p.set_defaults(func=_cmd_render)
 
 
@@ -264,7 +266,7 @@ def _add_run(sub) -> None:
     )
     p.add_argument("scene", help="scene TOML file")
     p.add_argument("--out", "-o", help="run directory (default: out/<scene name>)")
-    p.add_argument("--until", default="render", choices=["simulate", "mesh", "render"], help="stop after this stage")
+    p.add_argument("--until", default="render", choices=RUN_STAGES, help="stop after this stage")
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
@@ -284,13 +286,6 @@ def _cmd_run(a) -> int:
 
 
 # ============================================================================ main
-def _not_yet(name: str):
-    def f(a) -> int:
-        raise WhitecapError(f"'{name}' is not available in this build yet")
-
-    return f
-
-
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
@@ -316,11 +311,35 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("interrupted; rerun with --resume to continue from the last complete frame", file=sys.stderr)
+        print("interrupted" + _RESUME_HINT.get(a.command, ""), file=sys.stderr)
         return 130
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except OSError as exc:  # disk full, read-only directory, a file where a folder should be...
+        print(f"error: {os_error_message(exc)}", file=sys.stderr)
+        return OS_ERROR_EXIT
+
+
+# How each command continues after Ctrl-C (only those that keep finished work).
+_RESUME_HINT = {
+    "simulate": "; rerun with --resume to continue from the last checkpoint",
+    "run": "; rerun the same command to continue where it stopped",
+    "mesh": "; rerun the same command: frames already meshed are skipped",
+    "render": "; rerun the same command: frames already rendered are skipped",
+}
+OS_ERROR_EXIT = 5
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line naming the path(s) and the cause of an operating-system error."""
+    cause = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(os.fsdecode(f)) for f in (exc.filename, exc.filename2) if f is not None]
+    if isinstance(exc, FileExistsError) and paths and os.path.isfile(paths[0]):
+        cause = "a file is in the way of a directory"  # mkdir onto a file says only 'File exists'
+    if not paths:
+        return cause.replace("\n", " ")
+    return (" -> ".join(paths) + f": {cause}").replace("\n", " ")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -18,7 +18,7 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -122,6 +122,23 @@ class FluidBlock(_Section):
 
 
 # --------------------------------------------------------------------------- obstacles
+def obstacle_transform(o) -> "np.ndarray":
+    """The 4×4 placement of an obstacle mesh: scale, then rotate about x, then y,
+    then z [deg], then translate. ``o`` is an :class:`Obstacle` or its dict (as
+    stored in ``run.json``); missing keys take the model's defaults. The one
+    definition the solver, the viewer and the renderer place obstacles with."""
+    import trimesh.transformations as T
+
+    def get(key: str):
+        if isinstance(o, dict):
+            return o.get(key, Obstacle.model_fields[key].default)
+        return getattr(o, key)
+
+    rx, ry, rz = (math.radians(a) for a in get("rotate"))
+    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
+    return T.concatenate_matrices(T.translation_matrix(get("translate")), R, T.scale_matrix(get("scale")))
+
+
 class Obstacle(_Section):
     """A static rigid obstacle from a watertight triangle mesh (OBJ/STL/PLY)."""
 
@@ -143,7 +160,7 @@ class Foam(_Section):
     """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
-    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "auto"] = Field(
+    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-manual", "auto"] = Field(
         "auto",
         description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
         "thresholds from percentiles of each potential over frames sampled across the run (in the "
@@ -364,6 +381,12 @@ class Scene(_Section):
         import tomli_w
 
         return tomli_w.dumps(_drop_none(self.model_dump(exclude={"base_dir"})))
+
+
+def choices(model: type[BaseModel], name: str) -> tuple[str, ...]:
+    """The allowed values of a Literal field, e.g. ``choices(Foam, "preset")``: the CLI's
+    choices come from here, so the scene model stays their one definition."""
+    return get_args(model.model_fields[name].annotation)
 
 
 def _drop_none(d: Any) -> Any:

@@ -60,7 +60,7 @@ def simulate(
 RUN_STAGES = ("simulate", "mesh", "render")
 
 
-def _simulation_state(sc: Scene, out: Path, frames: int) -> str:
+def _simulation_state(out: Path, frames: int) -> str:
     """'new', 'partial' or 'done' for the simulate stage of a run directory."""
     from .sim.driver import CHECKPOINT
 
@@ -107,7 +107,11 @@ def run(
     for k, stage in enumerate(stages, 1):
         console.rule(f"[bold]stage {k}/{len(stages)}: {stage}")
         if stage == "simulate":
-            state = _simulation_state(sc, out, nframes)
+            state = _simulation_state(out, nframes)
+            if state != "new":  # continuing a run of another scene would mix two simulations
+                from .sim.driver import refuse_changed_scene
+
+                refuse_changed_scene(sc, out)
             if state == "done":
                 console.print(f"simulate: all {nframes} frames already in {out}")
             else:
@@ -129,23 +133,32 @@ def mesh(
     force: bool = False,
     config: str | Path | None = None,
     up: str = "z",
+    profile: bool = False,
     show_progress: bool = True,
     **overrides,
 ) -> list[dict]:
     """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
 
     ``overrides`` are ``[mesh]`` fields (``cube_size=0.6``, ``format="obj"``...);
-    ``config`` is a scene TOML whose ``[mesh]`` replaces the run's. Returns
-    per-frame stats; meshes of a run are recorded in its run.json.
+    ``config`` is a scene TOML whose ``[mesh]`` replaces the run's; ``jobs`` frames
+    run in parallel (default: the core count). Returns per-frame stats; meshes of
+    a run are recorded in its run.json. ``profile`` prints the time per phase.
     """
     import os
 
+    from .errors import InputError
     from .surface.driver import plan, run_mesh
 
-    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
+    if jobs is not None and jobs < 1:
+        raise InputError(f"mesh: --jobs must be at least 1 (got {jobs})")
+    jobs = jobs or len(os.sched_getaffinity(0))
     cfg = load_scene(config).mesh if config is not None else None
+    timing.reset()
     job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
-    return run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+    if profile:
+        print(timing.report("mesh profile"))
+    return stats
 
 
 def export(
@@ -188,7 +201,7 @@ def blender_addon(out: str | Path | None = None) -> Path:
 
 # ============================================================================ foam (post-processing)
 def foam(
-    input: str | Path,
+    input: str | Path | None = None,
     out: str | Path | None = None,
     preset: str | None = None,
     ini: str | Path | None = None,
@@ -199,11 +212,24 @@ def foam(
     seed: int | None = None,
     show_progress: bool = True,
 ) -> RunInfo:
-    """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`)."""
+    """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
+
+    With ``ini`` (a parameter file), ``input`` may be left out when the file names
+    the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
+    :func:`whitecap.diffuse.postprocess_params_file`.
+    """
+    from .errors import InputError
+
+    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress)
+    if ini is not None:
+        from .diffuse import postprocess_params_file
+
+        return postprocess_params_file(ini, src=input, out=out, case=case, **kw)
+    if input is None:
+        raise InputError("foam: give the INPUT sequence, or --params FILE naming it ([PATHS] InputDataPath)")
     from .diffuse import postprocess
 
-    return postprocess(input, out=out, ini=ini, preset=preset, up=up, dt=dt, radius=radius, seed=seed, case=case,
-                       show_progress=show_progress)
+    return postprocess(input, out=out, case=case, **kw)
 
 
 # ============================================================================ view

@@ -14,6 +14,10 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,16 +25,18 @@ import numpy as np
 from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
+from ..io.lock import run_lock
 from ..io.run import RunInfo, frame_name
 from ..progress import console, progress
-from .generator import TYPES, DiffuseState, FoamGenerator
+from ..io.diffuse_types import COUNT_NAMES
+from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
-__all__ = ["simulation_hook", "postprocess", "FoamGenerator", "FoamParams", "resolve"]
+__all__ = ["simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams", "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
-    lines = ["frame,time,spray,foam,bubbles"] + [
+    lines = [",".join(("frame", "time", *COUNT_NAMES))] + [
         f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
     ]
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
@@ -113,15 +119,47 @@ def obstacle_grids(scene: Scene) -> list:
 
 def simulation_hook(scene: Scene) -> FoamStage:
     """The frame hook `simulate` uses when [foam] is enabled."""
-    return FoamStage(resolve(scene.foam), scene.seed, obstacles=obstacle_grids(scene))
+    p = resolve(scene.foam)
+    if p.model == "foamgenerator":
+        raise InputError(
+            f"foam.preset: {scene.foam.preset!r} is FoamGenerator's automatic mode, whose limits come from the whole "
+            "sequence; simulate with [foam] enabled = false, then run `whitecap foam RUN --preset splishsplash` "
+            "(or use 'splishsplash-manual' in the simulation)"
+        )
+    return FoamStage(p, scene.seed, obstacles=obstacle_grids(scene))
 
 
 # ============================================================================ post-processing
-def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
-    """Frames of the input plus what is known about the run (radius, dt, domain...)."""
+FOAMGENERATOR_CAPACITY = 100  # diffuse particles per fluid particle the 'splishsplash' preset makes room for
+
+
+def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: str | None, show_progress: bool):
+    """FoamGenerator's pass 1: the clamping limits from the per-frame maxima over the whole input."""
+    from . import splishsplash as SP
+
+    maxima = []
+    bar = progress(disable=not show_progress)
+    with bar:
+        task = bar.add_task("foam limits", total=len(files), info="")
+        for _, path in files:
+            fr = first if path == files[0][1] else read(path, **({"up": up} if up else {}))
+            if fr.velocities is None:
+                raise InputError(f"{path}: missing array 'velocity'")
+            maxima.append(SP.frame_maxima(gen, fr))
+            bar.update(task, advance=1)
+    tau = SP.limits_from_maxima(np.array(maxima), gen.r)
+    console.print(
+        f"foam limits (FoamGenerator automatic mode, mean of {len(files)} per-frame maxima): trapped air "
+        f"{tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest {tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J"
+    )
+    return tau
+
+
+def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+    """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...)."""
     from ..io.sequence import find_sequence
 
-    if src.is_dir() and (src / "run.json").exists():
+    if frames is None and src.is_dir() and (src / "run.json").exists():
         info = RunInfo.load(src)
         files = [(i, src / rel) for i, rel in info.files("fluid")]
         if not files:
@@ -129,7 +167,7 @@ def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo |
         return files, info, {}
     if not src.exists() and not any(c in str(src) for c in "*?["):
         raise InputError(f"{src}: no such file or directory")
-    files = find_sequence(src)
+    files = list(frames) if frames is not None else find_sequence(src)
     known: dict = {}
     folder = src if src.is_dir() else src.parent
     xmls = sorted(folder.glob("*.xml")) if folder.is_dir() else []
@@ -140,6 +178,16 @@ def _input_frames(src: Path, up: str) -> tuple[list[tuple[int, Path]], RunInfo |
         known.update(radius=case.particle_radius, mass=case.mass, dt=case.time_out, rest_density=case.rho0,
                      gravity=case.gravity, lower=case.lower, upper=case.upper, case=str(xmls[0]))
     return files, None, known
+
+
+def _first_particles(files: list[tuple[int, Path]], first: ParticleFrame, up: str) -> np.ndarray | None:
+    """Positions of the first frame that has particles (None when every frame is empty)."""
+    for k, (_, path) in enumerate(files):
+        fr = first if k == 0 else read(path, up=up)
+        if len(fr):
+            fr.check_finite()
+            return fr.positions
+    return None
 
 
 def postprocess(
@@ -154,9 +202,15 @@ def postprocess(
     seed: int | None = None,
     case: str | Path | None = None,
     show_progress: bool = True,
+    frames: list[tuple[int, Path]] | None = None,
+    domain: tuple | None = None,
     look_ahead: bool = True,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
+
+    ``frames`` ((index, path) pairs) replaces the files found at ``src``, and
+    ``domain`` ((lower, upper) [m]) the domain of a foreign sequence: diffuse
+    particles outside it are removed.
 
     For a whitecap run, the run's own [foam] settings and seed are used unless
     overridden, and results land in the run itself (``out`` defaults to it).
@@ -166,29 +220,19 @@ def postprocess(
     without it, it keeps the simulation's running estimate, as inside ``simulate``.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, up)
+    files, info, known = _input_frames(src, frames)
     if case is not None:
         known.update(_case_values(case))
+    if domain is not None:
+        known.update(lower=list(map(float, domain[0])), upper=list(map(float, domain[1])))
     foam_cfg, run_seed, grids, out = _run_settings(src, info, out)
-    p = params or resolve(foam_cfg, ini=ini, preset=preset)
+    p = params or resolve(foam_cfg, ini=ini, preset=preset,
+                          particle_mass=info.particle_mass if info is not None else known.get("mass"))
     seed = run_seed if seed is None else seed
     frame_dt, r = _frame_dt_and_radius(src, info, known, dt, radius)
-    reader = _Reader(files, up if info is None else None)
-    src_is_run = info is not None
-    if info is None:
-        info = _foreign_run_info(reader.first(), known, r, frame_dt, src, seed)
     out.mkdir(parents=True, exist_ok=True)
-    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
-    stage.start(info)
-    if p.auto and look_ahead:
-        _calibrate(stage, reader, info, frame_dt, src_is_run)
-    # Results for a whitecap run go into that run; anywhere else the fluid
-    # frames are copied along so the output is a complete run directory.
-    convert = out.resolve() != src.resolve()
-    _run_frames(stage, reader, info, out, frame_dt, src_is_run, convert, show_progress)
-    info.save(out)
-    _report(stage)
-    return info
+    with run_lock(out, "foam"):
+        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead)
 
 
 def _case_values(case: str | Path) -> dict:
@@ -196,7 +240,7 @@ def _case_values(case: str | Path) -> dict:
 
     c = read_case(case)
     return dict(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
-                lower=c.lower, upper=c.upper)
+                lower=c.lower, upper=c.upper, case=str(case))
 
 
 def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list, Path]:
@@ -226,6 +270,42 @@ def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radiu
     return frame_dt, r
 
 
+def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
+    """Identity of a foreign sequence: its files' names, sizes and modification times."""
+    stats = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for _, path in files]
+    return hashlib.sha256(json.dumps([up, stats]).encode()).hexdigest()[:16]
+
+
+def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
+                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool) -> RunInfo:
+    src_is_run = info is not None
+    if src_is_run:  # read again under the lock: what is current cannot change from here on
+        info = RunInfo.load(src)
+        files = [(i, src / rel) for i, rel in info.files("fluid")]
+    reader = _Reader(files, None if src_is_run else up)
+    first = reader.first()
+    if info is None:
+        info = _foreign_run_info(src, files, first, known, r, frame_dt, up, seed)
+    # Results for a whitecap run go into that run; anywhere else the fluid
+    # frames are copied along so the output is a complete run directory.
+    convert = out.resolve() != src.resolve()
+    if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
+        p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
+    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
+    stage.start(info)
+    if p.model == "foamgenerator":
+        tau = _foamgenerator_limits(stage.gen, files, first, up if not src_is_run else None, show_progress)
+        stage.gen.state.tau = tau
+        info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
+    elif p.auto and look_ahead:
+        _calibrate(stage, reader, info, frame_dt, src_is_run)
+    _run_frames(stage, reader, info, out, frame_dt, src_is_run, convert, show_progress)
+    info.save(out)
+    info.extra["out"] = str(out)  # for the caller's message; not saved
+    _report(stage)
+    return info
+
+
 class _Reader:
     """The input's frames, each checked for velocities; the first and the sampled ones are kept."""
 
@@ -241,7 +321,6 @@ class _Reader:
         fr = read(path, **self.kw)
         if fr.velocities is None:
             raise InputError(f"{path}: missing array 'velocity'")
-        fr.check_finite()
         if keep:
             self.cache[k] = fr
         return fr
@@ -250,16 +329,27 @@ class _Reader:
         return self.read(0, keep=True)
 
 
-def _foreign_run_info(first: ParticleFrame, known: dict, r: float, frame_dt: float, src: Path, seed: int) -> RunInfo:
-    """A run.json for a sequence from another solver: the domain from its case file or the first frame."""
-    lo = known.get("lower") or (first.positions.min(0) - 0.5 * np.ptp(first.positions, 0) - 4 * r).tolist()
-    hi = known.get("upper") or (first.positions.max(0) + 0.5 * np.ptp(first.positions, 0) + 4 * r).tolist()
-    return RunInfo(
+def _foreign_run_info(src: Path, files: list, first: ParticleFrame, known: dict, r: float, frame_dt: float, up: str,
+                      seed: int) -> RunInfo:
+    """A run.json for a sequence from another solver: the domain from its case file (or the
+    caller), else the first frame with particles grown by half its extent."""
+    if "lower" in known and "upper" in known:
+        lo, hi = known["lower"], known["upper"]
+    else:
+        pts = _first_particles(files, first, up)
+        if pts is None:
+            raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
+                             "make diffuse particles from")
+        lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
+        hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
+    info = RunInfo(
         particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
         particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
         domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
         extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
     )
+    info.simulation = _source_identity(files, up)
+    return info
 
 
 def _frame_time(info: RunInfo, index: int, frame_dt: float, src_is_run: bool) -> float:
@@ -292,6 +382,7 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
         task = bar.add_task("foam", total=len(reader.files), info="")
         for k, (index, _) in enumerate(reader.files):
             fr = reader.read(k)
+            fr.check_finite()
             fr.time = _frame_time(info, index, frame_dt, src_is_run)
             if convert:
                 rel = frame_name("fluid", index)
@@ -308,4 +399,86 @@ def _report(stage: FoamStage) -> None:
     stage.finish()
     counts = stage.gen.state.counts
     tot = np.array([r_[2:] for r_ in counts]).sum(0) if counts else np.zeros(3)
-    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(TYPES, tot)))
+    console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
+
+
+def postprocess_params_file(
+    ini: str | Path,
+    src: str | Path | None = None,
+    out: str | Path | None = None,
+    case: str | Path | None = None,
+    **kw,
+) -> RunInfo:
+    """`whitecap foam [INPUT] --params FILE`: what a parameter file describes, then :func:`postprocess`.
+
+    A VisualSPHysics foam .ini (the file DualSPHysics users have) also names the
+    job: input frames (InputDataPath, InputFilesPrefix, ZeroPadding and
+    [TIMESTEPS]), output folder (OutputDataPath), case XML (XmlFile) and a
+    custom domain. Arguments given here replace the file's.
+    """
+    from ..io.sequence import find_sequence
+    from .params import read_ini
+
+    f = read_ini(ini)
+    job = f.job
+    if job is None:
+        if src is None:
+            raise InputError(f"{f.path}: no [PATHS] InputDataPath; give the INPUT sequence as well")
+        return postprocess(src, out=out, ini=f, case=case, **kw)
+    if job.exclusion_zone:
+        raise InputError(f"{f.path}: [PATHS] ExclusionZoneFile = {job.exclusion_zone}: exclusion zones are not "
+                         "supported; leave it empty (a [DOMAIN] CustomDomain box is)")
+    frames = None
+    if src is None:
+        if job.input_dir is None:
+            raise InputError(f"{f.path}: [PATHS] InputDataPath: missing; set it or give the INPUT sequence")
+        if not job.input_dir.is_dir():
+            raise InputError(f"{f.path}: [PATHS] InputDataPath = {job.input_dir}: no such directory")
+        src = job.input_dir
+        if job.first is not None:
+            frames = _job_frames(f.path, job)
+        else:
+            pattern = job.input_dir / f"{job.prefix}{'[0-9]' * job.zero_padding}*.vtk"
+            frames = [(i, q) for i, q in find_sequence(pattern) if job.last is None or i <= job.last]
+    elif job.first is not None or job.last is not None:
+        src_p = Path(src)
+        if not (src_p.is_dir() and (src_p / "run.json").exists()):
+            lo, hi = job.first or 0, job.last if job.last is not None else float("inf")
+            frames = [(i, q) for i, q in find_sequence(src_p) if lo <= i <= hi]
+            if not frames:
+                raise InputError(f"{f.path}: [TIMESTEPS]: no frame of {src} lies in {lo}..{hi}")
+    if out is None:
+        if job.out is None:
+            raise InputError(f"{f.path}: [PATHS] OutputDataPath: missing; set it or pass --out")
+        out = job.out
+    if case is None and job.xml is not None:
+        if not job.xml.is_file():
+            raise InputError(f"{f.path}: [PATHS] XmlFile = {job.xml}: file not found")
+        case = job.xml
+    notes = [f"[OUTPUT] {', '.join(job.outputs)}"] if job.outputs else []
+    if job.out_prefix:
+        notes.append(f"[PATHS] FilesOutputPrefix = {job.out_prefix}")
+    if notes:
+        console.print(f"note: {f.path}: {'; '.join(notes)}: whitecap writes {out}/diffuse/diffuse_NNNNN.ply "
+                      f"(`whitecap export {out} --to vtk` for VTK)", soft_wrap=True)
+    return postprocess(src, out=out, ini=f, case=case, frames=frames, domain=job.domain, **kw)
+
+
+def _job_frames(path: Path, job) -> list[tuple[int, Path]]:
+    """Frames StartingTimeStep..EndingTimeStep; like the VisualSPHysics simulator, the run ends
+    at the first missing file (said once), and the first one must exist."""
+    first = job.frame_path(job.first)
+    if not first.is_file():
+        raise InputError(f"{path}: [TIMESTEPS] StartingTimeStep = {job.first}: {first} not found")
+    frames = []
+    i = job.first
+    while job.last is None or i <= job.last:
+        q = job.frame_path(i)
+        if not q.is_file():
+            if job.last is not None:
+                console.print(f"[yellow]warning:[/] {path}: [TIMESTEPS] EndingTimeStep = {job.last} but {q.name} "
+                              f"is missing; frames {job.first}..{i - 1} are used", soft_wrap=True)
+            break
+        frames.append((i, q))
+        i += 1
+    return frames

@@ -30,9 +30,9 @@ from ..sim.grid import NeighborGrid, grid_spec
 from ..timing import timer
 from . import budget as B
 from . import kernels as K
+from . import splishsplash as SP
 from .params import FoamParams
 
-TYPES = ("spray", "foam", "bubbles")
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
 # Neighbour-list length per fluid particle: a lattice of spacing 2r has 4/3·π·(h/2r)³ ≈ 34
 # neighbours within h = 4r; 96 leaves ~3× room for water compressed in a splash.
@@ -281,7 +281,7 @@ class FoamGenerator:
         fid = _nd(fluid.ids.astype(np.uint32), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n)
-        return fx, fv, fid, (g.x_sorted, fv, g.start, g.order, g._lower, 1.0 / g.spec.cell, g._dims, g.reach, self.h)
+        return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
 
     def _potential_arrays(self, fluid: ParticleFrame, n: int):
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots)."""
@@ -290,8 +290,13 @@ class FoamGenerator:
         m = max(n, 1)
         normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
         v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
-        K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-        K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
+        if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
+            v_diff, crest, e_k = SP.frame_potentials(self, fx, fv, n)
+            vort.fill(0.0)
+            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
+        else:
+            K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+            K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
         self._pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
         return args, fx, fv, fid, (v_diff, crest, e_k, vort)
 
@@ -351,7 +356,8 @@ class FoamGenerator:
         life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
         kind = ti.ndarray(ti.i32, nd)
         K.advect_diffuse(
-            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind
+            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
+            int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
         )
         k = keep.to_numpy()[:nd].astype(bool)
         kd = kind.to_numpy()[:nd]
@@ -390,7 +396,8 @@ class FoamGenerator:
         m = max(n, 1)
         cnt, rate = ti.ndarray(ti.i32, m), ti.ndarray(ti.f32, m)
         frame = index & 0xFFFFFFFF
-        lost = K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap, cnt, rate)
+        lost = K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap, cnt, rate,
+                              int(p.model == "foamgenerator"))
         counts = cnt.to_numpy()[:n]
         total = int(counts.sum())
         if not total:
@@ -407,6 +414,12 @@ class FoamGenerator:
         owner = np.repeat(np.arange(len(rows)), counts[rows])  # generating particle of each new one
         slot = np.arange(total) - offset[rows][owner]
         pid = fluid.ids.astype(np.uint32)[rows][owner]
+        if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
+            tau_ = self.thresholds()
+            e = e_k.to_numpy()[:n][rows][owner].astype(np.float64)
+            i_k = (np.minimum(e, tau_[5]) - np.minimum(e, tau_[4])) / (tau_[5] - tau_[4])
+            x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
+            life = SP.lifetimes(x01, i_k, float(tau_[5]), p.lifetime_min, p.lifetime_max)
         # The type each new particle is born as; a particle of type t is kept when its slot is
         # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
         # particles of a type whose multiplier is unchanged stay exactly the same.
@@ -416,7 +429,10 @@ class FoamGenerator:
         nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
         u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)
         want = nd0[:, None] * mult.astype(np.float32)[None, :]  # (generating particle, type)
-        limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
+        if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
+            limit = np.floor(want + np.float32(0.5))
+        else:
+            limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
         keep = slot < limit[owner, kind]
         # Spray and bubbles with their own lifetime range draw it here.
         for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
@@ -450,13 +466,15 @@ class FoamGenerator:
         st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
         st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
         kind = np.concatenate([old[4], new_k]).astype(np.uint8)
-        if self.obstacles and len(st.positions):
-            outside = np.ones(len(st.positions), bool)
+        if len(st.positions):
+            # Inside the domain and outside every obstacle; new particles born outside
+            # the domain go at once, as moved ones do in _advect.
+            keep = ((st.positions >= self.lo) & (st.positions <= self.hi)).all(axis=1)
             for g in self.obstacles:
-                outside &= g.sample(st.positions) > 0.0
-            if not outside.all():
-                st.positions, st.velocities = st.positions[outside], st.velocities[outside]
-                st.lifetime, st.ids, kind = st.lifetime[outside], st.ids[outside], kind[outside]
+                keep &= g.sample(st.positions) > 0.0
+            if not keep.all():
+                st.positions, st.velocities = st.positions[keep], st.velocities[keep]
+                st.lifetime, st.ids, kind = st.lifetime[keep], st.ids[keep], kind[keep]
         return kind
 
     def with_params(self, **kw) -> None:

@@ -14,10 +14,10 @@ import math
 
 import taichi as ti
 
-from ..sim.grid import F1, F3, I1, I2, cell_index, cell_of
+from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
+from ..sim.grid import F1, F3, I1, I2, CellGeometry, for_each_neighbor
 
 vec3 = ti.math.vec3
-ivec3 = ti.math.ivec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
 # δ_vn of the wave-crest potential: a surface particle counts as a crest only
@@ -146,16 +146,20 @@ def birth_counts(
     cap: ti.i32,
     count: I1,
     rate: F1,
+    round_half_up: ti.i32,
 ) -> ti.i32:
     """How many particles each fluid particle generates: n_d (see new_particles) into
-    ``rate``, rounded stochastically into ``count``, at most ``cap`` (0: no cap).
-    Returns the number beyond the cap."""
+    ``rate``, rounded stochastically into ``count`` (or to the nearest integer with
+    ``round_half_up``, as SPlisHSPlasH's FoamGenerator does), at most ``cap`` (0: no
+    cap). Returns the number beyond the cap."""
     lost = 0
     for i in range(n):
         nd = new_particles(i, v_diff, crest, e_k, vort, tau, k_ta, k_wc, k_vo, dt)
         rate[i] = nd
         m = ti.cast(ti.floor(nd), ti.i32)
-        if rand01(seed, frame, ids[i], ti.u32(0xFFFF), ti.u32(0)) < nd - m:
+        if round_half_up:
+            m = ti.cast(ti.floor(nd + 0.5), ti.i32)
+        elif rand01(seed, frame, ids[i], ti.u32(0xFFFF), ti.u32(0)) < nd - m:
             m += 1
         if cap > 0 and m > cap:
             lost += m - cap
@@ -224,42 +228,43 @@ def generate(
                 out_life[k] = life
 
 
+@ti.kernel
+def zero_below(n: ti.i32, nb_count: I1, min_count: ti.i32, a: F1):
+    """a_i = 0 where particle i has fewer than ``min_count`` neighbours."""
+    for i in range(n):
+        if nb_count[i] < min_count:
+            a[i] = 0.0
+
+
 @ti.func
-def fluid_neighbourhood(
-    p: vec3, xs: F3, fv: F3, start: I1, order: I1, lower: vec3, inv_cell: ti.f32, dims: ivec3, reach: ti.i32, h: ti.f32
-):
-    """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point. Reads the
-    cell-sorted positions ``xs``; the cells along z of each (x, y) column are
-    one contiguous run of the sorted order."""
-    c = cell_of(p, lower, inv_cell, dims)
+def _weigh_fluid(s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()):
+    """Adds fluid particle ``order[s]`` at distance r to the neighbourhood sums, weighted by W̃ = 1 − r/h."""
+    wt = 1.0 - ti.sqrt(r2) / h
+    cnt += 1
+    vsum += wt * fv[order[s]]
+    wsum += wt
+
+
+@ti.func
+def fluid_neighbourhood(p: vec3, cells: ti.template(), xs: F3, start: I1, reach: ti.template(), h: ti.f32, order: I1, fv: F3):
+    """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
+    :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``, then h, order)."""
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    z0 = ti.max(c.z - reach, 0)
-    z1 = ti.min(c.z + reach, dims.z - 1)
-    for dx, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
-        qx, qy = c.x + dx, c.y + dy
-        if 0 <= qx < dims.x and 0 <= qy < dims.y:
-            first = start[cell_index(ivec3(qx, qy, z0), dims)]
-            last = start[cell_index(ivec3(qx, qy, z1), dims) + 1]
-            for s in range(first, last):
-                r = (xs[s] - p).norm()
-                if r < h:
-                    wt = 1.0 - r / h
-                    cnt += 1
-                    vsum += wt * fv[order[s]]
-                    wsum += wt
+    for_each_neighbor(p, h, cells, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum))
     return cnt, vsum, wsum
 
 
 @ti.func
 def diffuse_type(cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32) -> ti.i32:
-    """0 spray (fewer than spray_below fluid neighbours), 2 bubble (more than bubble_above), else 1 foam."""
-    t = 1
+    """SPRAY (fewer than spray_below fluid neighbours), BUBBLE (more than bubble_above), else FOAM
+    (the codes of :mod:`whitecap.io.diffuse_types`)."""
+    t = FOAM
     if cnt < spray_below:
-        t = 0
+        t = SPRAY
     elif cnt > bubble_above:
-        t = 2
+        t = BUBBLE
     return t
 
 
@@ -269,15 +274,13 @@ def advect_diffuse(
     xd: F3,
     vd: F3,
     life: F1,
+    cells: CellGeometry,
     xs: F3,
-    fv: F3,
     start: I1,
-    order: I1,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ivec3,
-    reach: ti.i32,
+    reach: ti.template(),
     h: ti.f32,
+    order: I1,
+    fv: F3,
     g: vec3,
     k_b: ti.f32,
     k_d: ti.f32,
@@ -288,27 +291,31 @@ def advect_diffuse(
     hi: vec3,
     keep: I1,
     kind: I1,
+    foam_keeps_velocity: ti.i32,
 ):
     """Classify by fluid-neighbour count and advect each type its own way:
     spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
-    velocity ṽ_f, its lifetime counting down; bubbles
+    velocity ṽ_f (moving with it; its own v is set to ṽ_f, or kept as it was with
+    ``foam_keeps_velocity``, as SPlisHSPlasH's FoamGenerator does, so foam that
+    turns into spray leaves with its earlier velocity), its lifetime counting down; bubbles
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
     that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], xs, fv, start, order, lower, inv_cell, dims, reach, h)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
         alive = 1
         t = diffuse_type(cnt, spray_below, bubble_above)
-        if t == 0:
+        if t == SPRAY:
             vd[p] += dt * g
             xd[p] += dt * vd[p]
-        elif t == 2:
+        elif t == BUBBLE:
             vd[p] += dt * (-k_b * g) + k_d * (vf - vd[p])
             xd[p] += dt * vd[p]
         else:
-            vd[p] = vf
+            if not foam_keeps_velocity:
+                vd[p] = vf
             xd[p] += dt * vf
             life[p] -= dt
             if life[p] <= 0.0:
@@ -324,20 +331,18 @@ def advect_diffuse(
 def classify(
     nd: ti.i32,
     xd: F3,
+    cells: CellGeometry,
     xs: F3,
-    fv: F3,
     start: I1,
-    order: I1,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ivec3,
-    reach: ti.i32,
+    reach: ti.template(),
     h: ti.f32,
+    order: I1,
+    fv: F3,
     spray_below: ti.i32,
     bubble_above: ti.i32,
     kind: I1,
 ):
     """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], xs, fv, start, order, lower, inv_cell, dims, reach, h)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
         kind[p] = diffuse_type(cnt, spray_below, bubble_above)

@@ -1,6 +1,7 @@
 """File I/O: particle frames, run directories, atomic writes.
 
-Formats register themselves on import (one module per format). Importing
+Formats register themselves on import (one module per format) in the one
+registry, :mod:`whitecap.io.registry`, as particle or mesh formats. Importing
 ``whitecap.io`` loads all built-in formats.
 """
 
@@ -9,6 +10,9 @@ from . import mesh_ply  # noqa: F401  (registers the PLY surface-mesh format)
 from . import mesh_obj  # noqa: F401  (registers the OBJ surface-mesh format)
 from .atomic import atomic_path, write_bytes, write_text
 from .frame import ParticleFrame
-from .registry import FORMATS, read, register, write
+from .registry import FORMATS, find_array, read, read_mesh, register, write, write_mesh
 
-__all__ = ["ParticleFrame", "read", "write", "register", "FORMATS", "atomic_path", "write_bytes", "write_text"]
+__all__ = [
+    "ParticleFrame", "read", "write", "read_mesh", "write_mesh", "register", "FORMATS", "find_array",
+    "atomic_path", "write_bytes", "write_text",
+]

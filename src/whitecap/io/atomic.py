@@ -30,6 +30,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:
+        if exc.filename is None or exc.filename == str(tmp_path):
+            # A write into the temporary file (disk full...) names no path or only the
+            # temporary one: name the file the user asked for.
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

@@ -18,8 +18,7 @@ import numpy as np
 from ..errors import InputError
 from .axes import to_z_up
 from .frame import ParticleFrame
-from .registry import register
-from .vtk_legacy import ID_NAMES, RHO_NAMES, VEL_NAMES, _find
+from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, register
 
 GZIP_MAGIC = b"\x1f\x8b"
 
@@ -38,7 +37,7 @@ def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True) -> Parti
     except Exception as exc:  # EOFError, ValueError from a truncated body, its own format checks
         raise InputError(f"{path}: not a readable BGEO V5 particle file ({exc or type(exc).__name__})") from None
     arrays = {k: np.asarray(v) for k, v in m.point_data.items()}
-    vk, rk, ik = _find(arrays, VEL_NAMES), _find(arrays, RHO_NAMES), _find(arrays, ID_NAMES)
+    vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing attribute 'velocity'; found {sorted(arrays) or 'no attributes'} "
                          "(SPlisHSPlasH: add velocity to particleAttributes)")

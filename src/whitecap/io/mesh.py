@@ -1,16 +1,13 @@
-"""The in-memory surface mesh and its per-format readers/writers.
+"""The in-memory surface mesh every mesh reader returns and every mesh writer takes.
 
-Meshes are not particle frames, so they have their own small registry,
-mirroring :mod:`whitecap.io.registry`: a format module calls
-:func:`register_mesh` at import time; :func:`read_mesh` and
-:func:`write_mesh` pick the format from the file extension.
+Mesh formats register in :mod:`whitecap.io.registry` with ``kind="mesh"``;
+:func:`read_mesh` and :func:`write_mesh` (from there) pick the format from
+the file extension.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -53,37 +50,5 @@ class SurfaceMesh:
         return len(self.vertices)
 
 
-MeshReader = Callable[[Path], SurfaceMesh]
-MeshWriter = Callable[[Path, SurfaceMesh], None]
-MESH_FORMATS: dict[str, tuple[tuple[str, ...], MeshReader | None, MeshWriter | None]] = {}
-
-
-def register_mesh(name: str, extensions: tuple[str, ...], reader: MeshReader | None, writer: MeshWriter | None) -> None:
-    MESH_FORMATS[name] = (extensions, reader, writer)
-
-
-def _format(path: Path):
-    name = path.name.lower()
-    for fmt, (exts, reader, writer) in MESH_FORMATS.items():
-        if any(name.endswith(e) for e in exts):
-            return fmt, reader, writer
-    raise InputError(f"{path}: no mesh format for this file type (known: {', '.join(sorted(MESH_FORMATS))})")
-
-
-def read_mesh(path: str | Path) -> SurfaceMesh:
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: file not found")
-    fmt, reader, _ = _format(p)
-    if reader is None:
-        raise InputError(f"{p}: mesh format '{fmt}' cannot be read")
-    return reader(p)
-
-
-def write_mesh(path: str | Path, mesh: SurfaceMesh) -> None:
-    """Write a mesh atomically; the format comes from the extension."""
-    p = Path(path)
-    fmt, _, writer = _format(p)
-    if writer is None:
-        raise InputError(f"{p}: mesh format '{fmt}' cannot be written")
-    writer(p, mesh)
+# Meshes are read and written through the one format registry (kind "mesh").
+from .registry import read_mesh, write_mesh  # noqa: E402,F401

@@ -12,7 +12,8 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import atomic_path
-from .mesh import SurfaceMesh, register_mesh
+from .mesh import SurfaceMesh
+from .registry import MESH, register
 
 
 def write_mesh_obj(path: Path, mesh: SurfaceMesh) -> None:
@@ -43,4 +44,4 @@ def read_mesh_obj(path: Path) -> SurfaceMesh:
                        source=str(path))
 
 
-register_mesh("obj", (".obj",), read_mesh_obj, write_mesh_obj)
+register("obj", (".obj",), read_mesh_obj, write_mesh_obj, kind=MESH)

@@ -10,11 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData
 
 from ..errors import InputError
 from .atomic import atomic_path
-from .mesh import SurfaceMesh, register_mesh
+from .mesh import SurfaceMesh
+from .registry import MESH, register
 
 
 _VERTEX = ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")
@@ -71,4 +71,4 @@ def read_mesh_ply(path: Path) -> SurfaceMesh:
                        {"velocity": vel} if vel is not None else {}, source=str(path))
 
 
-register_mesh("ply", (".ply",), read_mesh_ply, write_mesh_ply)
+register("ply", (".ply",), read_mesh_ply, write_mesh_ply, kind=MESH)

@@ -14,7 +14,7 @@ from .frame import ParticleFrame
 from .registry import register
 
 
-def read_npz(path: Path, up: str = "z") -> ParticleFrame:
+def read_npz(path: Path, up: str = "z", require_velocity: bool = False) -> ParticleFrame:
     try:
         z = np.load(path)
     except Exception as exc:
@@ -24,6 +24,8 @@ def read_npz(path: Path, up: str = "z") -> ParticleFrame:
     if pos_key is None:
         raise InputError(f"{path}: missing array 'positions'")
     vel_key = next((k for k in ("velocities", "v", "vel") if k in keys), None)
+    if vel_key is None and require_velocity:
+        raise InputError(f"{path}: missing array 'velocities'")
     pos, vel = to_z_up(z[pos_key], z[vel_key] if vel_key else None, up)
     used = {pos_key, vel_key, "ids", "density", "time"}
     return ParticleFrame(

@@ -45,10 +45,12 @@ def read_vertices(path: Path, known_list_len: dict | None = None):
     return ply, v, names
 
 
-def read_ply(path: Path, up: str = "z") -> ParticleFrame:
+def read_ply(path: Path, up: str = "z", require_velocity: bool = False) -> ParticleFrame:
     ply, v, names = read_vertices(path)
     pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
     vel = np.stack([v["vx"], v["vy"], v["vz"]], axis=1) if all(k in names for k in ("vx", "vy", "vz")) else None
+    if vel is None and require_velocity:
+        raise InputError(f"{path}: missing properties 'vx', 'vy', 'vz' (velocity)")
     from .axes import to_z_up
 
     pos, vel = to_z_up(pos, vel, up)

@@ -1,19 +1,48 @@
-"""Readers and writers registered per format, one module each (as meshio does).
+"""The one format registry: readers and writers per format, one module each (as meshio does).
 
-A format module calls :func:`register` at import time. :func:`read` and
-:func:`write` pick the format from the file extension or an explicit name.
+A format module calls :func:`register` at import time with the kind of data it
+holds: ``particles`` (a :class:`~whitecap.io.frame.ParticleFrame`) or ``mesh``
+(a :class:`~whitecap.io.mesh.SurfaceMesh`). One extension may serve both kinds
+(``.ply``); the caller says which it wants. :func:`read` / :func:`write` move
+particle frames, :func:`read_mesh` / :func:`write_mesh` surface meshes; each
+picks the format from the file extension or an explicit name.
+
+Solvers name the same array differently (``Vel``, ``velocity``, ``v``); every
+reader finds the standard arrays with :func:`find_array` and the alias tables
+below, so a new alias is added once for every format.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from ..errors import InputError
 from .frame import ParticleFrame
 
-Reader = Callable[..., ParticleFrame]
+if TYPE_CHECKING:
+    from .mesh import SurfaceMesh
+
+PARTICLES = "particles"
+MESH = "mesh"
+KINDS = (PARTICLES, MESH)
+
+# Point-array names per quantity, lower case, in order of preference:
+# DualSPHysics (Vel, Rhop/Rho, Idp), SPlisHSPlasH (velocity, density, id), short forms.
+VELOCITY_NAMES = ("vel", "velocity", "v")
+DENSITY_NAMES = ("rhop", "rho", "density")
+ID_NAMES = ("idp", "id")
+
+
+def find_array(arrays: dict, names: tuple[str, ...]) -> str | None:
+    """The key of ``arrays`` that matches one of ``names`` case-insensitively (the first
+    name that matches wins), or None."""
+    low = {k.lower(): k for k in arrays}
+    return next((low[n] for n in names if n in low), None)
+
+
+Reader = Callable[..., "ParticleFrame | SurfaceMesh"]
 Writer = Callable[..., None]
 
 
@@ -23,41 +52,72 @@ class Format:
     extensions: tuple[str, ...]
     reader: Reader | None
     writer: Writer | None
+    kind: str = PARTICLES
 
 
-FORMATS: dict[str, Format] = {}
+# Keyed by (kind, name): "ply" is both a particle and a mesh format.
+FORMATS: dict[tuple[str, str], Format] = {}
 
 
-def register(name: str, extensions: tuple[str, ...], reader: Reader | None = None, writer: Writer | None = None) -> None:
-    FORMATS[name] = Format(name, extensions, reader, writer)
+def register(
+    name: str, extensions: tuple[str, ...], reader: Reader | None = None, writer: Writer | None = None,
+    kind: str = PARTICLES,
+) -> None:
+    if kind not in KINDS:
+        raise ValueError(f"format {name}: kind must be one of {KINDS}, not {kind!r}")
+    FORMATS[(kind, name)] = Format(name, extensions, reader, writer, kind)
 
 
-def format_for(path: str | Path, fmt: str | None = None) -> Format:
+def formats(kind: str = PARTICLES) -> dict[str, Format]:
+    """The registered formats of one kind, by name."""
+    return {name: f for (k, name), f in FORMATS.items() if k == kind}
+
+
+def format_for(path: str | Path, fmt: str | None = None, kind: str = PARTICLES) -> Format:
+    known = formats(kind)
     if fmt is not None:
-        if fmt not in FORMATS:
-            raise InputError(f"{path}: unknown format '{fmt}' (known: {', '.join(sorted(FORMATS))})")
-        return FORMATS[fmt]
-    name = str(path).lower()
-    for f in FORMATS.values():
+        if fmt not in known:
+            raise InputError(f"{path}: unknown format '{fmt}' ({kind} formats known: {', '.join(sorted(known))})")
+        return known[fmt]
+    name = Path(path).name.lower()
+    for f in known.values():
         if any(name.endswith(ext) for ext in f.extensions):
             return f
-    raise InputError(f"{path}: no reader for this file type (known: {', '.join(sorted(FORMATS))})")
+    raise InputError(f"{path}: no reader for this file type ({kind} formats known: {', '.join(sorted(known))})")
+
+
+def _read(path: str | Path, fmt: str | None, kind: str, **options):
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: file not found")
+    f = format_for(p, fmt, kind)
+    if f.reader is None:
+        raise InputError(f"{p}: {kind} format '{f.name}' cannot be read")
+    return f.reader(p, **options)
+
+
+def _write(path: str | Path, data, fmt: str | None, kind: str, **options) -> None:
+    f = format_for(path, fmt, kind)
+    if f.writer is None:
+        raise InputError(f"{path}: {kind} format '{f.name}' cannot be written")
+    f.writer(Path(path), data, **options)
 
 
 def read(path: str | Path, fmt: str | None = None, **options) -> ParticleFrame:
     """Read one particle frame. Options are format specific (``up='y'``...)."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: file not found")
-    f = format_for(p, fmt)
-    if f.reader is None:
-        raise InputError(f"{p}: format '{f.name}' cannot be read")
-    return f.reader(p, **options)
+    return _read(path, fmt, PARTICLES, **options)
 
 
 def write(path: str | Path, frame: ParticleFrame, fmt: str | None = None, **options) -> None:
     """Write one particle frame atomically (temporary file, then rename)."""
-    f = format_for(path, fmt)
-    if f.writer is None:
-        raise InputError(f"{path}: format '{f.name}' cannot be written")
-    f.writer(Path(path), frame, **options)
+    _write(path, frame, fmt, PARTICLES, **options)
+
+
+def read_mesh(path: str | Path, fmt: str | None = None) -> "SurfaceMesh":
+    """Read one surface mesh; the format comes from the extension unless named."""
+    return _read(path, fmt, MESH)
+
+
+def write_mesh(path: str | Path, mesh: "SurfaceMesh", fmt: str | None = None) -> None:
+    """Write a surface mesh atomically; the format comes from the extension unless named."""
+    _write(path, mesh, fmt, MESH)

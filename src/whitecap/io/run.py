@@ -9,13 +9,24 @@
       render/frame_NNNNN.png, render/movie.mp4, render/scene.blend
 
 ``run.json`` holds the format version, particle radius, rest density,
-particle mass, gravity, domain box, frame rate and, per frame, its index,
-simulated time and the files written for it, keyed by kind.
+particle mass, gravity, domain box, frame rate, the simulation's identity
+and, per frame, its index, simulated time, the files written for it keyed by
+kind, and (``made_from``) the identity of the simulation each file was made
+from.
+
+The identity (:func:`simulation_identity`) is a hash of the resolved scene
+TOML, seed included; ``output.frames`` is left out so that extending a run
+keeps it. A file recorded from another simulation is stale: loading drops its
+entry, so every stage sees it as missing and makes it again. File entries
+must be relative paths inside the run.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
+import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +36,91 @@ from .atomic import write_text
 
 FORMAT_VERSION = 1
 RUN_JSON = "run.json"
+#: scene keys that do not change the simulated frames, left out of the identity
+IDENTITY_IGNORES = ("output.frames",)
+
+
+def simulation_identity(scene_toml: str) -> str:
+    """The identity of a simulation: SHA-256 (16 hex digits) of its resolved scene TOML, seed included."""
+    data = tomllib.loads(scene_toml)
+    for key in IDENTITY_IGNORES:
+        *parents, leaf = key.split(".")
+        d = data
+        for k in parents:
+            d = d.get(k, {})
+        d.pop(leaf, None)
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def check_relpath(rel: Any, where: str) -> str:
+    """``rel`` if it is a relative path that stays inside the run, else an InputError naming ``where``."""
+    if not isinstance(rel, str) or not rel or "\0" in rel:
+        raise InputError(f"{where}: expected a file path, got {rel!r}")
+    parts = rel.replace("\\", "/").split("/")
+    if rel.startswith(("/", "\\")) or ".." in parts or (len(parts[0]) >= 2 and parts[0][1] == ":"):
+        raise InputError(f"{where}: {rel!r} is not a relative path inside the run")
+    return rel
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _validate(data: Any, p: Path) -> None:
+    """Check the types of run.json's fields; an InputError names the first bad one."""
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: expected a JSON object, got {type(data).__name__}")
+
+    def bad(field: str, want: str) -> InputError:
+        return InputError(f"{p}: field '{field}': expected {want}")
+
+    for k in ("particle_radius", "rest_density", "particle_mass", "frame_rate"):
+        if not _number(data[k]) or data[k] <= 0:
+            raise bad(k, f"a positive number, got {data[k]!r}")
+    vec3 = lambda v: isinstance(v, list) and len(v) == 3 and all(_number(x) for x in v)  # noqa: E731
+    if "gravity" in data and not vec3(data["gravity"]):
+        raise bad("gravity", f"3 numbers, got {data['gravity']!r}")
+    if "domain" in data:
+        dom = data["domain"]
+        if not isinstance(dom, dict):
+            raise bad("domain", "an object with lower and upper")
+        for k in ("lower", "upper"):
+            if not vec3(dom.get(k)):
+                raise bad(f"domain.{k}", f"3 numbers, got {dom.get(k)!r}")
+    for k, typ, want in (("obstacles", list, "a list"), ("extra", dict, "an object"), ("format", str, "a string"),
+                         ("up", str, "a string"), ("simulation", str, "a string")):
+        if k in data and not isinstance(data[k], typ):
+            raise bad(k, f"{want}, got {data[k]!r}")
+    extra = data.get("extra", {})
+    for k, typ, want in (("seed", int, "an integer"), ("scene_dir", str, "a string"), ("kernel_support", float,
+                                                                                       "a number")):
+        v = extra.get(k)
+        if v is not None and not (_number(v) if typ is float else isinstance(v, typ) and not isinstance(v, bool)):
+            raise bad(f"extra.{k}", f"{want}, got {v!r}")
+    if "version" in data and (not isinstance(data["version"], int) or isinstance(data["version"], bool)):
+        raise bad("version", f"an integer, got {data['version']!r}")
+    frames = data.get("frames", [])
+    if not isinstance(frames, list):
+        raise bad("frames", "a list")
+    for n, f in enumerate(frames):
+        at = f"frames[{n}]"
+        if not isinstance(f, dict):
+            raise bad(at, f"an object, got {f!r}")
+        if not isinstance(f.get("index"), int) or isinstance(f["index"], bool) or f["index"] < 0:
+            raise bad(f"{at}.index", f"a frame number, got {f.get('index')!r}")
+        if "time" in f and not _number(f["time"]):
+            raise bad(f"{at}.time", f"a number, got {f['time']!r}")
+        for k in ("files", "made_from"):
+            if not isinstance(f.get(k, {}), dict):
+                raise bad(f"{at}.{k}", f"an object, got {f[k]!r}")
+        if "files" not in f:
+            raise bad(f"{at}.files", "an object")
+        for kind, rel in f["files"].items():
+            check_relpath(rel, f"{p}: field '{at}.files.{kind}'")
+        for kind, sim in f.get("made_from", {}).items():
+            if not isinstance(sim, str):
+                raise bad(f"{at}.made_from.{kind}", f"a string, got {sim!r}")
 
 
 def frame_name(kind: str, index: int, ext: str = "ply") -> str:
@@ -46,6 +142,7 @@ class RunInfo:
     format: str = "whitecap-run"
     version: int = FORMAT_VERSION
     up: str = "z"
+    simulation: str = ""  # identity of the simulation the fluid frames come from
 
     # ------------------------------------------------------------------ io
     @classmethod
@@ -58,12 +155,22 @@ class RunInfo:
         except json.JSONDecodeError as exc:
             raise InputError(f"{p}: malformed JSON: {exc}") from None
         known = {f for f in cls.__dataclass_fields__}
-        missing = [k for k in ("particle_radius", "rest_density", "particle_mass", "frame_rate") if k not in data]
+        if not isinstance(data, dict):
+            raise InputError(f"{p}: expected a JSON object, got {type(data).__name__}")
+        missing = [k for k in ("particle_radius", "rest_density", "particle_mass", "frame_rate", "gravity",
+                                  "domain") if k not in data]
         if missing:
             raise InputError(f"{p}: missing field '{missing[0]}'")
+        _validate(data, p)
         if data.get("version", 0) > FORMAT_VERSION:
             raise InputError(f"{p}: version {data['version']} is newer than this whitecap ({FORMAT_VERSION})")
-        return cls(**{k: v for k, v in data.items() if k in known})
+        info = cls(**{k: v for k, v in data.items() if k in known})
+        for f in info.frames:  # entries made from another simulation are stale: forget them
+            made = f.setdefault("made_from", {})
+            for kind in [k for k in f["files"] if made.get(k, "") != info.simulation]:
+                del f["files"][kind]
+                made.pop(kind, None)
+        return info
 
     def save(self, run_dir: str | Path) -> None:
         write_text(Path(run_dir) / RUN_JSON, json.dumps(asdict(self), indent=1))
@@ -73,14 +180,16 @@ class RunInfo:
         for f in self.frames:
             if f["index"] == index:
                 return f
-        f = {"index": index, "time": index / self.frame_rate, "files": {}}
+        f = {"index": index, "time": index / self.frame_rate, "files": {}, "made_from": {}}
         self.frames.append(f)
         self.frames.sort(key=lambda e: e["index"])
         return f
 
     def set_file(self, index: int, kind: str, relpath: str, time: float | None = None) -> None:
+        """Record a file of this frame, made from the current simulation."""
         f = self.frame(index)
-        f["files"][kind] = relpath
+        f["files"][kind] = check_relpath(relpath, f"run.json: frame {index}: {kind}")
+        f.setdefault("made_from", {})[kind] = self.simulation
         if time is not None:
             f["time"] = float(time)
 

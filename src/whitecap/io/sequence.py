@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 
 from ..errors import InputError
-from .registry import FORMATS
+from .registry import PARTICLES, formats
 
 _NUMBER = re.compile(r"(\d+)(?=\.[^.]+$|\.[^.]+\.[^.]+$)")
 
@@ -24,7 +24,7 @@ def frame_number(path: str | Path) -> int | None:
 
 def _readable(p: Path) -> bool:
     name = p.name.lower()
-    return any(name.endswith(ext) for f in FORMATS.values() if f.reader for ext in f.extensions)
+    return any(name.endswith(ext) for f in formats(PARTICLES).values() if f.reader for ext in f.extensions)
 
 
 def find_sequence(spec: str | Path) -> list[tuple[int, Path]]:

@@ -2,7 +2,7 @@
 
 Read with the ``vtk`` package (meshio cannot read POLYDATA, which is what
 DualSPHysics writes). Points become positions; point arrays are matched by
-name, case-insensitively:
+name, case-insensitively (:func:`whitecap.io.registry.find_array`):
 
 - velocity: ``Vel`` (DualSPHysics), ``velocity`` (SPlisHSPlasH), ``v``
 - density:  ``Rhop`` or ``Rho`` (DualSPHysics), ``density``
@@ -23,11 +23,8 @@ import numpy as np
 from ..errors import InputError
 from .axes import to_z_up
 from .frame import ParticleFrame
-from .registry import register
+from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, register
 
-VEL_NAMES = ("vel", "velocity", "v")
-RHO_NAMES = ("rhop", "rho", "density")
-ID_NAMES = ("idp", "id")
 DUALSPHYSICS_FLUID_TYPE = 3
 
 
@@ -61,23 +58,18 @@ def point_arrays(ds) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _find(arrays: dict, names: tuple[str, ...]) -> str | None:
-    low = {k.lower(): k for k in arrays}
-    return next((low[n] for n in names if n in low), None)
-
-
 def read_vtk(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
     from vtk.util.numpy_support import vtk_to_numpy
 
     ds = _read_dataset(path)
     pos = vtk_to_numpy(ds.GetPoints().GetData()).astype(np.float32)
     arrays = point_arrays(ds)
-    vk, rk, ik = _find(arrays, VEL_NAMES), _find(arrays, RHO_NAMES), _find(arrays, ID_NAMES)
+    vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing array 'Vel' (particle velocities); found {sorted(arrays) or 'no arrays'}")
     vel = arrays[vk].astype(np.float32).reshape(-1, 3) if vk else None
     keep = np.ones(len(pos), bool)
-    tk = _find(arrays, ("type",))
+    tk = find_array(arrays, ("type",))
     if tk is not None and len(np.unique(arrays[tk])) > 1:
         keep = arrays[tk] == DUALSPHYSICS_FLUID_TYPE
     pos, vel = to_z_up(pos, vel, up)

@@ -11,8 +11,7 @@ import numpy as np
 from ..errors import InputError
 from .axes import to_z_up
 from .frame import ParticleFrame
-from .registry import register
-from .vtk_legacy import ID_NAMES, RHO_NAMES, VEL_NAMES, _find
+from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, register
 
 
 def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
@@ -23,7 +22,7 @@ def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> Partic
     except Exception as exc:
         raise InputError(f"{path}: not a readable VTU file ({exc})") from None
     arrays = dict(m.point_data)
-    vk, rk, ik = _find(arrays, VEL_NAMES), _find(arrays, RHO_NAMES), _find(arrays, ID_NAMES)
+    vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing array 'velocity'; found {sorted(arrays) or 'no arrays'}")
     pos, vel = to_z_up(np.asarray(m.points, np.float32), np.asarray(arrays[vk], np.float32) if vk else None, up)

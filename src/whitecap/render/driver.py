@@ -3,7 +3,10 @@
 ``render_run`` builds the Blender scene once per worker process, then for
 each frame swaps in that frame's fluid mesh and diffuse point clouds and
 renders it with Cycles to ``render/frame_NNNNN.png`` (temporary file, then
-rename). Finished frames are skipped on rerun. The movie is encoded with
+rename). Finished frames are skipped on rerun: a frame counts as finished
+when its PNG has this quality's size and ``run.json`` records it as made
+from the run's current simulation (a frame rendered from an earlier
+simulation is rendered again). The run is locked while rendering. The movie is encoded with
 imageio-ffmpeg and the scene is saved as ``render/scene.blend``.
 
 Cycles already uses every core for one frame, so on a small machine one
@@ -21,8 +24,10 @@ from pathlib import Path
 
 from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
+from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
+from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
 
@@ -73,7 +78,7 @@ def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int |
     info = RunInfo.load(run_dir)
     cfg = render_settings(run_dir, device)
     mesh_frames = [i for i, _ in info.files("mesh")]
-    h = build_scene(run_dir, info, cfg, quality, min(mesh_frames), max(mesh_frames))
+    h = build_scene(info, cfg, quality, min(mesh_frames), max(mesh_frames))
     sc = bpy.context.scene
     if threads:
         sc.render.threads_mode = "FIXED"
@@ -109,17 +114,11 @@ def _done(png: Path, size: tuple[int, int]) -> bool:
 
 
 def encode_movie(run_dir: Path, fps: float, indices: list[int] | None = None) -> Path:
-    import imageio.v2 as imageio
-
-    from ..io.atomic import atomic_path
+    """render/movie.mp4 from the rendered frames (all of them, or ``indices``)."""
+    from ..io.movie import encode_mp4
 
     frames = [frame_path(run_dir, i) for i in indices] if indices else sorted((run_dir / "render").glob("frame_*.png"))
-    movie = run_dir / "render" / "movie.mp4"
-    with atomic_path(movie) as tmp:
-        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8, macro_block_size=8, format="FFMPEG") as w:
-            for f in frames:
-                w.append_data(imageio.imread(f))
-    return movie
+    return encode_mp4(frames, run_dir / "render" / "movie.mp4", fps)
 
 
 def render_run(
@@ -137,12 +136,18 @@ def render_run(
     ``device`` (auto, cpu, gpu) overrides ``[render].device``.
     """
     run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: run directory not found")
+    with run_lock(run_dir, "render"):
+        return _render_run(run_dir, quality, frames, jobs, force, movie, show_progress, device)
+
+
+def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, force: bool, movie: bool,
+                show_progress: bool, device: str | None) -> dict:
     if quality not in ("preview", "final"):
         raise InputError(f"--quality: expected preview or final, got {quality!r}")
     if device not in (None, "auto", "cpu", "gpu"):
         raise InputError(f"--device: expected auto, cpu or gpu, got {device!r}")
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: run directory not found")
     info = RunInfo.load(run_dir)
     meshes = [i for i, _ in info.files("mesh")]
     if not meshes:
@@ -157,9 +162,11 @@ def render_run(
 
         cycles_device("gpu")
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
-    todo = [i for i in wanted if force or not _done(frame_path(run_dir, i), size)]
+    current = {i for i, _ in info.files("render")}  # rendered from this simulation
+    todo = [i for i in wanted if force or i not in current or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
-    need_blend = force or not blend.exists()
+    made = info.extra.get("blend")
+    need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation)
     (run_dir / "render").mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(int(jobs or 1), len(todo) or 1))
     bar = progress(disable=not show_progress)
@@ -179,10 +186,11 @@ def render_run(
                 ]
                 log = tempfile.TemporaryFile(mode="w+")
                 logs.append(log)
-                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True))
+                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()))
             for p in procs:
-                for line in p.stdout:  # one line per finished frame
+                for line in p.stdout:  # one line per finished frame, recorded at once (resumable)
                     if line.startswith("rendered"):
+                        _record(run_dir, [int(line.split()[1])])
                         bar.advance(task)
             errors = []
             for p, log in zip(procs, logs):
@@ -192,14 +200,23 @@ def render_run(
                     errors.append((log.read().strip().splitlines() or ["unknown error"])[-1])
             if errors:
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
+            if need_blend:
+                _record(run_dir, [], blend=True)
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if movie:
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
-    info = RunInfo.load(run_dir)
-    for i in wanted:
-        info.set_file(i, "render", f"render/frame_{i:05d}.png")
-    info.save(run_dir)
+    _record(run_dir, wanted)
     return result
+
+
+def _record(run_dir: Path, indices: list[int], blend: bool = False) -> None:
+    """Record rendered frames (and the saved scene) in run.json as made from the current simulation."""
+    info = RunInfo.load(run_dir)
+    for i in indices:
+        info.set_file(i, "render", f"render/frame_{i:05d}.png")
+    if blend:
+        info.extra["blend"] = {"file": "render/scene.blend", "made_from": info.simulation}
+    info.save(run_dir)
 
 
 def build_addon(out: str | Path | None = None) -> Path:

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render
+from ..config import Render, obstacle_transform
 from ..errors import InputError
 from ..io import read
+from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
 
-TYPE_NAMES = ("spray", "foam", "bubbles")
 
 
 @dataclass
@@ -40,11 +40,12 @@ class SceneHandles:
 
 
 # ---------------------------------------------------------------------------- meshes
-def read_mesh_ply(path: Path):
-    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a contract mesh PLY."""
-    from ..io.mesh_ply import read_mesh_ply as read_surface
+def read_surface(path: Path):
+    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
+    registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
+    from ..io.mesh import read_mesh
 
-    m = read_surface(path)
+    m = read_mesh(path)
     return m.vertices, m.faces, m.arrays.get("velocity")
 
 
@@ -278,7 +279,7 @@ def _look_at(obj, target) -> None:
     c.up_axis = "UP_Y"
 
 
-def camera_path(cfg: Render, info: RunInfo, nframes: int) -> tuple[list, list, list]:
+def camera_path(cfg: Render, info: RunInfo) -> tuple[list, list, list]:
     """Camera positions at the first and last frame and the target point."""
     lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
     c = (lo + hi) / 2
@@ -320,14 +321,35 @@ def cycles_device(want: str) -> str:
     return "CPU"
 
 
-def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: int, last: int) -> SceneHandles:
+def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int) -> SceneHandles:
+    """A fresh Blender scene for frames first..last of a run: Cycles settings, sky
+    and sun, ground, the fluid and diffuse objects (filled per frame), obstacles,
+    the camera path and compositing."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
+    _configure_cycles(sc, cfg, quality == "preview")
+    _configure_output(sc, info.frame_rate, first, last)
+    _add_sky_and_sun(sc, cfg)
+    if cfg.ground:
+        _add_ground(sc, info)
+    water = water_material(cfg)
+    fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
+    fluid.data.materials.append(water)
+    sc.collection.objects.link(fluid)
+    diffuse = _add_diffuse_objects(sc, cfg, info)
+    for k, entry in enumerate(info.obstacles):
+        _add_obstacle(entry, k, info)
+    cam = _add_camera(sc, cfg, info, first, last)
+    _compositing(sc, cfg)
+    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+
+
+def _configure_cycles(sc, cfg: Render, preview: bool) -> None:
+    """Cycles on the chosen device; resolution, samples, bounces and denoising for the quality."""
     sc.render.engine = "CYCLES"
     sc.cycles.device = cycles_device(cfg.device)
-    preview = quality == "preview"
     w, h = cfg.preview_resolution if preview else cfg.resolution
     sc.render.resolution_x, sc.render.resolution_y = int(w), int(h)
     sc.render.resolution_percentage = 100
@@ -354,7 +376,10 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
         sc.cycles.denoising_quality = "FAST"
     sc.render.use_motion_blur = bool(cfg.motion_blur)
     sc.render.motion_blur_shutter = cfg.shutter
-    fps = info.frame_rate
+
+
+def _configure_output(sc, fps: float, first: int, last: int) -> None:
+    """Frame rate (fractional rates through fps_base), frame range, PNG output and the view transform."""
     sc.render.fps = max(1, int(round(fps)))
     sc.render.fps_base = sc.render.fps / fps
     sc.frame_start, sc.frame_end = first, last
@@ -364,7 +389,11 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
         e.identifier for e in sc.view_settings.bl_rna.properties["view_transform"].enum_items
     ] else "Filmic"
 
-    # world: a soft sky
+
+def _add_sky_and_sun(sc, cfg: Render) -> None:
+    """A soft sky and one sun."""
+    import bpy
+
     world = bpy.data.worlds.new("whitecap_sky")
     sc.world = world
     world.use_nodes = True
@@ -379,29 +408,33 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
     sun.rotation_euler = [math.radians(a) for a in cfg.sun_angle]
     sc.collection.objects.link(sun)
 
-    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
-    if cfg.ground:
-        size = hi - lo
-        c = (lo + hi) / 2
-        gv = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32) * [3 * size[0], 3 * size[1], 0]
-        gv += [c[0], c[1], lo[2] - 1e-3]
-        ground = bpy.data.objects.new("ground", make_mesh("ground", gv, np.array([[0, 1, 2], [0, 2, 3]])))
-        gm = bpy.data.materials.new("whitecap_ground")
-        _, b = _principled(gm)
-        b.inputs["Base Color"].default_value = (0.42, 0.45, 0.48, 1.0)
-        b.inputs["Roughness"].default_value = 0.7
-        ground.data.materials.append(gm)
-        sc.collection.objects.link(ground)
 
-    water = water_material(cfg)
-    fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
-    fluid.data.materials.append(water)
-    sc.collection.objects.link(fluid)
+def _add_ground(sc, info: RunInfo) -> None:
+    """A grey ground plane just under the domain, three times its width."""
+    import bpy
+
+    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
+    size = hi - lo
+    c = (lo + hi) / 2
+    gv = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32) * [3 * size[0], 3 * size[1], 0]
+    gv += [c[0], c[1], lo[2] - 1e-3]
+    ground = bpy.data.objects.new("ground", make_mesh("ground", gv, np.array([[0, 1, 2], [0, 2, 3]])))
+    gm = bpy.data.materials.new("whitecap_ground")
+    _, b = _principled(gm)
+    b.inputs["Base Color"].default_value = (0.42, 0.45, 0.48, 1.0)
+    b.inputs["Roughness"].default_value = 0.7
+    ground.data.materials.append(gm)
+    sc.collection.objects.link(ground)
+
+
+def _add_diffuse_objects(sc, cfg: Render, info: RunInfo) -> dict:
+    """One point-cloud object per diffuse type, drawn as spheres; type code -> object."""
+    import bpy
 
     r = info.particle_radius
     diffuse = {}
     mats = (spray_material(), foam_material(), bubble_material())
-    for t, name in enumerate(TYPE_NAMES):
+    for t, name in enumerate(COUNT_NAMES):
         rmin, rmax = diffuse_radius(cfg, t, r)
         obj = bpy.data.objects.new(name, bpy.data.meshes.new(f"{name}_empty"))
         mod = obj.modifiers.new(name, "NODES")
@@ -409,16 +442,19 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
                                       copies=cfg.diffuse_copies, jitter=COPY_JITTER * r)
         sc.collection.objects.link(obj)
         diffuse[t] = obj
+    return diffuse
 
-    for k, entry in enumerate(info.obstacles):
-        _add_obstacle(entry, k, info)
+
+def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int):
+    """The camera, keyframed from start to end (and around the orbit) over first..last."""
+    import bpy
 
     cam_data = bpy.data.cameras.new("camera")
     cam_data.lens = cfg.lens
     cam = bpy.data.objects.new("camera", cam_data)
     sc.collection.objects.link(cam)
     sc.camera = cam
-    start, end, target = camera_path(cfg, info, last - first + 1)
+    start, end, target = camera_path(cfg, info)
     _look_at(cam, target)
     for frame in range(first, last + 1):
         u = 0.0 if last == first else (frame - first) / (last - first)
@@ -430,8 +466,7 @@ def build_scene(run_dir: Path, info: RunInfo, cfg: Render, quality: str, first: 
             p = np.array(target) + rot @ d
         cam.location = p.tolist()
         cam.keyframe_insert("location", frame=frame)
-    _compositing(sc, cfg)
-    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+    return cam
 
 
 def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
@@ -445,12 +480,7 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo) -> None:
     if not path.is_file():
         return
     m = trimesh.load(str(path), force="mesh")
-    T = trimesh.transformations
-    M = T.translation_matrix(entry.get("translate", [0, 0, 0]))
-    rx, ry, rz = [math.radians(a) for a in entry.get("rotate", [0, 0, 0])]
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    S = T.scale_matrix(entry.get("scale", 1.0))
-    m.apply_transform(T.concatenate_matrices(M, R, S))
+    m.apply_transform(obstacle_transform(entry))
     obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
     obj.data.materials.append(obstacle_material(entry))
     bpy.context.scene.collection.objects.link(obj)
@@ -486,7 +516,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     files = frame["files"]
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
-        verts, faces, vel = read_mesh_ply(run_dir / files["mesh"])
+        verts, faces, vel = read_surface(run_dir / files["mesh"])
         fill_mesh(h.fluid.data, verts, faces, vel)
         stats["triangles"] = len(faces)
     if "diffuse" in files:

@@ -13,18 +13,21 @@ solver free of imports from later stages.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import time
+import tomllib
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from ..config import Scene
+from ..config import Scene, scene_from_dict
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import atomic_path
-from ..io.run import RunInfo, frame_name
+from ..io.lock import LOCK_FILE, run_lock
+from ..io.run import IDENTITY_IGNORES, RUN_JSON, RunInfo, frame_name, simulation_identity
 from ..progress import progress
 from ..timing import timer
 from . import runtime
@@ -52,6 +55,7 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
         gravity=list(scene.domain.gravity),
         domain={"lower": list(scene.domain.lower), "upper": list(scene.domain.upper)},
         frame_rate=scene.solver.frame_rate,
+        simulation=simulation_identity(scene.to_toml()),
         obstacles=[o.model_dump() for o in scene.obstacle],
         extra={"kernel_support": solver.h, "name": scene.name, "seed": scene.seed, "scene_dir": str(scene.base_dir)},
     )
@@ -59,13 +63,13 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
 
 def build_solver(scene: Scene, arch: str = "cpu"):
     """Initialise Taichi and build the solver with obstacles from the scene."""
-    from .pbf import PBFSolver, estimate_particle_count, lattice_points, bytes_per_particle, available_memory
+    from .pbf import PBFSolver, estimate_particle_count, fits_in_memory, lattice_points
 
     n_est = estimate_particle_count(scene)
-    if n_est * bytes_per_particle(scene.solver.max_neighbors) > 0.8 * available_memory():
+    fits, need = fits_in_memory(n_est, scene.solver.max_neighbors)
+    if not fits:
         raise WhitecapError(
-            f"the fluid blocks hold about {n_est:,} particles, needing about "
-            f"{n_est * bytes_per_particle(scene.solver.max_neighbors) / 2**30:.1f} GiB, "
+            f"the fluid blocks hold about {n_est:,} particles, needing about {need / 2**30:.1f} GiB, "
             "more than this machine has free; increase solver.particle_radius or shrink the fluid"
         )
     runtime.init(arch)
@@ -75,13 +79,30 @@ def build_solver(scene: Scene, arch: str = "cpu"):
         from .obstacles import load_obstacles
 
         obstacles = load_obstacles(scene)
-        if obstacles:
-            keep = obstacles.outside_mask(pos)
-            pos, vel = pos[keep], vel[keep]
+    check_fluid_blocks(scene, obstacles)
+    if obstacles:
+        keep = obstacles.outside_mask(pos)
+        pos, vel = pos[keep], vel[keep]
     solver = PBFSolver(scene, pos, vel)
     if obstacles:
         solver.colliders.append(obstacles.collider(solver))
     return solver
+
+
+def check_fluid_blocks(scene: Scene, obstacles=None) -> None:
+    """InputError naming a [[fluid]] block that would give no particle at all."""
+    from .pbf import block_lattice
+
+    r = scene.solver.particle_radius
+    for k, b in enumerate(scene.fluid):
+        lo, hi = b.bounds()
+        where = f"fluid[{k}] (from {[round(v, 6) for v in lo]} to {[round(v, 6) for v in hi]})"
+        g = block_lattice(scene, b)
+        if len(g) == 0:
+            raise InputError(f"{where}: holds no particle: it is too small for the particle spacing "
+                             f"2r = {2 * r:g} m; enlarge it or lower solver.particle_radius")
+        if obstacles and not obstacles.outside_mask(g.astype(np.float32)).any():
+            raise InputError(f"{where}: lies entirely inside the obstacles, so it holds no particle; move it out")
 
 
 def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
@@ -100,12 +121,63 @@ def _load_checkpoint(out: Path) -> tuple[int, dict]:
         z = np.load(p)
         data = {k: z[k] for k in z.files}
     except Exception as exc:
-        raise InputError(f"{p}: unreadable checkpoint ({exc}); rerun without --resume") from None
+        raise InputError(f"{p}: unreadable checkpoint ({exc}); start over with `whitecap simulate --force`") from None
     return int(data.pop("frame")), data
 
 
 def _sub(data: dict, prefix: str) -> dict:
     return {k[len(prefix) + 1 :]: v for k, v in data.items() if k.startswith(prefix + "/")}
+
+
+def scene_changes(scene: Scene, out: Path) -> list[str]:
+    """Dotted keys whose resolved values differ between ``scene`` and the run's ``scene.toml``.
+
+    ``output.frames`` does not count: a run may be extended.
+    """
+    old_file = Path(out) / "scene.toml"
+    if not old_file.is_file():
+        return []
+    try:
+        old = scene_from_dict(tomllib.loads(old_file.read_text()), str(old_file)).to_toml()
+    except (tomllib.TOMLDecodeError, InputError):
+        return ["scene.toml (unreadable)"]
+    a, b = _flatten(tomllib.loads(old)), _flatten(tomllib.loads(scene.to_toml()))
+    missing = object()
+    return [k for k in sorted(a.keys() | b.keys())
+            if k not in IDENTITY_IGNORES and a.get(k, missing) != b.get(k, missing)]
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    flat = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else k
+        if isinstance(v, dict):
+            flat.update(_flatten(v, key))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for i, x in enumerate(v):
+                flat.update(_flatten(x, f"{key}[{i}]"))
+        else:
+            flat[key] = v
+    return flat
+
+
+def refuse_changed_scene(scene: Scene, out: Path) -> None:
+    """A one-line error when ``out`` holds a run of another scene (continuing it would mix two simulations)."""
+    changed = scene_changes(scene, out)
+    if changed:
+        shown = ", ".join(changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
+        raise InputError(
+            f"{Path(out) / 'scene.toml'}: the run was made from another scene (changed: {shown}); "
+            "a run continues only with its own scene: simulate with --force to start over, or use another --out"
+        )
+
+
+def _replace_old_run(out: Path) -> None:
+    """Remove the previous run's simulation output; its derived files become stale by identity."""
+    for sub in ("fluid", "diffuse"):
+        shutil.rmtree(out / sub, ignore_errors=True)
+    for f in (CHECKPOINT, RUN_JSON):
+        (out / f).unlink(missing_ok=True)
 
 
 def run_simulation(
@@ -119,35 +191,55 @@ def run_simulation(
     show_progress: bool = True,
     solver=None,
 ) -> RunInfo:
-    """Simulate ``scene`` into the run directory ``out``; return its RunInfo."""
+    """Simulate ``scene`` into the run directory ``out``; return its RunInfo.
+
+    ``resume`` continues from the last checkpoint, and only with the run's own
+    scene (else an error lists the changed keys); ``force`` starts over. The
+    old run is replaced only once everything is set up and the first new
+    frame is about to be written, so a failing set-up leaves it intact.
+    """
     out = Path(out)
     nframes = scene.output.frames if frames is None else int(frames)
     if nframes < 1:
         raise InputError(f"--frames: must be at least 1 (got {nframes})")
-    has_run = (out / "run.json").exists()
+    created = not out.exists()
+    try:
+        with run_lock(out, "simulate"):
+            return _simulate(scene, out, nframes, resume, force, arch, hooks, show_progress, solver)
+    finally:
+        if created and not (out / RUN_JSON).exists():  # set-up failed in a new directory: leave nothing
+            (out / LOCK_FILE).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+
+
+def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, arch: str, hooks, show_progress,
+              solver) -> RunInfo:
+    has_run = (out / RUN_JSON).exists()
     if has_run and not resume and not force:
         raise WhitecapError(f"{out}: already holds a run; pass --resume to continue it or --force to start over")
-    if force and not resume and out.exists():
-        for sub in ("fluid", "diffuse"):
-            shutil.rmtree(out / sub, ignore_errors=True)
-        for f in (CHECKPOINT, "run.json"):
-            (out / f).unlink(missing_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
+    if resume and has_run and not force:
+        refuse_changed_scene(scene, out)
+    # With --resume --force a run of another scene starts over.
+    from_checkpoint = resume and (out / CHECKPOINT).exists() and not (force and scene_changes(scene, out))
+    start_frame, data = _load_checkpoint(out) if from_checkpoint else (0, {})
 
+    # Set up everything (particle count and memory, fluid, obstacles) before touching the old run.
     if solver is None:
         with timer("setup"):
             solver = build_solver(scene, arch)
-    start_frame = 0
     info = run_info_for(scene, solver)
-    if resume and (out / CHECKPOINT).exists():
-        start_frame, data = _load_checkpoint(out)
+    if from_checkpoint:
         solver.restore(_sub(data, "solver"))
         for h in hooks:
             h.restore(_sub(data, h.name))
         if has_run:
             info = RunInfo.load(out)
             info.truncate(start_frame)
-    write_text(out / "scene.toml", scene.to_toml())
+            if not info.simulation:  # a run from before identities: its files are this scene's
+                info.simulation = run_info_for(scene, solver).simulation
+                for f in info.frames:
+                    f["made_from"] = {k: info.simulation for k in f["files"]}
     for h in hooks:
         h.on_start(solver, out, info)
 
@@ -167,7 +259,11 @@ def run_simulation(
         info.save(out)
 
     frame_dt = 1.0 / scene.solver.frame_rate
-    if start_frame == 0:
+    if from_checkpoint:  # frame start_frame and those before it are done: never recompute them
+        write_text(out / "scene.toml", scene.to_toml())
+    else:
+        _replace_old_run(out)
+        write_text(out / "scene.toml", scene.to_toml())
         emit(0, frame_dt)
         _save_checkpoint(out, 0, solver, hooks)
     bar = progress(disable=not show_progress)

@@ -7,9 +7,13 @@ Counting sort by cell (Green 2008, "Particle Simulation using CUDA"):
 3. particles scatter to ``start[cell] + rank``; each cell's run is then
    sorted by particle index so the result does not depend on thread timing
    (bit-identical runs, resumes and foam whatever the thread count);
-4. a fixed-capacity neighbour list per particle is filled by scanning the 27
+4. a fixed-capacity neighbour list per particle is filled by scanning the
    surrounding cells. Capacity is fixed, so memory never grows; overflow is
    counted and reported, never silently dropped.
+
+The scan of the surrounding cells is written once, :func:`for_each_neighbor`:
+the solver fills its lists with it and the diffuse stage asks it about points
+that are not fluid particles.
 
 Everything is a plain Taichi ndarray, so kernels compile once per process
 whatever the particle count.
@@ -19,7 +23,6 @@ whatever the particle count.
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import taichi as ti
 
 from ..errors import WhitecapError
@@ -31,6 +34,8 @@ F3 = ti.types.ndarray(dtype=vec3, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
+# Where the cells lie: a point p falls in cell floor((p − lower)·inv_cell), clamped to [0, dims).
+CellGeometry = ti.types.struct(lower=vec3, inv_cell=ti.f32, dims=ivec3)
 
 
 @ti.func
@@ -115,57 +120,77 @@ def _sort_cells(ncells: ti.i32, start: I1, order: I1):
 
 
 @ti.kernel
-def _gather_sorted(n: ti.i32, order: I1, x: F3, x_sorted: F3):
-    for s in range(n):
-        x_sorted[s] = x[order[s]]
+def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
+    """dst[k] = src[order[k]]: a per-particle array put into cell order."""
+    for k in range(n):
+        dst[k] = src[order[k]]
+
+
+@ti.kernel
+def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
+    """dst[k] = src[order[k]] for an integer array."""
+    for k in range(n):
+        dst[k] = src[order[k]]
+
+
+@ti.func
+def for_each_neighbor(
+    p: vec3, h: ti.f32, cells: ti.template(), x_sorted: F3, start: I1, reach: ti.template(),
+    task: ti.template(), args: ti.template(),
+):
+    """The one neighbour query: calls ``task(s, r², *args)`` for every particle
+    within ``h`` of the point ``p`` (|x_s − p|² < h²), where ``s`` is the
+    particle's slot in cell order (``order[s]`` its index, ``x_sorted[s]`` its
+    position) and r² its squared distance. ``cells`` is the grid's
+    :data:`CellGeometry`, ``x_sorted``/``start``/``reach`` those of a built
+    :class:`NeighborGrid` (its :meth:`~NeighborGrid.query_args`). ``args`` is a
+    tuple handed on to ``task``; give its accumulators a ``ti.template()``
+    annotation in ``task`` so that they are updated in place.
+
+    Cells are h/reach wide, so the search covers (2·reach + 1)³ cells; the cells
+    along z of each (x, y) column are adjacent in the cell numbering, so one
+    contiguous run of the sorted order covers them, read from memory in order."""
+    dims = cells.dims
+    c = cell_of(p, cells.lower, cells.inv_cell, dims)
+    z0 = ti.max(c.z - reach, 0)
+    z1 = ti.min(c.z + reach, dims.z - 1)
+    h2 = h * h
+    for dx, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+        cx = c.x + dx
+        cy = c.y + dy
+        if 0 <= cx < dims.x and 0 <= cy < dims.y:
+            first = start[cell_index(ivec3(cx, cy, z0), dims)]
+            last = start[cell_index(ivec3(cx, cy, z1), dims) + 1]
+            for s in range(first, last):
+                r2 = (x_sorted[s] - p).norm_sqr()
+                if r2 < h2:
+                    task(s, r2, *args)
+
+
+@ti.func
+def _append_neighbor(s, r2, i, order: I1, nb: I2, k: ti.template(), overflow: ti.template()):
+    """Adds the particle in slot ``s`` to ``i``'s list, or counts it as overflow when the list is full."""
+    j = order[s]
+    if j != i:
+        if k < nb.shape[1]:
+            nb[i, k] = j
+            k += 1
+        else:
+            overflow += 1
 
 
 @ti.kernel
 def _build_lists(
-    n: ti.i32,
-    x: F3,
-    x_sorted: F3,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ivec3,
-    h: ti.f32,
-    start: I1,
-    order: I1,
-    nb_count: I1,
-    nb: I2,
-    reach: ti.template(),
+    n: ti.i32, cells: CellGeometry, x_sorted: F3, start: I1, reach: ti.template(), h: ti.f32,
+    order: I1, nb_count: I1, nb: I2,
 ) -> ti.i32:
-    # Candidates come from the cell-sorted copy of the positions, so the inner
-    # loop reads memory contiguously. Cells are h/reach wide, so the search
-    # covers (2·reach + 1)³ cells; the cells along z of each (x, y) column are
-    # adjacent in the cell numbering, so one contiguous run covers them.
     overflow = 0
-    cap = nb.shape[1]
-    h2 = h * h
     for si in range(n):
         # Walk particles in cell order: consecutive iterations share their
         # candidate cells, which then stay in cache.
         i = order[si]
-        xi = x_sorted[si]
-        ci = cell_of(xi, lower, inv_cell, dims)
-        z0 = ti.max(ci.z - reach, 0)
-        z1 = ti.min(ci.z + reach, dims.z - 1)
         k = 0
-        for dx, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
-            cx = ci.x + dx
-            cy = ci.y + dy
-            if 0 <= cx < dims.x and 0 <= cy < dims.y:
-                first = start[cell_index(ivec3(cx, cy, z0), dims)]
-                last = start[cell_index(ivec3(cx, cy, z1), dims) + 1]
-                for s in range(first, last):
-                    if (x_sorted[s] - xi).norm_sqr() < h2:
-                        j = order[s]
-                        if j != i:
-                            if k < cap:
-                                nb[i, k] = j
-                                k += 1
-                            else:
-                                overflow += 1
+        for_each_neighbor(x_sorted[si], h, cells, x_sorted, start, reach, _append_neighbor, (i, order, nb, k, overflow))
         nb_count[i] = k
     return overflow
 
@@ -196,7 +221,8 @@ class NeighborGrid:
 
     After :meth:`build`, ``order[start[c]:start[c+1]]`` are the particles in
     cell ``c`` and ``nb[i, :nb_count[i]]`` the neighbours of particle ``i``
-    within ``h`` (excluding ``i`` itself).
+    within ``h`` (excluding ``i`` itself). Kernels query the grid around any
+    point with :func:`for_each_neighbor` and :meth:`query_args`.
     """
 
     def __init__(self, spec: GridSpec, capacity: int, max_neighbors: int, h: float):
@@ -218,8 +244,7 @@ class NeighborGrid:
         self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow = 0
-        self._lower = vec3(*spec.lower)
-        self._dims = ivec3(*spec.dims)
+        self.cells = CellGeometry(lower=vec3(*spec.lower), inv_cell=1.0 / spec.cell, dims=ivec3(*spec.dims))
 
     def nbytes(self) -> int:
         nc = self.spec.ncells
@@ -227,9 +252,9 @@ class NeighborGrid:
 
     def sort(self, x, n: int) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
-        s = self.spec
+        s, c = self.spec, self.cells
         _clear(self.count, s.ncells)
-        _count_cells(n, x, self._lower, 1.0 / s.cell, self._dims, self.cell, self.rank, self.count)
+        _count_cells(n, x, c.lower, c.inv_cell, c.dims, self.cell, self.rank, self.count)
         _block_sums(self.count, s.ncells, self.bsum)
         _scan_blocks(self.bsum)
         _scan_cells(self.count, s.ncells, self.bsum, self.start, n)
@@ -239,18 +264,16 @@ class NeighborGrid:
     def build(self, x, n: int) -> int:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
         self.sort(x, n)
-        s = self.spec
-        _gather_sorted(n, self.order, x, self.x_sorted)
+        gather_vec3(n, self.order, x, self.x_sorted)
         self.overflow = int(
-            _build_lists(
-                n, x, self.x_sorted, self._lower, 1.0 / s.cell, self._dims, self.h, self.start, self.order,
-                self.nb_count, self.nb, self.reach,
-            )
+            _build_lists(n, *self.query_args(), self.h, self.order, self.nb_count, self.nb)
         )
         return self.overflow
 
-    def neighbor_counts(self, n: int) -> np.ndarray:
-        return self.nb_count.to_numpy()[:n]
+    def query_args(self) -> tuple:
+        """(cells, x_sorted, start, reach): what a kernel hands :func:`for_each_neighbor`
+        to search this grid after :meth:`build`."""
+        return self.cells, self.x_sorted, self.start, self.reach
 
 
 def len_blocks(nc: int) -> int:

@@ -31,7 +31,6 @@ strongly curved parts, smaller than a particle for shapes larger than h.
 
 import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from ..config import Obstacle, Scene
+from ..config import Obstacle, Scene, obstacle_transform
 from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..timing import timer
@@ -48,8 +47,14 @@ from .grid import F1, F3, I1
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
-SDF_CACHE_VERSION = 1
+SDF_CACHE_VERSION = 2  # 2: meshes with inconsistent winding are refused or repaired
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
+# Width of the contact band of the velocity response, × r: a particle counts as touching
+# while sdf < r + CONTACT_BAND·r. The position projection leaves particles at sdf = r
+# exactly; the band keeps them in contact despite the trilinear SDF's interpolation
+# error and float rounding, and is thin enough (a twentieth of r) not to slow particles
+# that merely pass close by.
+CONTACT_BAND = 0.05
 
 
 # ============================================================================ host side
@@ -60,11 +65,16 @@ def load_mesh(path: Path, repair: bool = False):
     if not path.is_file():
         raise InputError(f"{path}: obstacle mesh file not found")
     try:
-        m = trimesh.load(str(path), force="mesh", process=True)
+        m = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:
         raise InputError(f"{path}: not a readable mesh ({exc})") from None
     if m is None or len(m.faces) == 0:
         raise InputError(f"{path}: the mesh is empty (no triangles)")
+    bad = ~np.isfinite(np.asarray(m.vertices)).all(axis=1)
+    if bad.any():  # processing would drop them and report the hole they leave
+        raise InputError(f"{path}: {int(bad.sum())} vertices are NaN or infinite (the first is vertex "
+                         f"{int(np.argmax(bad)) + 1})")
+    m.process()  # merge duplicate vertices, as a loader with process=True does
     if not m.is_watertight:
         if repair:
             trimesh.repair.fill_holes(m)
@@ -74,17 +84,19 @@ def load_mesh(path: Path, repair: bool = False):
             open_edges = len(trimesh.grouping.group_rows(m.edges_sorted, require_count=1))
             hint = "" if repair else "; set repair = true to try to close it"
             raise InputError(f"{path}: mesh is not watertight: {open_edges} open edges{hint}")
-    if m.volume < 0:
+    if not m.is_winding_consistent:
+        # Faces wound against their neighbours make the signed distance flip sign across
+        # them: the obstacle would hold water inside and push it away outside.
+        fixed = m.copy()
+        trimesh.repair.fix_normals(fixed)  # consistent winding, outward (positive volume)
+        flipped = int((np.asarray(fixed.faces) != np.asarray(m.faces)).any(axis=1).sum())
+        if not repair:
+            raise InputError(f"{path}: inconsistent winding: {flipped} of {len(m.faces)} faces are wound "
+                             "against their neighbours; set repair = true to reorient them")
+        m = fixed
+    if m.volume < 0:  # consistently inside out: turn it outward
         m.invert()
     return m
-
-
-def transform_matrix(o: Obstacle) -> np.ndarray:
-    import trimesh.transformations as T
-
-    rx, ry, rz = (math.radians(a) for a in o.rotate)
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    return T.concatenate_matrices(T.translation_matrix(o.translate), R, T.scale_matrix(o.scale))
 
 
 def cache_dir() -> Path:
@@ -123,7 +135,7 @@ class SDFGrid:
 
 
 def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
-    M = transform_matrix(o)
+    M = obstacle_transform(o)
     dx = o.sdf_resolution * r
     raw = path.read_bytes() if path.is_file() else b""
     key = hashlib.sha256(
@@ -265,6 +277,9 @@ def obstacle_project_and_density_map(
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
                 if d < h:
                     gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
+                    # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
+                    # table size is a compile-time constant) rounds differently, and runs with
+                    # obstacles would no longer give the bytes they gave before.
                     dd = ti.max(d, 0.0)
                     t = ti.math.clamp(dd / h, 0.0, 1.0) * (psi_table.shape[0] - 1)
                     k = ti.min(ti.cast(ti.floor(t), ti.i32), psi_table.shape[0] - 2)
@@ -332,7 +347,7 @@ class ObstacleCollider:
         self.box_hi = arr([g.aabb_hi + h for g in grids], "v")
         self.stiffness = arr([o.stiffness for o in obst.entries], "f")
         self.friction = arr([o.friction for o in obst.entries], "f")
-        self.band = 0.05 * solver.r
+        self.band = CONTACT_BAND * solver.r
 
     def _geo(self):
         return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi
@@ -349,5 +364,5 @@ class ObstacleCollider:
     def project(self, s) -> None:
         obstacle_project(s.n, s.state.p, *self._geo(), s.r)
 
-    def respond(self, s, dt: float) -> None:
+    def respond(self, s) -> None:
         obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.friction, s.r, self.band)

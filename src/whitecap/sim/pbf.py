@@ -37,7 +37,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
-from .grid import F1, F3, I1, I2, NeighborGrid, grid_spec
+from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
@@ -263,30 +263,23 @@ def max_speed_and_nans(n: ti.i32, x: F3, v: F3) -> ti.math.vec2:
     return ti.math.vec2(vmax, bad)
 
 
-@ti.kernel
-def gather_vec3(n: ti.i32, order: I1, src: F3, dst: F3):
-    for k in range(n):
-        dst[k] = src[order[k]]
-
-
-@ti.kernel
-def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
-    for k in range(n):
-        dst[k] = src[order[k]]
-
-
 # ============================================================================ setup
+def block_lattice(scene: Scene, b) -> np.ndarray:
+    """Lattice sites (spacing 2r, one radius in from the faces) of one fluid block, float64."""
+    r = scene.solver.particle_radius
+    lo, hi = b.bounds()
+    axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, 2.0 * r, dtype=np.float64) for a in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    if b.shape == "sphere":
+        g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+    return g
+
+
 def lattice_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """Positions and velocities of the initial fluid: a cubic lattice of spacing 2r."""
-    r = scene.solver.particle_radius
-    d = 2.0 * r
     pos, vel = [], []
     for b in scene.fluid:
-        lo, hi = b.bounds()
-        axes = [np.arange(lo[a] + r, hi[a] - r + 1e-6 * r, d, dtype=np.float64) for a in range(3)]
-        g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        if b.shape == "sphere":
-            g = g[np.linalg.norm(g - np.asarray(b.center), axis=1) <= b.radius]
+        g = block_lattice(scene, b)
         pos.append(g)
         vel.append(np.broadcast_to(np.asarray(b.velocity, np.float64), g.shape))
     if not pos:
@@ -316,17 +309,31 @@ def bytes_per_particle(max_neighbors: int) -> int:
     return 4 * (7 * 3 + 5) + 4 * (7 + max_neighbors)
 
 
+# A run may plan to use at most this share of the memory that is free when it starts:
+# the rest stays for the interpreter, NumPy copies of frames being written, Taichi's
+# runtime, the foam stage and the operating system, so a run that passes the check
+# does not push the machine into swap.
+MEMORY_HEADROOM = 0.8
+
+
+def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
+    """(whether ``n`` particles fit in MEMORY_HEADROOM of the free memory, the bytes they need)."""
+    need = n * bytes_per_particle(max_neighbors)
+    return need <= MEMORY_HEADROOM * available_memory(), need
+
+
 def available_memory() -> int:
     try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 1 << 62
 
 
-def half_space_tables(h: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def half_space_tables(h: float) -> tuple[np.ndarray, np.ndarray]:
     """ψ(d) = ∫_{z > d} W dV, the share of ρ/ρ0 that a solid half space at
     distance d contributes (W integrates to 1), and its derivative ψ'(d), sampled
     on d ∈ [0, h]. Integrated numerically once at set-up, plane by plane; the
@@ -399,7 +406,7 @@ class PBFSolver:
     ``colliders`` are objects with ``apply_forces(solver, dt)`` (before
     prediction), ``add_density_map(solver)`` (start of each iteration: project
     particles out, then add to ψ/∇ψ), ``project(solver)`` (after the last
-    iteration) and ``respond(solver, dt)`` (velocity response): the obstacle
+    iteration) and ``respond(solver)`` (velocity response): the obstacle
     module plugs in there.
     """
 
@@ -409,8 +416,8 @@ class PBFSolver:
         n = len(positions)
         if n == 0:
             raise WhitecapError("the scene has no fluid: add a [[fluid]] block")
-        need = n * bytes_per_particle(s.max_neighbors)
-        if need > 0.8 * available_memory():
+        fits, need = fits_in_memory(n, s.max_neighbors)
+        if not fits:
             raise WhitecapError(
                 f"{n} particles need about {need / 2**30:.1f} GiB, more than this machine has free; "
                 "increase solver.particle_radius or shrink the fluid blocks"
@@ -433,7 +440,7 @@ class PBFSolver:
         self.domain_lo = vec3(*lo)
         self.domain_hi = vec3(*hi)
         self.gravity = vec3(*scene.domain.gravity)
-        psi, dpsi = half_space_tables(self.h, 2.0 * self.r)
+        psi, dpsi = half_space_tables(self.h)
         self.psi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
         self.dpsi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
         self.psi_table.from_numpy(psi)
@@ -450,7 +457,6 @@ class PBFSolver:
         self.step_count = 0
         self.time = 0.0
         self.stats = StepStats()
-        self._warned_overflow = False
 
     # ---------------------------------------------------------------- parameters
     @property
@@ -510,14 +516,15 @@ class PBFSolver:
                 )
                 apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
             # Colliders project at the start of each iteration (fused with their
-            # density map, see boundary_density) and once more here, so no
-            # particle ends an iteration inside an obstacle.
+            # density map, see boundary_density) and once more here: the last
+            # Δp pushes particles back inside the contact distance r, and
+            # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
             for c in self.colliders:
                 c.project(self)
         with timer("pbf.velocity"):
             update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
             for c in self.colliders:
-                c.respond(self, dt)
+                c.respond(self)
         if s.vorticity_epsilon > 0 or s.xsph_c > 0:
             # ω and XSPH share one neighbour pass (both read the velocities
             # after the position update); confinement then uses ω of the

@@ -61,3 +61,33 @@ def spiky_grad_np(r, h):
     with np.errstate(invalid="ignore", divide="ignore"):
         g = np.where(rl > 0, -45.0 / (math.pi * h**6) * d * d / rl * r, 0.0)
     return g
+
+
+@ti.func
+def cubic_spline(r: ti.f32, h: ti.f32) -> ti.f32:
+    """The cubic B-spline of support h (SPlisHSPlasH's CubicKernel), q = r/h, σ = 8/(π h³):
+    W = σ (6q³ − 6q² + 1) for q ≤ ½, σ 2(1 − q)³ for ½ < q ≤ 1, 0 beyond."""
+    q = r / h
+    s = 8.0 / (math.pi * h * h * h)
+    w = 0.0
+    if q <= 0.5:
+        w = s * (6.0 * q * q * q - 6.0 * q * q + 1.0)
+    elif q <= 1.0:
+        w = s * 2.0 * (1.0 - q) ** 3
+    return w
+
+
+@ti.func
+def cubic_spline_grad(x: ti.math.vec3, h: ti.f32) -> ti.math.vec3:
+    """∇W of :func:`cubic_spline` at offset x: (48/(π h³)) (dW/dq) x̂ / h, with
+    dW/dq ∝ q(3q − 2) for q ≤ ½ and −(1 − q)² for ½ < q ≤ 1."""
+    g = ti.math.vec3(0.0)
+    r = x.norm()
+    q = r / h
+    if 1e-9 < r and q <= 1.0:
+        s = 48.0 / (math.pi * h * h * h)
+        d = -(1.0 - q) * (1.0 - q)
+        if q <= 0.5:
+            d = q * (3.0 * q - 2.0)
+        g = (s * d / (r * h)) * x
+    return g

@@ -1,9 +1,11 @@
 """``whitecap mesh``: reconstruct every frame of a run or a particle sequence.
 
 The main process lists the frames, skips those already meshed (unless
-``force``), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over a
-process pool and, once the pool is done, records the meshes in ``run.json``
-(one atomic write).
+``force``; in a run, a mesh counts as done only when ``run.json`` records it
+as made from the run's current simulation, so meshes left by an earlier
+simulation are made again), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over a
+process pool and records each finished mesh in ``run.json`` (an atomic
+write per frame, from the main process).
 """
 
 from __future__ import annotations
@@ -19,10 +21,12 @@ from pydantic import ValidationError
 
 from ..config import Mesh, load_scene
 from ..errors import InputError
+from ..io.lock import run_lock
 from ..io.run import RUN_JSON, RunInfo
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
+from ..workers import die_with_parent
 from .reconstruct import MeshParams, mesh_frame, params_from_config
 
 
@@ -33,6 +37,7 @@ class MeshJob:
     frames: list[tuple[int, Path, Path, str]]
     params: MeshParams
     run_dir: Path | None = None
+    recorded: set[int] = field(default_factory=set)  # frames whose mesh run.json records as current
     stats: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -87,7 +92,22 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
 def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True) -> list[dict]:
     """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done)."""
     jobs = max(1, jobs or len(os.sched_getaffinity(0)))
-    todo = [f for f in job.frames if force or not f[2].is_file()]
+    if job.run_dir is None:
+        return _run_mesh(job, jobs, force, show_progress)
+    with run_lock(job.run_dir, "mesh"):
+        return _run_mesh(job, jobs, force, show_progress)
+
+
+def _done(job: MeshJob, frame: tuple) -> bool:
+    """A frame's mesh exists and (in a run) was made from the run's current simulation."""
+    return frame[2].is_file() and (job.run_dir is None or frame[0] in job.recorded)
+
+
+def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool) -> list[dict]:
+    if job.run_dir is not None:  # read under the lock, so no simulate can change what is current meanwhile
+        current = dict(RunInfo.load(job.run_dir).files("mesh"))
+        job.recorded = {i for i, _, _, rel in job.frames if current.get(i) == rel}
+    todo = [f for f in job.frames if force or not _done(job, f)]
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
     try:
         _map_frames(job, todo, stats, jobs, show_progress)
@@ -105,6 +125,9 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
 
         def done(index: int, s: dict) -> None:
             stats[index] = {"index": index, "skipped": False, **s}
+            if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
+                job.stats = [stats[index]]
+                record(job)
             bar.update(task, advance=1, info=f"{s['particles']} particles -> {s['faces']} triangles")
 
         if jobs == 1 or len(todo) <= 1:
@@ -114,7 +137,8 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
             # spawn, not fork: the parent may already hold splashsurf's thread
             # pool, which a forked child would inherit in a broken state.
             ctx = get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=die_with_parent,
+                                     initargs=(os.getpid(),)) as pool:
                 pending = {pool.submit(mesh_frame, p, o, job.params): i for i, p, o, _ in todo}
                 try:
                     while pending:
@@ -128,10 +152,11 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
 
 
 def record(job: MeshJob) -> RunInfo:
-    """Add the meshes to run.json (main process only, after the pool)."""
+    """Add the meshes of ``job.stats`` to run.json (main process only)."""
     info = RunInfo.load(job.run_dir)
+    made = {s["index"] for s in job.stats}  # meshed now, or skipped as current: never a stale file
     for i, _, o, rel in job.frames:
-        if o.is_file():
+        if i in made and o.is_file():
             info.set_file(i, "mesh", rel)
     info.extra["mesh"] = job.params.as_dict()
     info.save(job.run_dir)

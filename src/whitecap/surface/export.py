@@ -6,26 +6,35 @@ plus a collection beside it that carries each frame's simulated time from
 ``run.json``: ``<series>.pvd`` for VTK XML (``--to vtk``, PolyData ``.vtp``)
 or ``<series>.series`` for PLY (``--to ply``). Opening the collection in
 ParaView plays the run.
+
+``export.json`` in the output directory records the identity of the
+simulation the series were made from and the files written; a new export
+removes the files of the previous one that it does not write again, so no
+series of an earlier simulation is left behind.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from .. import io as wio
 from ..errors import InputError
+from ..io.diffuse_types import TYPE_NAMES
 from ..io.frame import ParticleFrame
 from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
 from ..io.pvd import write_pvd, write_series
-from ..io.run import RunInfo
+from ..io.atomic import write_text
+from ..io.lock import run_lock
+from ..io.run import RunInfo, check_relpath
 from ..io.vtk_xml import write_vtp
 from ..progress import progress
 
 #: diffuse particle ``type`` codes of the run-directory contract
-DIFFUSE_TYPES = {0: "spray", 1: "foam", 2: "bubble"}
-FORMATS = ("vtk", "ply")
+TARGETS = ("vtk", "ply")  # vtk: .vtp/.vtu + .pvd; ply: PLY + .series
+MANIFEST = "export.json"
 
 
 def _point_arrays(frame: ParticleFrame) -> dict[str, np.ndarray]:
@@ -75,11 +84,17 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     Returns {series name: collection path}. Kinds the run does not have are
     skipped; a run with none of them is an error.
     """
-    if to not in FORMATS:
-        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(FORMATS)})")
+    if to not in TARGETS:
+        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(TARGETS)})")
     run = Path(run)
     if not run.is_dir():
         raise InputError(f"{run}: no such run directory")
+    with run_lock(run, "export"):
+        return _export(run, to, out, split_types, kinds, show_progress)
+
+
+def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds: tuple[str, ...],
+            show_progress: bool) -> dict[str, Path]:
     info = RunInfo.load(run)
     out = Path(out) if out is not None else run / "export"
     ext = "vtp" if to == "vtk" else "ply"
@@ -99,15 +114,20 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
         for kind, i, rel in work:
             src = run / rel
             if kind == "mesh":
-                _write_surface(emit("mesh", i), read_mesh(src), to)
+                mesh = read_mesh(src)
+                bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
+                if bad:
+                    raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
+                _write_surface(emit("mesh", i), mesh, to)
             else:
                 frame = wio.read(src)
+                frame.check_finite()
                 _write_points(emit(kind, i), frame, to)
                 if kind == "diffuse" and split_types:
                     if "type" not in frame.arrays:
                         raise InputError(f"{src}: missing array 'type' (needed by --split-types)")
                     t = frame.arrays["type"]
-                    for code, label in DIFFUSE_TYPES.items():
+                    for code, label in enumerate(TYPE_NAMES):
                         _write_points(emit(f"diffuse_{label}", i), _subset(frame, t == code), to)
             bar.update(task, advance=1, info=rel)
 
@@ -120,4 +140,23 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
             path = out / f"{name}.series"
             write_series(path, entries)
         written[name] = path
+    files = {path.name for path in written.values()} | {rel for entries in series.values() for _, rel in entries}
+    _replace_previous(out, info.simulation, files)
     return written
+
+
+def _replace_previous(out: Path, simulation: str, files: set[str]) -> None:
+    """Remove what the previous export wrote and this one did not; record this one in export.json."""
+    old: list = []
+    try:
+        old = json.loads((out / MANIFEST).read_text()).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        pass
+    for rel in old if isinstance(old, list) else []:
+        try:
+            rel = check_relpath(rel, str(out / MANIFEST))
+        except InputError:
+            continue  # never delete outside the export directory
+        if rel not in files:
+            (out / rel).unlink(missing_ok=True)
+    write_text(out / MANIFEST, json.dumps({"simulation": simulation, "files": sorted(files)}, indent=1))

@@ -211,7 +211,10 @@ def mesh_frame(in_path: str | Path, out_path: str | Path, params: MeshParams) ->
     (particles, vertices, faces, seconds).
     """
     t0 = time.perf_counter()
-    frame = wio.read(in_path, **({"up": params.up} if params.up != "z" else {}))
+    opts = {"up": params.up} if params.up != "z" else {}
+    if not params.interpolate_velocity:  # then files without a velocity array are fine
+        opts["require_velocity"] = False
+    frame = wio.read(in_path, **opts)
     frame.check_finite()
     surface = reconstruct(frame.positions, frame.velocities, params, source=str(in_path))
     with timer("mesh.write"):

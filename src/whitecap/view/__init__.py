@@ -24,7 +24,8 @@ def view(target, headless: bool = False, out=None, frames=None, mp4: bool = Fals
 
             raise InputError("view --headless: --out DIR is required")
         return run_headless(target, out, frames=frames, mp4=mp4, arch=arch, **opts)
-    return run_interactive(target, arch=arch, out=Path(out) if out else Path("view_out"), up=opts.get("up", "z"))
+    return run_interactive(target, arch=arch, out=Path(out) if out else Path("view_out"), up=opts.get("up", "z"),
+                           size=opts.get("size"), color_mode=opts.get("color_mode"))
 
 
 __all__ = ["view"]

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..config import Scene, View, load_scene
 from ..errors import InputError, WhitecapError
+from ..io.movie import encode_mp4
 from .geometry import load_obstacle_meshes
 from .sources import LiveSource, PlaybackSource
 from .state import OrbitCamera, ViewerState
@@ -32,6 +33,7 @@ ORBIT_RATE = 4.0  # radians per window width of mouse drag
 ZOOM_RATE = 3.0  # e-folds of distance per window height of middle drag
 FOAM_SLIDERS = ("k_ta", "k_wc", "k_vo", "lifetime_multiplier")  # foam multipliers on the live panel
 KEY_ZOOM = 1.03  # distance factor per frame with z / x held
+VIEW_MP4_QUALITY = 7  # imageio 0-10: a preview, smaller than render/movie.mp4 (8)
 
 
 # ----------------------------------------------------------------------------- setup
@@ -301,7 +303,7 @@ def run_headless(
         prog.advance(task)
     prog.stop()
     if mp4:
-        encode_mp4(paths, out / "view.mp4", fps=_fps(source))
+        encode_mp4(paths, out / "view.mp4", fps=_fps(source), quality=VIEW_MP4_QUALITY)
     return paths
 
 
@@ -311,30 +313,19 @@ def _fps(source) -> float:
     return float(source.info.frame_rate) if source.info is not None else 30.0
 
 
-def encode_mp4(pngs: list[Path], path: Path, fps: float = 30.0) -> Path:
-    """Encode PNG frames to H.264 with imageio-ffmpeg (even sizes required by yuv420p)."""
-    import imageio.v2 as imageio
-
-    from ..io.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", macro_block_size=2, quality=7) as w:
-            for p in pngs:
-                img = imageio.imread(p)[..., :3]
-                h, wd = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
-                w.append_data(img[:h, :wd])
-    return path
-
-
 def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = "view_out",
+                    size: tuple[int, int] | None = None, color_mode: str | None = None,
                     max_frames: int | None = None, window=None, recording: bool = False) -> ViewerState:
     """Open a window and show the scene (live) or the sequence (playback) until closed.
 
+    ``size`` and ``color_mode`` override the scene's ``[view]`` as in :func:`run_headless`.
     ``max_frames``, ``window`` and ``recording`` let tests drive the loop with an offscreen window.
     Returns the final viewer state.
     """
     source, cfg = open_source(target, arch, up)
-    window = window or make_window(tuple(cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
+    if color_mode:
+        cfg = cfg.model_copy(update={"color_mode": color_mode})
+    window = window or make_window(tuple(size or cfg.window_size), headless=False, fps_limit=cfg.fps_limit)
     rend = _renderer(window, source, cfg)
     state = _new_state(cfg, source)
     state.recording = recording

@@ -11,9 +11,8 @@ COLORMAP_STOPS = np.array(
     np.float32,
 )
 
-# Diffuse particle colours by type (0 spray, 1 foam, 2 bubble), RGB in [0, 1].
+# Diffuse particle colours by type code (io.diffuse_types: 0 spray, 1 foam, 2 bubble), RGB in [0, 1].
 DIFFUSE_COLORS = np.array([[1.0, 1.0, 1.0], [0.78, 0.78, 0.78], [0.62, 0.80, 1.0]], np.float32)
-DIFFUSE_NAMES = ("spray", "foam", "bubble")
 
 
 def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:

@@ -20,6 +20,7 @@ LEGEND_BAR = (0.02, 0.06, 0.22, 0.09)  # colour bar x0, y0, x1, y1 in canvas fra
 LEGEND_STEPS = 32  # quads in the colour bar
 LEGEND_BOX_PX = (250, 60)  # range text box width, height [px]
 GRAVITY = 9.81  # |g| for the default speed range [m/s²]
+BOX_LINE_WIDTH = 2.0  # domain box outline width [px]
 
 HELP = [
     "mouse: left drag orbit, right drag pan, middle drag / z x zoom",
@@ -77,7 +78,6 @@ class Renderer:
         lines = box_lines(bounds.lower, bounds.upper)
         self.box = ti.Vector.field(3, ti.f32, len(lines))
         self.box.from_numpy(lines)
-        self.box_width = max(1.0, 2.0)
         self.obstacles = []
         for v, f, nrm, color in obstacles:
             vf = ti.Vector.field(3, ti.f32, len(v))
@@ -154,7 +154,7 @@ class Renderer:
             for vf, idx, nf, color in self.obstacles:
                 sc.mesh(vf, indices=idx, normals=nf, color=color, two_sided=True)
         if vis.domain:
-            sc.lines(self.box, width=self.box_width, color=(0.75, 0.75, 0.8))
+            sc.lines(self.box, width=BOX_LINE_WIDTH, color=(0.75, 0.75, 0.8))
         self.canvas.set_background_color(self.background)
         self.canvas.scene(sc)
 

@@ -7,19 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import obstacle_transform
+
 log = logging.getLogger("whitecap.view")
-
-
-def obstacle_transform(translate, rotate_deg, scale) -> np.ndarray:
-    """4x4 matrix: scale, then rotate about x, then y, then z [deg], then translate."""
-    from trimesh.transformations import rotation_matrix
-
-    m = np.eye(4)
-    m[:3, :3] *= float(scale)
-    for axis, ang in zip(np.eye(3), rotate_deg):
-        m = rotation_matrix(np.radians(ang), axis) @ m
-    m[:3, 3] += np.asarray(translate, float)
-    return m
 
 
 def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple]]:
@@ -44,7 +34,7 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
         except Exception as exc:  # a bad mesh must not stop the viewer
             log.warning("obstacle mesh %s unreadable (%s); not shown", found, exc)
             continue
-        m.apply_transform(obstacle_transform(e.get("translate", [0, 0, 0]), e.get("rotate", [0, 0, 0]), e.get("scale", 1.0)))
+        m.apply_transform(obstacle_transform(e))
         color = tuple(float(c) for c in e.get("color", (0.8, 0.78, 0.72)))
         out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color))
     return out

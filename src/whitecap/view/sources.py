@@ -53,11 +53,11 @@ class Frame:
         return self.device.n if self.device is not None else len(self.positions)
 
     def counts(self) -> dict[str, int]:
-        from .colors import DIFFUSE_NAMES
+        from ..io.diffuse_types import TYPE_NAMES
 
         c = {"fluid": self.n_fluid}
         if self.diffuse_type is not None:
-            for t, name in enumerate(DIFFUSE_NAMES):
+            for t, name in enumerate(TYPE_NAMES):
                 c[name] = int((self.diffuse_type == t).sum())
         return c
 
@@ -102,8 +102,15 @@ class PlaybackSource:
             self.radius = None
         self._cache: dict[int, Frame] = {}
         first = self.frame(0)
+        if self.bounds is None or self.radius is None:
+            # Frame the first frame that has particles; a sequence of empty frames
+            # shows an empty unit box.
+            first = next((f for f in map(self.frame, range(len(self))) if f.n_fluid), first)
         if self.bounds is None:
-            lo, hi = first.positions.min(axis=0), first.positions.max(axis=0)
+            if first.n_fluid:
+                lo, hi = first.positions.min(axis=0), first.positions.max(axis=0)
+            else:
+                lo, hi = np.zeros(3), np.ones(3)
             self.bounds = Bounds(lo.astype(float), hi.astype(float))
         if self.radius is None:
             # Spacing estimate: the cube root of the volume per particle, halved.
@@ -119,12 +126,14 @@ class PlaybackSource:
             return self._cache[k]
         opts = {"up": self.up} if self.up != "z" else {}
         pf = read(self.files[k], **opts)
+        pf.check_finite()  # NaN would be drawn at random places or break the colour map
         idx = self.indices[k]
         t = pf.time if pf.time is not None else self.times.get(idx, float(idx))
         fr = Frame(idx, float(t), pf.positions, pf.velocities, pf.density)
         dpath = self.diffuse.get(idx)
         if dpath is not None and dpath.is_file():
             dfr = read(dpath)
+            dfr.check_finite()
             for name in ("type", "radius"):
                 if name not in dfr.arrays:
                     raise InputError(f"{dpath}: missing array '{name}'")

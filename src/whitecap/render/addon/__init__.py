@@ -19,6 +19,9 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
 
 NUMBERED = re.compile(r"^(.*?)(\d+)(\.(?:vtk|ply|obj))$", re.IGNORECASE)
+# Names of a velocity array, lower case: a copy of whitecap.io.registry.VELOCITY_NAMES,
+# since the add-on runs where whitecap is not installed (tests/test_render.py checks they agree).
+VELOCITY_NAMES = ("vel", "velocity", "v")
 
 
 # ----------------------------------------------------------------------------- sequences
@@ -62,15 +65,22 @@ def read_vtk_legacy(path):
         pos = end + 1
         return line
 
+    def truncated(got, count):
+        return ValueError(f"{path}: the file ends after {got} of {count} values (truncated?)")
+
     def read_values(count, typ):
         nonlocal pos
         if binary:
             fmt, size = sizes.get(typ.lower(), (">f", 4))
-            vals = struct.unpack(">" + fmt[1] * count, data[pos:pos + size * count])
+            chunk = data[pos:pos + size * count]
+            if len(chunk) < size * count:
+                raise truncated(len(chunk) // size, count)
             pos += size * count
-            return list(vals)
+            return list(struct.unpack(">" + fmt[1] * count, chunk))
         vals = []
         while len(vals) < count:
+            if pos >= len(data):  # without this, a truncated file loops here for ever
+                raise truncated(len(vals), count)
             vals += [float(t) for t in next_line().split()]
         return vals
 
@@ -112,7 +122,7 @@ def read_vtk_legacy(path):
                     pos -= len(look) + 1
             count = (npts if in_point_data else 0) * ncomp
             v = read_values(count, parts[2])
-            if parts[1].lower() in ("vel", "velocity", "v") and ncomp == 3:
+            if parts[1].lower() in VELOCITY_NAMES and ncomp == 3:
                 vel = [tuple(v[3 * i:3 * i + 3]) for i in range(npts)]
         elif key == "FIELD":
             for _ in range(int(parts[2])):
@@ -121,7 +131,7 @@ def read_vtk_legacy(path):
                     hdr = next_line().decode("latin-1").split()
                 name, ncomp, ntup, typ = hdr[0], int(hdr[1]), int(hdr[2]), hdr[3]
                 v = read_values(ncomp * ntup, typ)
-                if name.lower() in ("vel", "velocity", "v") and ncomp == 3:
+                if name.lower() in VELOCITY_NAMES and ncomp == 3:
                     vel = [tuple(v[3 * i:3 * i + 3]) for i in range(ntup)]
     return points, tris, vel
 
