@@ -19,7 +19,9 @@ With G_f the particles born in frame f at s = 1,
 
 Post-processing evaluates N_d on every frame from G interpolated between the
 sampled frames; then, frame by frame, with that frame's real G and the survival
-corrected by the live count over its prediction (rescale). The simulation cannot: it takes the mean rate over the last
+corrected by the live count over its prediction (rescale). Both modes lower the
+scale of a frame whose births would take the live count past the budget
+(within_budget). The simulation cannot: it takes the mean rate over the last
 ∫S seconds (over the frames since motion began, where fewer) as lasting, and
 the highest such estimate so far as the peak (running_peak).
 """
@@ -146,6 +148,16 @@ def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: flo
             c = float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
     peak = float(((surv @ rate) / np.maximum(n_fluid, 1)).max()) * c
     return p.budget / peak if peak > 0 else s_now
+
+
+def within_budget(scale: float, births: float, alive: float, n_fluid: float, budget: float) -> float:
+    """The scale, lowered where this frame's births (``births`` at scale 1) would take the
+    live count past budget × fluid particles: a prediction that ran high is clipped at the
+    budget instead of overshooting it. It never raises the scale."""
+    room = budget * n_fluid - alive
+    if births * scale > room:
+        return max(room, 0.0) / births
+    return scale
 
 
 def running_peak(rates: np.ndarray, p, dt: float) -> float:

@@ -220,6 +220,7 @@ class FoamGenerator:
         counts = self.state.counts
         alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
         self.state.scale = B.rescale(times, rate, n_fluid, s_past, alive, self.p, dt, self.state.scale)
+        self.state.scale = B.within_budget(self.state.scale, rate[k], alive, n_fluid[k], self.p.budget)
         self._scales[k] = self.state.scale
 
     def _running_auto(self, n: int, index: int, dt: float, fluid: ParticleFrame) -> None:
@@ -247,6 +248,8 @@ class FoamGenerator:
             peak = B.running_peak(rates, self.p, dt)
             if peak > 0:
                 st.scale = self.p.budget / peak
+                alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
+                st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt), alive, n, self.p.budget)
         if first:
             self._say_auto(f"running estimate from frame {index}; it only rises")
 
