@@ -480,7 +480,8 @@ print(json.dumps(res))
 def test_bad_paths_give_true_errors_and_leave_nothing_behind(addon_run, addon_zip, tmp_path):
     broken = tmp_path / "broken"
     shutil.copytree(addon_run, broken)
-    (broken / "diffuse" / "diffuse_00000.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
+    # frame 1 shows on loading; its file is cut off after the header
+    (broken / "diffuse" / "diffuse_00001.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
                                                           b"property float x\nproperty float y\nproperty float z\nend_header\n")
     folder = tmp_path / "folder"
     folder.mkdir()
@@ -496,7 +497,7 @@ def test_bad_paths_give_true_errors_and_leave_nothing_behind(addon_run, addon_zi
     res = run_blender(ERRORS, addon_zip, tmp_path, json.dumps(cases))
     assert f"{tmp_path / 'nope'}: no such file or folder" in res["missing"]["error"]
     assert "not a numbered" not in res["missing"]["error"]
-    assert str(broken / "diffuse" / "diffuse_00000.ply") in res["broken"]["error"] and "truncated" in res["broken"]["error"]
+    assert str(broken / "diffuse" / "diffuse_00001.ply") in res["broken"]["error"] and "truncated" in res["broken"]["error"]
     assert res["broken"]["left"] == [] and res["broken"]["meshes"] == 0  # a failed load leaves no objects
     assert res["folder"]["error"] is None
     objs = res["folder"]["objects"]

@@ -422,6 +422,14 @@ def load_run(context, run, made):
     mesh, fluid, diffuse = seq_of("mesh"), seq_of("fluid"), seq_of("diffuse")
     if mesh is None and fluid is None:
         raise ValueError(f"{run}: the run has no fluid frames yet; run `whitecap simulate` first")
+    indices = [i for _, files in filter(None, (mesh, fluid, diffuse)) for i, _ in files]
+    sc = context.scene
+    fps = float(info.get("frame_rate", 24.0))
+    sc.render.fps = max(1, int(round(fps)))
+    sc.render.fps_base = sc.render.fps / fps
+    sc.frame_start, sc.frame_end = min(indices), max(indices)
+    if sc.frame_current < sc.frame_start or sc.frame_current > sc.frame_end:
+        sc.frame_current = sc.frame_start
     if mesh is not None:
         objs.append(new_sequence(context, made, "fluid", mesh[0], "", "", "FLUID", run_kind="mesh"))
     else:
@@ -435,14 +443,6 @@ def load_run(context, run, made):
         obj = add_obstacle(context, made, run, info, entry, k)
         if obj is not None:
             objs.append(obj)
-    indices = [i for _, files in filter(None, (mesh, fluid, diffuse)) for i, _ in files]
-    sc = context.scene
-    fps = float(info.get("frame_rate", 24.0))
-    sc.render.fps = max(1, int(round(fps)))
-    sc.render.fps_base = sc.render.fps / fps
-    sc.frame_start, sc.frame_end = min(indices), max(indices)
-    if sc.frame_current < sc.frame_start or sc.frame_current > sc.frame_end:
-        sc.frame_set(sc.frame_start)
     return objs
 
 
