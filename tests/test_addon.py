@@ -549,3 +549,62 @@ def test_dualsphysics_arrays_become_mesh_attributes_and_y_up_rotates(addon_zip, 
     assert np.allclose(up, np.stack([co[:, 0], -co[:, 2], co[:, 1]], 1), atol=1e-6)  # as whitecap.io.axes.to_z_up
     v, vu = arrays["Vel"], np.array(res["velocity_y_up"])
     assert np.allclose(vu, np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1), atol=1e-6)
+
+
+LIST = r"""
+folder, copy, root = sys.argv[3], sys.argv[4], sys.argv[5]
+sc.whitecap_root = root
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "surf_0028.ply"))
+o = seq_objects()["surf"]
+o.whitecap_seq.frame_offset = 0
+res = {"stored": o.whitecap_seq.directory}
+sc.frame_set(29)
+o.whitecap_seq.enabled = False
+sc.frame_set(30)
+res["disabled"] = len(o.data.vertices)
+o.whitecap_seq.enabled = True
+res["enabled"] = len(o.data.vertices)
+import shutil
+shutil.copy(os.path.join(folder, "surf_0031.ply"), os.path.join(folder, "surf_0032.ply"))
+sc.frame_set(32)
+res["before_refresh"] = o.whitecap_seq.current
+bpy.ops.whitecap.refresh()
+res["after_refresh"] = o.whitecap_seq.current
+o.whitecap_seq.directory = copy  # the copy has file 32 with 5 vertices
+res["edited_path"] = len(o.data.vertices)
+# the panels draw every property they name
+class Layout:
+    def __getattr__(self, name):
+        return lambda *a, **k: self
+    def prop(self, data, name, **k):
+        assert name in data.bl_rna.properties, name
+        return self
+    def operator(self, idname, **k):
+        cat, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, cat), op), idname
+        return self
+class Me:
+    layout = Layout()
+bpy.context.view_layer.objects.active = o
+sc.whitecap_active = list(bpy.data.objects).index(o)
+addon.WHITECAP_PT_sequences.draw(Me(), bpy.context)
+addon.WHITECAP_PT_object.draw(Me(), bpy.context)
+res["drawn"] = True
+print(json.dumps(res))
+"""
+
+
+def test_sequence_list_enable_refresh_editable_path_and_root(addon_zip, tmp_path):
+    root = tmp_path / "root"
+    folder, copy = root / "seq", tmp_path / "copy"
+    for k in (28, 29, 30, 31):
+        write_mesh_ply(folder / f"surf_{k:04d}.ply", np.random.default_rng(k).random((k, 3)), np.array([[0, 1, 2]]),
+                       np.zeros((k, 3)))
+    copy.mkdir()
+    write_mesh_ply(copy / "surf_0032.ply", np.random.default_rng(0).random((5, 3)), np.array([[0, 1, 2]]), np.zeros((5, 3)))
+    res = run_blender(LIST, addon_zip, tmp_path, folder, copy, root)
+    assert res["stored"] == "seq"  # relative to the root folder
+    assert res["disabled"] == 29 and res["enabled"] == 30  # off: the mesh stays; on again: it catches up
+    assert res["before_refresh"] == 31 and res["after_refresh"] == 32  # Refresh finds the new file
+    assert res["edited_path"] == 5  # editing the folder reloads from the new place at once
+    assert res["drawn"]

@@ -250,6 +250,11 @@ def _on_path(seq, context):
     _reload(seq, context)
 
 
+def _on_root(scene, context):
+    _FRAMES.clear()
+    update_all(scene, force=True)
+
+
 def _on_smooth(seq, context):
     me = seq.id_data.data
     if me is not None and len(me.polygons):
@@ -620,7 +625,7 @@ def register():
         bpy.utils.register_class(c)
     bpy.types.Object.whitecap_seq = PointerProperty(type=WhitecapSequence)
     bpy.types.Scene.whitecap_root = StringProperty(
-        name="Root folder", subtype="DIR_PATH",
+        name="Root folder", subtype="DIR_PATH", update=_on_root,
         description="relative sequence folders are taken from here (empty: from the .blend's folder)")
     bpy.types.Scene.whitecap_active = IntProperty(default=0)
     if on_frame_change not in bpy.app.handlers.frame_change_post:
