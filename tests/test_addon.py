@@ -214,6 +214,8 @@ def write_mesh_ply(path: Path, verts, faces, vel) -> None:
     io.write_mesh(path, SurfaceMesh(verts, faces, None, {"velocity": vel}))
 
 
+BODY_POS = {1: [0.0, 0.0, 0.0], 2: [0.05, 0.0, 0.02], 3: [0.1, 0.0, 0.04]}
+BODY_QUAT = {1: [1.0, 0.0, 0.0, 0.0], 2: [0.9238795, 0.0, 0.0, 0.3826834], 3: [0.7071068, 0.0, 0.0, 0.7071068]}
 OBSTACLE = {"mesh": "box.obj", "translate": [0.3, 0.1, 0.05], "rotate": [10.0, 20.0, 30.0], "scale": 0.5,
             "material": "metal"}
 
@@ -243,7 +245,10 @@ def addon_run(tiny_run, tmp_path_factory) -> Path:
         info.set_file(i, "diffuse", f"diffuse/diffuse_{i:05d}.ply")
         counts[i] = {"mesh": [len(m.vertices), len(m.faces)], "types": np.bincount(types, minlength=3).tolist()}
     trimesh.creation.box((0.1, 0.1, 0.1)).export(run / "box.obj")
-    info.obstacles = [OBSTACLE]
+    info.obstacles = [OBSTACLE, {**OBSTACLE, "translate": [0.1, 0.1, 0.1]}]
+    for i in (1, 2, 3):  # the second obstacle moves (run.json's per-frame body poses)
+        info.frame(i)["bodies"] = [{"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
+                                   {"position": BODY_POS[i], "quaternion": BODY_QUAT[i]}]
     info.extra["scene_dir"] = str(run)
     info.save(run)
     (run / "counts.json").write_text(json.dumps(counts))
@@ -299,8 +304,14 @@ res["objects"] = sorted(objs)
 res["others"] = sorted(o.name for o in sc.objects if not o.whitecap_seq.directory)
 res["timeline"] = [sc.frame_start, sc.frame_end, sc.render.fps / sc.render.fps_base]
 ob = bpy.data.objects["obstacle_0"]
-res["obstacle_matrix"] = [list(r) for r in ob.matrix_world]
+res["obstacle_world"] = [list(ob.matrix_world @ v.co) for v in ob.data.vertices]
 res["obstacle_verts"] = len(ob.data.vertices)
+body = bpy.data.objects["obstacle_1"]
+res["body"] = {}
+for f in (1, 2, 3, 2.5):
+    sc.frame_set(int(f), subframe=f % 1)
+    res["body"][str(f)] = [list(body.matrix_world @ v.co) for v in body.data.vertices]
+res["body_mid"] = list(body.location)  # at 2.5
 res["frames"] = {}
 for f in (0, 1, 2, 3):
     sc.frame_set(f)
@@ -324,13 +335,27 @@ print(json.dumps(res))
 def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     res = run_blender(LOAD_RUN, addon_zip, tmp_path, addon_run)
     assert res["enabled"] and res["installed_in_user"]  # installed through the extension installer
-    assert res["objects"] == ["bubbles", "fluid", "foam", "spray"] and res["others"] == ["obstacle_0"]
+    assert res["objects"] == ["bubbles", "fluid", "foam", "spray"] and res["others"] == ["obstacle_0", "obstacle_1"]
     info = RunInfo.load(addon_run)
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
     from whitecap.config import obstacle_transform
 
-    assert np.allclose(res["obstacle_matrix"], obstacle_transform(OBSTACLE), atol=1e-5)
+    import trimesh
+    import trimesh.transformations as T
+
+    rest = np.asarray(trimesh.load(addon_run / "box.obj", force="mesh", process=False).vertices)
+    want = (obstacle_transform(OBSTACLE) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
+    assert np.allclose(np.sort(res["obstacle_world"], axis=0), np.sort(want, axis=0), atol=1e-5)
     assert res["obstacle_verts"] == 8
+    # the moving body at each frame: world = T(position) R(quaternion) placement (config.obstacle_matrix)
+    place = obstacle_transform({**OBSTACLE, "translate": [0.1, 0.1, 0.1]})
+    for f in (1, 2, 3):
+        M = T.translation_matrix(BODY_POS[f]) @ T.quaternion_matrix(BODY_QUAT[f]) @ place
+        want = (M @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
+        got = np.array(res["body"][str(f)])
+        assert np.allclose(np.sort(got, axis=0), np.sort(want, axis=0), atol=1e-5), f
+    # linear keys: at 2.5 the body is half-way between its frame 2 and 3 positions
+    assert np.allclose(res["body_mid"], (np.array(BODY_POS[2]) + BODY_POS[3]) / 2, atol=1e-6)
     counts = json.loads((addon_run / "counts.json").read_text())
     for f in ("1", "2", "3"):
         got = res["frames"][f]

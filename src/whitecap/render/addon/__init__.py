@@ -477,7 +477,35 @@ def add_obstacle(context, made, run, info, entry, k):
     s = float(entry.get("scale", 1.0))
     obj.scale = (s, s, s)
     context.scene.collection.objects.link(obj)
+    poses = [(int(f["index"]), f["bodies"][k]) for f in info.get("frames", [])
+             if isinstance(f.get("bodies"), list) and k < len(f["bodies"]) and f["bodies"][k]]
+    if poses:
+        key_body(obj, poses)
     return obj
+
+
+def key_body(obj, poses):
+    """A moving body: its rest placement goes into the mesh, and the object is keyed with the
+    pose run.json records per frame (position, quaternion w x y z): world = T(p) R(q) placement,
+    as whitecap's config.obstacle_matrix. Linear keys: no overshoot between frames."""
+    context_matrix = obj.matrix_basis.copy()
+    obj.data.transform(context_matrix)
+    obj.data.update()
+    obj.location, obj.scale = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    obj.rotation_mode = "QUATERNION"
+    for i, pose in sorted(poses):
+        obj.location = pose["position"]
+        obj.rotation_quaternion = pose["quaternion"]
+        obj.keyframe_insert("location", frame=i)
+        obj.keyframe_insert("rotation_quaternion", frame=i)
+    action = obj.animation_data.action
+    curves = getattr(action, "fcurves", None)
+    if curves is None:  # Blender 5: layered actions
+        curves = [c for layer in action.layers for strip in layer.strips for bag in strip.channelbags
+                  for c in bag.fcurves]
+    for c in curves:
+        for kp in c.keyframe_points:
+            kp.interpolation = "LINEAR"
 
 
 # ----------------------------------------------------------------------------- operators
