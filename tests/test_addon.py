@@ -251,6 +251,12 @@ def addon_run(tiny_run, tmp_path_factory) -> Path:
                                    {"position": BODY_POS[i], "quaternion": BODY_QUAT[i]}]
     info.extra["scene_dir"] = str(run)
     info.save(run)
+    # a frame left by an earlier simulation: stale, so never shown (whitecap drops it too)
+    shutil.copy(run / "mesh/fluid_00003.ply", run / "mesh/fluid_00004.ply")
+    data = json.loads((run / "run.json").read_text())
+    data["frames"].append({"index": 4, "time": 4 / info.frame_rate, "files": {"mesh": "mesh/fluid_00004.ply"},
+                           "made_from": {"mesh": "an-older-simulation"}})
+    (run / "run.json").write_text(json.dumps(data))
     (run / "counts.json").write_text(json.dumps(counts))
     return run
 
