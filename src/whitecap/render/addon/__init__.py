@@ -343,6 +343,8 @@ def new_sequence(context, made, name, directory, prefix, suffix, kind, *, run_ki
 
 def guess_kind(prefix, suffix):
     p = prefix.lower()
+    if p.startswith(("rb_", "rigid")):  # SPlisHSPlasH's rigid-body meshes
+        return "OTHER"
     if suffix.lower() in (".bgeo",) or p.startswith(("part", "particle", "fluid_particles")) or "diffuse" in p:
         return "PARTICLES"
     return "FLUID"
