@@ -15,7 +15,7 @@ import math
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, I2, CellGeometry, for_each_neighbor
+from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
 
 vec3 = ti.math.vec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
@@ -218,13 +218,16 @@ def _weigh_fluid(s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.templ
 
 
 @ti.func
-def fluid_neighbourhood(p: vec3, cells: ti.template(), xs: F3, start: I1, reach: ti.template(), h: ti.f32, order: I1, fv: F3):
+def fluid_neighbourhood(
+    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1, reach: ti.template(),
+    h: ti.f32, order: I1, fv: F3,
+):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
     :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``, then h, order)."""
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor(p, h, cells, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum))
+    for_each_neighbor(p, h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum))
     return cnt, vsum, wsum
 
 
@@ -246,7 +249,9 @@ def advect_diffuse(
     xd: F3,
     vd: F3,
     life: F1,
-    cells: CellGeometry,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
     xs: F3,
     start: I1,
     reach: ti.template(),
@@ -273,7 +278,7 @@ def advect_diffuse(
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
     that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
@@ -303,7 +308,9 @@ def advect_diffuse(
 def classify(
     nd: ti.i32,
     xd: F3,
-    cells: CellGeometry,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
     xs: F3,
     start: I1,
     reach: ti.template(),
@@ -316,5 +323,5 @@ def classify(
 ):
     """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         kind[p] = diffuse_type(cnt, spray_below, bubble_above)

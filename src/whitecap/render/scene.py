@@ -23,7 +23,7 @@ import numpy as np
 
 from ..config import Render, obstacle_transform
 from ..errors import InputError
-from ..io import read
+from ..io import read, read_mesh
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
 
@@ -43,8 +43,6 @@ class SceneHandles:
 def read_surface(path: Path):
     """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
     registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
-    from ..io.mesh import read_mesh
-
     m = read_mesh(path)
     return m.vertices, m.faces, m.arrays.get("velocity")
 
