@@ -639,3 +639,42 @@ def test_sequence_list_enable_refresh_editable_path_and_root(addon_zip, tmp_path
     assert res["before_refresh"] == 31 and res["after_refresh"] == 32  # Refresh finds the new file
     assert res["edited_path"] == 5  # editing the folder reloads from the new place at once
     assert res["drawn"]
+
+
+BLUR_RENDER = r"""
+folder, png = sys.argv[3], sys.argv[4]
+sc.frame_start = 1
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "sq_0001.ply"))
+o = seq_objects()["sq"]
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+cam.location = (0, 0, 5)
+sc.collection.objects.link(cam)
+sc.camera = cam
+sc.render.engine = "CYCLES"
+sc.cycles.samples = 1
+sc.cycles.device = "CPU"
+sc.render.resolution_x, sc.render.resolution_y = 16, 8
+o.whitecap_seq.motion_blur = True
+seen = []
+bpy.app.handlers.frame_change_post.append(
+    lambda s, d=None: seen.append([s.frame_current, round(s.frame_subframe, 3), o.whitecap_seq.current]))
+sc.frame_set(2)
+sc.render.filepath = png
+bpy.ops.render.render(write_still=True)
+print(json.dumps({"seen": seen, "blur": sc.render.use_motion_blur}))
+"""
+
+
+def test_a_motion_blur_render_shows_the_frames_file_at_every_shutter_step(addon_zip, tmp_path):
+    """Cycles steps the frame to the shutter's open and close times (1.75 and 2.25 for frame 2);
+    the frame's file must stay, not the neighbour's (the velocity attribute does the blur)."""
+    folder = tmp_path / "seq"
+    square = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]])
+    for k in (1, 2, 3):
+        write_mesh_ply(folder / f"sq_{k:04d}.ply", square + [k - 2.0, 0, 0], np.array([[0, 1, 2], [0, 2, 3]]),
+                       np.zeros((4, 3)))
+    res = run_blender(BLUR_RENDER, addon_zip, tmp_path, folder, tmp_path / "blur.png")
+    assert res["blur"]
+    steps = [s for s in res["seen"] if s[1] != 0]
+    assert [s[:2] for s in steps] == [[1, 0.75], [2, 0.25]], res["seen"]  # Cycles' shutter steps (0.5 frames)
+    assert all(s[2] == 2 for s in res["seen"]), res["seen"]
