@@ -309,6 +309,7 @@ objs = seq_objects()
 res["objects"] = sorted(objs)
 res["others"] = sorted(o.name for o in sc.objects if not o.whitecap_seq.directory)
 res["timeline"] = [sc.frame_start, sc.frame_end, sc.render.fps / sc.render.fps_base]
+res["lock_interface"] = sc.render.use_lock_interface
 ob = bpy.data.objects["obstacle_0"]
 res["obstacle_world"] = [list(ob.matrix_world @ v.co) for v in ob.data.vertices]
 res["obstacle_verts"] = len(ob.data.vertices)
@@ -343,6 +344,7 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     assert res["enabled"] and res["installed_in_user"]  # installed through the extension installer
     assert res["objects"] == ["bubbles", "fluid", "foam", "spray"] and res["others"] == ["obstacle_0", "obstacle_1"]
     info = RunInfo.load(addon_run)
+    assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
     from whitecap.config import obstacle_transform
 

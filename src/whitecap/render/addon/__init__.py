@@ -354,7 +354,10 @@ def load_path(context, path):
     """Load a run directory, a folder of sequences or one numbered file; returns the objects."""
     made = []
     try:
-        return _load(context, path, made)
+        objs = _load(context, path, made)
+        # Renders replace mesh data on every frame change: keep the interface off the scene meanwhile
+        context.scene.render.use_lock_interface = True
+        return objs
     except Exception:
         for idb in reversed(made):  # a failed load leaves nothing behind
             coll = {bpy.types.Object: bpy.data.objects, bpy.types.Mesh: bpy.data.meshes}.get(type(idb),
