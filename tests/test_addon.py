@@ -623,6 +623,13 @@ sc.whitecap_active = list(bpy.data.objects).index(o)
 addon.WHITECAP_PT_sequences.draw(Me(), bpy.context)
 addon.WHITECAP_PT_object.draw(Me(), bpy.context)
 res["drawn"] = True
+o.whitecap_seq.kind = "FOAM"  # a mesh turned into points gets the spheres, and back
+dg = bpy.context.evaluated_depsgraph_get()
+geom = o.evaluated_get(dg).evaluated_geometry()  # keep alive while the point cloud is read
+pc = geom.pointcloud
+res["as_points"] = len(pc.points) if pc is not None else 0
+o.whitecap_seq.kind = "OTHER"
+res["modifiers_after"] = [m.name for m in o.modifiers]
 print(json.dumps(res))
 """
 
@@ -641,6 +648,7 @@ def test_sequence_list_enable_refresh_editable_path_and_root(addon_zip, tmp_path
     assert res["before_refresh"] == 31 and res["after_refresh"] == 32  # Refresh finds the new file
     assert res["edited_path"] == 5  # editing the folder reloads from the new place at once
     assert res["drawn"]
+    assert res["as_points"] == 5 and res["modifiers_after"] == []
 
 
 BLUR_RENDER = r"""

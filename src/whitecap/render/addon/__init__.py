@@ -268,6 +268,19 @@ def _on_motion_blur(seq, context):
         context.scene.render.use_motion_blur = True
 
 
+def _on_kind(seq, context):
+    """Points get the sphere modifier and the kind's material; a mesh loses the spheres."""
+    obj = seq.id_data
+    ours = [m for m in obj.modifiers if m.name == "whitecap_spheres"]
+    if seq.kind in POINT_KINDS and not ours:
+        ng, _ = looks.sphere_nodes(f"{obj.name}_spheres", looks.material(seq.kind))
+        obj.modifiers.new("whitecap_spheres", "NODES").node_group = ng
+        _on_radius(seq, context)
+    elif seq.kind not in POINT_KINDS:
+        for m in ours:
+            obj.modifiers.remove(m)
+
+
 def _on_radius(seq, context):
     for mod in seq.id_data.modifiers:
         if mod.type == "NODES" and mod.node_group is not None and "Radius" in mod.node_group.interface.items_tree:
@@ -284,7 +297,7 @@ class WhitecapSequence(bpy.types.PropertyGroup):
     suffix: StringProperty(name="Extension", update=_on_path)
     run_kind: StringProperty(description="file kind in the run's run.json, for a run's sequence")
     type_code: IntProperty(default=-1, description="diffuse type code to show (-1: all points)")
-    kind: EnumProperty(name="Type", items=KINDS, default="FLUID")
+    kind: EnumProperty(name="Type", items=KINDS, default="FLUID", update=_on_kind)
     frame_offset: IntProperty(name="Frame offset", default=0, update=_reload,
                               description="scene frame at which file 0 shows")
     smooth: BoolProperty(name="Smooth shading", default=True, update=_on_smooth)
@@ -325,7 +338,7 @@ def new_sequence(context, made, name, directory, prefix, suffix, kind, *, run_ki
     seq = obj.whitecap_seq
     seq["directory"], seq["prefix"], seq["suffix"], seq["run_kind"] = stored(directory, context.scene), prefix, suffix, run_kind
     seq["type_code"], seq["frame_offset"] = type_code, offset
-    seq.kind = kind
+    seq["kind"] = [k[0] for k in KINDS].index(kind)
     frames = frame_table(seq, context.scene)
     if kind in POINT_KINDS:
         if radius is None:

@@ -155,7 +155,7 @@ class _LegacyVTK:
 
     def parse(self):
         points = np.zeros((0, 3), np.float32)
-        npts, faces, ctypes, arrays, where = 0, None, None, {}, None
+        npts, ncell, faces, ctypes, arrays, where = 0, 0, None, None, {}, None
         while self.pos < len(self.data):
             line = self.line()
             if not line:
@@ -181,7 +181,8 @@ class _LegacyVTK:
             elif key in ("SCALARS", "VECTORS", "NORMALS", "COLOR_SCALARS", "TENSORS"):
                 name = parts[1]
                 ncomp = {"VECTORS": 3, "NORMALS": 3, "TENSORS": 9}.get(key, int(parts[3]) if len(parts) > 3 and key == "SCALARS" else 1)
-                typ = parts[2] if key != "COLOR_SCALARS" else "unsigned_char"
+                # colours are bytes in binary files, floats in 0..1 in ASCII ones
+                typ = parts[2] if key != "COLOR_SCALARS" else ("unsigned_char" if self.binary else "float")
                 if key == "COLOR_SCALARS":
                     ncomp = int(parts[2])
                 if key == "SCALARS":
@@ -554,5 +555,5 @@ def read(path):
         return READERS[ext](path)
     except ValueError:
         raise
-    except (IndexError, KeyError, struct.error, UnicodeDecodeError, OverflowError) as exc:
+    except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError) as exc:
         raise ValueError(f"{path}: not a readable {ext[1:].upper()} file ({type(exc).__name__}: {exc})") from None
