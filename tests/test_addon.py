@@ -182,6 +182,42 @@ def test_truncated_files_name_the_file(tmp_path):
         F.read(str(tmp_path / "a.vtk"))
 
 
+def test_damaged_files_give_one_line_errors_naming_the_file(tmp_path):
+    """Every format cut off at ten places or with bytes overwritten: the reader returns or
+    raises ValueError with one line that starts with the file, never anything else."""
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.io.vtk_xml import write_vtp
+
+    rng = np.random.default_rng(4)
+    n = 40
+    fr = io.ParticleFrame(rng.random((n, 3)), rng.random((n, 3)), np.arange(n), rng.random(n))
+    faces = np.array([[0, 1, 2], [2, 3, 0]])
+    io.write(tmp_path / "p.ply", fr)
+    io.write(tmp_path / "p.vtu", fr)
+    write_vtp(tmp_path / "p.vtp", fr.positions, {"velocity": fr.velocities}, faces)
+    io.write_mesh(tmp_path / "m.obj", SurfaceMesh(fr.positions, faces))
+    write_partio_bgeo(tmp_path / "p.bgeo", fr.positions, {"velocity": fr.velocities})
+    _vtk_polydata(tmp_path / "a.vtk", fr.positions, {"Vel": fr.velocities}, [(0, 1, 2)], 42, False)
+    _vtk_polydata(tmp_path / "b.vtk", fr.positions, {"Vel": fr.velocities}, [(0, 1, 2)], 51, True)
+    for src in sorted(tmp_path.iterdir()):
+        data = src.read_bytes()
+        variants = [data[:int(len(data) * f)] for f in np.linspace(0.05, 0.95, 10)]
+        for k in range(5):
+            bad = bytearray(data)
+            at = rng.integers(0, len(data), 8)
+            bad[at[0]:at[0] + 8] = rng.integers(0, 256, len(bad[at[0]:at[0] + 8])).astype(np.uint8).tobytes()
+            variants.append(bytes(bad))
+        for k, v in enumerate(variants):
+            path = tmp_path / "damaged" / f"{k}_{src.name}"
+            path.parent.mkdir(exist_ok=True)
+            path.write_bytes(v)
+            try:
+                F.read(str(path))
+            except ValueError as exc:
+                msg = str(exc)
+                assert msg.startswith(f"{path}: ") and "\n" not in msg, msg
+
+
 def test_addon_copies_of_the_array_names_match_whitecap():
     # The add-on ships alone (no whitecap inside Blender), so it carries copies.
     import ast
