@@ -6,7 +6,7 @@ render driver and the tests can use them too.
 
 Container. The domain box's solid walls are drawn as a tank: walls and floor
 of real thickness outside the box, open at the top. ``glass`` is a clear
-dielectric of IOR 1.5; ``basin`` is opaque concrete-like tiling. The fluid
+dielectric of IOR 1.5; ``basin`` is opaque concrete, seen from higher up. The fluid
 mesh reaches the walls (the meshing stage moves the vertices facing a solid
 wall onto it, see :func:`whitecap.surface.reconstruct.close_wall_gap`), and
 the glass's inner faces sit :data:`GLASS_OVERLAP` r inside the box, so the
@@ -44,6 +44,8 @@ WALL_RADII = 2.5
 FRAME_FILL = 0.9
 #: Direction from the framed point to the default camera: in front (−y), a little right, above.
 VIEW_DIRECTION = (0.35, -1.0, 0.55)
+#: The same for an opaque basin, from high enough to see over its front wall.
+VIEW_DIRECTION_BASIN = (0.15, -0.35, 1.0)
 #: Frames whose bounds are read to frame the camera (evenly spread over the run).
 FRAMING_SAMPLES = 16
 #: Bounds of a frame leave out this share of its vertices on each side (a stray droplet does not widen the shot).
@@ -160,8 +162,9 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
     if cfg.camera_start:
         start = np.array(cfg.camera_start, float)
     else:
-        dist = frame_box(lo, hi, target, VIEW_DIRECTION, cfg.lens, aspect)
-        u = np.asarray(VIEW_DIRECTION, float) / np.linalg.norm(VIEW_DIRECTION)
+        view = VIEW_DIRECTION_BASIN if container_kind(cfg, info) == "basin" else VIEW_DIRECTION
+        dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
+        u = np.asarray(view, float) / np.linalg.norm(view)
         start = target + dist * u
     end = np.array(cfg.camera_end, float) if cfg.camera_end else start
     return start.tolist(), end.tolist(), target.tolist()
@@ -332,7 +335,8 @@ def add_container(sc, cfg: Render, info: RunInfo):
     bm.free()
     obj = bpy.data.objects.new("container", me)
     tile = max(4 * t, float((hi - lo).max()) / 12)
-    obj.data.materials.append(glass_material() if kind == "glass" else surface_material("whitecap_basin", "tiles", tile))
+    # Concrete, a 3D texture, reads the same on the walls and the floor (the tiles are flat in x, y).
+    obj.data.materials.append(glass_material() if kind == "glass" else surface_material("whitecap_basin", "concrete", tile))
     sc.collection.objects.link(obj)
     return obj
 
