@@ -457,6 +457,10 @@ for name, over in variants.items():
         pts = [[x, y, lo_o[2] + t * (hi_o[2] - lo_o[2])] for x in (lo_o[0], hi_o[0]) for y in (lo_o[1], hi_o[1])
                for t in np.linspace(0.1, 0.9, 9)]
         r["edge_uv"] = uv(pts)
+    dof = sc.camera.data.dof
+    r["dof"] = {"use": dof.use_dof, "fstop": dof.aperture_fstop,
+                "focus": list(dof.focus_object.matrix_world.translation) if dof.focus_object else None}
+    r["view"] = [sc.view_settings.view_transform, sc.view_settings.exposure]
     obst = bpy.data.objects.get("obstacle_0")
     if obst is not None:
         r["obstacle_uv"] = uv([obst.matrix_world @ __import__("mathutils").Vector(c) for c in obst.bound_box])
@@ -612,3 +616,14 @@ def test_red_texture_shows_on_the_cube(meshed_run, tmp_path):
     y, x = int((1 - v) * h), int(u * w)
     r, g, b = img[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3).mean(0)
     assert r > g + 60 and r > b + 60, (r, g, b)
+
+
+def test_exposure_and_depth_of_field(meshed_run, tmp_path):
+    """`exposure` brightens the AgX image by that many stops; `fstop` turns depth of field on,
+    focused on `focus_target`."""
+    s = variants(meshed_run, tmp_path, base={}, bright={"exposure": 1.5},
+                 dof={"_render": False, "fstop": 2.8, "focus_target": [0.1, 0.1, 0.1]})
+    assert s["base"]["view"] == ["AgX", 0.0] and not s["base"]["dof"]["use"]
+    assert image(tmp_path / "bright.png").mean() > image(tmp_path / "base.png").mean() + 15
+    assert s["dof"]["dof"]["use"] and s["dof"]["dof"]["fstop"] == pytest.approx(2.8)
+    assert s["dof"]["dof"]["focus"] == pytest.approx([0.1, 0.1, 0.1])

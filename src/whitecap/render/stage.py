@@ -193,8 +193,12 @@ def _box_mesh(lo, hi, thickness: float, inset: float, top: float):
 # ============================================================================ bpy steps
 def set_exposure(sc, cfg: Render) -> None:
     """AgX view transform with ``[render].exposure`` stops."""
-    names = [e.identifier for e in sc.view_settings.bl_rna.properties["view_transform"].enum_items]
-    sc.view_settings.view_transform = "AgX" if "AgX" in names else "Filmic"
+    # The list of view transforms is a dynamic enum whose bl_rna items do not
+    # show AgX in a background bpy, so ask for it and fall back on a refusal.
+    try:
+        sc.view_settings.view_transform = "AgX"
+    except TypeError:
+        sc.view_settings.view_transform = "Filmic"
     sc.view_settings.exposure = cfg.exposure
 
 
