@@ -33,7 +33,7 @@ from ..io.run import RunInfo
 #: The glass's inner faces sit this many particle radii inside the domain box, under the water's edge.
 GLASS_OVERLAP = 0.1
 #: Blender's physical skies are in physical units, several times brighter than a sun lamp of a few
-#: W/m²; this scale, chosen by eye (AgX, exposure 0, the default 3 W/m² sun), lets the sky fill the
+#: W/m²; this scale, chosen by eye on preview frames (exposure 0, the default 3 W/m² sun), lets the sky fill the
 #: shadows without washing out the sun's light.
 SKY_SCALE = 0.2
 #: Window glass (soda-lime) refractive index.
