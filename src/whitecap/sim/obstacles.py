@@ -1,4 +1,4 @@
-"""Static rigid obstacles from watertight triangle meshes.
+"""Rigid obstacles from watertight triangle meshes, static or moving.
 
 Loading (host side): trimesh reads OBJ/STL/PLY; the mesh is checked for
 watertightness (or repaired on request), transformed (scale, then rotations
@@ -18,6 +18,15 @@ Collision (Taichi, per particle and obstacle):
   position projection after every constraint iteration so that sdf ≥ r
   (no particle inside), and a velocity response that removes the inward
   normal velocity and damps the tangential part by ``friction``.
+
+Moving obstacles (sim/bodies.py): the SDF stays in the rest placement; each
+step uploads every obstacle's pose (R, T) and step velocity u(x) = A·x + b, and
+every kernel reads a particle at x_rest = Rᵀ(x − T) and turns the SDF gradient
+back with R. The velocity response, friction included, acts on the velocity
+relative to the body, v − u; the penalty and the projection use the body's pose
+at the end of the step, so a pushing body moves the water with it; the density
+map is read at the moved body. A static obstacle has R = I, T = 0, u = 0, which
+leaves every number as it was.
 
 Boundary density: like the domain walls, an obstacle adds ρ0·ψ(sdf) to a
 nearby particle's density (the planar density map of Bender et al. 2019,
@@ -47,6 +56,7 @@ from .grid import F1, F3, I1
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
+M3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
 SDF_CACHE_VERSION = 2  # 2: meshes with inconsistent winding are refused or repaired
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # Width of the contact band of the velocity response, × r: a particle counts as touching
@@ -171,6 +181,9 @@ class Obstacles:
         self.scene = scene
         self.grids = grids
         self.entries = scene.obstacle
+        from .bodies import motion_laws
+
+        self.laws = motion_laws(scene)
 
     def __len__(self) -> int:
         return len(self.grids)
@@ -179,8 +192,9 @@ class Obstacles:
         """Initial fluid particles to keep: those at least one radius outside every obstacle."""
         r = self.scene.solver.particle_radius
         keep = np.ones(len(pos), bool)
-        for g in self.grids:
-            keep &= g.sample(pos) >= r
+        for g, law in zip(self.grids, self.laws):
+            R, T = law.pose(0.0)
+            keep &= g.sample((np.asarray(pos, np.float64) - T) @ R) >= r  # x_rest = Rᵀ(x − T)
         return keep
 
     def collider(self, solver) -> "ObstacleCollider":
@@ -244,25 +258,32 @@ def in_box(p: vec3, lo: vec3, hi: vec3) -> ti.i32:
     return p.x >= lo.x and p.y >= lo.y and p.z >= lo.z and p.x <= hi.x and p.y <= hi.y and p.z <= hi.z
 
 
+@ti.func
+def to_rest(rot: ti.template(), trans: ti.template(), o: ti.i32, x: vec3) -> vec3:
+    """x_rest = Rᵀ(x − T): a world point in the obstacle's rest placement, where its SDF lives."""
+    return rot[o].transpose() @ (x - trans[o])
+
+
 @ti.kernel
 def obstacle_penalty(
     n: ti.i32, x: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    stiffness: F1, r: ti.f32, dt: ti.f32,
+    rot: M3, trans: F3, stiffness: F1, r: ti.f32, dt: ti.f32,
 ):
-    """v ← v + Δt·k·n·(−φ) for φ = sdf − r < 0 (penalty force per unit mass)."""
+    """v ← v + Δt·k·n·(−φ) for φ = sdf − r < 0 (penalty force per unit mass), n = R∇sdf."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(x[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], x[i])
+            xl = to_rest(rot, trans, o, x[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 phi = d - r
                 if phi < 0.0 and g.norm() > 1e-9:
-                    v[i] += dt * stiffness[o] * (-phi) * g.normalized()
+                    v[i] += dt * stiffness[o] * (-phi) * (rot[o] @ g.normalized())
 
 
 @ti.kernel
 def obstacle_project_and_density_map(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
+    rot: M3, trans: F3, r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
 ):
     """Fused at the start of each constraint iteration (one SDF lookup serves both):
     x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
@@ -270,13 +291,15 @@ def obstacle_project_and_density_map(
     the obstacle's share of ρ_i/ρ0."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+            xl = to_rest(rot, trans, o, p[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < r and g.norm() > 1e-9:
-                    p[i] += (r - d) * g.normalized()
-                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+                    p[i] += (r - d) * (rot[o] @ g.normalized())
+                    xl = to_rest(rot, trans, o, p[i])
+                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < h:
-                    gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
+                    gn = rot[o] @ g.normalized() if g.norm() > 1e-9 else vec3(0.0)
                     # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
                     # table size is a compile-time constant) rounds differently, and runs with
                     # obstacles would no longer give the bytes they gave before.
@@ -290,33 +313,38 @@ def obstacle_project_and_density_map(
 
 @ti.kernel
 def obstacle_project(
-    n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3, r: ti.f32
+    n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
+    rot: M3, trans: F3, r: ti.f32
 ):
     """x* ← x* + (r − sdf)·n where sdf < r: no particle inside, none closer than its radius."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
+            if in_box(to_rest(rot, trans, o, p[i]), box_lo[o], box_hi[o]):
                 for _ in range(2):  # a second pass settles particles pushed into a crease
-                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], to_rest(rot, trans, o, p[i]))
                     if d < r and g.norm() > 1e-9:
-                        p[i] += (r - d) * g.normalized()
+                        p[i] += (r - d) * (rot[o] @ g.normalized())
 
 
 @ti.kernel
 def obstacle_response(
     n: ti.i32, p: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    friction: F1, r: ti.f32, band: ti.f32,
+    rot: M3, trans: F3, vel_a: M3, vel_b: F3, friction: F1, r: ti.f32, band: ti.f32,
 ):
-    """For particles in contact: drop the inward normal velocity, damp the tangential part."""
+    """For particles in contact, relative to the body's velocity u = A·x + b: drop the
+    inward normal part of v − u, damp its tangential part (friction relative to the body)."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+            xl = to_rest(rot, trans, o, p[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < r + band and g.norm() > 1e-9:
-                    nrm = g.normalized()
-                    vn = v[i].dot(nrm)
-                    vt = v[i] - vn * nrm
-                    v[i] = ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
+                    nrm = rot[o] @ g.normalized()
+                    u = vel_a[o] @ p[i] + vel_b[o]
+                    vr = v[i] - u
+                    vn = vr.dot(nrm)
+                    vt = vr - vn * nrm
+                    v[i] = u + ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
 
 
 # ============================================================================ collider
@@ -348,12 +376,46 @@ class ObstacleCollider:
         self.stiffness = arr([o.stiffness for o in obst.entries], "f")
         self.friction = arr([o.friction for o in obst.entries], "f")
         self.band = CONTACT_BAND * solver.r
+        # Poses and step velocities, uploaded each step (sim/bodies.py); identity for static ones.
+        self.laws = obst.laws
+        self.moving = any(law.moving for law in self.laws)
+        self.rot = ti.Matrix.ndarray(3, 3, ti.f32, k)
+        self.trans = ti.Vector.ndarray(3, ti.f32, k)
+        self.vel_a = ti.Matrix.ndarray(3, 3, ti.f32, k)
+        self.vel_b = ti.Vector.ndarray(3, ti.f32, k)
+        self.set_poses(solver.time, solver.time)
+
+    def set_poses(self, t0: float, t1: float) -> None:
+        """Upload every obstacle's pose at t1 and its velocity over the step t0 → t1."""
+        from .bodies import step_velocity
+
+        R, T, A, B = [], [], [], []
+        for law in self.laws:
+            R0, T0 = law.pose(t0)
+            R1, T1 = law.pose(t1)
+            a, b = step_velocity(R0, T0, R1, T1, t1 - t0) if t1 > t0 else (np.zeros((3, 3)), np.zeros(3))
+            R.append(R1)
+            T.append(T1)
+            A.append(a)
+            B.append(b)
+        self.rot.from_numpy(np.asarray(R, np.float32))
+        self.trans.from_numpy(np.asarray(T, np.float32))
+        self.vel_a.from_numpy(np.asarray(A, np.float32))
+        self.vel_b.from_numpy(np.asarray(B, np.float32))
 
     def _geo(self):
-        return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi
+        return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi, self.rot, self.trans
 
     def apply_forces(self, s, dt: float) -> None:
+        """First call of a step: move the bodies to their pose at its end, then the penalty."""
+        if self.moving:
+            self.set_poses(s.time, s.time + dt)
         obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt)
+
+    def poses_at(self, t: float) -> None:
+        """Bodies at their pose at ``t`` with zero step velocity (after a restore, for output)."""
+        if self.moving:
+            self.set_poses(t, t)
 
     def add_density_map(self, s) -> None:
         st = s.state
@@ -365,4 +427,5 @@ class ObstacleCollider:
         obstacle_project(s.n, s.state.p, *self._geo(), s.r)
 
     def respond(self, s) -> None:
-        obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.friction, s.r, self.band)
+        obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.vel_a, self.vel_b, self.friction, s.r,
+                          self.band)

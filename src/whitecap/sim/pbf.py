@@ -618,3 +618,6 @@ class PBFSolver:
         st.ids.from_numpy(np.asarray(ck["ids"], np.int32))
         self.step_count = int(ck["step_count"])
         self.time = float(ck["time"])
+        for c in self.colliders:  # moving bodies: their pose is a function of the restored time
+            if hasattr(c, "poses_at"):
+                c.poses_at(self.time)
