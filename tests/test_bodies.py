@@ -156,3 +156,29 @@ def test_friction_acts_relative_to_a_moving_body(tmp_path):
     assert on_plate.sum() > 20
     assert np.median(v[on_plate, 0]) == pytest.approx(0.3, rel=0.1)
     assert v[on_plate, 2].max() < 0.3  # resting on it, not thrown off
+
+
+def test_diffuse_particles_never_inside_a_moving_body(tmp_path):
+    """The diffuse stage tests particles against the body at its pose of each frame, not at rest."""
+    path = tmp_path / "ball.stl"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.06).export(str(path))
+    sc = scene_from_dict({
+        "domain": {"upper": [0.5, 0.2, 0.4]},
+        "solver": {"particle_radius": 0.01},
+        "fluid": [{"lower": [0, 0, 0], "upper": [0.16, 0.2, 0.3]}],
+        "obstacle": [{"mesh": str(path), "translate": [0.3, 0.1, 0.2],
+                      "motion": {"kind": "keyframes", "keyframes": [
+                          {"time": 0.0}, {"time": 0.3, "translate": [-0.1, 0.0, -0.14]}]}}],
+        "foam": {"preset": "auto", "k_ta": 400.0, "k_wc": 4000.0},
+        "output": {"frames": 14},
+    })
+    simulate(sc, out=tmp_path / "run", show_progress=False)
+    info = RunInfo.load(tmp_path / "run")
+    total = 0
+    for i in range(15):
+        d = read(tmp_path / f"run/diffuse/diffuse_{i:05d}.ply")
+        total += len(d)
+        centre = obstacle_matrix(info.obstacles[0], info.body_pose(i, 0))[:3, 3]
+        if len(d):
+            assert np.linalg.norm(d.positions - centre, axis=1).min() > 0.06 - 1e-3, i
+    assert total > 0

@@ -174,6 +174,18 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     return grid
 
 
+class PosedSDF:
+    """An obstacle's SDF carried by its motion: ``sample`` reads the field at the body's pose at
+    ``time`` (set it per frame), for host-side users such as the diffuse particles."""
+
+    def __init__(self, grid: SDFGrid, law):
+        self.grid, self.law, self.time = grid, law, 0.0
+
+    def sample(self, pts: np.ndarray) -> np.ndarray:
+        R, T = self.law.pose(self.time)
+        return self.grid.sample((np.asarray(pts, np.float64) - T) @ R)  # x_rest = Rᵀ(x − T)
+
+
 class Obstacles:
     """All obstacles of a scene: SDF grids on the host, packed for the kernels."""
 
@@ -196,6 +208,10 @@ class Obstacles:
             R, T = law.pose(0.0)
             keep &= g.sample((np.asarray(pos, np.float64) - T) @ R) >= r  # x_rest = Rᵀ(x − T)
         return keep
+
+    def posed_grids(self) -> list:
+        """The SDFs for host-side tests: static grids as they are, moving ones as :class:`PosedSDF`."""
+        return [PosedSDF(g, law) if law.moving else g for g, law in zip(self.grids, self.laws)]
 
     def collider(self, solver) -> "ObstacleCollider":
         return ObstacleCollider(self, solver)
