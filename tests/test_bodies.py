@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -182,3 +183,77 @@ def test_diffuse_particles_never_inside_a_moving_body(tmp_path):
         if len(d):
             assert np.linalg.norm(d.positions - centre, axis=1).min() > 0.06 - 1e-3, i
     assert total > 0
+
+
+# ---------------------------------------------------------------- downstream: run.json, render
+def test_run_json_records_each_body_pose_per_frame(tmp_path):
+    sc = paddle_scene(tmp_path, frames=3, period=0.4)
+    info = simulate(sc, out=tmp_path / "run", show_progress=False)
+    info = RunInfo.load(tmp_path / "run")
+    o = info.obstacles[0]
+    assert o["mesh"].endswith("paddle.stl") and o["motion"]["kind"] == "piston"
+    law_ = bodies.MotionLaw(sc.obstacle[0])
+    for f in info.frames:
+        (b,) = f["bodies"]
+        assert b["quaternion"] == pytest.approx([1, 0, 0, 0])
+        assert b["position"] == pytest.approx(law_.pose(f["time"])[1].tolist(), abs=1e-12)
+    # at t = 0.1 s (a quarter period) the paddle is at its full stroke, S/2 = 6 cm
+    assert info.frames[3]["bodies"][0]["position"][0] == pytest.approx(0.06, rel=1e-6)
+    # the world matrix composes the pose with the rest placement: the paddle's centre moved 6 cm in x
+    assert obstacle_matrix(o, info.body_pose(3, 0))[:3, 3] == pytest.approx([0.26, 0.06, 0.15])
+    # a damaged pose is a one-line error naming the field
+    raw = json.loads((tmp_path / "run/run.json").read_text())
+    raw["frames"][0]["bodies"][0]["quaternion"][0] = 7.0
+    (tmp_path / "run/run.json").write_text(json.dumps(raw))
+    with pytest.raises(InputError, match=r"field 'frames\[0\]\.bodies\[0\]\.quaternion': expected a unit quaternion"):
+        RunInfo.load(tmp_path / "run")
+
+
+RENDER_KEYS = r"""
+import sys, json
+import bpy
+from whitecap.config import Render
+from whitecap.io.run import RunInfo
+from whitecap.render.scene import build_scene
+info = RunInfo.load(sys.argv[1])
+build_scene(info, Render(), "preview", 0, 3)
+sc, obj = bpy.context.scene, bpy.data.objects["obstacle_0"]
+out = {}
+for f in (1, 2, 3):
+    sc.frame_set(f)
+    out[f] = [list(r) for r in obj.matrix_world]
+sc.frame_set(1, subframe=0.5)
+out["1.5"] = [list(r) for r in obj.matrix_world]
+print(json.dumps(out))
+"""
+
+
+def test_render_keyframes_the_moving_body(tmp_path):
+    pytest.importorskip("bpy")
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sc = scene_from_dict({**paddle_scene(tmp_path, frames=3).model_dump(exclude={"base_dir"}), "obstacle": [{
+        "mesh": str(tmp_path / "paddle.stl"), "translate": [0.2, 0.06, 0.15],
+        "motion": {"kind": "spin", "axis": [0, 1, 0], "centre": [0.2, 0.06, 0.15], "rpm": 60}}]})
+    simulate(sc, out=tmp_path / "run", show_progress=False)
+    info = RunInfo.load(tmp_path / "run")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    res = subprocess.run([sys.executable, "-c", RENDER_KEYS, str(tmp_path / "run")], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": src})
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads([ln for ln in res.stdout.splitlines() if ln.startswith("{")][-1])
+    for f in (1, 3):
+        # the object's matrix is the pose; with the rest placement baked into the mesh the world
+        # placement is obstacle_matrix (pose · placement)
+        pose = obstacle_matrix({"scale": 1.0, "rotate": [0, 0, 0], "translate": [0, 0, 0], "mesh": ""},
+                               info.body_pose(f, 0))
+        assert np.allclose(got[str(f)], pose, atol=1e-5), f
+    assert not np.allclose(got["1"], got["3"], atol=1e-3)  # it moves (6° per frame at 30 fps, 60 rpm)
+    # between frames the keys interpolate: half way at frame 1.5 (what motion blur samples)
+    angle = {f: math.degrees(math.acos((np.trace(np.array(got[f])[:3, :3]) - 1) / 2)) for f in ("1", "2", "1.5")}
+    assert angle["1"] == pytest.approx(12.0, abs=1e-3) and angle["2"] == pytest.approx(24.0, abs=1e-3)  # 60 rpm
+    assert angle["1.5"] == pytest.approx(18.0, abs=0.05)
+    assert np.allclose(np.array(got["1.5"])[:3, 3], (np.array(got["1"]) + np.array(got["2"]))[:3, 3] / 2, atol=2e-3)
