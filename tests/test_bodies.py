@@ -257,3 +257,37 @@ def test_render_keyframes_the_moving_body(tmp_path):
     assert angle["1"] == pytest.approx(12.0, abs=1e-3) and angle["2"] == pytest.approx(24.0, abs=1e-3)  # 60 rpm
     assert angle["1.5"] == pytest.approx(18.0, abs=0.05)
     assert np.allclose(np.array(got["1.5"])[:3, 3], (np.array(got["1"]) + np.array(got["2"]))[:3, 3] / 2, atol=2e-3)
+
+
+def test_view_draws_the_body_at_each_frames_pose(tiny_run, tmp_path):
+    """Playback draws a moving obstacle where run.json puts it at each frame: a red cube at rest at
+    frame 0, lifted 10 cm and turned 45° about z at frame 1."""
+    import shutil
+
+    from .test_view import H, W, _camera, _img, _render
+
+    from whitecap.view.draw import project
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    trimesh.creation.box(extents=(0.08, 0.08, 0.08)).export(run / "block.obj")
+    meta = json.loads((run / "run.json").read_text())
+    meta["obstacles"] = [{"mesh": "block.obj", "translate": [0.45, 0.1, 0.06], "color": [0.9, 0.1, 0.1]}]
+    c45 = math.cos(math.radians(22.5))
+    for f in meta["frames"]:
+        lifted = f["index"] >= 1
+        f["bodies"] = [{"position": [0.0, 0.0, 0.1 if lifted else 0.0],
+                        "quaternion": [c45, 0.0, 0.0, math.sin(math.radians(22.5))] if lifted else [1.0, 0, 0, 0]}]
+    (run / "run.json").write_text(json.dumps(meta))
+    pngs = _render(run, tmp_path / "png", "--frames", 2)
+    cam = _camera(run)
+    # rotation about z through the world origin: the cube's centre goes to Rz(45°)·(0.45, 0.1) + lift
+    moved = np.array([0.45 * math.cos(math.pi / 4) - 0.1 * math.sin(math.pi / 4),
+                      0.45 * math.sin(math.pi / 4) + 0.1 * math.cos(math.pi / 4), 0.16])
+    for png, centre, empty in ((pngs[0], [0.45, 0.1, 0.06], moved), (pngs[1], moved, [0.45, 0.1, 0.06])):
+        img = _img(png)
+        red = (img[..., 0] > img[..., 1] + 40) & (img[..., 0] > img[..., 2] + 40)
+        c, r = np.round(project(np.array([centre]), cam, W, H)[0]).astype(int)
+        assert red[r - 2:r + 3, c - 2:c + 3].all(), png
+        c, r = np.round(project(np.array([empty]), cam, W, H)[0]).astype(int)
+        assert not red[r - 2:r + 3, c - 2:c + 3].any(), png

@@ -42,6 +42,7 @@ class Frame:
     diffuse_type: np.ndarray | None = None
     diffuse_radius: np.ndarray | None = None
     device: DeviceFluid | None = None
+    bodies: list | None = None  # per obstacle, its pose {"position", "quaternion"} (None: all at rest)
 
     def as_dict(self) -> dict:
         if self.positions is None and self.device is not None:
@@ -130,6 +131,8 @@ class PlaybackSource:
         idx = self.indices[k]
         t = pf.time if pf.time is not None else self.times.get(idx, float(idx))
         fr = Frame(idx, float(t), pf.positions, pf.velocities, pf.density)
+        if self.info is not None:
+            fr.bodies = next((f.get("bodies") for f in self.info.frames if f["index"] == idx), None)
         dpath = self.diffuse.get(idx)
         if dpath is not None and dpath.is_file():
             dfr = read(dpath)
@@ -245,6 +248,11 @@ class LiveSource:
             self._step_foam(fr, a)
         if self._diffuse is not None:
             fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse
+        laws = next((c.laws for c in s.colliders if getattr(c, "moving", False)), None)
+        if laws is not None:  # moving bodies at the solver's time
+            from ..sim.bodies import body_records
+
+            fr.bodies = body_records(laws, s.time)
         return fr
 
     def _step_foam(self, fr: Frame, a: dict) -> None:
