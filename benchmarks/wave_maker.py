@@ -45,7 +45,8 @@ def biesel(T: float, h: float) -> float:
     return 2 * (math.cosh(kh2) - 1) / (math.sinh(kh2) + kh2)
 
 
-def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float):
+def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float, iterations: int = 4,
+                xsph: float = 0.05):
     import trimesh
 
     from whitecap.config import scene_from_dict
@@ -56,7 +57,7 @@ def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float
     x0 = 0.1  # the paddle's rest centre; its face is at x0 + 0.02
     return scene_from_dict({
         "domain": {"upper": [length, width, 2.0 * h]},
-        "solver": {"particle_radius": r, "frame_rate": 30.0},
+        "solver": {"particle_radius": r, "frame_rate": 30.0, "iterations": iterations, "xsph_c": xsph},
         "fluid": [{"lower": [x0 + 0.02, 0.0, 0.0], "upper": [length, width, h]}],
         "obstacle": [{"mesh": str(paddle), "translate": [x0, width / 2, 1.1 * h - 0.01], "friction": 0.0,
                       "motion": {"kind": "piston", "axis": [1, 0, 0], "stroke": S, "period": T, "ramp": ramp}}],
@@ -65,12 +66,13 @@ def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float
 
 
 def run_flume(r: float = 0.01, h: float = 0.2, S: float = 0.04, T: float = 1.0, length: float = 4.0,
-              ramp: float = 1.0, gauge: float = 1.0, duration: float = 5.0, progress: bool = False):
+              ramp: float = 1.0, gauge: float = 1.0, duration: float = 5.0, progress: bool = False,
+              iterations: int = 4, xsph: float = 0.05):
     """(times, η at the gauge, measured H, Biésel H): the flume run and its wave height."""
     from whitecap.sim.driver import build_solver
 
     with tempfile.TemporaryDirectory() as tmp:
-        sc = flume_scene(Path(tmp), r, h, S, T, length, ramp)
+        sc = flume_scene(Path(tmp), r, h, S, T, length, ramp, iterations, xsph)
         s = build_solver(sc)
     x_gauge = 0.12 + gauge
     ts, eta = [], []
@@ -106,6 +108,9 @@ def main(argv=None) -> int:
     ap.add_argument("--periods", type=float, nargs="+", default=[1.0])
     ap.add_argument("--stroke", type=float, default=0.04)
     ap.add_argument("--depth", type=float, default=0.2)
+    ap.add_argument("--iterations", type=int, default=4)
+    ap.add_argument("--xsph", type=float, default=0.05, help="solver.xsph_c")
+    ap.add_argument("--gauge", type=float, default=1.0, help="distance of the gauge from the paddle [m]")
     ap.add_argument("--out", default=None, help="PNG of η(t) at the gauge with the fitted window")
     a = ap.parse_args(argv)
     from whitecap.sim import runtime
@@ -113,7 +118,8 @@ def main(argv=None) -> int:
     runtime.init("cpu")
     rows = []
     for T in a.periods:
-        ts, eta, H, H_th, win = run_flume(a.radius, a.depth, a.stroke, T, progress=True)
+        ts, eta, H, H_th, win = run_flume(a.radius, a.depth, a.stroke, T, gauge=a.gauge, progress=True,
+                                          iterations=a.iterations, xsph=a.xsph)
         kh = wavenumber(T, a.depth) * a.depth
         rows.append((T, kh, H, H_th))
         print(f"T={T:.2f} s  kh={kh:.2f}  H={H * 1000:.1f} mm  Biésel {H_th * 1000:.1f} mm  "

@@ -236,6 +236,20 @@ class Obstacle(_Section):
     material: str = Field("stone", description="render material preset: stone, clay, metal, plastic")
     color: Vec3 = Field([0.8, 0.78, 0.72], description="render base colour, linear RGB [0-1]")
     motion: Motion | None = Field(None, description="prescribed motion; unset = static")
+    dynamic: bool = Field(False, description="a rigid body moved by the fluid and gravity (two-way coupling)")
+    density: float | None = Field(None, gt=0, description="dynamic: the body's density [kg/m³]")
+    mass: float | None = Field(None, gt=0, description="dynamic: the body's mass, instead of density [kg]")
+
+    @model_validator(mode="after")
+    def _dynamic_fields(self) -> "Obstacle":
+        if self.dynamic:
+            if (self.density is None) == (self.mass is None):
+                raise ValueError("a dynamic obstacle needs exactly one of 'density' and 'mass'")
+            if self.motion is not None:
+                raise ValueError("an obstacle is either dynamic or has a prescribed motion, not both")
+        elif self.density is not None or self.mass is not None:
+            raise ValueError("'density' and 'mass' apply only with dynamic = true")
+        return self
 
 
 # --------------------------------------------------------------------------- foam

@@ -177,10 +177,100 @@ def motion_laws(scene: Scene) -> list[MotionLaw]:
     return [MotionLaw(o, scene.base_dir) for o in scene.obstacle]
 
 
-def body_records(laws: list[MotionLaw], t: float) -> list[dict]:
-    """Per obstacle, its pose at ``t`` as run.json stores it: position [m] and quaternion (w, x, y, z)."""
-    out = []
-    for law in laws:
-        R, T = law.pose(t)
-        out.append({"position": [float(v) for v in T], "quaternion": quaternion(R)})
-    return out
+def pose_record(R: np.ndarray, T: np.ndarray) -> dict:
+    """A pose as run.json stores it: position [m] and quaternion (w, x, y, z)."""
+    return {"position": [float(v) for v in T], "quaternion": quaternion(R)}
+
+
+# ============================================================================ dynamic bodies
+def quat_matrix(q: np.ndarray) -> np.ndarray:
+    """3×3 rotation of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+class RigidBody:
+    """A dynamic obstacle: a rigid body moved by gravity and the fluid (two-way coupling).
+
+    Mass properties come from the watertight mesh in its rest placement (trimesh's
+    mass properties: volume, centre of mass c₀, inertia tensor I₀ about c₀). State,
+    in float64: centre of mass c, orientation quaternion q (w, x, y, z), velocity V,
+    angular velocity Ω (world frame). The pose is x = R(q)(x_rest − c₀) + c, so
+    T = c − R c₀.
+
+    Integration (semi-implicit Euler, the quaternion renormalised every step):
+
+        V ← V + Δt (F/M + g)
+        Ω ← Ω + Δt I⁻¹ (τ − Ω × IΩ),  I = R I₀ Rᵀ
+        c ← c + Δt V,  q ← normalise(q + Δt/2 (0, Ω) ⊗ q)
+
+    F and τ are the reaction of the momentum the boundary terms gave the fluid in
+    the previous step (explicit coupling, one step behind). The domain walls stop
+    the body: a hull vertex past a wall moves the body back and removes its
+    velocity into the wall."""
+
+    def __init__(self, mesh, o: Obstacle, gravity, domain_lo, domain_hi):
+        vol = float(mesh.volume)
+        if vol <= 0:
+            raise InputError(f"{o.mesh}: a dynamic obstacle needs a closed mesh with positive volume")
+        self.mass = float(o.mass) if o.mass is not None else float(o.density) * vol
+        rho = self.mass / vol
+        props = mesh.mass_properties  # for unit density
+        self.c0 = np.asarray(props["center_mass"], np.float64)
+        self.I0 = np.asarray(props["inertia"], np.float64) * rho
+        self.hull = np.asarray(mesh.convex_hull.vertices, np.float64)
+        self.g = np.asarray(gravity, np.float64)
+        self.lo, self.hi = np.asarray(domain_lo, np.float64), np.asarray(domain_hi, np.float64)
+        self.c = self.c0.copy()
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.V = np.zeros(3)
+        self.W = np.zeros(3)
+        self.F = np.zeros(3)  # reaction force and torque (about c) of the last step
+        self.tau = np.zeros(3)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        R = quat_matrix(self.q)
+        return R, self.c - R @ self.c0
+
+    def advance(self, dt: float) -> None:
+        """One step of the body under gravity and the fluid's last reaction, stopped at the walls."""
+        R = quat_matrix(self.q)
+        I = R @ self.I0 @ R.T
+        self.V = self.V + dt * (self.F / self.mass + self.g)
+        self.W = self.W + dt * np.linalg.solve(I, self.tau - np.cross(self.W, I @ self.W))
+        self.c = self.c + dt * self.V
+        q = self.q + 0.5 * dt * quat_mul(np.array([0.0, *self.W]), self.q)
+        self.q = q / np.linalg.norm(q)
+        verts = (self.hull - self.c0) @ quat_matrix(self.q).T + self.c
+        below, above = self.lo - verts.min(0), verts.max(0) - self.hi
+        for a in range(3):
+            if below[a] > 0:
+                self.c[a] += below[a]
+                self.V[a] = max(self.V[a], 0.0)
+            elif above[a] > 0:
+                self.c[a] -= above[a]
+                self.V[a] = min(self.V[a], 0.0)
+
+    def set_reaction(self, impulse: np.ndarray, moment: np.ndarray, dt: float) -> None:
+        """The fluid received ``impulse`` (Σ m Δv) and ``moment`` (Σ x × m Δv, about the origin) from
+        this body over a step: the body gets the opposite, F = −J/Δt, τ = −(M − c × J)/Δt."""
+        self.F = -impulse / dt
+        self.tau = -(moment - np.cross(self.c, impulse)) / dt
+
+    def state(self) -> np.ndarray:
+        return np.concatenate([self.c, self.q, self.V, self.W, self.F, self.tau])
+
+    def restore(self, a: np.ndarray) -> None:
+        a = np.asarray(a, np.float64)
+        self.c, self.q, self.V, self.W, self.F, self.tau = a[0:3], a[3:7], a[7:10], a[10:13], a[13:16], a[16:19]

@@ -189,9 +189,10 @@ class PosedSDF:
 class Obstacles:
     """All obstacles of a scene: SDF grids on the host, packed for the kernels."""
 
-    def __init__(self, scene: Scene, grids: list[SDFGrid]):
+    def __init__(self, scene: Scene, grids: list[SDFGrid], bodies: dict | None = None):
         self.scene = scene
         self.grids = grids
+        self.bodies = bodies or {}  # {obstacle index: sim.bodies.RigidBody}
         self.entries = scene.obstacle
         from .bodies import motion_laws
 
@@ -230,7 +231,15 @@ def load_obstacles(scene: Scene) -> Obstacles | None:
         if (g.aabb_hi < lo).any() or (g.aabb_lo > hi).any():
             raise InputError(f"{path}: obstacle[{k}] lies outside the domain {lo.tolist()}..{hi.tolist()} after its transform")
         grids.append(g)
-    return Obstacles(scene, grids)
+    bodies = {}
+    for k, o in enumerate(scene.obstacle):
+        if o.dynamic:
+            from .bodies import RigidBody
+
+            m = load_mesh(scene.resolve(o.mesh), o.repair)
+            m.apply_transform(obstacle_transform(o))
+            bodies[k] = RigidBody(m, o, scene.domain.gravity, lo, hi)
+    return Obstacles(scene, grids, bodies)
 
 
 # ============================================================================ kernels
@@ -280,10 +289,33 @@ def to_rest(rot: ti.template(), trans: ti.template(), o: ti.i32, x: vec3) -> vec
     return rot[o].transpose() @ (x - trans[o])
 
 
+@ti.func
+def give(imp: ti.template(), mom: ti.template(), body_of: ti.template(), i: ti.i32, o: ti.i32, x: vec3, dmv: vec3):
+    """Momentum m·Δv that dynamic body o gave particle i (and its moment x × m·Δv about the origin);
+    the body takes the opposite (sim/bodies.RigidBody.set_reaction)."""
+    imp[i] += dmv
+    mom[i] += x.cross(dmv)
+    body_of[i] = o
+
+
+@ti.kernel
+def body_pressure_impulse(n: ti.i32, p: F3, lam: F1, gpsi_b: F3, imp: F3, mom: F3, m_inv_dt: ti.f32):
+    """The dynamic bodies' share of the last Δp_i: λ_i ∇ψ_i,body (momentum m·λ_i∇ψ_i,body/Δt),
+    then ∇ψ_i,body ← 0 for the next iteration."""
+    for i in range(n):
+        gb = gpsi_b[i]
+        if gb.norm_sqr() > 0.0:
+            dmv = m_inv_dt * lam[i] * gb
+            imp[i] += dmv
+            mom[i] += p[i].cross(dmv)
+            gpsi_b[i] = vec3(0.0)
+
+
 @ti.kernel
 def obstacle_penalty(
     n: ti.i32, x: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
     rot: M3, trans: F3, stiffness: F1, r: ti.f32, dt: ti.f32,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, m: ti.f32,
 ):
     """v ← v + Δt·k·n·(−φ) for φ = sdf − r < 0 (penalty force per unit mass), n = R∇sdf."""
     for i in range(n):
@@ -293,13 +325,17 @@ def obstacle_penalty(
                 d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 phi = d - r
                 if phi < 0.0 and g.norm() > 1e-9:
-                    v[i] += dt * stiffness[o] * (-phi) * (rot[o] @ g.normalized())
+                    dv = dt * stiffness[o] * (-phi) * (rot[o] @ g.normalized())
+                    v[i] += dv
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, x[i], m * dv)
 
 
 @ti.kernel
 def obstacle_project_and_density_map(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
     rot: M3, trans: F3, r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, gpsi_b: F3, m_inv_dt: ti.f32,
 ):
     """Fused at the start of each constraint iteration (one SDF lookup serves both):
     x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
@@ -311,7 +347,10 @@ def obstacle_project_and_density_map(
             if in_box(xl, box_lo[o], box_hi[o]):
                 d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < r and g.norm() > 1e-9:
-                    p[i] += (r - d) * (rot[o] @ g.normalized())
+                    dp = (r - d) * (rot[o] @ g.normalized())
+                    p[i] += dp
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, p[i], m_inv_dt * dp)
                     xl = to_rest(rot, trans, o, p[i])
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < h:
@@ -324,13 +363,17 @@ def obstacle_project_and_density_map(
                     k = ti.min(ti.cast(ti.floor(t), ti.i32), psi_table.shape[0] - 2)
                     f = t - k
                     psi[i] += (1.0 - f) * psi_table[k] + f * psi_table[k + 1]
-                    grad_psi[i] += ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
+                    gp = ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
+                    grad_psi[i] += gp
+                    if dyn[o] == 1:
+                        gpsi_b[i] += gp
+                        body_of[i] = o
 
 
 @ti.kernel
 def obstacle_project(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    rot: M3, trans: F3, r: ti.f32
+    rot: M3, trans: F3, r: ti.f32, dyn: I1, imp: F3, mom: F3, body_of: I1, m_inv_dt: ti.f32,
 ):
     """x* ← x* + (r − sdf)·n where sdf < r: no particle inside, none closer than its radius."""
     for i in range(n):
@@ -339,13 +382,17 @@ def obstacle_project(
                 for _ in range(2):  # a second pass settles particles pushed into a crease
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], to_rest(rot, trans, o, p[i]))
                     if d < r and g.norm() > 1e-9:
-                        p[i] += (r - d) * (rot[o] @ g.normalized())
+                        dp = (r - d) * (rot[o] @ g.normalized())
+                        p[i] += dp
+                        if dyn[o] == 1:
+                            give(imp, mom, body_of, i, o, p[i], m_inv_dt * dp)
 
 
 @ti.kernel
 def obstacle_response(
     n: ti.i32, p: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
     rot: M3, trans: F3, vel_a: M3, vel_b: F3, friction: F1, r: ti.f32, band: ti.f32,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, m: ti.f32,
 ):
     """For particles in contact, relative to the body's velocity u = A·x + b: drop the
     inward normal part of v − u, damp its tangential part (friction relative to the body)."""
@@ -360,7 +407,10 @@ def obstacle_response(
                     vr = v[i] - u
                     vn = vr.dot(nrm)
                     vt = vr - vn * nrm
-                    v[i] = u + ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
+                    v_new = u + ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, p[i], m * (v_new - v[i]))
+                    v[i] = v_new
 
 
 # ============================================================================ collider
@@ -394,26 +444,51 @@ class ObstacleCollider:
         self.band = CONTACT_BAND * solver.r
         # Poses and step velocities, uploaded each step (sim/bodies.py); identity for static ones.
         self.laws = obst.laws
-        self.moving = any(law.moving for law in self.laws)
+        self.bodies = obst.bodies  # {obstacle index: RigidBody} of the dynamic ones
+        self.moving = any(law.moving for law in self.laws) or bool(self.bodies)
+        # Two-way coupling: per particle, the momentum the dynamic bodies gave it this step, its
+        # moment, which body, and the bodies' share of ∇ψ (size 1 when there is no dynamic body).
+        nb = solver.n if self.bodies else 1
+        self.dyn = arr([1 if j in self.bodies else 0 for j in range(k)], "i")
+        self.imp = ti.Vector.ndarray(3, ti.f32, nb)
+        self.mom = ti.Vector.ndarray(3, ti.f32, nb)
+        self.gpsi_b = ti.Vector.ndarray(3, ti.f32, nb)
+        self.body_of = ti.ndarray(ti.i32, nb)
+        self.m = float(solver.mass)
+        self.inv_dt = 0.0
+        self.in_step = False
         self.rot = ti.Matrix.ndarray(3, 3, ti.f32, k)
         self.trans = ti.Vector.ndarray(3, ti.f32, k)
         self.vel_a = ti.Matrix.ndarray(3, 3, ti.f32, k)
         self.vel_b = ti.Vector.ndarray(3, ti.f32, k)
         self.set_poses(solver.time, solver.time)
 
-    def set_poses(self, t0: float, t1: float) -> None:
-        """Upload every obstacle's pose at t1 and its velocity over the step t0 → t1."""
+    def set_poses(self, t0: float, t1: float, dt: float = 0.0) -> None:
+        """Upload every obstacle's pose at t1 and its velocity over the step t0 → t1: kinematic ones
+        from their motion law, dynamic ones advanced by one step ``dt`` (when dt > 0)."""
         from .bodies import step_velocity
 
         R, T, A, B = [], [], [], []
-        for law in self.laws:
-            R0, T0 = law.pose(t0)
-            R1, T1 = law.pose(t1)
+        for j, law in enumerate(self.laws):
+            body = self.bodies.get(j)
+            if body is not None:
+                R0, T0 = body.pose()
+                if dt > 0:
+                    body.advance(dt)
+                R1, T1 = body.pose()
+            else:
+                R0, T0 = law.pose(t0)
+                R1, T1 = law.pose(t1)
             a, b = step_velocity(R0, T0, R1, T1, t1 - t0) if t1 > t0 else (np.zeros((3, 3)), np.zeros(3))
             R.append(R1)
             T.append(T1)
             A.append(a)
             B.append(b)
+        self.upload(R, T, A, B)
+
+    def upload(self, R, T, A, B) -> None:
+        """The poses (R, T), float64 on the host (``self.poses``), and step velocities for the kernels."""
+        self.poses = list(zip(R, T))
         self.rot.from_numpy(np.asarray(R, np.float32))
         self.trans.from_numpy(np.asarray(T, np.float32))
         self.vel_a.from_numpy(np.asarray(A, np.float32))
@@ -422,26 +497,66 @@ class ObstacleCollider:
     def _geo(self):
         return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi, self.rot, self.trans
 
+    def _coupling(self):
+        return self.dyn, self.imp, self.mom, self.body_of
+
     def apply_forces(self, s, dt: float) -> None:
         """First call of a step: move the bodies to their pose at its end, then the penalty."""
         if self.moving:
-            self.set_poses(s.time, s.time + dt)
-        obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt)
+            self.set_poses(s.time, s.time + dt, dt)
+        if self.bodies:
+            self.in_step, self.inv_dt = True, 1.0 / dt
+            for a in (self.imp, self.mom, self.gpsi_b):
+                a.fill(0.0)
+            self.body_of.fill(-1)
+        obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt, *self._coupling(), self.m)
+
+    def body_records(self) -> list[dict]:
+        """Every obstacle's current pose as run.json records it (sim.bodies.pose_record)."""
+        from .bodies import pose_record
+
+        return [pose_record(R, T) for R, T in self.poses]
 
     def poses_at(self, t: float) -> None:
         """Bodies at their pose at ``t`` with zero step velocity (after a restore, for output)."""
         if self.moving:
             self.set_poses(t, t)
 
+    def _pressure_share(self, s) -> None:
+        if self.bodies and self.in_step:
+            body_pressure_impulse(s.n, s.state.p, s.state.lam, self.gpsi_b, self.imp, self.mom, self.m * self.inv_dt)
+
     def add_density_map(self, s) -> None:
         st = s.state
+        self._pressure_share(s)  # the previous iteration's λ_i ∇ψ_i,body
         obstacle_project_and_density_map(
-            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi
+            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi,
+            *self._coupling(), self.gpsi_b, self.m * self.inv_dt,
         )
 
     def project(self, s) -> None:
-        obstacle_project(s.n, s.state.p, *self._geo(), s.r)
+        self._pressure_share(s)
+        obstacle_project(s.n, s.state.p, *self._geo(), s.r, *self._coupling(), self.m * self.inv_dt)
 
     def respond(self, s) -> None:
         obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.vel_a, self.vel_b, self.friction, s.r,
-                          self.band)
+                          self.band, *self._coupling(), self.m)
+        if self.bodies and self.in_step:
+            self.in_step = False
+            imp = self.imp.to_numpy().astype(np.float64)
+            mom = self.mom.to_numpy().astype(np.float64)
+            which = self.body_of.to_numpy()
+            for j, body in self.bodies.items():
+                sel = which == j
+                body.set_reaction(imp[sel].sum(0), mom[sel].sum(0), 1.0 / self.inv_dt)
+
+    # ------------------------------------------------------------ checkpoint
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        if not self.bodies:
+            return {}
+        return {"bodies": np.stack([self.bodies[j].state() for j in sorted(self.bodies)])}
+
+    def restore(self, data: dict) -> None:
+        if self.bodies and "bodies" in data:
+            for row, j in zip(np.asarray(data["bodies"]), sorted(self.bodies)):
+                self.bodies[j].restore(row)

@@ -248,11 +248,9 @@ class LiveSource:
             self._step_foam(fr, a)
         if self._diffuse is not None:
             fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse
-        laws = next((c.laws for c in s.colliders if getattr(c, "moving", False)), None)
-        if laws is not None:  # moving bodies at the solver's time
-            from ..sim.bodies import body_records
-
-            fr.bodies = body_records(laws, s.time)
+        moving = next((c for c in s.colliders if getattr(c, "moving", False)), None)
+        if moving is not None:  # moving bodies at their current pose
+            fr.bodies = moving.body_records()
         return fr
 
     def _step_foam(self, fr: Frame, a: dict) -> None:
