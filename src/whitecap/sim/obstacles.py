@@ -65,6 +65,10 @@ FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # error and float rounding, and is thin enough (a twentieth of r) not to slow particles
 # that merely pass close by.
 CONTACT_BAND = 0.05
+# Initial fluid particles keep this distance (× r) from a dynamic body: the lattice puts some
+# exactly at r, where the trilinear SDF's error (up to ~0.1 r) has the first projection kick
+# them, and through the coupling the body, sideways (measured: 0.3 m/s on a free 8 cm cube).
+DYNAMIC_START_GAP = 1.25
 
 
 # ============================================================================ host side
@@ -205,9 +209,10 @@ class Obstacles:
         """Initial fluid particles to keep: those at least one radius outside every obstacle."""
         r = self.scene.solver.particle_radius
         keep = np.ones(len(pos), bool)
-        for g, law in zip(self.grids, self.laws):
+        for k, (g, law) in enumerate(zip(self.grids, self.laws)):
             R, T = law.pose(0.0)
-            keep &= g.sample((np.asarray(pos, np.float64) - T) @ R) >= r  # x_rest = Rᵀ(x − T)
+            gap = DYNAMIC_START_GAP * r if k in self.bodies else r
+            keep &= g.sample((np.asarray(pos, np.float64) - T) @ R) >= gap  # x_rest = Rᵀ(x − T)
         return keep
 
     def posed_grids(self) -> list:
