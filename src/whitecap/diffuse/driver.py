@@ -70,6 +70,7 @@ class FoamStage:
         for g in self.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF): at this frame's pose
             if hasattr(g, "time"):
                 g.time = frame.time if frame.time is not None else index * dt
+                g.body = info.body_pose(index, g.index)
         d = self.gen.step(frame, index, dt)
         rel = frame_name("diffuse", index)
         write(out / rel, d)

@@ -179,14 +179,21 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
 
 
 class PosedSDF:
-    """An obstacle's SDF carried by its motion: ``sample`` reads the field at the body's pose at
-    ``time`` (set it per frame), for host-side users such as the diffuse particles."""
+    """A moving obstacle's SDF for host-side users such as the diffuse particles: ``sample`` reads
+    the field at the body's pose ``body`` (run.json's record for the frame, obstacle ``index``), or
+    else at its motion law's pose at ``time``; set them per frame."""
 
-    def __init__(self, grid: SDFGrid, law):
-        self.grid, self.law, self.time = grid, law, 0.0
+    def __init__(self, grid: SDFGrid, law, index: int):
+        self.grid, self.law, self.index, self.time, self.body = grid, law, index, 0.0, None
 
     def sample(self, pts: np.ndarray) -> np.ndarray:
-        R, T = self.law.pose(self.time)
+        if self.body is not None:
+            from ..config import obstacle_matrix
+
+            M = obstacle_matrix({"mesh": ""}, self.body)
+            R, T = M[:3, :3], M[:3, 3]
+        else:
+            R, T = self.law.pose(self.time)
         return self.grid.sample((np.asarray(pts, np.float64) - T) @ R)  # x_rest = Rᵀ(x − T)
 
 
@@ -217,7 +224,8 @@ class Obstacles:
 
     def posed_grids(self) -> list:
         """The SDFs for host-side tests: static grids as they are, moving ones as :class:`PosedSDF`."""
-        return [PosedSDF(g, law) if law.moving else g for g, law in zip(self.grids, self.laws)]
+        return [PosedSDF(g, law, k) if law.moving or k in self.bodies else g
+                for k, (g, law) in enumerate(zip(self.grids, self.laws))]
 
     def collider(self, solver) -> "ObstacleCollider":
         return ObstacleCollider(self, solver)
