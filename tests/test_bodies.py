@@ -337,8 +337,9 @@ def test_mass_properties_come_from_the_mesh(tmp_path):
 
 def test_light_body_floats_upright_and_near_half_draft(tmp_path):
     """Archimedes: 500 kg/m³ floats upright with about half its height under water. Measured: draft
-    3.0 cm of the 4 cm expected (the buoyancy is about a third too strong at r = 1 cm, see README), so
-    this asserts a draft between 30 % and 55 % of the height; the issue's 5 % is the xfail below."""
+    3.0 cm of the 4 cm expected (the boundary feels the pressure of the first particle layer, about r
+    deeper, see README), so this asserts a draft between 30 % and 55 % of the height; the issue's 5 %
+    is the xfail below."""
     sc = slab_scene(tmp_path, 500.0, 0.18)
     s, body, track = run_slab(sc)
     draft = water_level(s.state.x.to_numpy(), body.c[0], 0.01) - (body.c[2] - 0.04)
@@ -348,7 +349,7 @@ def test_light_body_floats_upright_and_near_half_draft(tmp_path):
     assert max(zs) - min(zs) < 0.005  # settled, not bobbing or exploding
 
 
-@pytest.mark.xfail(strict=True, reason="buoyancy about a third too strong at r = 1 cm: draft 3.0 cm for 4 cm (README)")
+@pytest.mark.xfail(strict=True, reason="floats about r too high: draft 3.0 cm for 4 cm at r = 1 cm (README)")
 def test_light_body_floats_at_half_draft_within_5_percent(tmp_path):
     s, body, _ = run_slab(slab_scene(tmp_path, 500.0, 0.18))
     draft = water_level(s.state.x.to_numpy(), body.c[0], 0.01) - (body.c[2] - 0.04)
