@@ -411,3 +411,24 @@ def test_resume_with_a_dynamic_body_is_byte_identical(tmp_path):
     a, b = RunInfo.load(full), RunInfo.load(part)
     assert a.frames[4]["bodies"] == b.frames[4]["bodies"]
     assert a.frames[4]["bodies"][0]["position"][2] < a.frames[0]["bodies"][0]["position"][2]  # it fell in
+
+
+def test_a_body_passing_into_another_is_warned_about(tmp_path, capfd):
+    """Contact between bodies is not modelled, but not silent: a heavy cube falling onto a static
+    block warns once, naming both."""
+    path = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=[0.06, 0.06, 0.06]).export(str(path))
+    sc = scene_from_dict({
+        "domain": {"upper": [0.3, 0.3, 0.4]},
+        "solver": {"particle_radius": 0.01},
+        "fluid": [{"lower": [0.0, 0.0, 0.0], "upper": [0.06, 0.3, 0.06]}],
+        "obstacle": [{"mesh": str(path), "translate": [0.15, 0.15, 0.05]},
+                     {"mesh": str(path), "translate": [0.15, 0.15, 0.2], "dynamic": True, "density": 3000.0}],
+        "foam": {"enabled": False},
+    })
+    s = build_solver(sc)
+    for f in range(1, 9):  # 0.27 s: it falls 0.35 m, through the block's top at 0.08 m
+        s.advance_frame(f)
+    err = capfd.readouterr().err
+    assert s.colliders[0].bodies[1].c[2] < 0.11  # it did fall into the block
+    assert " ".join(err.split()).count("obstacle[1] passes into obstacle[0]") == 1, err

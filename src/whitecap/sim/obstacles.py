@@ -470,6 +470,8 @@ class ObstacleCollider:
         self.m = float(solver.mass)
         self.inv_dt = 0.0
         self.in_step = False
+        self.grids = obst.grids
+        self.overlaps: set = set()  # (dynamic body, obstacle) pairs already warned about
         self.rot = ti.Matrix.ndarray(3, 3, ti.f32, k)
         self.trans = ti.Vector.ndarray(3, ti.f32, k)
         self.vel_a = ti.Matrix.ndarray(3, 3, ti.f32, k)
@@ -562,6 +564,23 @@ class ObstacleCollider:
             for j, body in self.bodies.items():
                 sel = which == j
                 body.set_reaction(imp[sel].sum(0), mom[sel].sum(0), 1.0 / self.inv_dt)
+            self.check_overlaps(s.time + 1.0 / self.inv_dt)
+
+    def check_overlaps(self, t: float) -> None:
+        """Bodies do not collide with each other or with static obstacles: warn (once per pair)
+        when a hull vertex of a dynamic body is inside another obstacle."""
+        for j, body in self.bodies.items():
+            R, T = self.poses[j]
+            verts = (body.hull @ R.T + T)
+            for k, (Rk, Tk) in enumerate(self.poses):
+                if k == j or (j, k) in self.overlaps:
+                    continue
+                if (self.grids[k].sample((verts - Tk) @ Rk) < 0).any():
+                    self.overlaps.add((j, k))
+                    from ..progress import console
+
+                    console.print(f"[yellow]warning:[/] obstacle[{j}] passes into obstacle[{k}] at t={t:.3f} s: "
+                                  "contact between bodies is not modelled")
 
     # ------------------------------------------------------------ checkpoint
     def checkpoint(self) -> dict[str, np.ndarray]:
