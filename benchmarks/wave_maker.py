@@ -141,7 +141,8 @@ def main(argv=None) -> int:
             ax.set_ylabel("η [mm]")
             ax.set_title(f"piston S={a.stroke * 100:.0f} cm, T={T} s, h={a.depth} m: H={H * 1000:.1f} mm "
                          f"vs {H_th * 1000:.1f} mm")
-            ax.legend(fontsize=7, loc="lower right")
+            ax.set_ylim(-2 * H_th * 1000, 2 * H_th * 1000)  # the start-up transient of the lattice is clipped
+            ax.legend(fontsize=7, loc="upper right", ncol=3)
             fig.tight_layout()
             fig.savefig(a.out, dpi=110)
     return 0

@@ -432,3 +432,18 @@ def test_a_body_passing_into_another_is_warned_about(tmp_path, capfd):
     err = capfd.readouterr().err
     assert s.colliders[0].bodies[1].c[2] < 0.11  # it did fall into the block
     assert " ".join(err.split()).count("obstacle[1] passes into obstacle[0]") == 1, err
+
+
+def test_live_view_frames_carry_the_bodies_pose(tmp_path):
+    from whitecap.view.sources import LiveSource
+
+    sc = paddle_scene(tmp_path, period=0.4)
+    src = LiveSource(sc)
+    law_ = bodies.MotionLaw(sc.obstacle[0])
+    for _ in range(3):
+        src.advance()
+        fr = src.current()
+        assert fr.bodies[0]["position"] == pytest.approx(law_.pose(src.solver.time)[1].tolist(), abs=1e-12)
+    assert fr.bodies[0]["position"][0] == pytest.approx(0.06, rel=1e-6)  # t = 0.1 s: a quarter period
+    src.reset()
+    assert src.current().bodies[0]["position"] == pytest.approx([0, 0, 0], abs=1e-12)  # reset moves it back

@@ -242,15 +242,15 @@ class LiveSource:
         if with_density and not step_foam:
             s.update_density()
         fr = Frame(self.index, float(s.time), None, device=DeviceFluid(s.state.x, s.state.v, s.state.rho, s.n))
+        moving = next((c for c in s.colliders if getattr(c, "moving", False)), None)
+        if moving is not None:  # moving bodies at their current pose
+            fr.bodies = moving.body_records()
         if step_foam:  # once per output frame: the foam generator works on host arrays
             a = s.arrays(with_density=True)
             fr.positions, fr.velocities, fr.density = a["positions"], a["velocities"], a["density"]
             self._step_foam(fr, a)
         if self._diffuse is not None:
             fr.diffuse_positions, fr.diffuse_type, fr.diffuse_radius = self._diffuse
-        moving = next((c for c in s.colliders if getattr(c, "moving", False)), None)
-        if moving is not None:  # moving bodies at their current pose
-            fr.bodies = moving.body_records()
         return fr
 
     def _step_foam(self, fr: Frame, a: dict) -> None:
@@ -258,6 +258,9 @@ class LiveSource:
             from ..io import ParticleFrame
 
             pf = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=fr.time)
+            for g in self.hook.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF) at this pose
+                if hasattr(g, "body"):
+                    g.time, g.body = fr.time, fr.bodies[g.index] if fr.bodies else None
             d = self.hook.gen.step(pf, self.index, 1.0 / self.scene.solver.frame_rate)
             self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8), np.asarray(d.arrays["radius"], np.float32))
             self._diffuse_index = self.index
