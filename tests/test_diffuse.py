@@ -22,7 +22,7 @@ from whitecap.pipeline import simulate
 
 from .conftest import DATA, tiny_scene_dict
 
-FOAM = {"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0}
+FOAM = {"preset": "auto", "budget": 2.0}
 
 
 @pytest.fixture(scope="module")
@@ -70,9 +70,14 @@ def test_still_water_in_simulation_makes_no_foam(tmp_path):
 
 def test_dam_break_makes_all_three_types(foam_run):
     rows = np.loadtxt(foam_run / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
-    assert (rows[-1, 2:] > 0).all(), rows[-1]
-    d = diffuse(foam_run, 12)
+    both = [i for i in range(13) if (rows[i, 2:] > 0).all()]
+    assert both, rows
+    d = diffuse(foam_run, both[-1])
     assert set(np.unique(d.arrays["type"])) == {0, 1, 2}
+    # counts.csv names its columns as the contract does, and counts each type code of the frame.
+    assert (foam_run / "diffuse" / "counts.csv").read_text().splitlines()[0] == "frame,time,spray,foam,bubbles"
+    row = rows[rows[:, 0] == 12][0]
+    assert row[2:].tolist() == [(d.arrays["type"] == t).sum() for t in (0, 1, 2)]
     info = RunInfo.load(foam_run)
     assert info.files("diffuse")[-1] == (12, "diffuse/diffuse_00012.ply")
     # The file follows the contract.
@@ -88,7 +93,10 @@ def test_spray_above_surface_bubbles_inside_and_rising(foam_run):
 
     info = RunInfo.load(foam_run)
     h = 4 * info.particle_radius
-    for i in (8, 10, 12):
+    rows = np.loadtxt(foam_run / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
+    frames = [i for i in range(4, 13) if rows[i, 2] > 5 and rows[i, 4] > 20]
+    assert len(frames) >= 3, rows
+    for i in frames:
         f, d = io.read(foam_run / f"fluid/fluid_{i:05d}.ply"), diffuse(foam_run, i)
         tree = cKDTree(f.positions)
         t = d.arrays["type"]
@@ -101,17 +109,23 @@ def test_spray_above_surface_bubbles_inside_and_rising(foam_run):
             over.append(not js or p[2] > f.positions[js, 2].mean())
         assert np.mean(over) > 0.9, np.mean(over)
         # Bubbles: inside the fluid (fluid all round), rising relative to the local fluid.
-        counts = np.array([len(tree.query_ball_point(p, h)) for p in bub])
-        # (types are assigned where a particle was at the start of the frame, before it moved)
-        assert (counts > 10).mean() > 0.8
+        # Types are assigned where a particle was at the start of the frame, before it moved:
+        # a bubble moves by x += Δt v, a new one has not moved yet (its id is new this frame).
+        dt = 1 / info.frame_rate
+        prev_ids = diffuse(foam_run, i - 1).ids
+        moved = d.ids[t == 2] <= (prev_ids.max() if len(prev_ids) else -1)
+        start = bub - dt * d.velocities[t == 2] * moved[:, None]
+        counts = np.array([len(tree.query_ball_point(p, h)) for p in start])
+        assert (counts > 10).mean() > 0.9, (counts > 10).mean()
         # Rising: bubbles that were already bubbles last frame (new ones start at the fluid's
-        # velocity) move up relative to the kernel-averaged velocity of the fluid round them.
+        # velocity) move up relative to the kernel-averaged velocity of the fluid round them
+        # where they were when the fluid dragged them.
         prev = diffuse(foam_run, i - 1)
         old = set(prev.ids[prev.arrays["type"] == 2].tolist())
         sel = np.array([int(k) in old for k in d.ids[t == 2]])
         assert sel.sum() > 10
         rel = []
-        for p, v in zip(bub[sel], d.velocities[t == 2][sel]):
+        for p, v in zip(start[sel], d.velocities[t == 2][sel]):
             js = tree.query_ball_point(p, h)
             w = 1 - np.linalg.norm(f.positions[js] - p, axis=1) / h
             rel.append(v[2] - (w @ f.velocities[js][:, 2]) / w.sum() if len(js) else np.nan)
@@ -164,7 +178,8 @@ def test_short_lived_foam_expires(foam_run, tmp_path):
 
 def test_in_simulation_equals_post_processing_byte_for_byte(foam_run, tmp_path):
     out = tmp_path / "post"
-    assert main(["foam", str(foam_run), "--out", str(out)]) == 0
+    # Post-processing keeps the simulation's running 'auto' estimate when told not to look ahead.
+    postprocess(foam_run, out=out, look_ahead=False, show_progress=False)
     for i in range(13):
         name = f"diffuse/diffuse_{i:05d}.ply"
         assert (out / name).read_bytes() == (foam_run / name).read_bytes(), name
@@ -268,9 +283,12 @@ def test_splishsplash_partio_sequence_gives_the_same_foam_as_the_same_frames_in_
         write_partio_bgeo(tmp_path / "partio" / f"ParticleData_Fluid_{i}.bgeo", y_up(f.positions),
                           {"id": f.ids.astype(np.int32), "velocity": y_up(f.velocities), "density": f.density})
     info = RunInfo.load(foam_run)
-    common = ["--dt", str(1.0 / info.frame_rate), "--radius", str(info.particle_radius), "--preset", "auto"]
-    assert main(["foam", str(tmp_path / "partio"), "--out", str(tmp_path / "a"), "--up", "y", *common]) == 0
-    assert main(["foam", str(foam_run / "fluid"), "--out", str(tmp_path / "b"), *common]) == 0
+    # The run's own domain: guessed from the first frame (the water column), it would drop the
+    # diffuse particles of the flow that has left it, where 'auto' finds the violence.
+    common = dict(dt=1.0 / info.frame_rate, radius=info.particle_radius, preset="auto", show_progress=False,
+                  domain=(info.domain["lower"], info.domain["upper"]))
+    postprocess(tmp_path / "partio", out=tmp_path / "a", up="y", **common)
+    postprocess(foam_run / "fluid", out=tmp_path / "b", **common)
     made = 0
     for i in range(13):
         name = f"diffuse/diffuse_{i:05d}.ply"
@@ -329,8 +347,8 @@ def test_wave_crest_needs_the_surface_moving_along_its_normal():
     assert not wc_in.any()
 
 
-def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01, slots=16):
-    """Run the generation kernel on n fluid particles at the origin moving at 2 m/s along z, with
+def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01):
+    """Run the generation kernels on n fluid particles at the origin moving at 2 m/s along z, with
     the given trapped-air potentials, I_k = 1 and no wave-crest or vorticity share."""
     import taichi as ti
 
@@ -343,15 +361,18 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01, slots=16
     zeros = np.zeros(n, np.float32)
     x, v = _nd(np.zeros((n, 3), np.float32), ti.f32, True), _nd(np.tile([[0.0, 0.0, 2.0]], (n, 1)).astype(np.float32), ti.f32, True)
     tau = _nd(np.array([*ta_range, 1, 2, 0, 1e-3, 1, 2], np.float32), ti.f32)
-    ox, ov = ti.Vector.ndarray(3, ti.f32, n * slots), ti.Vector.ndarray(3, ti.f32, n * slots)
-    ol, cnt = ti.ndarray(ti.f32, n * slots), ti.ndarray(ti.i32, n)
-    ek = np.ones(n, np.float32)  # above ke_max: I_k = 1
-    K.generate(n, x, v, _nd(np.arange(n, dtype=np.uint32), ti.u32), _nd(np.asarray(v_diff, np.float32), ti.f32),
-               _nd(zeros, ti.f32), _nd(ek, ti.f32), _nd(zeros, ti.f32), tau, k_ta, 0.0, 0.0, 1.0, 2.0, 0.0, r, dt,
-               7, 3, slots, ox, ov, ol, cnt, 0)
+    ids = _nd(np.arange(n, dtype=np.uint32), ti.u32)
+    ek = _nd(np.ones(n, np.float32), ti.f32)  # above ke_max: I_k = 1
+    cnt, rate = ti.ndarray(ti.i32, n), ti.ndarray(ti.f32, n)
+    K.birth_counts(n, ids, _nd(np.asarray(v_diff, np.float32), ti.f32), _nd(zeros, ti.f32), ek, _nd(zeros, ti.f32),
+                   tau, k_ta, 0.0, 0.0, dt, 7, 3, 0, cnt, rate, 0)
     counts = cnt.to_numpy()
-    valid = (np.arange(slots)[None, :] < counts[:, None]).ravel()
-    return counts, ox.to_numpy()[valid], ov.to_numpy()[valid], ol.to_numpy()[valid]
+    total = int(counts.sum())
+    offset = _nd(np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32), ti.i32)
+    m = max(total, 1)
+    ox, ov, ol = ti.Vector.ndarray(3, ti.f32, m), ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.f32, m)
+    K.generate(n, x, v, ids, ek, tau, cnt, offset, 1.0, 2.0, 0.0, r, dt, 7, 3, ox, ov, ol)
+    return counts, ox.to_numpy()[:total], ov.to_numpy()[:total], ol.to_numpy()[:total]
 
 
 def test_generation_count_follows_the_clamped_potential():
@@ -376,6 +397,106 @@ def test_new_particles_fill_the_cylinder_around_the_velocity():
     # Velocity: the fluid's, plus the same radial offset, so particles spread out of the cylinder.
     assert np.allclose(v[:, 2], 2.0) and np.allclose(v[:, :2], x[:, :2], atol=1e-6)
     assert life.min() >= 1.0 and life.max() <= 2.0  # lifetime drawn from [lifetime_min, lifetime_max]
+
+
+# ------------------------------------------------------------------ 'auto' and the budget
+def _gentle_then_violent(folder: Path, frames: int = 24, r: float = 0.01) -> str:
+    """A block of water at rest (frame 0), stirred gently (frame 1: ~0.1 m/s), then violently
+    (frames 2...: a swirl about y of ~1 m/s at the edge and turbulent noise of 0.5 m/s)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    ax = [np.arange(r, 0.3, 2 * r), np.arange(r, 0.2, 2 * r), np.arange(r, 0.24, 2 * r)]
+    x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3) + 0.2
+    rng = np.random.default_rng(0)
+    c = x.mean(0)
+    for k in range(frames):
+        omega, noise = (0.0, 0.0) if k == 0 else (0.6, 0.01) if k == 1 else (6.0, 0.5)
+        d = x - c
+        v = omega * np.stack([d[:, 2], np.zeros(len(x)), -d[:, 0]], 1) + rng.normal(0, noise, x.shape)
+        io.write(folder / f"f_{k:04d}.ply", io.ParticleFrame(x.astype(np.float32), v.astype(np.float32)))
+        a = omega / 30  # rotated exactly, so the block keeps its shape
+        rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        x = c + d @ rot.T
+    return str(folder / "f_*.ply")
+
+
+def _peak(out: Path, n_fluid: int) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.loadtxt(out / "diffuse" / "counts.csv", delimiter=",", skiprows=1)
+    return rows[:, 2:].sum(1) / n_fluid, rows
+
+
+def _auto(**kw):
+    from whitecap.config import Foam
+
+    return resolve(Foam(preset="auto", **kw))
+
+
+N_BLOCK = 15 * 10 * 12
+
+
+def test_auto_from_the_whole_run_keeps_a_gentle_start_from_flooding_the_violent_middle(tmp_path, capsys):
+    src = _gentle_then_violent(tmp_path / "in")
+    postprocess(src, out=tmp_path / "o", params=_auto(budget=2.0), dt=1 / 30, radius=0.01, show_progress=False)
+    err = capsys.readouterr().err
+    ratio, rows = _peak(tmp_path / "o", N_BLOCK)
+    assert 1.0 <= ratio.max() <= 3.0, ratio.max()  # the budget ±50 %
+    assert "saturated" not in err and "warning" not in err, err
+    assert "budget of 2" in err and "peak diffuse per fluid particle" in err  # what it chose, what it reached
+    # The count follows the violence: the gentle frame makes a sliver of what a violent one makes,
+    # and whitewater builds up over the violent frames rather than saturating at once (thresholds
+    # from the gentle frame would clamp every violent particle to φ = 1 from frame 2 on).
+    born = np.diff(rows[:, 2:].sum(1), prepend=0)
+    assert born[1] < 0.05 * born[2:].max(), born[:4]
+    assert ratio[2] < 0.25 * ratio.max(), ratio[:6]
+    # In the simulation (no look-ahead) the running estimate also keeps within the budget.
+    postprocess(src, out=tmp_path / "s", params=_auto(budget=2.0), dt=1 / 30, radius=0.01, show_progress=False,
+                look_ahead=False)
+    err = capsys.readouterr().err
+    ratio_s, _ = _peak(tmp_path / "s", N_BLOCK)
+    assert 0.3 <= ratio_s.max() <= 3.0, ratio_s.max()
+    assert "saturated" not in err, err
+
+
+def test_the_budget_scales_the_count(tmp_path):
+    src = _gentle_then_violent(tmp_path / "in")
+    curves = []
+    for b in (1.0, 2.0):
+        postprocess(src, out=tmp_path / f"b{b}", params=_auto(budget=b), dt=1 / 30, radius=0.01, show_progress=False)
+        curves.append(_peak(tmp_path / f"b{b}", N_BLOCK)[0])
+    one, two = curves
+    assert two.max() / one.max() == pytest.approx(2.0, abs=0.5), (one.max(), two.max())
+    # Scaled all along, not clipped at the top: halfway up as well.
+    k = int(np.argmax(two >= 0.5 * two.max()))
+    assert two[k] / one[k] == pytest.approx(2.0, abs=0.5), (k, one[k], two[k])
+
+
+def test_a_type_multiplier_changes_only_its_type(tmp_path):
+    src = _gentle_then_violent(tmp_path / "in", frames=6)
+    runs = {}
+    for name, kw in (("one", {}), ("spray2", {"spray_multiplier": 2.0}), ("bubbles0", {"bubble_multiplier": 0.0})):
+        postprocess(src, out=tmp_path / name, params=_auto(**kw), dt=1 / 30, radius=0.01, show_progress=False)
+        runs[name] = [io.read(tmp_path / name / f"diffuse/diffuse_{i:05d}.ply") for i in range(6)]
+    first = next(i for i in range(6) if len(runs["one"][i]))
+
+    def of(d, t):
+        sel = d.arrays["type"] == t
+        return d.positions[sel][np.lexsort(d.positions[sel].T)]
+
+    a, b, c = runs["one"][first], runs["spray2"][first], runs["bubbles0"][first]
+    assert (of(a, 0) is not None) and len(of(a, 0)) > 20 and len(of(a, 2)) > 20
+    # Twice the spray multiplier: the same foam and bubbles, particle for particle; twice the spray.
+    assert np.array_equal(of(a, 1), of(b, 1)) and np.array_equal(of(a, 2), of(b, 2))
+    assert len(of(b, 0)) / len(of(a, 0)) == pytest.approx(2.0, rel=0.2)
+    # No bubbles: the same spray and foam, no bubbles.
+    assert np.array_equal(of(a, 0), of(c, 0)) and np.array_equal(of(a, 1), of(c, 1)) and len(of(c, 2)) == 0
+
+
+def test_a_capacity_below_the_budget_warns(tmp_path, capsys):
+    src = _gentle_then_violent(tmp_path / "in", frames=4)
+    postprocess(src, out=tmp_path / "o", params=_auto(budget=2.0, max_particles=1000), dt=1 / 30, radius=0.01,
+                show_progress=False)
+    err = capsys.readouterr().err
+    # Said at the start, from the budget (before any frame saturates), and again when it does.
+    assert "foam.budget = 2 asks for about" in err and "beyond foam.max_particles = 1,000" in err, err
 
 
 # ------------------------------------------------------------------ SPlisHSPlasH FoamGenerator's automatic mode

@@ -84,7 +84,6 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     import taichi as ti
 
     from whitecap.diffuse.kernels import fluid_neighbourhood
-    from whitecap.sim.grid import CellGeometry
 
     g, _, x = grid_and_points
     rng = np.random.default_rng(2)
@@ -101,10 +100,10 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 
     @ti.kernel
-    def probe(m: ti.i32, qs: F3, cells: CellGeometry, xs: F3, start: I1, reach: ti.template(), h: ti.f32,
-              order: I1, fv: F3, cnt: I1, vsum: F3, wsum: F1):
+    def probe(m: ti.i32, qs: F3, lower: ti.math.vec3, inv_cell: ti.f32, dims: ti.math.ivec3, xs: F3, start: I1,
+              reach: ti.template(), h: ti.f32, order: I1, fv: F3, cnt: I1, vsum: F3, wsum: F1):
         for p in range(m):
-            c, vs, ws = fluid_neighbourhood(qs[p], cells, xs, start, reach, h, order, fv)
+            c, vs, ws = fluid_neighbourhood(qs[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
             cnt[p], vsum[p], wsum[p] = c, vs, ws
 
     probe(len(q), qs, *g.query_args(), H, g.order, fv, cnt, vsum, wsum)

@@ -143,7 +143,8 @@ def test_foam_spheres_and_motion_blur(meshed_run):
     s = blender(INSPECT, meshed_run / "render" / "scene.blend")
     assert s["foam_points"] == N_FOAM[0]
     r = RunInfo.load(meshed_run).particle_radius
-    assert 0.4 * r - 1e-9 <= s["r_min"] <= s["r_max"] <= 0.9 * r + 1e-9
+    # Foam is many small bubbles: 0.15-0.35 of the particle radius unless [render] says otherwise.
+    assert 0.15 * r - 1e-9 <= s["r_min"] <= s["r_max"] <= 0.35 * r + 1e-9
     assert s["r_max"] > s["r_min"]  # random radii
     assert s["motion_blur"] and s["engine"] == "CYCLES" and s["velocity_attr"]
 
@@ -371,6 +372,41 @@ def test_motion_blur_follows_the_vertex_velocity_attribute(meshed_run, tmp_path)
     s = blender(BLUR, meshed_run / "render" / "scene.blend", tmp_path)
     # measured: blurred 3.5e-3, unblurred 6e-6 (mean absolute change of linear RGB)
     assert s["blurred"] > 1e-3 and s["blurred"] > 50 * s["unblurred"], s
+
+
+COPIES = r"""
+import sys, json, bpy, numpy as np
+from whitecap.render.scene import fill_mesh, sphere_nodes
+obj = bpy.data.objects.new("d", bpy.data.meshes.new("d"))
+bpy.context.scene.collection.objects.link(obj)
+mod = obj.modifiers.new("n", "NODES")
+mod.node_group = sphere_nodes("s", 0.001, 0.002, bpy.data.materials.new("m"), seed=2, copies=3, jitter=0.01)
+rng = np.random.default_rng(0)
+x, ids = rng.random((50, 3)), np.arange(50) + 7
+out = {}
+for label, order, shift in (("a", np.arange(50), 0.0), ("b", rng.permutation(50), 0.5)):
+    fill_mesh(obj.data, x[order] + shift, np.zeros((0, 3), np.int32), None, ids=ids[order])
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(dg)
+    geom = ev.evaluated_geometry()
+    pc = geom.pointcloud
+    out[label] = [list(a.vector) for a in pc.attributes["position"].data]
+out["x"] = x.tolist()
+print(json.dumps(out))
+"""
+
+
+def test_render_copies_are_jittered_and_keep_their_place():
+    """[render] diffuse_copies: k copies per diffuse particle near it, seeded by its id, so a
+    particle's copies move with it from frame to frame whatever order the file lists it in."""
+    s = blender(COPIES)
+    a, b, x = (np.array(s[k]) for k in ("a", "b", "x"))
+    assert len(a) == len(b) == 3 * len(x)
+    d = np.linalg.norm(a[:, None] - x[None], axis=2).min(1)
+    assert (d <= 0.01 * np.sqrt(3) + 1e-6).all() and (d > 1e-4).sum() == 2 * len(x)  # 2 jittered copies each
+    # Frame b: every particle moved by 0.5 and listed in another order; its copies went along.
+    key = lambda p: p[np.lexsort(np.round(p, 6).T)]
+    assert np.allclose(key(b - 0.5), key(a), atol=1e-5)
 
 
 def test_addon_copy_of_the_velocity_names_matches_whitecap():

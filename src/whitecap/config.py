@@ -258,9 +258,14 @@ class Foam(_Section):
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
     preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-manual", "auto"] = Field(
-        "ihmsen2012",
+        "auto",
         description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
-        "thresholds from percentiles of each potential over the first frame with motion",
+        "thresholds from percentiles of each potential over frames sampled across the run (in the "
+        "simulation: a running estimate that only rises) and the multipliers from the budget",
+    )
+    budget: float = Field(
+        2.0, gt=0, le=50,
+        description="'auto': diffuse particles per fluid particle at the peak, which it sets k_ta, k_wc, k_vo for [-]",
     )
     # Clamping thresholds φ(I, τmin, τmax) of the potentials. Unset = from the preset.
     ta_min: float | None = Field(None, ge=0, description="trapped-air τmin [m/s]")
@@ -276,17 +281,45 @@ class Foam(_Section):
     k_vo: float | None = Field(None, ge=0, description="vorticity multiplier k_vo [1/s]")
     spray_below: int | None = Field(None, ge=0, description="spray when a particle has fewer fluid neighbours [-]")
     bubble_above: int | None = Field(None, ge=0, description="bubble when a particle has more fluid neighbours [-]")
-    lifetime_min: float | None = Field(None, ge=0, description="foam lifetime lower bound [s]")
+    lifetime_min: float | None = Field(None, ge=0, description="foam lifetime lower bound (counts down while foam) [s]")
     lifetime_max: float | None = Field(None, ge=0, description="foam lifetime upper bound [s]")
     lifetime_multiplier: float | None = Field(
         None, ge=0, description="if > 0: lifetime = multiplier × I_k × frame time (DualSPHysics style) [-]"
     )
     buoyancy: float | None = Field(None, ge=0, description="bubble buoyancy k_b [-]")
     drag: float | None = Field(None, ge=0, le=1, description="bubble drag k_d [-]")
-    slots_per_particle: int = Field(8, ge=1, le=64, description="fixed generation slots per fluid particle and frame [-]")
-    max_particles: int = Field(400_000, ge=1, description="capacity of diffuse particles [-]")
+    spray_multiplier: float = Field(1.0, ge=0, le=100, description="generation of spray, relative to the rest [-]")
+    foam_multiplier: float = Field(1.0, ge=0, le=100, description="generation of foam, relative to the rest [-]")
+    bubble_multiplier: float = Field(1.0, ge=0, le=100, description="generation of bubbles, relative to the rest [-]")
+    spray_lifetime: list[float] | None = Field(
+        None, min_length=2, max_length=2,
+        description="spray lifetime range [min, max], counting down while spray; unset = spray lives until it lands [s]",
+    )
+    bubble_lifetime: list[float] | None = Field(
+        None, min_length=2, max_length=2,
+        description="bubble lifetime range [min, max], counting down while a bubble; unset = until it surfaces [s]",
+    )
+    foam_dissipation: float = Field(
+        0.5, ge=0, le=100,
+        description="foam thins out: each foam particle vanishes at this rate besides its lifetime [1/s]",
+    )
+    slots_per_particle: int | None = Field(
+        None, ge=1, le=64,
+        description="at most this many new particles per fluid particle and frame; unset = no limit [-]",
+    )
+    max_particles: int | None = Field(
+        None, ge=1, description="capacity of diffuse particles; unset = 3 × budget × fluid particles [-]"
+    )
     radius: float = Field(0.5, gt=0, description="diffuse particle radius as a multiple of the fluid radius [-]")
     support: float = Field(4.0, ge=2.0, le=8.0, description="neighbourhood radius h as a multiple of the fluid radius [-]")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "Foam":
+        for name in ("spray_lifetime", "bubble_lifetime"):
+            r = getattr(self, name)
+            if r is not None and not 0 < r[0] <= r[1]:
+                raise ValueError(f"foam.{name} must be [min, max] with 0 < min <= max, got {r}")
+        return self
 
 
 # --------------------------------------------------------------------------- mesh
@@ -364,8 +397,19 @@ class Render(_Section):
     water_color: Vec3 = Field([0.55, 0.8, 0.9], description="volume absorption tint of the water, linear RGB [0-1]")
     water_absorption: float = Field(3.0, ge=0, description="volume absorption density [1/m]")
     water_roughness: float = Field(0.02, ge=0, le=1, description="surface roughness of the water [-]")
+    spray_radius: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="spray droplet radius range [m]; unset = 0.1–0.25 × particle radius"
+    )
     foam_radius: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="foam sphere radius range [m]; unset = 0.4–0.9 × particle radius"
+        None, min_length=2, max_length=2, description="foam bubble radius range [m]; unset = 0.15–0.35 × particle radius"
+    )
+    bubble_radius: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="air bubble radius range [m]; unset = 0.1–0.3 × particle radius"
+    )
+    diffuse_copies: int = Field(
+        1, ge=1, le=16,
+        description="render-time multiplier: jittered copies of each diffuse particle (seeded by its id, so they "
+        "keep their place from frame to frame); thickens foam without re-simulating [-]",
     )
     motion_blur: bool = Field(True, description="motion blur from vertex velocities and object motion")
     shutter: float = Field(0.5, gt=0, le=2, description="shutter open time [frames]")
@@ -375,6 +419,14 @@ class Render(_Section):
     sun_angle: Vec3 = Field([50.0, 10.0, 30.0], description="sun rotation about x, y, z [deg]")
     world_strength: float = Field(0.6, ge=0, description="sky light strength [-]")
     ground: bool = Field(True, description="a ground plane under the domain box (three times its width)")
+
+    @model_validator(mode="after")
+    def _radius_ranges(self) -> "Render":
+        for name in ("spray_radius", "foam_radius", "bubble_radius"):
+            r = getattr(self, name)
+            if r is not None and not 0 < r[0] <= r[1]:
+                raise ValueError(f"render.{name} must be [min, max] in metres with 0 < min <= max, got {r}")
+        return self
 
 
 # --------------------------------------------------------------------------- output

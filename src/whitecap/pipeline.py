@@ -49,6 +49,8 @@ def simulate(
     for h in hooks:
         if hasattr(h, "warn_if_empty"):
             h.warn_if_empty()
+        if hasattr(h, "finish"):
+            h.finish()
     if profile:
         print(timing.report("simulate profile"))
     return info

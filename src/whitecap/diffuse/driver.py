@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -93,12 +92,22 @@ class FoamStage:
             if self.gen is not None:
                 self.gen.state = self._pending
 
+    def finish(self) -> None:
+        """Say the peak diffuse-to-fluid ratio reached (and the budget it aimed for)."""
+        if self.gen is not None and self.gen.state.counts:
+            console.print(self.gen.peak_report())
+
     def warn_if_empty(self) -> None:
         rows = self.gen.state.counts if self.gen else []
-        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
+        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0 and self.params.auto:
+            console.print(
+                "[yellow]warning:[/] no diffuse particles were generated: 'auto' found no water moving faster "
+                "than air entrainment needs (about 1 m/s, foam.ke_min). Set the thresholds to make some anyway."
+            )
+        elif rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
             console.print(
                 "[yellow]warning:[/] no diffuse particles were generated: the flow never exceeded the clamping "
-                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\"."
+                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\" (the default)."
             )
 
 
@@ -198,6 +207,7 @@ def postprocess(
     show_progress: bool = True,
     frames: list[tuple[int, Path]] | None = None,
     domain: tuple | None = None,
+    look_ahead: bool = True,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
 
@@ -209,20 +219,36 @@ def postprocess(
     overridden, and results land in the run itself (``out`` defaults to it).
     For other sequences the fluid frames are converted into ``out/fluid`` so
     that `whitecap mesh`, `view` and `render` can continue from there.
+    'auto' reads frames sampled across the whole sequence first (``look_ahead``);
+    without it, it keeps the simulation's running estimate, as inside ``simulate``.
     """
     src = Path(src)
     files, info, known = _input_frames(src, frames)
     if case is not None:
-        from ..io.dualsphysics import read_case
-
-        c = read_case(case)
-        known.update(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
-                     lower=c.lower, upper=c.upper, case=str(case))
+        known.update(_case_values(case))
     if domain is not None:
         known.update(lower=list(map(float, domain[0])), upper=list(map(float, domain[1])))
-    foam_cfg = Foam()
-    run_seed = 0
-    grids: list = []
+    foam_cfg, run_seed, grids, out = _run_settings(src, info, out)
+    p = params or resolve(foam_cfg, ini=ini, preset=preset,
+                          particle_mass=info.particle_mass if info is not None else known.get("mass"))
+    seed = run_seed if seed is None else seed
+    frame_dt, r = _frame_dt_and_radius(src, info, known, dt, radius)
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "foam"):
+        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead)
+
+
+def _case_values(case: str | Path) -> dict:
+    from ..io.dualsphysics import read_case
+
+    c = read_case(case)
+    return dict(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
+                lower=c.lower, upper=c.upper, case=str(case))
+
+
+def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list, Path]:
+    """A whitecap run's own [foam] section, seed and obstacles; where the results go."""
+    foam_cfg, run_seed, grids = Foam(), 0, []
     if info is not None:
         scene_file = src / "scene.toml"
         if scene_file.is_file():
@@ -234,22 +260,17 @@ def postprocess(
         out = Path(out) if out is not None else src
     elif out is None:
         raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
-    out = Path(out)
-    p = params or resolve(foam_cfg, ini=ini, preset=preset,
-                          particle_mass=info.particle_mass if info is not None else known.get("mass"))
-    seed = run_seed if seed is None else seed
+    return foam_cfg, run_seed, grids, Path(out)
 
+
+def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radius) -> tuple[float, float]:
     frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
     if not frame_dt or frame_dt <= 0:
         raise InputError(f"{src}: the time between frames is unknown; pass --dt SECONDS")
     r = radius or (info.particle_radius if info else known.get("radius"))
     if not r or r <= 0:
         raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
-
-    src_is_run = info is not None
-    out.mkdir(parents=True, exist_ok=True)
-    with run_lock(out, "foam"):
-        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress)
+    return frame_dt, r
 
 
 def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
@@ -259,52 +280,113 @@ def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
 
 
 def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
-                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool) -> RunInfo:
+                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool) -> RunInfo:
     src_is_run = info is not None
     if src_is_run:  # read again under the lock: what is current cannot change from here on
         info = RunInfo.load(src)
         files = [(i, src / rel) for i, rel in info.files("fluid")]
-    first = read(files[0][1], **({"up": up} if info is None else {}))
-    if first.velocities is None:
-        raise InputError(f"{files[0][1]}: missing array 'velocity'")
+    reader = _Reader(files, None if src_is_run else up)
+    first = reader.first()
     if info is None:
-        if "lower" in known and "upper" in known:
-            lo, hi = known["lower"], known["upper"]
-        else:  # the first frame with particles, grown by half its extent
-            pts = _first_particles(files, first, up)
-            if pts is None:
-                raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
-                                 "make diffuse particles from")
-            lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
-            hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
-        info = RunInfo(
-            particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
-            particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
-            domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
-            extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
-        )
-        info.simulation = _source_identity(files, up)
+        info = _foreign_run_info(src, files, first, known, r, frame_dt, up, seed)
     # Results for a whitecap run go into that run; anywhere else the fluid
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
-        p = replace(p, slots_per_particle=max(p.slots_per_particle, math.ceil(2 * p.k_ta * frame_dt + 0.5)),
-                    max_particles=max(p.max_particles, FOAMGENERATOR_CAPACITY * len(first)))
+        p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
     stage = FoamStage(p, seed, verbose=True, obstacles=grids)
     stage.start(info)
     if p.model == "foamgenerator":
         tau = _foamgenerator_limits(stage.gen, files, first, up if not src_is_run else None, show_progress)
         stage.gen.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
+    elif p.auto and look_ahead:
+        _calibrate(stage, reader, info, frame_dt, src_is_run)
+    _run_frames(stage, reader, info, out, frame_dt, src_is_run, convert, show_progress)
+    info.save(out)
+    info.extra["out"] = str(out)  # for the caller's message; not saved
+    _report(stage)
+    return info
+
+
+class _Reader:
+    """The input's frames, each checked for velocities; the first and the sampled ones are kept."""
+
+    def __init__(self, files: list[tuple[int, Path]], up: str | None):
+        self.files = files
+        self.kw = {"up": up} if up is not None else {}
+        self.cache: dict[int, ParticleFrame] = {}
+
+    def read(self, k: int, keep: bool = False) -> ParticleFrame:
+        if k in self.cache:
+            return self.cache.pop(k) if not keep else self.cache[k]
+        path = self.files[k][1]
+        fr = read(path, **self.kw)
+        if fr.velocities is None:
+            raise InputError(f"{path}: missing array 'velocity'")
+        if keep:
+            self.cache[k] = fr
+        return fr
+
+    def first(self) -> ParticleFrame:
+        return self.read(0, keep=True)
+
+
+def _foreign_run_info(src: Path, files: list, first: ParticleFrame, known: dict, r: float, frame_dt: float, up: str,
+                      seed: int) -> RunInfo:
+    """A run.json for a sequence from another solver: the domain from its case file (or the
+    caller), else the first frame with particles grown by half its extent."""
+    if "lower" in known and "upper" in known:
+        lo, hi = known["lower"], known["upper"]
+    else:
+        pts = _first_particles(files, first, up)
+        if pts is None:
+            raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
+                             "make diffuse particles from")
+        lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
+        hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
+    info = RunInfo(
+        particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
+        particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
+        domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
+        extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
+    )
+    info.simulation = _source_identity(files, up)
+    return info
+
+
+def _frame_time(info: RunInfo, index: int, frame_dt: float, src_is_run: bool) -> float:
+    return info.frame(index)["time"] if src_is_run else index * frame_dt
+
+
+def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float, src_is_run: bool) -> None:
+    """'auto' from the whole sequence: potentials of frames sampled evenly across it."""
+    from .budget import sample_count
+
+    nf = len(reader.files)
+    picks = sorted(set(np.linspace(0, nf - 1, sample_count(nf)).round().astype(int).tolist()))
+    samples = []
+    for k in picks:
+        fr = reader.read(k, keep=k == 0)
+        fr.time = _frame_time(info, reader.files[k][0], frame_dt, src_is_run)
+        samples.append(fr)
+    times = np.array([_frame_time(info, i, frame_dt, src_is_run) for i, _ in reader.files], np.float64)
+    # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
+    n_s = np.array([len(f) for f in samples], np.float64)
+    n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
+    stage.gen.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files])
+
+
+def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, src_is_run: bool,
+                convert: bool, show_progress: bool) -> None:
+    """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
     bar = progress(disable=not show_progress)
     with bar:
-        task = bar.add_task("foam", total=len(files), info="")
-        for index, path in files:
-            fr = first if path == files[0][1] else read(path, **({"up": up} if not src_is_run else {}))
-            if fr.velocities is None:
-                raise InputError(f"{path}: missing array 'velocity'")
+        task = bar.add_task("foam", total=len(reader.files), info="")
+        for k, (index, _) in enumerate(reader.files):
+            fr = reader.read(k)
             fr.check_finite()
-            fr.time = info.frame(index)["time"] if src_is_run else index * frame_dt
+            fr.time = _frame_time(info, index, frame_dt, src_is_run)
             if convert:
                 rel = frame_name("fluid", index)
                 write(out / rel, fr)
@@ -313,12 +395,14 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
             info.set_file(index, "diffuse", rel, fr.time)
             c = stage.gen.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
-    info.save(out)
-    info.extra["out"] = str(out)  # for the caller's message; not saved
+
+
+def _report(stage: FoamStage) -> None:
     stage.warn_if_empty()
-    tot = np.array([r_[2:] for r_ in stage.gen.state.counts]).sum(0) if stage.gen.state.counts else np.zeros(3)
+    stage.finish()
+    counts = stage.gen.state.counts
+    tot = np.array([r_[2:] for r_ in counts]).sum(0) if counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
-    return info
 
 
 def postprocess_params_file(

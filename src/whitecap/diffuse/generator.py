@@ -7,11 +7,12 @@
 ``step`` is the same code inside ``simulate`` and in post-processing, so the
 same fluid frames and seed give byte-identical diffuse particles.
 Per frame: (1) existing diffuse particles are classified by their fluid
-neighbours and advected by type, expired foam and escapees removed;
-(2) each fluid particle generates into its own fixed slots; (3) survivors
-and the new particles are compacted in a fixed order (survivors first, then
-slots in fluid order), so no global counter is needed; (4) everything is
-classified again for output.
+neighbours and advected by type; expired particles, dissipated foam and
+escapees are removed; (2) each fluid particle generates into its own run of the new particles
+(offsets from a prefix sum of the counts), the new particles are classified
+and thinned by their type's multiplier; (3) survivors and the new particles
+are compacted in a fixed order (survivors first, then the new ones in fluid
+order), so no global counter is needed. 'auto' thresholds and multipliers: :mod:`.budget`.
 """
 
 from __future__ import annotations
@@ -27,12 +28,19 @@ from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
 from ..timing import timer
+from . import budget as B
 from . import kernels as K
 from . import splishsplash as SP
 from .params import FoamParams
 
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
-AUTO_PERCENTILES = (95.0, 99.9)  # τmin, τmax of 'auto' from the moving particles' potentials
+# Neighbour-list length per fluid particle: a lattice of spacing 2r has 4/3·π·(h/2r)³ ≈ 34
+# neighbours within h = 4r; 96 leaves ~3× room for water compressed in a splash.
+MAX_FLUID_NEIGHBOURS = 96
+# Draw numbers of the per-particle random streams used outside the kernels
+# (the kernels use draws 0-4 of the (seed, frame, id, slot) counter).
+DRAW_LIFE, DRAW_DISSIPATE = 6, 7
+ROUNDING_SLOT = 0xFFFF  # the slot number of kernels.generate's stochastic-rounding draw
 
 
 @dataclass
@@ -43,7 +51,14 @@ class DiffuseState:
     ids: np.ndarray
     next_id: int = 0
     counts: list = field(default_factory=list)  # rows (frame, time, spray, foam, bubbles)
-    tau: np.ndarray | None = None  # thresholds fixed by 'auto' mode
+    tau: np.ndarray | None = None  # thresholds set by 'auto' mode
+    scale: float = 1.0  # 'auto': the preset's multipliers are scaled by this for the budget
+    # 'auto' in the simulation: each frame's potentials (ta, wc, ke, vo) and whether it moves, at
+    # HISTORY_SAMPLE fluid particles, for thresholds pooled over the frames so far and so the
+    # rates of past frames can be recomputed whenever the thresholds rise
+    history: np.ndarray = field(default_factory=lambda: np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32))
+    # peak diffuse-to-fluid ratios so far: all types (its frame), then spray, foam, bubbles at their own peaks
+    peaks: np.ndarray = field(default_factory=lambda: np.array([0.0, -1.0, 0.0, 0.0, 0.0]))
 
     @classmethod
     def empty(cls) -> "DiffuseState":
@@ -57,6 +72,7 @@ class DiffuseState:
         }
         if self.tau is not None:
             d["tau"] = self.tau
+        d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
         return d
 
     @classmethod
@@ -65,6 +81,9 @@ class DiffuseState:
             np.asarray(d["positions"], np.float32), np.asarray(d["velocities"], np.float32),
             np.asarray(d["lifetime"], np.float32), np.asarray(d["ids"], np.uint32), int(d["next_id"]),
             [tuple(r) for r in np.asarray(d["counts"]).tolist()], np.asarray(d["tau"], np.float32) if "tau" in d else None,
+            float(d.get("scale", 1.0)),
+            np.asarray(d["history"], np.float32) if "history" in d else np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32),
+            np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
         )
 
 
@@ -82,6 +101,27 @@ def _nd(a: np.ndarray, dtype, vec: bool = False):
     return arr
 
 
+def _hash_u32(a: np.ndarray) -> np.ndarray:
+    """kernels.hash_u32 (lowbias32) on numpy arrays."""
+    a = np.asarray(a, np.uint32).copy()
+    with np.errstate(over="ignore"):
+        a ^= a >> np.uint32(16)
+        a *= np.uint32(0x7FEB352D)
+        a ^= a >> np.uint32(15)
+        a *= np.uint32(0x846CA68B)
+        a ^= a >> np.uint32(16)
+    return a
+
+
+def uniform(seed: int, frame: int, pid: np.ndarray, slot, draw: int) -> np.ndarray:
+    """kernels.rand01 on numpy arrays: uniform [0, 1) from (seed, frame, id, slot, draw)."""
+    slot = np.asarray(slot, np.uint32)
+    with np.errstate(over="ignore"):
+        inner = _hash_u32(slot * np.uint32(16) + np.uint32(draw))
+    h = _hash_u32(np.uint32(seed) ^ _hash_u32(np.uint32(frame & 0xFFFFFFFF) ^ _hash_u32(np.asarray(pid, np.uint32) ^ inner)))
+    return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
+
+
 class FoamGenerator:
     def __init__(self, params: FoamParams, radius: float, domain: tuple, gravity, seed: int, arch: str = "cpu",
                  obstacles: list | None = None):
@@ -92,48 +132,150 @@ class FoamGenerator:
         self.lo = np.asarray(domain[0], np.float64)
         self.hi = np.asarray(domain[1], np.float64)
         self.g = ti.math.vec3(*gravity)
+        self.g_norm = float(np.linalg.norm(np.asarray(gravity, np.float64)))
         self.seed = int(seed) & 0xFFFFFFFF
         self.state = DiffuseState.empty()
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
         self._slots = None
+        self._S = 0
+        self.capacity: int | None = None
+        self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
         self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
 
-    # ------------------------------------------------------------------ thresholds
-    def thresholds(self) -> np.ndarray:
+    # ------------------------------------------------------------------ thresholds and multipliers
+    def base_thresholds(self) -> np.ndarray:
         p = self.p
-        if self.state.tau is not None:
-            return self.state.tau
         return np.array([p.ta_min, p.ta_max, p.wc_min, p.wc_max, p.ke_min, p.ke_max, p.vo_min, p.vo_max], np.float32)
 
-    def _auto_thresholds(self, pots: dict[str, np.ndarray], speed: np.ndarray, index: int) -> None:
-        """'auto': τmin/τmax from percentiles of each potential over the moving particles,
-        never below a twentieth of the preset's values (so still water stays still)."""
-        moving = speed > 0.05 * math.sqrt(float(np.linalg.norm(self.g.to_numpy())) * self.h)
-        if moving.sum() < 10:
-            return  # wait for a frame with motion
-        base = np.array([self.p.ta_min, self.p.ta_max, self.p.wc_min, self.p.wc_max,
-                         self.p.ke_min, self.p.ke_max, self.p.vo_min, self.p.vo_max], np.float32)
-        tau = base.copy()
-        for k, name in enumerate(("ta", "wc", "ke", "vo")):
-            vals = pots[name][moving]
-            vals = vals[vals > 0]
-            if len(vals) < 10:
-                continue
-            lo_, hi_ = np.percentile(vals, AUTO_PERCENTILES)
-            tmin = max(float(lo_), base[2 * k] / 20)
-            tau[2 * k] = tmin
-            tau[2 * k + 1] = max(float(hi_), 2 * tmin)
+    def thresholds(self) -> np.ndarray:
+        return self.state.tau if self.state.tau is not None else self.base_thresholds()
+
+    def multipliers(self) -> tuple[float, float, float]:
+        """(k_ta, k_wc, k_vo) in use: the preset's, times the budget's scale under 'auto'."""
+        s = self.state.scale if self._scaled() else 1.0
+        return (self.p.k_ta * s, self.p.k_wc * s, self.p.k_vo * s)
+
+    def _scaled(self) -> bool:
+        return self.p.auto and not ({"k_ta", "k_wc", "k_vo"} & self.p.explicit)
+
+    def _auto_tau(self, pots: dict, moving: np.ndarray) -> np.ndarray:
+        """Percentile thresholds, keeping any threshold set explicitly."""
+        base = self.base_thresholds()
+        tau = B.percentile_thresholds(pots, moving, base)
+        for k, name in enumerate(("ta_min", "ta_max", "wc_min", "wc_max", "ke_min", "ke_max", "vo_min", "vo_max")):
+            if name in self.p.explicit:
+                tau[k] = base[k]
+        return tau
+
+    def potentials(self, fluid: ParticleFrame) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The four potentials per fluid particle and whether it moves: what 'auto' reads from a frame."""
+        self._potential_arrays(fluid, len(fluid))
+        return self._pots, self._moving(fluid)
+
+    def _moving(self, fluid: ParticleFrame) -> np.ndarray:
+        return np.linalg.norm(fluid.velocities, axis=1) > B.moving_speed(self.g_norm, self.h)
+
+    def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
+                  indices: list[int] | None = None) -> None:
+        """Post-processing 'auto': thresholds from the potentials pooled over frames sampled
+        across the run (``samples``), then the scale that puts the predicted peak on the
+        budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``; frame
+        numbers ``indices``). As frames are processed their real birth rates replace the
+        interpolated ones and the scale is set again (see _replan)."""
+        got = [self.potentials(f) for f in samples]
+        pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
+        tau = self._auto_tau(pooled, np.concatenate([g[1] for g in got]))
         self.state.tau = tau
+        if self._scaled():
+            k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
+            t_s = np.array([f.time for f in samples], np.float64)
+            rate_s = np.array([B.birth_rate(g[0], tau, k0, dt) for g in got])
+            rate = np.interp(times, t_s, rate_s)
+            self._plan = (np.asarray(times, np.float64), rate, np.asarray(n_fluid, np.float64),
+                          {int(i): k for k, i in enumerate(indices if indices is not None else range(len(times)))})
+            self._set_scale(dt)
+        self.looked_ahead = True
+        self._say_auto(f"whole run, {len(samples)} frames sampled")
+
+    def _set_scale(self, dt: float) -> None:
+        times, rate, n_fluid, _ = self._plan
+        ratio = B.predicted_ratio(times, rate, n_fluid, self.p, dt)
+        peak = float(ratio.max()) if len(ratio) else 0.0
+        self.state.scale = self.p.budget / peak if peak > 0 else 1.0
+        self._scales = np.full(len(times), np.nan)
+
+    def _replan(self, index: int, dt: float) -> None:
+        """Post-processing 'auto': this frame's real birth rate replaces the interpolated one,
+        the frames done so far correct the model's survival (live count / predicted), and the
+        scale for the rest of the run is set so the corrected prediction peaks on the budget."""
+        plan = getattr(self, "_plan", None)
+        if plan is None or index not in plan[3]:
+            return
+        times, rate, n_fluid, pos = plan
+        k = pos[index]
+        k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
+        rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
+        s_past = np.nan_to_num(self._scales[:k])
+        counts = self.state.counts
+        alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
+        self.state.scale = B.rescale(times, rate, n_fluid, s_past, alive, self.p, dt, self.state.scale)
+        self.state.scale = B.within_budget(self.state.scale, rate[k], alive, n_fluid[k], self.p.budget)
+        self._scales[k] = self.state.scale
+
+    def _running_auto(self, n: int, index: int, dt: float, fluid: ParticleFrame) -> None:
+        """Simulation 'auto': the thresholds and the expected peak only rise with what the flow
+        has shown so far, and the scale follows them (see budget.running_peak); the birth rates
+        of past frames are recomputed with today's thresholds from their sampled potentials."""
+        st = self.state
+        pots = self._pots
+        moving = self._moving(fluid)
+        if moving.sum() < B.MIN_SAMPLES:
+            return  # nothing moves yet: nothing would be generated
+        pick = np.linspace(0, n - 1, B.HISTORY_SAMPLE).astype(np.int64)
+        sample = np.stack([pots[k][pick] for k in ("ta", "wc", "ke", "vo")] + [moving[pick]], 1).astype(np.float32)
+        st.history = np.concatenate([st.history, sample[None]])
+        # τ from the moving particles of all frames so far, pooled, as post-processing does with its samples.
+        h = st.history.reshape(-1, 5)
+        tau = self._auto_tau({k: h[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, h[:, 4] > 0)
+        first = st.tau is None
+        st.tau = tau if first else np.maximum(st.tau, tau)
+        if self._scaled():
+            k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
+            h = st.history
+            rates = np.array([B.birth_rate({"ta": h[f, :, 0], "wc": h[f, :, 1], "ke": h[f, :, 2], "vo": h[f, :, 3]},
+                                           st.tau, k0, dt) for f in range(len(h))]) / B.HISTORY_SAMPLE
+            peak = B.running_peak(rates, self.p, dt)
+            if peak > 0:
+                st.scale = self.p.budget / peak
+                alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
+                st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt), alive, n, self.p.budget)
+        if first:
+            self._say_auto(f"running estimate from frame {index}; it only rises")
+
+    def _say_auto(self, how: str) -> None:
+        tau, k = self.thresholds(), self.multipliers()
+        budget = (f"k_ta {k[0]:.3g}, k_wc {k[1]:.3g}, k_vo {k[2]:.3g} 1/s ({self.state.scale:.3g} × the preset's) "
+                  f"for a budget of {self.p.budget:g} diffuse per fluid particle at the peak"
+                  if self._scaled() else "multipliers as set")
         console.print(
-            f"foam auto thresholds (frame {index}): trapped air {tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest "
-            f"{tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J/kg, vorticity {tau[6]:.3g}–{tau[7]:.3g} 1/s"
+            f"foam auto ({how}): trapped air {tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest "
+            f"{tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J/kg, vorticity {tau[6]:.3g}–{tau[7]:.3g} 1/s; "
+            + budget
         )
+
+    def peak_report(self) -> str:
+        pk = self.state.peaks
+        k = self.multipliers()
+        return (f"peak diffuse per fluid particle: {pk[0]:.2f} at frame {int(pk[1])} (spray {pk[2]:.2f}, foam {pk[3]:.2f}, "
+                f"bubbles {pk[4]:.2f} at their own peaks)"
+                + (f"; budget {self.p.budget:g}, last multipliers k_ta {k[0]:.3g}, k_wc {k[1]:.3g}, k_vo {k[2]:.3g} 1/s"
+                   if self._scaled() else ""))
 
     # ------------------------------------------------------------------ one frame
     def _fluid_grid(self, n: int) -> NeighborGrid:
         if self.grid is None or self.grid.capacity < n:
-            self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), max(n, 1), 96, self.h)
+            self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), max(n, 1), MAX_FLUID_NEIGHBOURS, self.h)
         return self.grid
 
     def _prepare(self, fluid: ParticleFrame, n: int):
@@ -144,37 +286,74 @@ class FoamGenerator:
         g.build(fx, n)
         return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
 
+    def _potential_arrays(self, fluid: ParticleFrame, n: int):
+        """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots)."""
+        fx, fv, fid, args = self._prepare(fluid, n)
+        g = self.grid
+        m = max(n, 1)
+        normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
+        v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
+        if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
+            v_diff, crest, e_k = SP.frame_potentials(self, fx, fv, n)
+            vort.fill(0.0)
+            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
+        else:
+            K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+            K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
+        self._pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
+        return args, fx, fv, fid, (v_diff, crest, e_k, vort)
+
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
         if fluid.velocities is None:
             raise ValueError(f"{fluid.source}: fluid frame has no velocities")
         n = len(fluid)
-        with timer("foam.neighbours"):
-            fx, fv, fid, args = self._prepare(fluid, n)
+        if self.capacity is None:
+            self._size(n)
+        with timer("foam.potentials"):
+            args, fx, fv, fid, pots = self._potential_arrays(fluid, n)
         with timer("foam.advect"):
-            old = self._advect(args, dt)
+            old = self._advect(fx, fv, args, dt, index)
         with timer("foam.generate"):
-            new = self._generate(fluid, fx, fv, fid, n, index, dt)
+            new = self._generate(fluid, fx, fv, fid, args, pots, n, index, dt)
         with timer("foam.compact"):
-            self._compact(old, new, index)
-        with timer("foam.classify"):
-            kind = self._classify(args)
+            kind = self._compact(old, new, index)
         nd = len(st.positions)
         c = [int((kind == t).sum()) for t in range(3)]
         time_ = fluid.time if fluid.time is not None else index * dt
         st.counts.append((index, time_, *c))
+        self._track_peak(c, n, index)
         return ParticleFrame(
             positions=st.positions, velocities=st.velocities, ids=st.ids, time=time_,
             arrays={"type": kind, "lifetime": st.lifetime, "radius": np.full(nd, self.p.radius * self.r, np.float32)},
         )
 
-    def _advect(self, args, dt):
-        """(1) classify the existing diffuse particles by their fluid neighbours and advect by type."""
+    def _size(self, n: int) -> None:
+        """Capacity from the budget (unless set); warn when a set capacity is below the budget."""
+        p = self.p
+        self.capacity = B.capacity_for(p, n)
+        want = p.budget * n
+        if p.auto and p.max_particles is not None and p.max_particles < want:
+            console.print(
+                f"[yellow]warning:[/] foam.budget = {p.budget:g} asks for about {want:,.0f} diffuse particles at the "
+                f"peak ({n:,} fluid particles), beyond foam.max_particles = {p.max_particles:,}; the excess will be "
+                "dropped (raise max_particles or leave it unset)."
+            )
+
+    def _track_peak(self, c: list, n: int, index: int) -> None:
+        pk = self.state.peaks
+        ratios = np.array(c, np.float64) / max(n, 1)
+        if ratios.sum() > pk[0] or pk[1] < 0:
+            pk[0], pk[1] = ratios.sum(), index
+        pk[2:] = np.maximum(pk[2:], ratios)
+
+    def _advect(self, fx, fv, args, dt, index):
+        """(1) classify the existing diffuse particles by their fluid neighbours and advect by type;
+        remove the expired, the dissipated foam and those leaving the domain."""
         p, st = self.p, self.state
         nd = len(st.positions)
-        self._old_kind = np.zeros(0, np.uint8)
         if not nd:
-            return st.positions, st.velocities, st.lifetime, st.ids
+            return st.positions, st.velocities, st.lifetime, st.ids, np.zeros(0, np.uint8)
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         xd, vd = _nd(st.positions, ti.f32, True), _nd(st.velocities, ti.f32, True)
         life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
@@ -184,76 +363,112 @@ class FoamGenerator:
             int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
         )
         k = keep.to_numpy()[:nd].astype(bool)
-        self._old_kind = kind.to_numpy()[:nd][k].astype(np.uint8)
-        return xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], life.to_numpy()[:nd][k], st.ids[k]
+        kd = kind.to_numpy()[:nd]
+        lf = life.to_numpy()[:nd]
+        # Spray and bubbles count down too where their type has a lifetime range.
+        for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
+            if rng is not None:
+                sel = kd == t
+                lf[sel] -= dt
+                k &= ~(sel & (lf <= 0.0))
+        # Foam dissipation: each foam particle survives a frame with probability exp(−λ Δt).
+        if p.foam_dissipation > 0:
+            foam = kd == 1
+            gone = uniform(self.seed, index, st.ids, 0, DRAW_DISSIPATE) >= math.exp(-p.foam_dissipation * dt)
+            k &= ~(foam & gone)
+        return xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
 
-    def _generate(self, fluid, fx, fv, fid, n, index, dt):
-        """(2) potentials and generation, in parallel per fluid particle into its own fixed slots."""
-        p, st, g = self.p, self.state, self.grid
-        m = max(n, 1)
-        normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
-        v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
-        if p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
-            v_diff, crest, e_k = SP.frame_potentials(self, fx, fv, n)
-            vort.fill(0.0)
-            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
-        else:
-            K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-            K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
-        if p.auto and st.tau is None:
-            pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
-            self._auto_thresholds(pots, np.linalg.norm(fluid.velocities, axis=1), index)
+    def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
+        """(2) generation, in parallel per fluid particle into its own run of the output; then
+        the type of each new particle and thinning by its type's multiplier."""
+        p = self.p
+        v_diff, crest, e_k, vort = pots
+        if p.auto and not self.looked_ahead:
+            self._running_auto(n, index, dt, fluid)
+        elif p.auto and self._scaled():
+            self._replan(index, dt)
         tau = _nd(self.thresholds(), ti.f32)
-        S = p.slots_per_particle
-        if self._slots is None or self._slots[0] < n * S:
-            cap = max(n * S, 1)
-            self._slots = (cap, ti.Vector.ndarray(3, ti.f32, cap), ti.Vector.ndarray(3, ti.f32, cap), ti.ndarray(ti.f32, cap))
-        _, ox, ov, ol = self._slots
-        cnt = ti.ndarray(ti.i32, m)
-        lost = K.generate(
-            n, fx, fv, fid, v_diff, crest, e_k, vort, tau, p.k_ta, p.k_wc, p.k_vo, p.lifetime_min, p.lifetime_max,
-            p.lifetime_multiplier, self.r, dt, self.seed, index & 0xFFFFFFFF, S, ox, ov, ol, cnt,
-            int(p.model == "foamgenerator"),
-        )
-        # Slot s of particle i is valid when s < count[i]; only particles that generated are read back.
+        mult = np.asarray(p.type_multipliers, np.float64)
+        most = float(mult.max())
+        z = np.zeros((0, 3), np.float32)
+        none = (z, z, np.zeros(0, np.float32), np.zeros(0, np.uint8), 0)
+        if most <= 0:
+            return none
+        k = [x * most for x in self.multipliers()]  # candidates for the most generous type; cut below
+        cap = self._S = p.slots_per_particle or 0
+        m = max(n, 1)
+        cnt, rate = ti.ndarray(ti.i32, m), ti.ndarray(ti.f32, m)
+        frame = index & 0xFFFFFFFF
+        lost = K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap, cnt, rate,
+                              int(p.model == "foamgenerator"))
         counts = cnt.to_numpy()[:n]
-        if not counts.any():
-            z = np.zeros((0, 3), np.float32)
-            return z, z, np.zeros(0, np.float32), int(lost)
+        total = int(counts.sum())
+        if not total:
+            return none[:4] + (int(lost),)
+        offset = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
+        if self._slots is None or self._slots[0] < total:
+            size = max(total, 2 * (self._slots[0] if self._slots else 0))
+            self._slots = (size, ti.Vector.ndarray(3, ti.f32, size), ti.Vector.ndarray(3, ti.f32, size), ti.ndarray(ti.f32, size))
+        _, ox, ov, ol = self._slots
+        K.generate(n, fx, fv, fid, e_k, tau, cnt, _nd(offset, ti.i32), p.lifetime_min, p.lifetime_max,
+                   p.lifetime_multiplier, self.r, dt, self.seed, frame, ox, ov, ol)
+        x, v, life = ox.to_numpy()[:total], ov.to_numpy()[:total], ol.to_numpy()[:total]
         rows = np.flatnonzero(counts)
-        idx = (rows[:, None] * S + np.arange(S)[None, :])[np.arange(S)[None, :] < counts[rows, None]]
-        life = ol.to_numpy()[idx]
+        owner = np.repeat(np.arange(len(rows)), counts[rows])  # generating particle of each new one
+        slot = np.arange(total) - offset[rows][owner]
+        pid = fluid.ids.astype(np.uint32)[rows][owner]
         if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
-            tau = self.thresholds()
-            src = np.repeat(rows, counts[rows])
-            e = e_k.to_numpy()[:n][src].astype(np.float64)
-            i_k = (np.minimum(e, tau[5]) - np.minimum(e, tau[4])) / (tau[5] - tau[4])
+            tau_ = self.thresholds()
+            e = e_k.to_numpy()[:n][rows][owner].astype(np.float64)
+            i_k = (np.minimum(e, tau_[5]) - np.minimum(e, tau_[4])) / (tau_[5] - tau_[4])
             x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
-            life = SP.lifetimes(x01, i_k, float(tau[5]), p.lifetime_min, p.lifetime_max)
-        return ox.to_numpy()[idx], ov.to_numpy()[idx], life, int(lost)
+            life = SP.lifetimes(x01, i_k, float(tau_[5]), p.lifetime_min, p.lifetime_max)
+        # The type each new particle is born as; a particle of type t is kept when its slot is
+        # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
+        # particles of a type whose multiplier is unchanged stay exactly the same.
+        kd = ti.ndarray(ti.i32, len(x))
+        K.classify(len(x), _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above, kd)
+        kind = kd.to_numpy()[: len(x)].astype(np.uint8)
+        nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
+        u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)
+        want = nd0[:, None] * mult.astype(np.float32)[None, :]  # (generating particle, type)
+        if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
+            limit = np.floor(want + np.float32(0.5))
+        else:
+            limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
+        keep = slot < limit[owner, kind]
+        # Spray and bubbles with their own lifetime range draw it here.
+        for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
+            if rng is not None:
+                sel = kind == t
+                u = uniform(self.seed, index, pid[sel], slot[sel], DRAW_LIFE)
+                life[sel] = rng[0] + (rng[1] - rng[0]) * u
+        return x[keep], v[keep], life[keep], kind[keep], int(lost)
 
-    def _compact(self, old, new, index) -> None:
-        """(3) survivors first, then the new particles in slot order: a fixed order, no global counter."""
+    def _compact(self, old, new, index) -> np.ndarray:
+        """(3) survivors first, then the new particles in fluid order: a fixed order, no global counter.
+        Returns the type of every particle."""
         p, st = self.p, self.state
-        new_x, new_v, new_l, lost = new
-        room = p.max_particles - len(old[0])
+        new_x, new_v, new_l, new_k, lost = new
+        room = self.capacity - len(old[0])
         if len(new_x) > room or lost:
             if not self._warned_capacity:
+                slots = f"{lost:,} beyond foam.slots_per_particle = {self._S} per fluid particle, " if lost else ""
                 console.print(
                     f"[yellow]warning:[/] foam capacity saturated at frame {index}: {len(new_x) + lost:,} new particles "
-                    f"wanted, {lost:,} beyond foam.slots_per_particle={p.slots_per_particle} per fluid particle, "
-                    f"{max(len(new_x) - max(room, 0), 0):,} beyond foam.max_particles={p.max_particles:,} "
+                    f"wanted, {slots}{max(len(new_x) - max(room, 0), 0):,} beyond foam.max_particles = {self.capacity:,} "
                     f"({len(old[0]):,} alive); the excess is dropped (raise these to keep it). Said once per run."
                 )
                 self._warned_capacity = True
             room = max(room, 0)
-            new_x, new_v, new_l = new_x[:room], new_v[:room], new_l[:room]
+            new_x, new_v, new_l, new_k = new_x[:room], new_v[:room], new_l[:room], new_k[:room]
         new_ids = (st.next_id + np.arange(len(new_x))).astype(np.uint32)
         st.next_id += len(new_x)
         st.positions = np.concatenate([old[0], new_x]).astype(np.float32)
         st.velocities = np.concatenate([old[1], new_v]).astype(np.float32)
         st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
         st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
+        kind = np.concatenate([old[4], new_k]).astype(np.uint8)
         if len(st.positions):
             # Inside the domain and outside every obstacle; new particles born outside
             # the domain go at once, as moved ones do in _advect.
@@ -261,22 +476,9 @@ class FoamGenerator:
             for g in self.obstacles:
                 keep &= g.sample(st.positions) > 0.0
             if not keep.all():
-                n_old = len(old[0])
-                self._old_kind = self._old_kind[keep[:n_old]]
                 st.positions, st.velocities = st.positions[keep], st.velocities[keep]
-                st.lifetime, st.ids = st.lifetime[keep], st.ids[keep]
-
-    def _classify(self, args) -> np.ndarray:
-        """(4) spray / foam / bubble for output: survivors keep the type they moved as
-        this frame; new particles are classified by their fluid neighbours."""
-        st, p = self.state, self.p
-        n_old = len(self._old_kind)
-        new = st.positions[n_old:]
-        if not len(new):
-            return self._old_kind
-        kd = ti.ndarray(ti.i32, len(new))
-        K.classify(len(new), _nd(new, ti.f32, True), *args, p.spray_below, p.bubble_above, kd)
-        return np.concatenate([self._old_kind, kd.to_numpy()[: len(new)].astype(np.uint8)])
+                st.lifetime, st.ids, kind = st.lifetime[keep], st.ids[keep], kind[keep]
+        return kind
 
     def with_params(self, **kw) -> None:
         self.p = replace(self.p, **kw)

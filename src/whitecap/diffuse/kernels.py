@@ -15,7 +15,7 @@ import math
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, I2, CellGeometry, for_each_neighbor
+from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
 
 vec3 = ti.math.vec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
@@ -118,11 +118,19 @@ def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surfac
         crest[i] = kappa
 
 
+@ti.func
+def new_particles(i, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, k_ta, k_wc, k_vo, dt) -> ti.f32:
+    """n_d = I_k (k_ta I_ta + k_wc I_wc + k_vo I_vo) Δt of fluid particle i, before rounding."""
+    i_ta = clamp_phi(v_diff[i], tau[0], tau[1])
+    i_wc = clamp_phi(crest[i], tau[2], tau[3])
+    i_k = clamp_phi(e_k[i], tau[4], tau[5])
+    i_vo = clamp_phi(vort[i], tau[6], tau[7])
+    return i_k * (k_ta * i_ta + k_wc * i_wc + k_vo * i_vo) * dt
+
+
 @ti.kernel
-def generate(
+def birth_counts(
     n: ti.i32,
-    x: F3,
-    v: F3,
     ids: U1,
     v_diff: F1,
     crest: F1,
@@ -132,6 +140,44 @@ def generate(
     k_ta: ti.f32,
     k_wc: ti.f32,
     k_vo: ti.f32,
+    dt: ti.f32,
+    seed: ti.u32,
+    frame: ti.u32,
+    cap: ti.i32,
+    count: I1,
+    rate: F1,
+    round_half_up: ti.i32,
+) -> ti.i32:
+    """How many particles each fluid particle generates: n_d (see new_particles) into
+    ``rate``, rounded stochastically into ``count`` (or to the nearest integer with
+    ``round_half_up``, as SPlisHSPlasH's FoamGenerator does), at most ``cap`` (0: no
+    cap). Returns the number beyond the cap."""
+    lost = 0
+    for i in range(n):
+        nd = new_particles(i, v_diff, crest, e_k, vort, tau, k_ta, k_wc, k_vo, dt)
+        rate[i] = nd
+        m = ti.cast(ti.floor(nd), ti.i32)
+        if round_half_up:
+            m = ti.cast(ti.floor(nd + 0.5), ti.i32)
+        elif rand01(seed, frame, ids[i], ti.u32(0xFFFF), ti.u32(0)) < nd - m:
+            m += 1
+        if cap > 0 and m > cap:
+            lost += m - cap
+            m = cap
+        count[i] = m
+    return lost
+
+
+@ti.kernel
+def generate(
+    n: ti.i32,
+    x: F3,
+    v: F3,
+    ids: U1,
+    e_k: F1,
+    tau: F1,
+    count: I1,
+    offset: I1,
     life_min: ti.f32,
     life_max: ti.f32,
     life_mult: ti.f32,
@@ -139,65 +185,47 @@ def generate(
     dt: ti.f32,
     seed: ti.u32,
     frame: ti.u32,
-    slots: ti.i32,
     out_x: F3,
     out_v: F3,
     out_life: F1,
-    count: I1,
-    round_half_up: ti.i32,
-) -> ti.i32:
-    """n_d = I_k (k_ta I_ta + k_wc I_wc + k_vo I_vo) Δt new particles per fluid
-    particle (fraction rounded stochastically, or to the nearest integer with
-    ``round_half_up`` as SPlisHSPlasH's FoamGenerator does), each sampled uniformly in a
-    cylinder of radius r_V and height |Δt v_f| along v̂_f:
+):
+    """The count[i] new particles of fluid particle i (from birth_counts), each sampled
+    uniformly in a cylinder of radius r_V and height |Δt v_f| along v̂_f:
         r = r_V √X_r, θ = 2π X_θ, h = X_h |Δt v_f|,
         x_d = x_f + r cosθ e1' + r sinθ e2' + h v̂_f,  v_d = r cosθ e1' + r sinθ e2' + v_f.
-    Particle i writes only its own slots [i·slots, (i+1)·slots). Returns the
-    number of particles that did not fit in the slots."""
-    lost = 0
+    Particle i writes only its own run [offset[i], offset[i] + count[i]) (offset: the
+    exclusive prefix sum of count), so the order is fixed whatever the thread count."""
     for i in range(n):
-        i_ta = clamp_phi(v_diff[i], tau[0], tau[1])
-        i_wc = clamp_phi(crest[i], tau[2], tau[3])
-        i_k = clamp_phi(e_k[i], tau[4], tau[5])
-        i_vo = clamp_phi(vort[i], tau[6], tau[7])
-        nd = i_k * (k_ta * i_ta + k_wc * i_wc + k_vo * i_vo) * dt
-        pid = ids[i]
-        m = ti.cast(ti.floor(nd), ti.i32)
-        if round_half_up:
-            m = ti.cast(ti.floor(nd + 0.5), ti.i32)
-        elif rand01(seed, frame, pid, ti.u32(0xFFFF), ti.u32(0)) < nd - m:
-            m += 1
-        if m > slots:
-            lost += m - slots
-            m = slots
-        vf = v[i]
-        vl = vf.norm()
-        vh = vec3(0.0, 0.0, 1.0)
-        if vl > 1e-9:
-            vh = vf / vl
-        a = vec3(1.0, 0.0, 0.0)
-        if ti.abs(vh.x) > NEAR_PARALLEL_COS:
-            a = vec3(0.0, 1.0, 0.0)
-        e1 = a.cross(vh).normalized()
-        e2 = vh.cross(e1)
-        for s in range(m):
-            su = ti.cast(s, ti.u32)
-            xr = rand01(seed, frame, pid, su, ti.u32(1))
-            xt = rand01(seed, frame, pid, su, ti.u32(2))
-            xh = rand01(seed, frame, pid, su, ti.u32(3))
-            xl = rand01(seed, frame, pid, su, ti.u32(4))
-            rr = r_v * ti.sqrt(xr)
-            th = 2.0 * math.pi * xt
-            off = rr * ti.cos(th) * e1 + rr * ti.sin(th) * e2
-            k = i * slots + s
-            out_x[k] = x[i] + off + xh * dt * vl * vh
-            out_v[k] = off + vf
-            life = life_min + (life_max - life_min) * xl
-            if life_mult > 0.0:
-                life = life_mult * i_k * dt
-            out_life[k] = life
-        count[i] = m
-    return lost
+        m = count[i]
+        if m > 0:
+            i_k = clamp_phi(e_k[i], tau[4], tau[5])
+            pid = ids[i]
+            vf = v[i]
+            vl = vf.norm()
+            vh = vec3(0.0, 0.0, 1.0)
+            if vl > 1e-9:
+                vh = vf / vl
+            a = vec3(1.0, 0.0, 0.0)
+            if ti.abs(vh.x) > NEAR_PARALLEL_COS:
+                a = vec3(0.0, 1.0, 0.0)
+            e1 = a.cross(vh).normalized()
+            e2 = vh.cross(e1)
+            for s in range(m):
+                su = ti.cast(s, ti.u32)
+                xr = rand01(seed, frame, pid, su, ti.u32(1))
+                xt = rand01(seed, frame, pid, su, ti.u32(2))
+                xh = rand01(seed, frame, pid, su, ti.u32(3))
+                xl = rand01(seed, frame, pid, su, ti.u32(4))
+                rr = r_v * ti.sqrt(xr)
+                th = 2.0 * math.pi * xt
+                off = rr * ti.cos(th) * e1 + rr * ti.sin(th) * e2
+                k = offset[i] + s
+                out_x[k] = x[i] + off + xh * dt * vl * vh
+                out_v[k] = off + vf
+                life = life_min + (life_max - life_min) * xl
+                if life_mult > 0.0:
+                    life = life_mult * i_k * dt
+                out_life[k] = life
 
 
 @ti.kernel
@@ -218,13 +246,16 @@ def _weigh_fluid(s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.templ
 
 
 @ti.func
-def fluid_neighbourhood(p: vec3, cells: ti.template(), xs: F3, start: I1, reach: ti.template(), h: ti.f32, order: I1, fv: F3):
+def fluid_neighbourhood(
+    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1, reach: ti.template(),
+    h: ti.f32, order: I1, fv: F3,
+):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
     :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``, then h, order)."""
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor(p, h, cells, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum))
+    for_each_neighbor(p, h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum))
     return cnt, vsum, wsum
 
 
@@ -246,7 +277,9 @@ def advect_diffuse(
     xd: F3,
     vd: F3,
     life: F1,
-    cells: CellGeometry,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
     xs: F3,
     start: I1,
     reach: ti.template(),
@@ -273,7 +306,7 @@ def advect_diffuse(
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
     that leave the domain. ``kind`` is the type each particle moved as."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
@@ -303,7 +336,9 @@ def advect_diffuse(
 def classify(
     nd: ti.i32,
     xd: F3,
-    cells: CellGeometry,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
     xs: F3,
     start: I1,
     reach: ti.template(),
@@ -316,5 +351,5 @@ def classify(
 ):
     """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], cells, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         kind[p] = diffuse_type(cnt, spray_below, bubble_above)

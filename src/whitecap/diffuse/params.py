@@ -41,11 +41,17 @@ class FoamParams:
     lifetime_multiplier: float  # > 0: lifetime = multiplier · I_k · Δt
     buoyancy: float  # k_b
     drag: float  # k_d
-    slots_per_particle: int = 8
-    max_particles: int = 400_000
+    slots_per_particle: int | None = None  # at most this many new particles per fluid particle and frame
+    max_particles: int | None = None  # None: budget.CAPACITY_HEADROOM × budget × fluid particles
     radius: float = 0.5  # × fluid radius
     support: float = 4.0  # × fluid radius
     auto: bool = False
+    budget: float = 2.0  # 'auto': diffuse per fluid particle at the peak
+    type_multipliers: tuple = (1.0, 1.0, 1.0)  # spray, foam, bubbles: generation of each type, relative
+    spray_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while spray
+    bubble_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while a bubble
+    foam_dissipation: float = 0.0  # [1/s]: foam vanishes at this rate besides its lifetime
+    explicit: frozenset = frozenset()  # names set in [foam] or the .ini: 'auto' leaves them alone
     # 'ihmsen2012': whitecap's potentials (kernel W̃ = 1 − r/h, E_k per unit mass [J/kg]);
     # 'foamgenerator': SPlisHSPlasH FoamGenerator's automatic mode (see .splishsplash).
     model: str = "ihmsen2012"
@@ -158,9 +164,11 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
     if name not in PRESETS:
         raise InputError(f"foam.preset: unknown preset {name!r} (known: {', '.join(PRESETS)})")
     values = dict(PRESETS[name])
+    explicit: set[str] = set()
     if ini is not None:
         f = ini if isinstance(ini, IniFile) else read_ini(ini)
         values.update(f.params)
+        explicit |= set(f.params) | set(f.joules)
         if f.joules:
             key = next(iter(f.joules.values()))[0]
             if not particle_mass or particle_mass <= 0:
@@ -169,9 +177,13 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
             values.update({ours: v / particle_mass for ours, (_, v) in f.joules.items()})
     for f in fields(FoamParams):
         v = getattr(cfg, f.name, None)
-        if v is not None and f.name not in ("auto", "model"):
-            values[f.name] = v
+        if v is not None and f.name not in ("auto", "model", "explicit", "type_multipliers"):
+            values[f.name] = tuple(v) if isinstance(v, list) else v
+            if f.name in PRESETS[name]:
+                explicit.add(f.name)
+    values["type_multipliers"] = (cfg.spray_multiplier, cfg.foam_multiplier, cfg.bubble_multiplier)
     values["auto"] = name == "auto"
+    values["explicit"] = frozenset(explicit)
     p = FoamParams(**values)
     for lo, hi in (("ta_min", "ta_max"), ("wc_min", "wc_max"), ("ke_min", "ke_max"), ("vo_min", "vo_max")):
         if getattr(p, hi) <= getattr(p, lo):

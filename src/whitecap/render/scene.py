@@ -23,7 +23,7 @@ import numpy as np
 
 from ..config import Render, obstacle_transform
 from ..errors import InputError
-from ..io import read
+from ..io import read, read_mesh
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
 
@@ -43,8 +43,6 @@ class SceneHandles:
 def read_surface(path: Path):
     """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
     registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
-    from ..io.mesh import read_mesh
-
     m = read_mesh(path)
     return m.vertices, m.faces, m.arrays.get("velocity")
 
@@ -177,8 +175,15 @@ def obstacle_material(entry: dict):
 
 
 # ---------------------------------------------------------------------------- geometry nodes
-def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int):
-    """Mesh to Points with a radius from Random Value seeded by the particle id."""
+# Render-time copies of a diffuse particle ([render] diffuse_copies) scatter within this many
+# fluid particle radii of it: about where the particle's own generation cylinder spreads them.
+COPY_JITTER = 1.0
+
+
+def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int, copies: int = 1, jitter: float = 0.0):
+    """Mesh to Points with a radius from Random Value seeded by the particle id; with
+    ``copies`` > 1, each point is duplicated and the copies moved by a random offset in
+    [−jitter, jitter]³ seeded by (id, copy), so they keep their place from frame to frame."""
     import bpy
 
     ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
@@ -204,9 +209,59 @@ def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int):
     setm.inputs["Material"].default_value = material
     ng.links.new(gin.outputs[0], m2p.inputs["Mesh"])
     ng.links.new(val, m2p.inputs["Radius"])
-    ng.links.new(m2p.outputs["Points"], setm.inputs["Geometry"])
+    points = m2p.outputs["Points"]
+    if copies > 1:
+        points = _jittered_copies(ng, points, pid.outputs["Attribute"], copies, jitter, seed)
+    ng.links.new(points, setm.inputs["Geometry"])
     ng.links.new(setm.outputs["Geometry"], gout.inputs[0])
     return ng
+
+
+def _jittered_copies(ng, points, pid, copies: int, jitter: float, seed: int):
+    """Duplicate Elements (copies − 1 more per point), then Set Position by a Random Value
+    vector whose ID is id·copies + copy index: the same offsets every frame."""
+    dup = ng.nodes.new("GeometryNodeDuplicateElements")
+    dup.domain = "POINT"
+    dup.inputs["Amount"].default_value = copies - 1
+    ng.links.new(points, dup.inputs["Geometry"])
+    join = ng.nodes.new("GeometryNodeJoinGeometry")
+    ng.links.new(points, join.inputs[0])
+    mul = ng.nodes.new("ShaderNodeMath")
+    mul.operation = "MULTIPLY_ADD"
+    ng.links.new(pid, mul.inputs[0])
+    mul.inputs[1].default_value = float(copies)
+    ng.links.new(dup.outputs["Duplicate Index"], mul.inputs[2])
+    one = ng.nodes.new("ShaderNodeMath")
+    one.operation = "ADD"
+    ng.links.new(mul.outputs[0], one.inputs[0])
+    one.inputs[1].default_value = 1.0  # copy 0 is the particle itself
+    rnd = ng.nodes.new("FunctionNodeRandomValue")
+    rnd.data_type = "FLOAT_VECTOR"
+    vmin = [s_ for s_ in rnd.inputs if s_.name == "Min" and s_.enabled][0]
+    vmax = [s_ for s_ in rnd.inputs if s_.name == "Max" and s_.enabled][0]
+    vmin.default_value = (-jitter, -jitter, -jitter)
+    vmax.default_value = (jitter, jitter, jitter)
+    rnd.inputs["Seed"].default_value = seed + 100
+    ng.links.new(one.outputs[0], rnd.inputs["ID"])
+    setp = ng.nodes.new("GeometryNodeSetPosition")
+    ng.links.new(dup.outputs["Geometry"], setp.inputs["Geometry"])
+    ng.links.new([s_ for s_ in rnd.outputs if s_.enabled][0], setp.inputs["Offset"])
+    ng.links.new(setp.outputs["Geometry"], join.inputs[0])
+    return join.outputs[0]
+
+
+# Sphere radius ranges of spray, foam and bubbles when [render] leaves them unset, as
+# multiples of the fluid particle radius r: spray is small droplets, foam many small
+# bubbles (not cotton balls), air bubbles in between.
+DIFFUSE_RADIUS = ((0.1, 0.25), (0.15, 0.35), (0.1, 0.3))
+
+
+def diffuse_radius(cfg: Render, t: int, r: float) -> tuple[float, float]:
+    """[min, max] sphere radius of type t (0 spray, 1 foam, 2 bubbles) in metres."""
+    own = (cfg.spray_radius, cfg.foam_radius, cfg.bubble_radius)[t]
+    if own is not None:
+        return float(own[0]), float(own[1])
+    return DIFFUSE_RADIUS[t][0] * r, DIFFUSE_RADIUS[t][1] * r
 
 
 # ---------------------------------------------------------------------------- stage
@@ -375,14 +430,14 @@ def _add_diffuse_objects(sc, cfg: Render, info: RunInfo) -> dict:
     import bpy
 
     r = info.particle_radius
-    rmin, rmax = cfg.foam_radius if cfg.foam_radius else (0.4 * r, 0.9 * r)
     diffuse = {}
     mats = (spray_material(), foam_material(), bubble_material())
-    scale = (0.6, 1.0, 0.8)
     for t, name in enumerate(COUNT_NAMES):
+        rmin, rmax = diffuse_radius(cfg, t, r)
         obj = bpy.data.objects.new(name, bpy.data.meshes.new(f"{name}_empty"))
         mod = obj.modifiers.new(name, "NODES")
-        mod.node_group = sphere_nodes(f"{name}_spheres", rmin * scale[t], rmax * scale[t], mats[t], seed=t + 1)
+        mod.node_group = sphere_nodes(f"{name}_spheres", rmin, rmax, mats[t], seed=t + 1,
+                                      copies=cfg.diffuse_copies, jitter=COPY_JITTER * r)
         sc.collection.objects.link(obj)
         diffuse[t] = obj
     return diffuse

@@ -34,8 +34,6 @@ F3 = ti.types.ndarray(dtype=vec3, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
-# Where the cells lie: a point p falls in cell floor((p − lower)·inv_cell), clamped to [0, dims).
-CellGeometry = ti.types.struct(lower=vec3, inv_cell=ti.f32, dims=ivec3)
 
 
 @ti.func
@@ -135,23 +133,25 @@ def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
 
 @ti.func
 def for_each_neighbor(
-    p: vec3, h: ti.f32, cells: ti.template(), x_sorted: F3, start: I1, reach: ti.template(),
-    task: ti.template(), args: ti.template(),
+    p: vec3, h: ti.f32, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3, start: I1,
+    reach: ti.template(), task: ti.template(), args: ti.template(),
 ):
     """The one neighbour query: calls ``task(s, r², *args)`` for every particle
     within ``h`` of the point ``p`` (|x_s − p|² < h²), where ``s`` is the
     particle's slot in cell order (``order[s]`` its index, ``x_sorted[s]`` its
-    position) and r² its squared distance. ``cells`` is the grid's
-    :data:`CellGeometry`, ``x_sorted``/``start``/``reach`` those of a built
-    :class:`NeighborGrid` (its :meth:`~NeighborGrid.query_args`). ``args`` is a
-    tuple handed on to ``task``; give its accumulators a ``ti.template()``
-    annotation in ``task`` so that they are updated in place.
+    position) and r² its squared distance. ``lower``, ``inv_cell``, ``dims``,
+    ``x_sorted``, ``start`` and ``reach`` are those of a built
+    :class:`NeighborGrid`, as :meth:`~NeighborGrid.query_args` gives them (a kernel
+    takes them as arguments and hands them on: as templates they are not
+    copied, which keeps the scan as fast as if it were written in the kernel).
+    A point p falls in cell floor((p − lower)·inv_cell), clamped to [0, dims).
+    ``args`` is a tuple handed on to ``task``; give its accumulators a
+    ``ti.template()`` annotation in ``task`` so that they are updated in place.
 
     Cells are h/reach wide, so the search covers (2·reach + 1)³ cells; the cells
     along z of each (x, y) column are adjacent in the cell numbering, so one
     contiguous run of the sorted order covers them, read from memory in order."""
-    dims = cells.dims
-    c = cell_of(p, cells.lower, cells.inv_cell, dims)
+    c = cell_of(p, lower, inv_cell, dims)
     z0 = ti.max(c.z - reach, 0)
     z1 = ti.min(c.z + reach, dims.z - 1)
     h2 = h * h
@@ -168,11 +168,11 @@ def for_each_neighbor(
 
 
 @ti.func
-def _append_neighbor(s, r2, i, order: I1, nb: I2, k: ti.template(), overflow: ti.template()):
-    """Adds the particle in slot ``s`` to ``i``'s list, or counts it as overflow when the list is full."""
+def _append_neighbor(s, r2, i, order: I1, nb: I2, cap, k: ti.template(), overflow: ti.template()):
+    """Adds the particle in slot ``s`` to ``i``'s list, or counts it as overflow when the list (``cap`` long) is full."""
     j = order[s]
     if j != i:
-        if k < nb.shape[1]:
+        if k < cap:
             nb[i, k] = j
             k += 1
         else:
@@ -181,16 +181,19 @@ def _append_neighbor(s, r2, i, order: I1, nb: I2, k: ti.template(), overflow: ti
 
 @ti.kernel
 def _build_lists(
-    n: ti.i32, cells: CellGeometry, x_sorted: F3, start: I1, reach: ti.template(), h: ti.f32,
+    n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, reach: ti.template(), h: ti.f32,
     order: I1, nb_count: I1, nb: I2,
 ) -> ti.i32:
     overflow = 0
+    cap = nb.shape[1]  # read once: the stores into nb would otherwise make it a load per candidate
     for si in range(n):
         # Walk particles in cell order: consecutive iterations share their
         # candidate cells, which then stay in cache.
         i = order[si]
         k = 0
-        for_each_neighbor(x_sorted[si], h, cells, x_sorted, start, reach, _append_neighbor, (i, order, nb, k, overflow))
+        for_each_neighbor(
+            x_sorted[si], h, lower, inv_cell, dims, x_sorted, start, reach, _append_neighbor, (i, order, nb, cap, k, overflow)
+        )
         nb_count[i] = k
     return overflow
 
@@ -244,7 +247,9 @@ class NeighborGrid:
         self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow = 0
-        self.cells = CellGeometry(lower=vec3(*spec.lower), inv_cell=1.0 / spec.cell, dims=ivec3(*spec.dims))
+        self.lower = vec3(*spec.lower)
+        self.inv_cell = 1.0 / spec.cell
+        self.dims = ivec3(*spec.dims)
 
     def nbytes(self) -> int:
         nc = self.spec.ncells
@@ -252,9 +257,9 @@ class NeighborGrid:
 
     def sort(self, x, n: int) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
-        s, c = self.spec, self.cells
+        s = self.spec
         _clear(self.count, s.ncells)
-        _count_cells(n, x, c.lower, c.inv_cell, c.dims, self.cell, self.rank, self.count)
+        _count_cells(n, x, self.lower, self.inv_cell, self.dims, self.cell, self.rank, self.count)
         _block_sums(self.count, s.ncells, self.bsum)
         _scan_blocks(self.bsum)
         _scan_cells(self.count, s.ncells, self.bsum, self.start, n)
@@ -271,9 +276,9 @@ class NeighborGrid:
         return self.overflow
 
     def query_args(self) -> tuple:
-        """(cells, x_sorted, start, reach): what a kernel hands :func:`for_each_neighbor`
-        to search this grid after :meth:`build`."""
-        return self.cells, self.x_sorted, self.start, self.reach
+        """(lower, inv_cell, dims, x_sorted, start, reach): what a kernel hands
+        :func:`for_each_neighbor` to search this grid after :meth:`build`."""
+        return self.lower, self.inv_cell, self.dims, self.x_sorted, self.start, self.reach
 
 
 def len_blocks(nc: int) -> int:

@@ -1,0 +1,188 @@
+"""'auto': clamping thresholds from the flow itself, multipliers from a budget.
+
+The thresholds τmin, τmax of each potential are percentiles of that potential
+over the moving fluid particles (AUTO_PERCENTILES):
+
+- in post-processing, pooled over frames sampled across the whole run, so a
+  gentle start is not the scale for a violent middle;
+- in the simulation, which cannot look ahead, a running maximum over the
+  frames so far: it only rises.
+
+The multipliers k_ta, k_wc, k_vo are the preset's times one scale s, chosen so
+that the live diffuse particles peak at ``budget`` per fluid particle with the
+per-type multipliers at 1 (a type's multiplier then scales that type alone).
+With G_f the particles born in frame f at s = 1,
+
+    G_f    = Σ_i I_k,i (k_ta I_ta,i + k_wc I_wc,i + k_vo I_vo,i) Δt
+    N_d(f) = Σ_{f' ≤ f} G_f' S(t_f − t_f')      (S(a): the chance to be alive at age a)
+    s      = budget / max_f N_d(f) / N_fluid(f)
+
+Post-processing evaluates N_d on every frame from G interpolated between the
+sampled frames; then, frame by frame, with that frame's real G and the survival
+corrected by the live count over its prediction (rescale). Both modes lower the
+scale of a frame whose births would take the live count past the budget
+(within_budget). The simulation cannot: it takes the mean rate over the last
+∫S seconds (over the frames since motion began, where fewer) as lasting, and
+the highest such estimate so far as the peak (running_peak).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# τmin, τmax of 'auto': these percentiles of each potential over the moving particles.
+AUTO_PERCENTILES = (95.0, 99.9)
+# A particle counts as moving above this fraction of √(g h), the speed of a gravity
+# wave one kernel radius deep: a settled tank's solver jitter stays below it.
+MOVING_FRACTION = 0.05
+# 'auto' thresholds never fall below this fraction of the preset's, so that still
+# water, whose potentials are all noise, still makes nothing.
+THRESHOLD_FLOOR = 1.0 / 20.0
+# Water entrains air only where it moves faster than about 1 m/s: the inception velocity of
+# air entrainment by a plunging jet is 0.8-1.1 m/s (Ervine, McKeogh & Elsawy 1980; Chanson
+# 1997). 'auto' never puts the kinetic-energy τmin below ½ of its square, so a settling tank
+# (a few tenths of a m/s) stays clear whatever its percentiles.
+AIR_ENTRAINMENT_SPEED = 1.0  # [m/s]
+# Fewer moving particles with a nonzero potential than this give no percentile.
+MIN_SAMPLES = 10
+# Fluid particles per frame whose potentials the simulation's running estimate keeps.
+HISTORY_SAMPLE = 4096
+# Frames post-processing reads ahead, spread evenly over the run, for the thresholds: at
+# most SAMPLE_FRAMES and a quarter of the run (at least MIN_SAMPLE_FRAMES), so looking
+# ahead costs at most a quarter more neighbour searches and potentials.
+SAMPLE_FRAMES = 12
+SAMPLE_SHARE = 0.25
+MIN_SAMPLE_FRAMES = 3
+
+
+def sample_count(frames: int) -> int:
+    return int(min(frames, SAMPLE_FRAMES, max(MIN_SAMPLE_FRAMES, math.ceil(SAMPLE_SHARE * frames))))
+# Capacity when max_particles is unset: this many times the budget's peak, so that an
+# estimate off by the tests' ±50 % (and a wide margin more) never saturates.
+CAPACITY_HEADROOM = 3.0
+def moving_speed(g: float, h: float) -> float:
+    return MOVING_FRACTION * math.sqrt(g * h)
+
+
+def phi(i: np.ndarray, tmin: float, tmax: float) -> np.ndarray:
+    """φ(I, τmin, τmax), as kernels.clamp_phi."""
+    return (np.minimum(i, tmax) - np.minimum(i, tmin)) / (tmax - tmin)
+
+
+def percentile_thresholds(pots: dict[str, np.ndarray], moving: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """τ (8 values: ta, wc, ke, vo min/max) from the moving particles' potentials; ``base`` where too few."""
+    tau = base.copy()
+    for k, name in enumerate(("ta", "wc", "ke", "vo")):
+        vals = pots[name][moving]
+        vals = vals[vals > 0]
+        if len(vals) < MIN_SAMPLES:
+            continue
+        lo, hi = np.percentile(vals, AUTO_PERCENTILES)
+        tmin = max(float(lo), float(base[2 * k]) * THRESHOLD_FLOOR)
+        if name == "ke":
+            tmin = max(tmin, 0.5 * AIR_ENTRAINMENT_SPEED**2)
+        tau[2 * k] = tmin
+        tau[2 * k + 1] = max(float(hi), 2 * tmin)
+    return tau
+
+
+def birth_rate(pots: dict[str, np.ndarray], tau: np.ndarray, k: tuple, dt: float) -> float:
+    """G: particles born in one frame with multipliers k (before rounding)."""
+    i_k = phi(pots["ke"], tau[4], tau[5])
+    n = i_k * (k[0] * phi(pots["ta"], tau[0], tau[1]) + k[1] * phi(pots["wc"], tau[2], tau[3])
+               + k[2] * phi(pots["vo"], tau[6], tau[7])) * dt
+    return float(n.sum())
+
+
+def survival(p, dt: float, ages: np.ndarray) -> np.ndarray:
+    """S(a): the chance a new particle is still alive at age a, from the foam lifetime
+    (uniform in [lifetime_min, lifetime_max], or up to lifetime_multiplier·Δt) and the
+    foam dissipation rate (exponential)."""
+    if p.lifetime_multiplier > 0:
+        lo, hi = 0.0, p.lifetime_multiplier * dt
+    else:
+        lo, hi = p.lifetime_min, p.lifetime_max
+    if hi <= lo:
+        alive = (ages < hi).astype(np.float64)
+    else:
+        alive = np.clip((hi - ages) / (hi - lo), 0.0, 1.0)
+    return alive * np.exp(-p.foam_dissipation * ages)
+
+
+def mean_residence(p, dt: float) -> float:
+    """∫S: how long a new particle lives on average [s]."""
+    hi = p.lifetime_multiplier * dt if p.lifetime_multiplier > 0 else p.lifetime_max
+    ages = np.arange(0.0, hi + dt, dt)
+    return float(survival(p, dt, ages).sum() * dt)
+
+
+def predicted_ratio(times: np.ndarray, rate: np.ndarray, fluid: np.ndarray, p, dt: float) -> np.ndarray:
+    """N_d(f) / N_fluid(f) for every frame, from the births per frame."""
+    age = times[:, None] - times[None, :]
+    s = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
+    return (s @ rate) / np.maximum(fluid, 1)
+
+
+# The model's survival is corrected by the live count over its prediction once it predicts
+# at least this many particles, and by no more than a factor CORRECTION_LIMIT either way.
+MIN_PREDICTED = 100.0
+CORRECTION_LIMIT = 4.0
+
+
+def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: float) -> float:
+    """One scale for the whole run, set again before frame k = len(s_past): the births G
+    (real up to k, interpolated after) convolved with the survival S, times c, the live count
+    after frame k − 1 over what the model predicted for it with the scales used so far;
+    s = budget / max_f c N_d(f) / N_fluid(f). The count keeps following the violence (one
+    scale, not a controller holding it at the budget) while the model learns how long
+    particles really live here."""
+    k = len(s_past)
+    age = times[:, None] - times[None, :]
+    surv = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
+    c = 1.0
+    if k > 0:
+        model = float(surv[k - 1, :k] @ (s_past * rate[:k]))
+        if model >= MIN_PREDICTED:
+            c = float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
+    peak = float(((surv @ rate) / np.maximum(n_fluid, 1)).max()) * c
+    return p.budget / peak if peak > 0 else s_now
+
+
+def within_budget(scale: float, births: float, alive: float, n_fluid: float, budget: float) -> float:
+    """The scale, lowered where this frame's births (``births`` at scale 1) would take the
+    live count past budget × fluid particles: a prediction that ran high is clipped at the
+    budget instead of overshooting it. It never raises the scale."""
+    room = budget * n_fluid - alive
+    if births * scale > room:
+        return max(room, 0.0) / births
+    return scale
+
+
+def running_peak(rates: np.ndarray, p, dt: float) -> float:
+    """The simulation's peak estimate of N_d / N_fluid from the births per frame and fluid
+    particle so far (``rates``, oldest first): max over frames f of the mean rate over the
+    last ∫S/Δt frames up to f, times ∫S/Δt. A single violent frame counts for what it is; a
+    rate that has held since motion began is taken to hold on."""
+    if not len(rates):
+        return 0.0
+    span = mean_residence(p, dt) / dt
+    w = max(int(round(span)), 1)
+    c = np.concatenate([[0.0], np.cumsum(rates)])
+    f = np.arange(1, len(rates) + 1)
+    first = np.maximum(f - w, 0)
+    mean = (c[f] - c[first]) / (f - first)
+    return float(mean.max() * span)
+
+
+# Capacity of the explicit presets, whose count no budget bounds (as before budgets).
+PRESET_CAPACITY = 400_000
+
+
+def capacity_for(p, n_fluid: int) -> int:
+    if p.max_particles is not None:
+        return p.max_particles
+    if not p.auto:
+        return PRESET_CAPACITY
+    return int(math.ceil(CAPACITY_HEADROOM * p.budget * max(n_fluid, 1))) + 1000
