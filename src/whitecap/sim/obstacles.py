@@ -25,8 +25,10 @@ every kernel reads a particle at x_rest = Rᵀ(x − T) and turns the SDF gradie
 back with R. The velocity response, friction included, acts on the velocity
 relative to the body, v − u; the penalty and the projection use the body's pose
 at the end of the step, so a pushing body moves the water with it; the density
-map is read at the moved body. A static obstacle has R = I, T = 0, u = 0, which
-leaves every number as it was.
+map is read at the moved body. A static obstacle has R = I, T = 0, u = 0: the
+same contact as before bodies could move (its runs match earlier versions'
+frames for the first steps, then differ in the last bits, as the kernels
+compile to different instruction orders).
 
 Boundary density: like the domain walls, an obstacle adds ρ0·ψ(sdf) to a
 nearby particle's density (the planar density map of Bender et al. 2019,
