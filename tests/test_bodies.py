@@ -447,3 +447,13 @@ def test_live_view_frames_carry_the_bodies_pose(tmp_path):
     assert fr.bodies[0]["position"][0] == pytest.approx(0.06, rel=1e-6)  # t = 0.1 s: a quarter period
     src.reset()
     assert src.current().bodies[0]["position"] == pytest.approx([0, 0, 0], abs=1e-12)  # reset moves it back
+
+
+def test_bad_piston_csv_is_a_one_line_error_naming_file_and_field(tmp_path):
+    csv = tmp_path / "p.csv"
+    csv.write_text("t,x\n0,0\n1,oops\n")
+    motion = {"kind": "piston", "axis": [1, 0, 0], "csv": str(csv)}
+    with pytest.raises(InputError, match=r"p\.csv: line 3: obstacle\[0\]\.motion\.csv: expected 'time, displacement'"):
+        law(motion)
+    with pytest.raises(InputError, match=r"missing\.csv: obstacle\[0\]\.motion\.csv: file not found"):
+        law({**motion, "csv": str(tmp_path / "missing.csv")})

@@ -78,7 +78,7 @@ def read_series(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
         except (ValueError, IndexError):
             if not t and n == 1:
                 continue  # a header
-            raise InputError(f"{path}: line {n}: expected 'time, displacement' numbers, got {line!r}") from None
+            raise InputError(f"{path}: line {n}: {what}: expected 'time, displacement' numbers, got {line!r}") from None
         if not (math.isfinite(a) and math.isfinite(b)):
             raise InputError(f"{path}: line {n}: values must be finite numbers")
         if t and a <= t[-1]:
@@ -93,14 +93,14 @@ def read_series(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
 class MotionLaw:
     """The pose (R, T) of one obstacle as a function of time."""
 
-    def __init__(self, o: Obstacle, base_dir: Path | str = "."):
+    def __init__(self, o: Obstacle, base_dir: Path | str = ".", index: int = 0):
         self.o = o
         self.m: Motion | None = o.motion
         self.series = None
         m = self.m
         if m is not None and m.kind == "piston" and m.csv is not None:
             p = Path(m.csv)
-            self.series = read_series(p if p.is_absolute() else Path(base_dir) / p, "motion.csv")
+            self.series = read_series(p if p.is_absolute() else Path(base_dir) / p, f"obstacle[{index}].motion.csv")
 
     @property
     def moving(self) -> bool:
@@ -174,7 +174,7 @@ def quaternion(R: np.ndarray) -> list[float]:
 
 
 def motion_laws(scene: Scene) -> list[MotionLaw]:
-    return [MotionLaw(o, scene.base_dir) for o in scene.obstacle]
+    return [MotionLaw(o, scene.base_dir, k) for k, o in enumerate(scene.obstacle)]
 
 
 def pose_record(R: np.ndarray, T: np.ndarray) -> dict:
