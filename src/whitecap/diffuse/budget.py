@@ -122,7 +122,14 @@ def predicted_ratio(times: np.ndarray, rate: np.ndarray, fluid: np.ndarray, p, d
     """N_d(f) / N_fluid(f) for every frame, from the births per frame."""
     age = times[:, None] - times[None, :]
     s = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
-    return (s @ rate) / np.maximum(fluid, 1)
+    return per_fluid(s @ rate, fluid)
+
+
+def per_fluid(n_diffuse: np.ndarray, n_fluid: np.ndarray) -> np.ndarray:
+    """N_d / N_fluid per frame; 0 for a frame without fluid (an empty frame of a sequence is no
+    peak: dividing its survivors by zero fluid would scale every other frame down to nothing)."""
+    n_fluid = np.asarray(n_fluid, np.float64)
+    return np.where(n_fluid > 0, n_diffuse / np.maximum(n_fluid, 1), 0.0)
 
 
 # The model's survival is corrected by the live count over its prediction once it predicts
@@ -146,7 +153,7 @@ def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: flo
         model = float(surv[k - 1, :k] @ (s_past * rate[:k]))
         if model >= MIN_PREDICTED:
             c = float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
-    peak = float(((surv @ rate) / np.maximum(n_fluid, 1)).max()) * c
+    peak = float(per_fluid(surv @ rate, n_fluid).max()) * c
     return p.budget / peak if peak > 0 else s_now
 
 
@@ -155,7 +162,7 @@ def within_budget(scale: float, births: float, alive: float, n_fluid: float, bud
     live count past budget × fluid particles: a prediction that ran high is clipped at the
     budget instead of overshooting it. It never raises the scale."""
     room = budget * n_fluid - alive
-    if births * scale > room:
+    if births > 0 and births * scale > room:
         return max(room, 0.0) / births
     return scale
 

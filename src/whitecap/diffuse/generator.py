@@ -137,9 +137,11 @@ class FoamGenerator:
         self.state = DiffuseState.empty()
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
+        self._warned_budget = False
         self._slots = None
         self._S = 0
         self.capacity: int | None = None
+        self._sized_for = 0  # fluid particle count the capacity was sized for
         self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
         self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
 
@@ -206,7 +208,7 @@ class FoamGenerator:
         self._scales = np.full(len(times), np.nan)
 
     def _replan(self, index: int, dt: float) -> None:
-        """Post-processing 'auto': this frame's real birth rate replaces the interpolated one,
+        """Post-processing 'auto': this frame's real birth rate and fluid count replace the interpolated ones,
         the frames done so far correct the model's survival (live count / predicted), and the
         scale for the rest of the run is set so the corrected prediction peaks on the budget."""
         plan = getattr(self, "_plan", None)
@@ -216,6 +218,7 @@ class FoamGenerator:
         k = pos[index]
         k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
         rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
+        n_fluid[k] = len(self._pots["ta"])  # the real count replaces the one interpolated between samples
         s_past = np.nan_to_num(self._scales[:k])
         counts = self.state.counts
         alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
@@ -308,8 +311,8 @@ class FoamGenerator:
         if fluid.velocities is None:
             raise ValueError(f"{fluid.source}: fluid frame has no velocities")
         n = len(fluid)
-        if self.capacity is None:
-            self._size(n)
+        if self.capacity is None or n > self._sized_for:
+            self._size(n)  # from the first frame, again when the fluid grows (empty first frames, inflow)
         with timer("foam.potentials"):
             args, fx, fv, fid, pots = self._potential_arrays(fluid, n)
         with timer("foam.advect"):
@@ -332,8 +335,10 @@ class FoamGenerator:
         """Capacity from the budget (unless set); warn when a set capacity is below the budget."""
         p = self.p
         self.capacity = B.capacity_for(p, n)
+        self._sized_for = n
         want = p.budget * n
-        if p.auto and p.max_particles is not None and p.max_particles < want:
+        if p.auto and p.max_particles is not None and p.max_particles < want and not self._warned_budget:
+            self._warned_budget = True
             console.print(
                 f"[yellow]warning:[/] foam.budget = {p.budget:g} asks for about {want:,.0f} diffuse particles at the "
                 f"peak ({n:,} fluid particles), beyond foam.max_particles = {p.max_particles:,}; the excess will be "

@@ -226,10 +226,14 @@ def build_addon(out: str | Path | None = None) -> Path:
     from ..io.atomic import atomic_path
 
     src = Path(__file__).parent / "addon"
+    # whitecap modules the add-on imports as its own (pure Python, no imports): one definition
+    shared = {"diffuse_types.py": Path(__file__).parents[1] / "io" / "diffuse_types.py"}
     out = Path(out) if out else Path("whitecap_blender_addon.zip")
     with atomic_path(out) as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
             for f in sorted(src.iterdir()):
                 if f.is_file() and f.suffix in (".py", ".toml"):
                     z.write(f, f.name)
+            for name, f in shared.items():
+                z.write(f, name)
     return out

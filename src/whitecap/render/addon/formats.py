@@ -1,0 +1,559 @@
+"""Readers for the particle and mesh files whitecap reads, in Python and numpy only.
+
+Blender bundles numpy but not whitecap, vtk, meshio or plyfile, so the add-on
+reads the files itself. Each reader returns a :class:`Geometry`: points,
+polygons (flat vertex indices plus the start of each polygon) and every point
+array by the name the file gives it. :func:`read` picks the reader from the
+extension. Errors are ``ValueError`` with one line that starts with the file.
+
+Formats: legacy VTK 3.0 to 5.1 (ASCII or binary; POLYDATA and
+UNSTRUCTURED_GRID), VTK XML ``.vtu``/``.vtp`` (ascii, base64 or appended
+data, zlib-compressed or not), PLY (ascii and binary), OBJ, STL (obstacles)
+and partio's BGEO version 5 (SPlisHSPlasH's ``.bgeo``, gzip-compressed or not).
+"""
+
+import base64
+import gzip
+import os
+import re
+import struct
+import xml.etree.ElementTree as ET
+import zlib
+
+import numpy as np
+
+EXTENSIONS = (".vtk", ".vtu", ".vtp", ".ply", ".obj", ".bgeo")
+
+
+class Geometry:
+    """Points (N, 3) float32; polygons as ``loops`` (flat vertex indices) and ``starts``
+    (each polygon's first loop); ``arrays``: point arrays by name, (N,) or (N, k)."""
+
+    def __init__(self, points, loops=None, starts=None, arrays=None):
+        self.points = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        self.loops = np.zeros(0, np.int32) if loops is None else np.ascontiguousarray(loops, np.int32).ravel()
+        self.starts = np.zeros(0, np.int32) if starts is None else np.ascontiguousarray(starts, np.int32).ravel()
+        self.arrays = {k: v for k, v in (arrays or {}).items() if len(v) == len(self.points)}
+
+    def __len__(self):
+        return len(self.points)
+
+
+def _polygons(offsets, conn, keep=None):
+    """(loops, starts) from VTK-style offsets (n + 1 entries) and connectivity, keeping
+    the cells where ``keep`` is true and that have three corners or more."""
+    offsets = np.asarray(offsets, np.int64)
+    sizes = np.diff(offsets)
+    sel = sizes >= 3 if keep is None else (sizes >= 3) & keep
+    if not sel.any():
+        return np.zeros(0, np.int32), np.zeros(0, np.int32)
+    if sel.all():
+        loops = np.asarray(conn[offsets[0]:offsets[-1]], np.int32)
+        return loops, (offsets[:-1] - offsets[0]).astype(np.int32)
+    idx = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in np.nonzero(sel)[0]])
+    starts = np.concatenate([[0], np.cumsum(sizes[sel])[:-1]])
+    return np.asarray(conn, np.int64)[idx].astype(np.int32), starts.astype(np.int32)
+
+
+def _counted_cells(v):
+    """VTK legacy cell list [n, i1..in, n, ...] -> (offsets, connectivity)."""
+    v = np.asarray(v, np.int64)
+    offs, k = [0], 0
+    conn = []
+    while k < len(v):
+        n = int(v[k])
+        conn.append(v[k + 1:k + 1 + n])
+        offs.append(offs[-1] + n)
+        k += n + 1
+    return np.array(offs, np.int64), (np.concatenate(conn) if conn else np.zeros(0, np.int64))
+
+
+# ----------------------------------------------------------------------------- legacy VTK
+_VTK_TYPES = {"bit": "u1", "unsigned_char": "u1", "char": "i1", "short": "i2", "unsigned_short": "u2",
+              "int": "i4", "unsigned_int": "u4", "long": "i8", "unsigned_long": "u8", "float": "f4",
+              "double": "f8", "vtktypeint64": "i8", "vtktypeuint64": "u8", "vtkidtype": "i4"}
+_KEYWORD = re.compile(rb"\n[ \t]*[A-Za-z]")  # a line that starts a keyword (numbers never start with a letter)
+# VTK cell types drawn as faces: triangle, polygon, quad (pixels and strips are left out)
+_FACE_CELLS = (5, 7, 9)
+
+
+def read_vtk_legacy(path):
+    """A legacy VTK file (``# vtk DataFile Version 3.0`` to ``5.1``), ASCII or BINARY."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    r = _LegacyVTK(path, data)
+    return r.parse()
+
+
+class _LegacyVTK:
+    def __init__(self, path, data):
+        self.path, self.data, self.pos = path, data, 0
+        head = [self.line() for _ in range(3)]
+        if not head[0].startswith(b"# vtk DataFile"):
+            raise ValueError(f"{path}: not a legacy VTK file (no '# vtk DataFile' header)")
+        self.binary = head[2].strip().upper() == b"BINARY"
+
+    def line(self):
+        end = self.data.find(b"\n", self.pos)
+        end = len(self.data) if end < 0 else end
+        s = self.data[self.pos:end].strip()
+        self.pos = end + 1
+        return s
+
+    def truncated(self, got, count):
+        return ValueError(f"{self.path}: the file ends after {got} of {count} values (truncated?)")
+
+    def values(self, count, typ):
+        dt = _VTK_TYPES.get(typ.lower())
+        if dt is None:
+            raise ValueError(f"{self.path}: unknown data type '{typ}'")
+        if self.binary:
+            size = np.dtype(dt).itemsize
+            chunk = self.data[self.pos:self.pos + size * count]
+            if len(chunk) < size * count:
+                raise self.truncated(len(chunk) // size, count)
+            self.pos += size * count
+            return np.frombuffer(chunk, ">" + dt, count).astype(dt)
+        m = _KEYWORD.search(self.data, self.pos)
+        end = m.start() if m else len(self.data)
+        tokens = self.data[self.pos:end].split()
+        if len(tokens) < count:
+            if m is None:
+                raise self.truncated(len(tokens), count)
+            raise ValueError(f"{self.path}: expected {count} values before '{self.data[m.start() + 1:].split()[0].decode('latin-1')}', found {len(tokens)}")
+        try:
+            out = np.array(tokens[:count], dtype=np.float64 if dt[0] == "f" else np.int64)
+        except ValueError:
+            raise ValueError(f"{self.path}: a value that is not a number near byte {self.pos}") from None
+        self.pos = end + 1 if len(tokens) == count else self._after(count)
+        return out
+
+    def _after(self, count):
+        """Byte offset just after the ``count``-th token from pos (extra values on the line)."""
+        it = re.finditer(rb"\S+", self.data[self.pos:])
+        for k, t in enumerate(it):
+            if k == count - 1:
+                return self.pos + t.end()
+        return len(self.data)
+
+    def cells(self, parts):
+        """A cell block, in the counted (<= 4.2) or OFFSETS/CONNECTIVITY (5.1) layout -> (offsets, conn)."""
+        n, size = int(parts[1]), int(parts[2])
+        save = self.pos
+        nxt = self.line()
+        if nxt.upper().startswith(b"OFFSETS"):
+            offsets = self.values(n, nxt.split()[1].decode())
+            hdr = self.line()
+            while not hdr:
+                hdr = self.line()
+            if not hdr.upper().startswith(b"CONNECTIVITY"):
+                raise ValueError(f"{self.path}: OFFSETS without CONNECTIVITY")
+            conn = self.values(size, hdr.split()[1].decode())
+            return np.asarray(offsets, np.int64), np.asarray(conn, np.int64)
+        self.pos = save
+        return _counted_cells(self.values(size, "int"))
+
+    def parse(self):
+        points = np.zeros((0, 3), np.float32)
+        npts, ncell, faces, ctypes, arrays, where = 0, 0, None, None, {}, None
+        while self.pos < len(self.data):
+            line = self.line()
+            if not line:
+                continue
+            parts = line.decode("latin-1").split()
+            key = parts[0].upper()
+            if key == "POINTS":
+                npts = int(parts[1])
+                points = self.values(3 * npts, parts[2]).reshape(-1, 3)
+            elif key in ("POLYGONS", "CELLS"):
+                faces = self.cells(parts)
+            elif key in ("VERTICES", "LINES", "TRIANGLE_STRIPS"):
+                self.cells(parts)
+            elif key == "CELL_TYPES":
+                ctypes = self.values(int(parts[1]), "int")
+            elif key == "POINT_DATA":
+                where = "point"
+            elif key == "CELL_DATA":
+                where, ncell = "cell", int(parts[1])
+            elif key == "METADATA":
+                while self.pos < len(self.data) and self.line():
+                    pass
+            elif key in ("SCALARS", "VECTORS", "NORMALS", "COLOR_SCALARS", "TENSORS"):
+                name = parts[1]
+                ncomp = {"VECTORS": 3, "NORMALS": 3, "TENSORS": 9}.get(key, int(parts[3]) if len(parts) > 3 and key == "SCALARS" else 1)
+                # colours are bytes in binary files, floats in 0..1 in ASCII ones
+                typ = parts[2] if key != "COLOR_SCALARS" else ("unsigned_char" if self.binary else "float")
+                if key == "COLOR_SCALARS":
+                    ncomp = int(parts[2])
+                if key == "SCALARS":
+                    save = self.pos
+                    if not self.line().upper().startswith(b"LOOKUP_TABLE"):
+                        self.pos = save
+                count = npts if where == "point" else ncell
+                v = self.values(count * ncomp, typ)
+                if where == "point":
+                    arrays[name] = v.reshape(npts, ncomp) if ncomp > 1 else v
+            elif key == "LOOKUP_TABLE" and len(parts) > 2:
+                self.values(4 * int(parts[2]), "float" if not self.binary else "unsigned_char")
+            elif key == "FIELD":
+                for _ in range(int(parts[2])):
+                    hdr = self.line()
+                    while not hdr:
+                        hdr = self.line()
+                    name, ncomp, ntup, typ = hdr.decode("latin-1").split()[:4]
+                    ncomp, ntup = int(ncomp), int(ntup)
+                    v = self.values(ncomp * ntup, typ)
+                    if where in (None, "point") and ntup == npts:
+                        arrays[name] = v.reshape(ntup, ncomp) if ncomp > 1 else v
+            elif key == "DATASET":
+                if parts[1].upper() not in ("POLYDATA", "UNSTRUCTURED_GRID"):
+                    raise ValueError(f"{self.path}: DATASET {parts[1]} is not supported (POLYDATA or UNSTRUCTURED_GRID)")
+        loops = starts = None
+        if faces is not None:
+            keep = None
+            if ctypes is not None and len(ctypes) == len(faces[0]) - 1:
+                keep = np.isin(ctypes, _FACE_CELLS)
+            loops, starts = _polygons(faces[0], faces[1], keep)
+        return Geometry(points, loops, starts, arrays)
+
+
+# ----------------------------------------------------------------------------- VTK XML
+_XML_TYPES = {"Int8": "i1", "UInt8": "u1", "Int16": "i2", "UInt16": "u2", "Int32": "i4", "UInt32": "u4",
+              "Int64": "i8", "UInt64": "u8", "Float32": "f4", "Float64": "f8"}
+
+
+def read_vtk_xml(path):
+    """A ``.vtu`` or ``.vtp`` file: points, polygons (Polys or polygon cells) and point data."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    appended, enc = b"", "raw"
+    a = data.find(b"<AppendedData")
+    if a >= 0:
+        tag = data[a:data.index(b">", a)]
+        enc = "base64" if b'"base64"' in tag else "raw"
+        start = data.index(b"_", a + len(tag)) + 1
+        end = data.rfind(b"</AppendedData>")
+        appended, data = data[start:end], data[:a] + data[end + len(b"</AppendedData>"):]
+    try:
+        root = ET.fromstring(data)
+    except ET.ParseError as exc:
+        raise ValueError(f"{path}: not a readable VTK XML file ({exc})") from None
+    little = root.get("byte_order", "LittleEndian") == "LittleEndian"
+    header = _XML_TYPES[root.get("header_type", "UInt32")]
+    compressed = root.get("compressor") is not None
+    piece = root.find(".//Piece")
+    if piece is None:
+        raise ValueError(f"{path}: no Piece element")
+    end = "<" if little else ">"
+
+    def array(el, name=None):
+        dt = np.dtype(end + _XML_TYPES[el.get("type")])
+        fmt = el.get("format", "ascii")
+        ncomp = int(el.get("NumberOfComponents", "1"))
+        if fmt == "ascii":
+            v = np.array((el.text or "").split(), dtype=dt.newbyteorder("="))
+        elif fmt == "binary":
+            v = np.frombuffer(_inline(path, (el.text or "").strip().encode(), header, end, compressed), dt)
+        else:
+            v = np.frombuffer(_appended(path, appended, int(el.get("offset")), header, end, compressed, enc), dt)
+        v = v.astype(dt.newbyteorder("="))
+        return v.reshape(-1, ncomp) if ncomp > 1 else v
+
+    pts = piece.find("Points/DataArray")
+    points = array(pts) if pts is not None else np.zeros((0, 3))
+    arrays = {}
+    for el in piece.findall("PointData/DataArray"):
+        arrays[el.get("Name")] = array(el)
+    loops = starts = None
+
+    def named(parent, n):
+        for el in parent.findall("DataArray"):
+            if el.get("Name") == n:
+                return array(el)
+        raise ValueError(f"{path}: {parent.tag} has no '{n}' array")
+
+    polys, cells = piece.find("Polys"), piece.find("Cells")
+    if polys is not None and int(piece.get("NumberOfPolys", "0")):
+        offs = named(polys, "offsets")
+        loops, starts = _polygons(np.concatenate([[0], offs]), named(polys, "connectivity"))
+    elif cells is not None and int(piece.get("NumberOfCells", "0")):
+        offs, types = named(cells, "offsets"), named(cells, "types")
+        loops, starts = _polygons(np.concatenate([[0], offs]), named(cells, "connectivity"), np.isin(types, _FACE_CELLS))
+    return Geometry(points, loops, starts, arrays)
+
+
+def _inline(path, text, header, end, compressed):
+    try:
+        hsize = np.dtype(header).itemsize
+        if not compressed:
+            hl = _b64len(hsize)
+            if text[hl - 1:hl] == b"=":  # VTK encodes the header on its own, meshio with the data
+                n = int(np.frombuffer(base64.b64decode(text[:hl]), end + header, 1)[0])
+                return base64.b64decode(text[hl:hl + _b64len(n)])[:n]
+            buf = base64.b64decode(text)
+            n = int(np.frombuffer(buf[:hsize], end + header, 1)[0])
+            return buf[hsize:hsize + n]
+        # the header is base64-encoded on its own, then the blocks
+        first = base64.b64decode(text[:_b64len(hsize)])
+        nb = int(np.frombuffer(first[:hsize], end + header, 1)[0])
+        hl = _b64len(hsize * (3 + nb))
+        h = np.frombuffer(base64.b64decode(text[:hl]), end + header, 3 + nb)
+        body = base64.b64decode(text[hl:hl + _b64len(int(h[3:].sum()))])
+        out, k = [], 0
+        for c in h[3:]:
+            out.append(zlib.decompress(body[k:k + int(c)]))
+            k += int(c)
+        return b"".join(out)
+    except (ValueError, zlib.error) as exc:
+        raise ValueError(f"{path}: a damaged binary array ({exc})") from None
+
+
+def _b64len(n):
+    return 4 * ((n + 2) // 3)
+
+
+def _appended(path, blob, offset, header, end, compressed, enc):
+    hsize = np.dtype(header).itemsize
+    try:
+        if enc == "base64":
+            # each array: base64 of header, then base64 of the data (as VTK writes them)
+            text = blob[offset:].strip()
+            return _inline(path, text, header, end, compressed)
+        pos = [offset]
+
+        def take(n):
+            b = blob[pos[0]:pos[0] + n]
+            if len(b) < n:
+                raise ValueError(f"{path}: the file ends inside its appended data (truncated?)")
+            pos[0] += n
+            return b
+
+        if not compressed:
+            n = int(np.frombuffer(take(hsize), end + header, 1)[0])
+            return take(n)
+        nb = int(np.frombuffer(blob[offset:offset + hsize], end + header, 1)[0])
+        h = np.frombuffer(take(hsize * (3 + nb)), end + header, 3 + nb)
+        return b"".join(zlib.decompress(take(int(c))) for c in h[3:])
+    except zlib.error as exc:
+        raise ValueError(f"{path}: damaged compressed data ({exc})") from None
+
+
+# ----------------------------------------------------------------------------- PLY
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def read_ply(path):
+    """A PLY file (ascii or binary): every scalar vertex property becomes an array; faces
+    from ``vertex_indices`` (or ``vertex_index``)."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
+    body = data.index(b"\n", end) + 1
+    fmt, elements = None, []
+    for raw in data[:end].decode("latin-1").splitlines():
+        w = raw.split()
+        if not w:
+            continue
+        if w[0] == "format":
+            fmt = w[1]
+        elif w[0] == "element":
+            elements.append((w[1], int(w[2]), []))
+        elif w[0] == "property" and elements:
+            if w[1] == "list":
+                elements[-1][2].append((w[4], _PLY_TYPES[w[2]], _PLY_TYPES[w[3]]))
+            else:
+                elements[-1][2].append((w[2], _PLY_TYPES[w[1]], None))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"{path}: unknown PLY format {fmt!r}")
+    verts, loops, starts = None, None, None
+    if fmt == "ascii":
+        tokens = data[body:].split()
+        k = 0
+        for name, count, props in elements:
+            if all(p[2] is None for p in props):
+                n = count * len(props)
+                if k + n > len(tokens):
+                    raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
+                block = np.array(tokens[k:k + n], np.float64).reshape(count, len(props))
+                k += n
+                if name == "vertex":
+                    verts = {p[0]: block[:, j].astype(p[1]) for j, p in enumerate(props)}
+            else:
+                rows = []
+                for _ in range(count):
+                    row = []
+                    for p in props:
+                        if p[2] is None:
+                            k += 1
+                        else:
+                            c = int(tokens[k])
+                            row = [int(t) for t in tokens[k + 1:k + 1 + c]]
+                            k += 1 + c
+                    rows.append(row)
+                if name == "face":
+                    loops, starts = _rows(rows)
+    else:
+        e = "<" if fmt == "binary_little_endian" else ">"
+        pos = body
+        for name, count, props in elements:
+            if all(p[2] is None for p in props):
+                dt = np.dtype([(p[0], e + p[1]) for p in props])
+                if pos + dt.itemsize * count > len(data):
+                    raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
+                rec = np.frombuffer(data, dt, count, pos)
+                pos += dt.itemsize * count
+                if name == "vertex":
+                    verts = {p[0]: rec[p[0]].astype(p[1]) for p in props}
+                continue
+            lists = [p for p in props if p[2] is not None]
+            if len(props) == 1 and count:
+                cdt, idt = np.dtype(e + lists[0][1]), np.dtype(e + lists[0][2])
+                first = int(np.frombuffer(data, cdt, 1, pos)[0])
+                dt = np.dtype([("n", cdt), ("i", idt, (first,))])
+                if pos + dt.itemsize * count <= len(data):
+                    rec = np.frombuffer(data, dt, count, pos)
+                    if (rec["n"] == first).all():  # all polygons the same size: read in one go
+                        pos += dt.itemsize * count
+                        if name == "face":
+                            loops = rec["i"].astype(np.int32).ravel()
+                            starts = np.arange(0, first * count, first, dtype=np.int32)
+                        continue
+            rows = []
+            for _ in range(count):
+                row = []
+                for p in props:
+                    if p[2] is None:
+                        pos += np.dtype(p[1]).itemsize
+                        continue
+                    cdt, idt = np.dtype(e + p[1]), np.dtype(e + p[2])
+                    if pos + cdt.itemsize > len(data):
+                        raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
+                    c = int(np.frombuffer(data, cdt, 1, pos)[0])
+                    pos += cdt.itemsize
+                    row = np.frombuffer(data, idt, c, pos).tolist()
+                    pos += idt.itemsize * c
+                rows.append(row)
+            if name == "face":
+                loops, starts = _rows(rows)
+    if verts is None:
+        return Geometry(np.zeros((0, 3)))
+    for k in ("x", "y", "z"):
+        if k not in verts:
+            raise ValueError(f"{path}: PLY vertex element has no '{k}' property")
+    pts = np.stack([verts.pop("x"), verts.pop("y"), verts.pop("z")], axis=1)
+    if all(k in verts for k in ("vx", "vy", "vz")):
+        verts["velocity"] = np.stack([verts.pop("vx"), verts.pop("vy"), verts.pop("vz")], axis=1)
+    for k in ("nx", "ny", "nz"):  # Blender computes its own normals
+        verts.pop(k, None)
+    return Geometry(pts, loops, starts, verts)
+
+
+def _rows(rows):
+    rows = [r for r in rows if len(r) >= 3]
+    if not rows:
+        return None, None
+    sizes = np.array([len(r) for r in rows])
+    return np.concatenate(rows).astype(np.int32), np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
+
+
+# ----------------------------------------------------------------------------- OBJ, STL
+def read_obj(path):
+    """Vertices and faces of a Wavefront OBJ (``v``/``f`` statements; other statements ignored)."""
+    verts, loops, starts = [], [], []
+    with open(path, "rb") as fh:
+        for raw in fh:
+            if raw.startswith(b"v "):
+                verts.append(raw.split()[1:4])
+            elif raw.startswith(b"f "):
+                ids = [int(t.split(b"/")[0]) for t in raw.split()[1:]]
+                starts.append(len(loops))
+                loops += [i - 1 if i > 0 else len(verts) + i for i in ids]
+    try:
+        pts = np.array(verts, np.float64).reshape(-1, 3)
+    except ValueError:
+        raise ValueError(f"{path}: a 'v' statement without three numbers") from None
+    if loops and (min(loops) < 0 or max(loops) >= len(pts)):
+        raise ValueError(f"{path}: a face refers to a vertex that does not exist")
+    return Geometry(pts, loops, starts)
+
+
+def read_stl(path):
+    """Triangles of a binary or ASCII STL, vertices shared where they coincide."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    n = struct.unpack("<I", data[80:84])[0] if len(data) >= 84 else -1
+    if n >= 0 and len(data) == 84 + 50 * n:
+        rec = np.frombuffer(data, np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]), n, 84)
+        tri = rec["v"].reshape(-1, 3)
+    else:
+        tri = np.array(re.findall(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", data), np.float64).reshape(-1, 3)
+    pts, inv = np.unique(tri, axis=0, return_inverse=True)
+    return Geometry(pts, inv.ravel(), np.arange(0, len(tri), 3))
+
+
+# ----------------------------------------------------------------------------- BGEO
+_BGEO_TYPES = {0: "f", 1: "i", 5: "f"}  # partio: FLOAT, INT, VECTOR (4: indexed strings, not supported)
+
+
+def read_bgeo(path):
+    """partio's BGEO version 5 particles (SPlisHSPlasH ``.bgeo``), gzip-compressed or not."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if data[:2] == b"\x1f\x8b":
+        try:
+            data = gzip.decompress(data)
+        except (OSError, EOFError) as exc:
+            raise ValueError(f"{path}: damaged gzip data ({exc})") from None
+    if data[:5] != b"BgeoV":
+        raise ValueError(f"{path}: not a BGEO version 5 particle file (Houdini's newer JSON BGEO is not supported)")
+    try:
+        version, npts, nprim, _, _, nattr, _, _, _ = struct.unpack(">9i", data[5:41])
+        pos = 41
+        attrs = []
+        for _ in range(nattr):
+            (ln,) = struct.unpack(">h", data[pos:pos + 2])
+            name = data[pos + 2:pos + 2 + ln].decode("latin-1")
+            pos += 2 + ln
+            size, typ = struct.unpack(">hi", data[pos:pos + 6])
+            pos += 6
+            if typ not in _BGEO_TYPES:
+                raise ValueError(f"{path}: attribute '{name}' has type {typ}, which is not supported")
+            pos += 4 * size
+            attrs.append((name, size, typ))
+    except struct.error:
+        raise ValueError(f"{path}: the file ends inside its header (truncated?)") from None
+    width = 4 + sum(s for _, s, _ in attrs)
+    need = pos + 4 * width * npts
+    if len(data) < need:
+        raise ValueError(f"{path}: the file ends after {(len(data) - pos) // (4 * width)} of {npts} points (truncated?)")
+    block = np.frombuffer(data, ">f4", width * npts, pos).reshape(npts, width)
+    ints = block.view(">i4")
+    arrays, col = {}, 4
+    for name, size, typ in attrs:
+        a = (ints if typ == 1 else block)[:, col:col + size].astype("i4" if typ == 1 else "f4")
+        arrays[name] = a[:, 0] if size == 1 else a
+        col += size
+    return Geometry(block[:, :3], None, None, arrays)
+
+
+READERS = {".vtk": read_vtk_legacy, ".vtu": read_vtk_xml, ".vtp": read_vtk_xml, ".ply": read_ply,
+           ".obj": read_obj, ".stl": read_stl, ".bgeo": read_bgeo}
+
+
+def read(path):
+    """The geometry of one file, by its extension."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in READERS:
+        raise ValueError(f"{path}: no reader for '{ext}' files (known: {', '.join(sorted(READERS))})")
+    if not os.path.isfile(path):
+        raise ValueError(f"{path}: file not found")
+    try:
+        return READERS[ext](path)
+    except ValueError:
+        raise
+    except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError) as exc:
+        raise ValueError(f"{path}: not a readable {ext[1:].upper()} file ({type(exc).__name__}: {exc})") from None

@@ -1,0 +1,726 @@
+"""The Blender add-on (render/addon): readers, run loading, the frame handler, settings, paths.
+
+The readers (formats.py) need only numpy and are checked here against whitecap's
+own readers. Everything that needs Blender runs in a child process with ``bpy``
+(as tests/test_render.py does), from the extension zip that `whitecap blender-addon`
+builds, installed through Blender's extension installer.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from whitecap import io
+from whitecap.cli import main
+from whitecap.io.run import RunInfo
+
+from .conftest import write_partio_bgeo
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+ADDON = SRC / "whitecap" / "render" / "addon"
+DAMBREAK = Path("/work/shared/data/dualsphysics_dambreak")
+
+
+def _formats():
+    spec = importlib.util.spec_from_file_location("whitecap_addon_formats", ADDON / "formats.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+F = _formats()
+
+
+def blender(script: str, *args, timeout=300) -> dict:
+    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True,
+                         timeout=timeout, env={**os.environ, "PYTHONPATH": str(SRC)})
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    assert lines, out.stdout[-2000:] + out.stderr[-2000:]
+    return json.loads(lines[-1])
+
+
+# ----------------------------------------------------------------------------- readers (no Blender)
+def _vtk_polydata(path, pts, arrays, polys=(), version=42, binary=True):
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    poly = vtk.vtkPolyData()
+    p = vtk.vtkPoints()
+    p.SetData(numpy_to_vtk(pts))
+    poly.SetPoints(p)
+    cells = vtk.vtkCellArray()
+    for c in polys:
+        cells.InsertNextCell(len(c), c)
+    poly.SetPolys(cells)
+    for name, a in arrays.items():
+        va = numpy_to_vtk(a)
+        va.SetName(name)
+        poly.GetPointData().AddArray(va)
+    w = vtk.vtkPolyDataWriter()
+    w.SetFileName(str(path))
+    w.SetInputData(poly)
+    w.SetFileTypeToBinary() if binary else w.SetFileTypeToASCII()
+    w.SetFileVersion(version)
+    w.Write()
+
+
+@pytest.mark.parametrize("version,binary", [(42, True), (42, False), (51, True), (51, False)])
+def test_legacy_vtk_points_polygons_and_arrays(tmp_path, version, binary):
+    rng = np.random.default_rng(1)
+    pts = rng.random((40, 3))
+    arrays = {"Vel": rng.random((40, 3)), "Rhop": rng.random(40).astype(np.float32),
+              "Idp": np.arange(40, dtype=np.int32), "Type": np.full(40, 3, np.uint8)}
+    _vtk_polydata(tmp_path / "a.vtk", pts, arrays, [(0, 1, 2), (3, 4, 5, 6)], version, binary)
+    g = F.read(str(tmp_path / "a.vtk"))
+    assert np.allclose(g.points, pts, atol=1e-6)
+    assert g.loops.tolist() == [0, 1, 2, 3, 4, 5, 6] and g.starts.tolist() == [0, 3]  # a triangle and a quad
+    assert np.allclose(g.arrays["Vel"], arrays["Vel"], atol=1e-6)
+    assert (g.arrays["Idp"] == arrays["Idp"]).all() and (g.arrays["Type"] == 3).all()
+    assert np.allclose(g.arrays["Rhop"], arrays["Rhop"])
+
+
+@pytest.mark.skipif(not DAMBREAK.is_dir(), reason="DualSPHysics sample data not present")
+def test_dualsphysics_partvtk_reads_as_whitecap_reads_it():
+    path = DAMBREAK / "PartFluid_0000.vtk"
+    g = F.read(str(path))
+    ref = io.read(path)
+    assert np.array_equal(g.points, ref.positions)
+    assert np.array_equal(g.arrays["Vel"].astype(np.float32), ref.velocities)
+    assert np.array_equal(g.arrays["Rhop"].astype(np.float32), ref.density)
+
+
+def test_vtu_vtp_ply_obj_bgeo_read_as_whitecap_writes_them(tmp_path):
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.io.vtk_xml import write_vtp
+
+    rng = np.random.default_rng(2)
+    n = 30
+    fr = io.ParticleFrame(rng.random((n, 3)), rng.random((n, 3)), np.arange(n) + 7, rng.random(n),
+                          arrays={"type": rng.integers(0, 3, n).astype(np.uint8), "lifetime": rng.random(n).astype(np.float32)})
+    io.write(tmp_path / "p.vtu", fr)
+    io.write(tmp_path / "p.ply", fr)
+    for name in ("p.vtu", "p.ply"):
+        g = F.read(str(tmp_path / name))
+        assert np.array_equal(g.points, fr.positions), name
+        vel = g.arrays.get("velocity")
+        assert np.allclose(vel, fr.velocities), name
+        assert (g.arrays["id"] == fr.ids).all() and np.allclose(g.arrays["lifetime"], fr.arrays["lifetime"]), name
+        assert (g.arrays["type"] == fr.arrays["type"]).all(), name
+    faces = np.array([[0, 1, 2], [2, 3, 0]])
+    write_vtp(tmp_path / "m.vtp", fr.positions, {"velocity": fr.velocities}, faces)
+    g = F.read(str(tmp_path / "m.vtp"))
+    assert np.array_equal(g.points, fr.positions) and g.loops.reshape(-1, 3).tolist() == faces.tolist()
+    assert np.allclose(g.arrays["velocity"], fr.velocities)
+    mesh = SurfaceMesh(fr.positions, faces, None, {"velocity": fr.velocities})
+    for ext in ("ply", "obj"):
+        io.write_mesh(tmp_path / f"m.{ext}", mesh)
+        g = F.read(str(tmp_path / f"m.{ext}"))
+        ref = io.read_mesh(tmp_path / f"m.{ext}")
+        # the same triangles, corner by corner (trimesh drops the vertices no face uses)
+        assert np.allclose(g.points[g.loops.reshape(-1, 3)], ref.vertices[ref.faces], atol=1e-6), ext
+    assert np.allclose(F.read(str(tmp_path / "m.ply")).arrays["velocity"], fr.velocities)
+    write_partio_bgeo(tmp_path / "b.bgeo", fr.positions, {"velocity": fr.velocities, "id": fr.ids.astype(np.int32),
+                                                           "density": fr.density})
+    g = F.read(str(tmp_path / "b.bgeo"))
+    ref = io.read(tmp_path / "b.bgeo")
+    assert np.array_equal(g.points, ref.positions) and np.array_equal(g.arrays["velocity"], ref.velocities)
+    assert (g.arrays["id"] == ref.ids).all()
+
+
+def test_empty_files_read_as_empty_geometry(tmp_path):
+    from whitecap.io.mesh import SurfaceMesh
+
+    io.write(tmp_path / "d.ply", io.ParticleFrame(np.zeros((0, 3)), np.zeros((0, 3)), arrays={"type": np.zeros(0, np.uint8)}))
+    io.write_mesh(tmp_path / "m.obj", SurfaceMesh.empty())
+    io.write_mesh(tmp_path / "m.ply", SurfaceMesh.empty())
+    for name in ("d.ply", "m.obj", "m.ply"):
+        g = F.read(str(tmp_path / name))
+        assert len(g) == 0 and len(g.starts) == 0, name
+
+
+def test_truncated_files_name_the_file(tmp_path):
+    """A cut-off ASCII legacy VTK used to loop for ever; cut-off binary files gave struct errors."""
+    import threading
+
+    head = "# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 4 float\n"
+    (tmp_path / "a.vtk").write_text(head + "0 0 0\n1 0 0\n")
+    _vtk_polydata(tmp_path / "b.vtk", np.random.default_rng(0).random((50, 3)), {"Vel": np.zeros((50, 3))})
+    full = (tmp_path / "b.vtk").read_bytes()
+    (tmp_path / "b.vtk").write_bytes(full[:len(full) // 2])
+    write_partio_bgeo(tmp_path / "c.bgeo", np.zeros((20, 3)), {"id": np.arange(20, dtype=np.int32)}, compress=False)
+    (tmp_path / "c.bgeo").write_bytes((tmp_path / "c.bgeo").read_bytes()[:200])
+    io.write(tmp_path / "d.ply", io.ParticleFrame(np.zeros((20, 3)), np.zeros((20, 3))))
+    (tmp_path / "d.ply").write_bytes((tmp_path / "d.ply").read_bytes()[:300])
+    for name in ("a.vtk", "b.vtk", "c.bgeo", "d.ply"):
+        result = []
+
+        def run(name=name, result=result):
+            try:
+                F.read(str(tmp_path / name))
+                result.append(None)
+            except ValueError as exc:
+                result.append(str(exc))
+
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        t.join(30)  # a hang guard, not a timing check: the reader used to spin for ever
+        assert result, f"{name}: the reader did not return"
+        msg = result[0]
+        assert msg and msg.startswith(f"{tmp_path / name}: ") and "truncated" in msg and "\n" not in msg, (name, msg)
+    with pytest.raises(ValueError, match=r"a\.vtk: the file ends after 6 of 12 values"):
+        F.read(str(tmp_path / "a.vtk"))
+
+
+def test_damaged_files_give_one_line_errors_naming_the_file(tmp_path):
+    """Every format cut off at ten places or with bytes overwritten: the reader returns or
+    raises ValueError with one line that starts with the file, never anything else."""
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.io.vtk_xml import write_vtp
+
+    rng = np.random.default_rng(4)
+    n = 40
+    fr = io.ParticleFrame(rng.random((n, 3)), rng.random((n, 3)), np.arange(n), rng.random(n))
+    faces = np.array([[0, 1, 2], [2, 3, 0]])
+    io.write(tmp_path / "p.ply", fr)
+    io.write(tmp_path / "p.vtu", fr)
+    write_vtp(tmp_path / "p.vtp", fr.positions, {"velocity": fr.velocities}, faces)
+    io.write_mesh(tmp_path / "m.obj", SurfaceMesh(fr.positions, faces))
+    write_partio_bgeo(tmp_path / "p.bgeo", fr.positions, {"velocity": fr.velocities})
+    _vtk_polydata(tmp_path / "a.vtk", fr.positions, {"Vel": fr.velocities}, [(0, 1, 2)], 42, False)
+    _vtk_polydata(tmp_path / "b.vtk", fr.positions, {"Vel": fr.velocities}, [(0, 1, 2)], 51, True)
+    for src in sorted(tmp_path.iterdir()):
+        data = src.read_bytes()
+        variants = [data[:int(len(data) * f)] for f in np.linspace(0.05, 0.95, 10)]
+        for k in range(5):
+            bad = bytearray(data)
+            at = rng.integers(0, len(data), 8)
+            bad[at[0]:at[0] + 8] = rng.integers(0, 256, len(bad[at[0]:at[0] + 8])).astype(np.uint8).tobytes()
+            variants.append(bytes(bad))
+        for k, v in enumerate(variants):
+            path = tmp_path / "damaged" / f"{k}_{src.name}"
+            path.parent.mkdir(exist_ok=True)
+            path.write_bytes(v)
+            try:
+                F.read(str(path))
+            except ValueError as exc:
+                msg = str(exc)
+                assert msg.startswith(f"{path}: ") and "\n" not in msg, msg
+
+
+def test_addon_copies_of_the_array_names_match_whitecap():
+    # The add-on ships alone (no whitecap inside Blender), so it carries copies.
+    import ast
+
+    from whitecap.io import registry
+
+    tree = ast.parse((ADDON / "__init__.py").read_text())
+    copies = {t.id: ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+              for t in n.targets if getattr(t, "id", "") in ("VELOCITY_NAMES", "DENSITY_NAMES", "ID_NAMES")}
+    assert copies == {"VELOCITY_NAMES": registry.VELOCITY_NAMES, "DENSITY_NAMES": registry.DENSITY_NAMES,
+                      "ID_NAMES": registry.ID_NAMES}
+
+
+def test_the_zip_carries_whitecaps_diffuse_type_module_and_the_files_permission(tmp_path):
+    import tomllib
+
+    zp = tmp_path / "addon.zip"
+    assert main(["blender-addon", "--out", str(zp)]) == 0
+    z = zipfile.ZipFile(zp)
+    assert z.read("diffuse_types.py") == (SRC / "whitecap/io/diffuse_types.py").read_bytes()
+    assert {"__init__.py", "formats.py", "looks.py", "sequences.py", "blender_manifest.toml"} <= set(z.namelist())
+    assert tomllib.loads(z.read("blender_manifest.toml").decode())["permissions"] == ["files"]
+
+
+# ----------------------------------------------------------------------------- in Blender
+def write_mesh_ply(path: Path, verts, faces, vel) -> None:
+    from whitecap.io.mesh import SurfaceMesh
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    io.write_mesh(path, SurfaceMesh(verts, faces, None, {"velocity": vel}))
+
+
+BODY_POS = {1: [0.0, 0.0, 0.0], 2: [0.05, 0.0, 0.02], 3: [0.1, 0.0, 0.04]}
+BODY_QUAT = {1: [1.0, 0.0, 0.0, 0.0], 2: [0.9238795, 0.0, 0.0, 0.3826834], 3: [0.7071068, 0.0, 0.0, 0.7071068]}
+OBSTACLE = {"mesh": "box.obj", "translate": [0.3, 0.1, 0.05], "rotate": [10.0, 20.0, 30.0], "scale": 0.5,
+            "material": "metal"}
+
+
+@pytest.fixture(scope="module")
+def addon_run(tiny_run, tmp_path_factory) -> Path:
+    """The tiny run plus meshes (convex hulls), diffuse particles of all three types (frame 0
+    empty, as the demo's first frame is) and one obstacle in run.json."""
+    import trimesh
+
+    run = tmp_path_factory.mktemp("addon") / "project" / "run"
+    shutil.copytree(tiny_run, run)
+    info = RunInfo.load(run)
+    rng = np.random.default_rng(0)
+    counts = {}
+    for i, rel in info.files("fluid"):
+        fr = io.read(run / rel)
+        m = trimesh.convex.convex_hull(fr.positions[: 200 + 300 * i])
+        vel = np.tile([1.0 + i, 0.0, 0.0], (len(m.vertices), 1))
+        write_mesh_ply(run / f"mesh/fluid_{i:05d}.ply", np.asarray(m.vertices), np.asarray(m.faces), vel)
+        info.set_file(i, "mesh", f"mesh/fluid_{i:05d}.ply")
+        n = 0 if i == 0 else 100 + 50 * i
+        types = rng.integers(0, 3, n).astype(np.uint8)
+        d = io.ParticleFrame(fr.positions[rng.integers(0, len(fr), n)], np.zeros((n, 3)), np.arange(n) + 1000 * i, arrays={
+            "type": types, "lifetime": np.ones(n, np.float32), "radius": np.full(n, 0.004, np.float32)})
+        io.write(run / f"diffuse/diffuse_{i:05d}.ply", d)
+        info.set_file(i, "diffuse", f"diffuse/diffuse_{i:05d}.ply")
+        counts[i] = {"mesh": [len(m.vertices), len(m.faces)], "types": np.bincount(types, minlength=3).tolist()}
+    trimesh.creation.box((0.1, 0.1, 0.1)).export(run / "box.obj")
+    info.obstacles = [OBSTACLE, {**OBSTACLE, "translate": [0.1, 0.1, 0.1]}]
+    for i in (1, 2, 3):  # the second obstacle moves (run.json's per-frame body poses)
+        info.frame(i)["bodies"] = [{"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
+                                   {"position": BODY_POS[i], "quaternion": BODY_QUAT[i]}]
+    info.extra["scene_dir"] = str(run)
+    info.save(run)
+    # a frame left by an earlier simulation: stale, so never shown (whitecap drops it too)
+    shutil.copy(run / "mesh/fluid_00003.ply", run / "mesh/fluid_00004.ply")
+    data = json.loads((run / "run.json").read_text())
+    data["frames"].append({"index": 4, "time": 4 / info.frame_rate, "files": {"mesh": "mesh/fluid_00004.ply"},
+                           "made_from": {"mesh": "an-older-simulation"}})
+    (run / "run.json").write_text(json.dumps(data))
+    (run / "counts.json").write_text(json.dumps(counts))
+    return run
+
+
+@pytest.fixture(scope="module")
+def addon_zip(tmp_path_factory) -> Path:
+    zp = tmp_path_factory.mktemp("zip") / "whitecap_blender_addon.zip"
+    assert main(["blender-addon", "--out", str(zp)]) == 0
+    return zp
+
+
+# Installs the zip as an extension into a fresh user folder and enables it.
+PRELUDE = r"""
+import sys, os, json, bpy, numpy as np
+zip_path, user = sys.argv[1], sys.argv[2]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+import addon_utils
+mod = [m for m in sys.modules if m.endswith(".whitecap_sequences")]
+enabled = [a for a in bpy.context.preferences.addons.keys() if a.endswith("whitecap_sequences")]
+addon = sys.modules[mod[0]]
+sc = bpy.context.scene
+def seq_objects():
+    return {o.name: o for o in sc.objects if o.whitecap_seq.directory}
+def counts(name):
+    o = bpy.data.objects[name]
+    return [len(o.data.vertices), len(o.data.polygons)]
+"""
+
+
+def run_blender(body: str, addon_zip: Path, tmp_path: Path, *args, timeout=300) -> dict:
+    user = tmp_path / "blender_user"
+    user.mkdir(exist_ok=True)
+    env = {**os.environ, "PYTHONPATH": str(SRC), "BLENDER_USER_RESOURCES": str(user)}
+    out = subprocess.run([sys.executable, "-c", PRELUDE + body, str(addon_zip), str(user), *map(str, args)],
+                         capture_output=True, text=True, timeout=timeout, env=env)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    assert lines, out.stdout[-3000:] + out.stderr[-2000:]
+    res = json.loads(lines[-1])
+    res["stdout"] = out.stdout
+    return res
+
+
+LOAD_RUN = r"""
+run = sys.argv[3]
+res = {"enabled": enabled, "installed_in_user": os.path.commonpath([addon.__file__, user]) == user}
+bpy.ops.whitecap.load(filepath=run)
+objs = seq_objects()
+res["objects"] = sorted(objs)
+res["others"] = sorted(o.name for o in sc.objects if not o.whitecap_seq.directory)
+res["timeline"] = [sc.frame_start, sc.frame_end, sc.render.fps / sc.render.fps_base]
+res["lock_interface"] = sc.render.use_lock_interface
+ob = bpy.data.objects["obstacle_0"]
+res["obstacle_world"] = [list(ob.matrix_world @ v.co) for v in ob.data.vertices]
+res["obstacle_verts"] = len(ob.data.vertices)
+body = bpy.data.objects["obstacle_1"]
+res["body"] = {}
+for f in (1, 2, 3, 2.5):
+    sc.frame_set(int(f), subframe=f % 1)
+    res["body"][str(f)] = [list(body.matrix_world @ v.co) for v in body.data.vertices]
+res["body_mid"] = list(body.location)  # at 2.5
+res["frames"] = {}
+for f in (0, 1, 2, 3):
+    sc.frame_set(f)
+    res["frames"][f] = {n: counts(n) for n in objs}
+    res["frames"][f]["attrs"] = sorted(a.name for a in objs["foam"].data.attributes if not a.name.startswith("."))
+    res["frames"][f]["fluid_attrs"] = sorted(a.name for a in objs["fluid"].data.attributes if not a.name.startswith("."))
+sc.frame_set(0)
+res["empty_again"] = {n: counts(n) for n in ("spray", "foam", "bubbles")}
+dg = bpy.context.evaluated_depsgraph_get()
+sc.frame_set(2)
+dg = bpy.context.evaluated_depsgraph_get()
+g = objs["foam"].evaluated_get(dg).evaluated_geometry()
+pc = g.pointcloud
+res["foam_radii"] = sorted({round(a.value, 6) for a in pc.attributes["radius"].data}) if pc else []
+res["foam_material"] = [m.name for m in pc.materials] if pc else []
+res["fluid_material"] = [m.name for m in objs["fluid"].data.materials]
+print(json.dumps(res))
+"""
+
+
+def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
+    res = run_blender(LOAD_RUN, addon_zip, tmp_path, addon_run)
+    assert res["enabled"] and res["installed_in_user"]  # installed through the extension installer
+    assert res["objects"] == ["bubbles", "fluid", "foam", "spray"] and res["others"] == ["obstacle_0", "obstacle_1"]
+    info = RunInfo.load(addon_run)
+    assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
+    assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
+    from whitecap.config import obstacle_transform
+
+    import trimesh
+    import trimesh.transformations as T
+
+    rest = np.asarray(trimesh.load(addon_run / "box.obj", force="mesh", process=False).vertices)
+    want = (obstacle_transform(OBSTACLE) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
+    assert np.allclose(np.sort(res["obstacle_world"], axis=0), np.sort(want, axis=0), atol=1e-5)
+    assert res["obstacle_verts"] == 8
+    # the moving body at each frame: world = T(position) R(quaternion) placement (config.obstacle_matrix)
+    place = obstacle_transform({**OBSTACLE, "translate": [0.1, 0.1, 0.1]})
+    for f in (1, 2, 3):
+        M = T.translation_matrix(BODY_POS[f]) @ T.quaternion_matrix(BODY_QUAT[f]) @ place
+        want = (M @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
+        got = np.array(res["body"][str(f)])
+        assert np.allclose(np.sort(got, axis=0), np.sort(want, axis=0), atol=1e-5), f
+    # linear keys: at 2.5 the body is half-way between its frame 2 and 3 positions
+    assert np.allclose(res["body_mid"], (np.array(BODY_POS[2]) + BODY_POS[3]) / 2, atol=1e-6)
+    counts = json.loads((addon_run / "counts.json").read_text())
+    for f in ("1", "2", "3"):
+        got = res["frames"][f]
+        assert got["fluid"] == counts[f]["mesh"], f
+        assert [got[n][0] for n in ("spray", "foam", "bubbles")] == counts[f]["types"], f
+        assert got["foam"][1] == 0
+    # frame 0's diffuse file is empty: empty geometry, no error, nothing left from frame 3
+    assert res["frames"]["0"]["foam"] == [0, 0] and res["empty_again"] == {n: [0, 0] for n in ("spray", "foam", "bubbles")}
+    assert "whitecap:" not in res["stdout"]
+    assert {"velocity", "id", "lifetime", "radius", "type"} <= set(res["frames"]["2"]["attrs"])
+    assert "velocity" in res["frames"]["2"]["fluid_attrs"]
+    assert res["foam_radii"] == [0.004]  # the spheres take the particles' radius attribute
+    assert res["foam_material"] == ["whitecap_foam"] and res["fluid_material"] == ["whitecap_water"]
+
+
+SCRUB = r"""
+run = sys.argv[3]
+bpy.ops.whitecap.load(filepath=run)
+objs = seq_objects()
+for o in sc.objects:
+    o.select_set(False)
+objs["foam"].select_set(True)
+bpy.context.view_layer.objects.active = objs["foam"]
+before = (len(bpy.data.meshes), len(bpy.data.objects))
+for f in (1, 2, 3, 0, 2):
+    sc.frame_set(f)
+res = {"selected": sorted(o.name for o in sc.objects if o.select_get()),
+       "active": bpy.context.view_layer.objects.active.name,
+       "datablocks": [before, [len(bpy.data.meshes), len(bpy.data.objects)]]}
+fl = objs["fluid"]
+res["smooth_on"] = all(p.use_smooth for p in fl.data.polygons)
+fl.whitecap_seq.smooth = False
+res["smooth_off"] = any(p.use_smooth for p in fl.data.polygons)
+n2 = len(fl.data.vertices)
+fl.whitecap_seq.frame_offset = 1  # frame 2 now shows file 1, at once
+res["offset"] = [n2, len(fl.data.vertices), fl.whitecap_seq.current]
+res["blur_before"] = sc.render.use_motion_blur
+fl.whitecap_seq.motion_blur = True
+res["blur_after"] = [sc.render.use_motion_blur, fl.cycles.use_motion_blur]
+bpy.ops.whitecap.material()
+bpy.ops.whitecap.material()
+res["materials"] = sorted(m.name for m in bpy.data.materials if m.name.startswith("whitecap_foam"))
+bpy.context.view_layer.objects.active = None
+try:
+    bpy.ops.whitecap.material()
+    res["no_active"] = "ran"
+except RuntimeError as exc:
+    res["no_active"] = str(exc)
+print(json.dumps(res))
+"""
+
+
+def test_scrubbing_keeps_selection_and_settings_apply_at_once(addon_run, addon_zip, tmp_path):
+    res = run_blender(SCRUB, addon_zip, tmp_path, addon_run)
+    assert res["selected"] == ["foam"] and res["active"] == "foam"
+    assert res["datablocks"][0] == res["datablocks"][1]  # meshes are refilled in place, nothing imported
+    assert res["smooth_on"] and not res["smooth_off"]
+    counts = json.loads((addon_run / "counts.json").read_text())
+    assert res["offset"] == [counts["2"]["mesh"][0], counts["1"]["mesh"][0], 1]
+    assert not res["blur_before"] and res["blur_after"] == [True, True]
+    assert res["materials"] == ["whitecap_foam"]  # applying twice reuses the one material
+    assert "select a sequence object first" in res["no_active"]
+
+
+SUBFRAME = r"""
+folder = sys.argv[3]
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "surf_0028.ply"))
+o = seq_objects()["surf"]
+o.whitecap_seq.frame_offset = 0
+res = {"shown": []}
+for f, sub in ((29, 0.5), (30, 0.0), (29, 0.75), (30, 0.25), (12, 0.0), (28, 0.75)):
+    sc.frame_set(f, subframe=sub)
+    res["shown"].append(len(o.data.vertices))
+print(json.dumps(res))
+"""
+
+
+def test_subframes_keep_the_frames_mesh(addon_zip, tmp_path):
+    """Motion-blur shutter steps (sub-frames) must not load a neighbouring file: the velocity
+    attribute does the blur. File k has k vertices here."""
+    folder = tmp_path / "seq"
+    for k in (28, 29, 30, 31):
+        v = np.random.default_rng(k).random((k, 3))
+        write_mesh_ply(folder / f"surf_{k:04d}.ply", v, np.array([[0, 1, 2]]), np.zeros((k, 3)))
+    res = run_blender(SUBFRAME, addon_zip, tmp_path, folder)
+    # 29.5 from frame 1 shows file 29; at frame 30 the shutter steps 29.75 and 30.25 keep file 30;
+    # before the first file the first one shows; 28.75 reached from there keeps file 28
+    assert res["shown"] == [29, 30, 30, 30, 28, 28]
+
+
+MOVE_SAVE = r"""
+run, blend = sys.argv[3], sys.argv[4]
+bpy.ops.whitecap.load(filepath=run)
+bpy.ops.wm.save_as_mainfile(filepath=blend)
+print(json.dumps({"dirs": sorted(o.whitecap_seq.directory for o in seq_objects().values())}))
+"""
+
+REOPEN = r"""
+blend = sys.argv[3]
+bpy.ops.wm.open_mainfile(filepath=blend)
+sc = bpy.context.scene
+res = {}
+for f in (1, 3):
+    sc.frame_set(f)
+    res[f] = {n: counts(n) for n in seq_objects()}
+res["dirs"] = sorted(o.whitecap_seq.directory for o in seq_objects().values())
+print(json.dumps(res))
+"""
+
+
+def test_a_moved_project_keeps_updating_through_relative_paths(addon_run, addon_zip, tmp_path):
+    project = tmp_path / "project"
+    shutil.copytree(addon_run, project / "run")
+    res = run_blender(MOVE_SAVE, addon_zip, tmp_path, project / "run", project / "scene.blend")
+    assert all(d.startswith("//run/") for d in res["dirs"]), res["dirs"]
+    moved = tmp_path / "elsewhere" / "moved"
+    moved.parent.mkdir()
+    shutil.move(str(project), str(moved))
+    res = run_blender(REOPEN, addon_zip, tmp_path, moved / "scene.blend")
+    counts = json.loads((addon_run / "counts.json").read_text())
+    for f in ("1", "3"):
+        assert res[f]["fluid"] == counts[f]["mesh"], f
+        assert res[f]["foam"][0] == counts[f]["types"][1], f
+
+
+ERRORS = r"""
+cases = json.loads(sys.argv[3])
+res = {}
+for key, path in cases.items():
+    before = sorted(o.name for o in bpy.data.objects)
+    try:
+        bpy.ops.whitecap.load(filepath=path)
+        err = None
+    except RuntimeError as exc:
+        err = str(exc)
+    res[key] = {"error": err, "left": sorted(o.name for o in bpy.data.objects if o.name not in before),
+                "meshes": len(bpy.data.meshes)}
+    if key == "folder":
+        res[key]["objects"] = {o.name: [len(o.data.vertices), o.whitecap_seq.radius, o.whitecap_seq.kind]
+                               for o in seq_objects().values()}
+        for o in list(sc.objects):
+            bpy.data.objects.remove(o)
+print(json.dumps(res))
+"""
+
+
+def test_bad_paths_give_true_errors_and_leave_nothing_behind(addon_run, addon_zip, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(addon_run, broken)
+    # frame 1 shows on loading; its file is cut off after the header
+    (broken / "diffuse" / "diffuse_00001.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
+                                                          b"property float x\nproperty float y\nproperty float z\nend_header\n")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for k in range(2):  # a lattice of spacing 0.02: radius 0.01
+        g = np.stack(np.meshgrid(*[np.arange(5) * 0.02] * 3), -1).reshape(-1, 3)
+        io.write(folder / f"PartFluid_{k:04d}.ply", io.ParticleFrame(g + k * 0.01, rng.random((125, 3))))
+    write_mesh_ply(folder / "Surface_0000.ply", np.eye(3), np.array([[0, 1, 2]]), np.zeros((3, 3)))
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "notes.txt").write_text("x")
+    cases = {"missing": str(tmp_path / "nope"), "broken": str(broken), "folder": str(folder),
+             "plain": str(tmp_path / "plain"), "unnumbered": str(tmp_path / "plain" / "notes.txt")}
+    res = run_blender(ERRORS, addon_zip, tmp_path, json.dumps(cases))
+    assert f"{tmp_path / 'nope'}: no such file or folder" in res["missing"]["error"]
+    assert "not a numbered" not in res["missing"]["error"]
+    assert str(broken / "diffuse" / "diffuse_00001.ply") in res["broken"]["error"] and "truncated" in res["broken"]["error"]
+    assert res["broken"]["left"] == [] and res["broken"]["meshes"] == 0  # a failed load leaves no objects
+    assert res["folder"]["error"] is None
+    objs = res["folder"]["objects"]
+    assert sorted(objs) == ["PartFluid", "Surface"]
+    assert objs["PartFluid"][0] == 125 and objs["PartFluid"][1] == pytest.approx(0.01, rel=1e-3)
+    assert objs["PartFluid"][2] == "PARTICLES" and objs["Surface"][2] == "FLUID"
+    assert "no numbered files" in res["plain"]["error"]
+    assert "no frame number" in res["unnumbered"]["error"]
+
+
+ATTRS = r"""
+path = sys.argv[3]
+bpy.ops.whitecap.load(filepath=path)
+o = list(seq_objects().values())[0]
+me = o.data
+def get(name, n, comps=1):
+    a = me.attributes[name]
+    buf = np.zeros(n * comps, np.float32 if a.data_type.startswith("FLOAT") else np.int32)
+    a.data.foreach_get("vector" if comps == 3 else "value", buf)
+    return buf.reshape(n, comps).tolist() if comps > 1 else buf.tolist()
+n = len(me.vertices)
+res = {"names": sorted(a.name for a in me.attributes if not a.name.startswith(".")),
+       "id": get("id", n), "Mk": get("Mk", n), "pressure": get("pressure", n), "velocity": get("velocity", n, 3),
+       "co": [list(v.co) for v in me.vertices], "radius": o.whitecap_seq.radius}
+o.whitecap_seq.up = "Y"
+res["co_y_up"] = [list(v.co) for v in me.vertices]
+res["velocity_y_up"] = get("velocity", n, 3)
+print(json.dumps(res))
+"""
+
+
+def test_dualsphysics_arrays_become_mesh_attributes_and_y_up_rotates(addon_zip, tmp_path):
+    rng = np.random.default_rng(5)
+    g = np.stack(np.meshgrid(*[np.arange(4) * 0.05] * 3), -1).reshape(-1, 3)
+    n = len(g)
+    arrays = {"Vel": rng.random((n, 3)), "Rhop": rng.random(n).astype(np.float32) + 1000,
+              "Press": rng.random(n).astype(np.float32), "Idp": np.arange(n, dtype=np.int32)[::-1].copy(),
+              "Type": np.full(n, 3, np.uint8), "Mk": np.full(n, 1, np.uint8)}
+    folder = tmp_path / "dsph"
+    folder.mkdir()
+    for k in range(2):
+        _vtk_polydata(folder / f"PartFluid_{k:04d}.vtk", g, arrays)
+    res = run_blender(ATTRS, addon_zip, tmp_path, folder / "PartFluid_0000.vtk")
+    assert {"density", "pressure", "id", "velocity", "Type", "Mk"} <= set(res["names"])
+    assert res["id"] == arrays["Idp"].tolist() and res["Mk"] == [1] * n
+    assert np.allclose(res["pressure"], arrays["Press"]) and np.allclose(res["velocity"], arrays["Vel"], atol=1e-6)
+    assert res["radius"] == pytest.approx(0.025, rel=1e-3)  # half the data's spacing, not a fixed size
+    co, up = np.array(res["co"]), np.array(res["co_y_up"])
+    assert np.allclose(up, np.stack([co[:, 0], -co[:, 2], co[:, 1]], 1), atol=1e-6)  # as whitecap.io.axes.to_z_up
+    v, vu = arrays["Vel"], np.array(res["velocity_y_up"])
+    assert np.allclose(vu, np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1), atol=1e-6)
+
+
+LIST = r"""
+folder, copy, root = sys.argv[3], sys.argv[4], sys.argv[5]
+sc.whitecap_root = root
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "surf_0028.ply"))
+o = seq_objects()["surf"]
+o.whitecap_seq.frame_offset = 0
+res = {"stored": o.whitecap_seq.directory}
+sc.frame_set(29)
+o.whitecap_seq.enabled = False
+sc.frame_set(30)
+res["disabled"] = len(o.data.vertices)
+o.whitecap_seq.enabled = True
+res["enabled"] = len(o.data.vertices)
+import shutil
+shutil.copy(os.path.join(folder, "surf_0031.ply"), os.path.join(folder, "surf_0032.ply"))
+sc.frame_set(32)
+res["before_refresh"] = o.whitecap_seq.current
+bpy.ops.whitecap.refresh()
+res["after_refresh"] = o.whitecap_seq.current
+o.whitecap_seq.directory = copy  # the copy has file 32 with 5 vertices
+res["edited_path"] = len(o.data.vertices)
+# the panels draw every property they name
+class Layout:
+    def __getattr__(self, name):
+        return lambda *a, **k: self
+    def prop(self, data, name, **k):
+        assert name in data.bl_rna.properties, name
+        return self
+    def operator(self, idname, **k):
+        cat, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, cat), op), idname
+        return self
+class Me:
+    layout = Layout()
+bpy.context.view_layer.objects.active = o
+sc.whitecap_active = list(bpy.data.objects).index(o)
+addon.WHITECAP_PT_sequences.draw(Me(), bpy.context)
+addon.WHITECAP_PT_object.draw(Me(), bpy.context)
+res["drawn"] = True
+o.whitecap_seq.kind = "FOAM"  # a mesh turned into points gets the spheres, and back
+dg = bpy.context.evaluated_depsgraph_get()
+geom = o.evaluated_get(dg).evaluated_geometry()  # keep alive while the point cloud is read
+pc = geom.pointcloud
+res["as_points"] = len(pc.points) if pc is not None else 0
+o.whitecap_seq.kind = "OTHER"
+res["modifiers_after"] = [m.name for m in o.modifiers]
+print(json.dumps(res))
+"""
+
+
+def test_sequence_list_enable_refresh_editable_path_and_root(addon_zip, tmp_path):
+    root = tmp_path / "root"
+    folder, copy = root / "seq", tmp_path / "copy"
+    for k in (28, 29, 30, 31):
+        write_mesh_ply(folder / f"surf_{k:04d}.ply", np.random.default_rng(k).random((k, 3)), np.array([[0, 1, 2]]),
+                       np.zeros((k, 3)))
+    copy.mkdir()
+    write_mesh_ply(copy / "surf_0032.ply", np.random.default_rng(0).random((5, 3)), np.array([[0, 1, 2]]), np.zeros((5, 3)))
+    res = run_blender(LIST, addon_zip, tmp_path, folder, copy, root)
+    assert res["stored"] == "seq"  # relative to the root folder
+    assert res["disabled"] == 29 and res["enabled"] == 30  # off: the mesh stays; on again: it catches up
+    assert res["before_refresh"] == 31 and res["after_refresh"] == 32  # Refresh finds the new file
+    assert res["edited_path"] == 5  # editing the folder reloads from the new place at once
+    assert res["drawn"]
+    assert res["as_points"] == 5 and res["modifiers_after"] == []
+
+
+BLUR_RENDER = r"""
+folder, png = sys.argv[3], sys.argv[4]
+sc.frame_start = 1
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "sq_0001.ply"))
+o = seq_objects()["sq"]
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+cam.location = (0, 0, 5)
+sc.collection.objects.link(cam)
+sc.camera = cam
+sc.render.engine = "CYCLES"
+sc.cycles.samples = 1
+sc.cycles.device = "CPU"
+sc.render.resolution_x, sc.render.resolution_y = 16, 8
+o.whitecap_seq.motion_blur = True
+seen = []
+bpy.app.handlers.frame_change_post.append(
+    lambda s, d=None: seen.append([s.frame_current, round(s.frame_subframe, 3), o.whitecap_seq.current]))
+sc.frame_set(2)
+sc.render.filepath = png
+bpy.ops.render.render(write_still=True)
+print(json.dumps({"seen": seen, "blur": sc.render.use_motion_blur}))
+"""
+
+
+def test_a_motion_blur_render_shows_the_frames_file_at_every_shutter_step(addon_zip, tmp_path):
+    """Cycles steps the frame to the shutter's open and close times (1.75 and 2.25 for frame 2);
+    the frame's file must stay, not the neighbour's (the velocity attribute does the blur)."""
+    folder = tmp_path / "seq"
+    square = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]])
+    for k in (1, 2, 3):
+        write_mesh_ply(folder / f"sq_{k:04d}.ply", square + [k - 2.0, 0, 0], np.array([[0, 1, 2], [0, 2, 3]]),
+                       np.zeros((4, 3)))
+    res = run_blender(BLUR_RENDER, addon_zip, tmp_path, folder, tmp_path / "blur.png")
+    assert res["blur"]
+    steps = [s for s in res["seen"] if s[1] != 0]
+    assert [s[:2] for s in steps] == [[1, 0.75], [2, 0.25]], res["seen"]  # Cycles' shutter steps (0.5 frames)
+    assert all(s[2] == 2 for s in res["seen"]), res["seen"]
