@@ -3,6 +3,8 @@
 Same particle count and settings (4 iterations, fixed dt); the obstacle is a
 finely tessellated torus (50,000 faces) placed in the path of the wave. Prints ms per step
 of both and the overhead (target ≤ 15 %). The SDF is built once (cached).
+Then the same for a dynamic body (a 5,120-face sphere of 500 kg/m³, two-way
+coupled) against the scene without it (target ≤ 20 %, issue 15).
 
     python benchmarks/bench_obstacles.py [--particles 120000] [--steps 20]
 """
@@ -18,9 +20,10 @@ import tempfile
 import time
 
 TARGET_OVERHEAD = 0.15
+TARGET_DYNAMIC_OVERHEAD = 0.20
 
 
-def one(n: int, steps: int, mesh: str | None) -> dict:
+def one(n: int, steps: int, mesh: str | None, dynamic: bool = False) -> dict:
     sys.path.insert(0, os.path.dirname(__file__))
     from bench_solver import scene_for
 
@@ -30,7 +33,8 @@ def one(n: int, steps: int, mesh: str | None) -> dict:
     sc = scene_for(n)
     if mesh:
         a = sc.domain.upper[0] / 4
-        sc.obstacle = [Obstacle(mesh=mesh, translate=[1.0 * a, a / 4, 0.03])]  # in the column's foot: contact from the start
+        extra = {"dynamic": True, "density": 500.0} if dynamic else {}
+        sc.obstacle = [Obstacle(mesh=mesh, translate=[1.0 * a, a / 4, 0.03], **extra)]  # in the column's foot: contact from the start
     t0 = time.perf_counter()
     s = build_solver(sc)
     setup = time.perf_counter() - t0
@@ -52,9 +56,10 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=120_000)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--dynamic", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one is not None:
-        print(json.dumps(one(a.particles, a.steps, a.one or None)))
+        print(json.dumps(one(a.particles, a.steps, a.one or None, a.dynamic)))
         return
     import trimesh
 
@@ -63,10 +68,14 @@ def main() -> None:
         m = trimesh.creation.torus(major_radius=0.07, minor_radius=0.03, major_sections=250, minor_sections=100)
         path = os.path.join(tmp, "obstacle.ply")
         m.export(path)
+        ball = os.path.join(tmp, "ball.ply")
+        trimesh.creation.icosphere(subdivisions=4, radius=0.05).export(ball)  # 5,120 faces
         res = {}
-        for key, mesh in (("without", ""), ("with", path), ("with (cached SDF)", path)):
+        for key, mesh, dyn in (("without", "", False), ("with", path, False), ("with (cached SDF)", path, False),
+                               ("dynamic body", ball, True)):
             out = subprocess.run([sys.executable, __file__, "--particles", str(a.particles), "--steps", str(a.steps),
-                                  "--one", mesh], capture_output=True, text=True, env={**os.environ})
+                                  "--one", mesh] + (["--dynamic"] if dyn else []), capture_output=True, text=True,
+                                 env={**os.environ})
             if out.returncode:
                 print(out.stderr[-2000:], file=sys.stderr)
                 raise SystemExit(1)
@@ -78,6 +87,10 @@ def main() -> None:
     # Per particle, since the obstacle displaces some of the initial fluid.
     over = (o["ms_per_step"] / o["particles"]) / (w["ms_per_step"] / w["particles"]) - 1
     print(f"obstacle overhead per step and particle: {100 * over:+.1f} % (target ≤ {100 * TARGET_OVERHEAD:.0f} %)")
+    d = res["dynamic body"]
+    over = (d["ms_per_step"] / d["particles"]) / (w["ms_per_step"] / w["particles"]) - 1
+    print(f"dynamic body (5,120 faces) overhead per step and particle: {100 * over:+.1f} % "
+          f"(target ≤ {100 * TARGET_DYNAMIC_OVERHEAD:.0f} %)")
 
 
 if __name__ == "__main__":

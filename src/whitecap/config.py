@@ -18,7 +18,7 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -139,8 +139,90 @@ def obstacle_transform(o) -> "np.ndarray":
     return T.concatenate_matrices(T.translation_matrix(get("translate")), R, T.scale_matrix(get("scale")))
 
 
+def obstacle_matrix(o, body: dict | None = None) -> "np.ndarray":
+    """The 4×4 world matrix of an obstacle mesh: its rest placement
+    (:func:`obstacle_transform`), carried by the body's pose ``body`` =
+    ``{"position": [x, y, z], "quaternion": [w, x, y, z]}`` as ``run.json``
+    records it per frame (None: at rest). World = T(position)·R(quaternion)·placement."""
+    import trimesh.transformations as T
+
+    M = obstacle_transform(o)
+    if not body:
+        return M
+    return T.concatenate_matrices(T.translation_matrix(body["position"]), T.quaternion_matrix(body["quaternion"]), M)
+
+
+class Keyframe(_Section):
+    """One keyframe of a prescribed motion: the body's offset from its rest placement."""
+
+    time: float = Field(..., ge=0, description="time of the keyframe [s]")
+    translate: Vec3 = Field([0.0, 0.0, 0.0], description="displacement from the rest placement [m]")
+    rotate: Vec3 = Field(
+        [0.0, 0.0, 0.0], description="rotation about x, y, z (in that order) about the motion centre [deg]"
+    )
+
+
+class Motion(_Section):
+    """Prescribed (kinematic) motion of an obstacle, relative to its rest placement.
+
+    ``kind`` picks the law: ``keyframes``, ``piston``, ``flap`` or ``spin``; only the
+    fields of that law may be set (sim/bodies.py evaluates them)."""
+
+    kind: Literal["keyframes", "piston", "flap", "spin"] = Field(..., description="motion law")
+    # keyframes
+    keyframes: list[Keyframe] | None = Field(None, description="keyframes: times, displacements, rotations")
+    interpolation: Literal["linear", "smooth"] = Field(
+        "linear", description="keyframes: linear, or smooth (C1 cubic Hermite with zero end slopes)")
+    centre: Vec3 | None = Field(
+        None, description="keyframes/spin: rotation centre [m]; default: the obstacle's translate")
+    # piston
+    axis: Vec3 | None = Field(None, description="piston: direction of the stroke; spin: rotation axis [-]")
+    stroke: float | None = Field(None, gt=0, description="piston: peak-to-peak displacement S [m]")
+    period: float | None = Field(None, gt=0, description="piston/flap: period T [s]")
+    csv: str | None = Field(None, description="piston: CSV file of time [s], displacement [m] rows, instead of stroke/period")
+    ramp: float = Field(0.0, ge=0, description="piston/flap: the amplitude ramps up smoothly over this time [s]")
+    # flap
+    hinge_axis: Vec3 | None = Field(None, description="flap: hinge direction [-]")
+    hinge_point: Vec3 | None = Field(None, description="flap: a point on the hinge [m]")
+    amplitude: float | None = Field(None, gt=0, description="flap: angular amplitude [deg]")
+    # spin
+    rpm: float | None = Field(None, description="spin: revolutions per minute (sign: right-hand rule) [1/min]")
+
+    _FIELDS: ClassVar[dict] = {
+        "keyframes": ({"keyframes"}, {"interpolation", "centre"}),
+        "piston": ({"axis"}, {"stroke", "period", "csv", "ramp"}),
+        "flap": ({"hinge_axis", "hinge_point", "amplitude", "period"}, {"ramp"}),
+        "spin": ({"axis", "centre", "rpm"}, set()),
+    }
+
+    @model_validator(mode="after")
+    def _fields_of_kind(self) -> "Motion":
+        need, may = self._FIELDS[self.kind]
+        missing = sorted(k for k in need if getattr(self, k) is None)
+        if missing:
+            raise ValueError(f"motion kind '{self.kind}' needs '{missing[0]}'")
+        # Fields away from their defaults (a resolved scene.toml spells the defaults out).
+        given = {k for k, f in type(self).model_fields.items() if k != "kind" and getattr(self, k) != f.default}
+        extra = sorted(given - need - may)
+        if extra:
+            raise ValueError(f"'{extra[0]}' does not apply to motion kind '{self.kind}'")
+        for k in ("axis", "hinge_axis"):
+            v = getattr(self, k)
+            if v is not None and math.sqrt(sum(x * x for x in v)) < 1e-9:
+                raise ValueError(f"'{k}' must not be the zero vector")
+        if self.kind == "piston" and (self.csv is None) == (self.stroke is None or self.period is None):
+            raise ValueError("a piston needs either 'stroke' and 'period' or 'csv'")
+        if self.kind == "piston" and self.csv is not None and (self.stroke is not None or self.period is not None):
+            raise ValueError("a piston takes 'csv' or 'stroke' and 'period', not both")
+        if self.kind == "keyframes":
+            times = [k.time for k in self.keyframes]  # type: ignore[union-attr]
+            if not times or any(b <= a for a, b in zip(times, times[1:])):
+                raise ValueError("keyframes need at least one entry, with strictly increasing times")
+        return self
+
+
 class Obstacle(_Section):
-    """A static rigid obstacle from a watertight triangle mesh (OBJ/STL/PLY)."""
+    """A rigid obstacle from a watertight triangle mesh (OBJ/STL/PLY); static unless it has a motion."""
 
     mesh: str = Field(..., description="collision mesh file, relative to the scene file")
     render_mesh: str | None = Field(None, description="high-poly mesh for rendering; default: the collision mesh")
@@ -157,6 +239,21 @@ class Obstacle(_Section):
         None, description="image texture (PNG, JPEG...) mapped by the render mesh's UVs, relative to the scene file; "
         "replaces the base colour"
     )
+    motion: Motion | None = Field(None, description="prescribed motion; unset = static")
+    dynamic: bool = Field(False, description="a rigid body moved by the fluid and gravity (two-way coupling)")
+    density: float | None = Field(None, gt=0, description="dynamic: the body's density [kg/m³]")
+    mass: float | None = Field(None, gt=0, description="dynamic: the body's mass, instead of density [kg]")
+
+    @model_validator(mode="after")
+    def _dynamic_fields(self) -> "Obstacle":
+        if self.dynamic:
+            if (self.density is None) == (self.mass is None):
+                raise ValueError("a dynamic obstacle needs exactly one of 'density' and 'mass'")
+            if self.motion is not None:
+                raise ValueError("an obstacle is either dynamic or has a prescribed motion, not both")
+        elif self.density is not None or self.mass is not None:
+            raise ValueError("'density' and 'mass' apply only with dynamic = true")
+        return self
 
 
 # --------------------------------------------------------------------------- foam
@@ -374,7 +471,7 @@ class Scene(_Section):
     domain: Domain = Field(default_factory=Domain)
     solver: Solver = Field(default_factory=Solver)
     fluid: list[FluidBlock] = Field(default_factory=list, description="initial fluid blocks")
-    obstacle: list[Obstacle] = Field(default_factory=list, description="static obstacles")
+    obstacle: list[Obstacle] = Field(default_factory=list, description="obstacles, static or moving")
     foam: Foam = Field(default_factory=Foam)
     mesh: Mesh = Field(default_factory=Mesh)
     view: View = Field(default_factory=View)

@@ -66,6 +66,10 @@ class FoamStage:
             self.gen.state = self._pending
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
+        for g in self.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF): at this frame's pose
+            if hasattr(g, "time"):
+                g.time = frame.time if frame.time is not None else index * dt
+                g.body = info.body_pose(index, g.index)
         d = self.gen.step(frame, index, dt)
         rel = frame_name("diffuse", index)
         write(out / rel, d)
@@ -113,7 +117,7 @@ def obstacle_grids(scene: Scene) -> list:
         return []
     from ..sim.obstacles import load_obstacles
 
-    return load_obstacles(scene).grids
+    return load_obstacles(scene).posed_grids()
 
 
 def simulation_hook(scene: Scene) -> FoamStage:

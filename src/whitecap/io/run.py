@@ -11,8 +11,11 @@
 ``run.json`` holds the format version, particle radius, rest density,
 particle mass, gravity, domain box, frame rate, the simulation's identity
 and, per frame, its index, simulated time, the files written for it keyed by
-kind, and (``made_from``) the identity of the simulation each file was made
-from.
+kind, (``made_from``) the identity of the simulation each file was made
+from, and, in runs with moving obstacles, (``bodies``) each obstacle's pose
+at that frame: position [m] and quaternion (w, x, y, z) of the rigid motion
+from its rest placement (``config.obstacle_matrix`` composes the two). The
+``obstacles`` entries name each body's collision ``mesh`` and ``render_mesh``.
 
 The identity (:func:`simulation_identity`) is a hash of the resolved scene
 TOML, seed included; ``output.frames`` is left out so that extending a run
@@ -111,6 +114,16 @@ def _validate(data: Any, p: Path) -> None:
             raise bad(f"{at}.index", f"a frame number, got {f.get('index')!r}")
         if "time" in f and not _number(f["time"]):
             raise bad(f"{at}.time", f"a number, got {f['time']!r}")
+        bodies = f.get("bodies", [])
+        if not isinstance(bodies, list):
+            raise bad(f"{at}.bodies", f"a list, got {bodies!r}")
+        for b, body in enumerate(bodies):
+            if not isinstance(body, dict) or not vec3(body.get("position")):
+                raise bad(f"{at}.bodies[{b}].position", f"3 numbers, got {body!r}")
+            q = body.get("quaternion")
+            if not (isinstance(q, list) and len(q) == 4 and all(_number(x) for x in q)
+                    and abs(math.fsum(x * x for x in q) - 1.0) < 1e-3):
+                raise bad(f"{at}.bodies[{b}].quaternion", f"a unit quaternion (w, x, y, z), got {q!r}")
         for k in ("files", "made_from"):
             if not isinstance(f.get(k, {}), dict):
                 raise bad(f"{at}.{k}", f"an object, got {f[k]!r}")
@@ -209,6 +222,19 @@ class RunInfo:
         f.setdefault("made_from", {})[kind] = self.simulation
         if time is not None:
             f["time"] = float(time)
+
+    def set_bodies(self, index: int, bodies: list[dict]) -> None:
+        """Record the pose of every obstacle at this frame: ``{"position": [x, y, z], "quaternion":
+        [w, x, y, z]}`` per obstacle, in scene order, the rigid motion from its rest placement."""
+        self.frame(index)["bodies"] = bodies
+
+    def body_pose(self, index: int, k: int) -> dict | None:
+        """Obstacle ``k``'s pose at frame ``index`` (None: static, or not recorded: at rest)."""
+        for f in self.frames:
+            if f["index"] == index:
+                b = f.get("bodies") or []
+                return b[k] if k < len(b) else None
+        return None
 
     def files(self, kind: str) -> list[tuple[int, str]]:
         """(index, relative path) of every frame that has a file of this kind."""

@@ -333,7 +333,7 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     sc.collection.objects.link(fluid)
     diffuse = _add_diffuse_objects(sc, cfg, info)
     for k, entry in enumerate(info.obstacles):
-        _add_obstacle(entry, k, info, run_dir)
+        keyframe_body(_add_obstacle(entry, k, info, run_dir), k, info, first, last)
     cam = _add_camera(sc, cfg, info, first, last, run_dir)
     _compositing(sc, cfg)
     return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
@@ -442,6 +442,7 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None) -> N
     obj.data.materials.append(obstacle_material(entry))
     stage.apply_texture(obj, m, entry, k, info, run_dir or Path("."))
     bpy.context.scene.collection.objects.link(obj)
+    return obj
 
 
 def _compositing(sc, cfg: Render) -> None:
@@ -489,3 +490,38 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
             stats["diffuse"][t] = int(sel.sum())
     bpy.context.scene.frame_set(index)
     return stats
+
+
+def keyframe_body(obj, k: int, info: RunInfo, first: int, last: int) -> None:
+    """Keyframe a moving obstacle's pose from run.json on every frame first..last.
+
+    The mesh holds the rest placement; the object's location and quaternion are the
+    body's pose (``frames[i].bodies[k]``, w x y z as Blender orders it), so the world
+    placement is ``config.obstacle_matrix`` and object motion blur comes from the keys."""
+    if obj is None:
+        return
+    keyed = False
+    for f in info.frames:
+        i = f["index"]
+        body = info.body_pose(i, k)
+        if body is None or not (first <= i <= last):
+            continue
+        obj.rotation_mode = "QUATERNION"
+        obj.location = body["position"]
+        obj.rotation_quaternion = body["quaternion"]
+        obj.keyframe_insert("location", frame=i)
+        obj.keyframe_insert("rotation_quaternion", frame=i)
+        keyed = True
+    if keyed and obj.animation_data and obj.animation_data.action:
+        _linear_keys(obj.animation_data.action)
+
+
+def _linear_keys(action) -> None:
+    """Linear interpolation between the per-frame keys (no Bézier overshoot between frames)."""
+    curves = getattr(action, "fcurves", None)
+    if curves is None:  # Blender 5 layered actions
+        curves = [c for layer in action.layers for strip in layer.strips for bag in strip.channelbags
+                  for c in bag.fcurves]
+    for c in curves:
+        for kp in c.keyframe_points:
+            kp.interpolation = "LINEAR"

@@ -1,6 +1,6 @@
-"""The fluid solver: Position Based Fluids in Taichi, with static obstacles.
+"""The fluid solver: Position Based Fluids in Taichi, with static, moving and floating obstacles.
 
 Modules: ``runtime`` (Taichi init), ``grid`` (neighbour search, shared with
 foam), ``kernels`` (SPH kernels), ``pbf`` (the solver), ``obstacles``
-(mesh SDF colliders), ``driver`` (frames, checkpoints, resume).
+(mesh SDF colliders), ``bodies`` (motion laws and rigid bodies), ``driver`` (frames, checkpoints, resume).
 """

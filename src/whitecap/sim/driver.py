@@ -244,7 +244,11 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     for h in hooks:
         h.on_start(solver, out, info)
 
+    bodies = next((c for c in solver.colliders if getattr(c, "moving", False)), None)
+
     def emit(index: int, dt: float) -> None:
+        if bodies is not None:  # moving bodies: their pose at this frame, as run.json records it
+            info.set_bodies(index, bodies.body_records())
         with timer("output"):
             a = solver.arrays()
             frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)

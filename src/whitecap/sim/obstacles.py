@@ -1,4 +1,4 @@
-"""Static rigid obstacles from watertight triangle meshes.
+"""Rigid obstacles from watertight triangle meshes, static or moving.
 
 Loading (host side): trimesh reads OBJ/STL/PLY; the mesh is checked for
 watertightness (or repaired on request), transformed (scale, then rotations
@@ -18,6 +18,17 @@ Collision (Taichi, per particle and obstacle):
   position projection after every constraint iteration so that sdf ≥ r
   (no particle inside), and a velocity response that removes the inward
   normal velocity and damps the tangential part by ``friction``.
+
+Moving obstacles (sim/bodies.py): the SDF stays in the rest placement; each
+step uploads every obstacle's pose (R, T) and step velocity u(x) = A·x + b, and
+every kernel reads a particle at x_rest = Rᵀ(x − T) and turns the SDF gradient
+back with R. The velocity response, friction included, acts on the velocity
+relative to the body, v − u; the penalty and the projection use the body's pose
+at the end of the step, so a pushing body moves the water with it; the density
+map is read at the moved body. A static obstacle has R = I, T = 0, u = 0: the
+same contact as before bodies could move (its runs match earlier versions'
+frames for the first steps, then differ in the last bits, as the kernels
+compile to different instruction orders).
 
 Boundary density: like the domain walls, an obstacle adds ρ0·ψ(sdf) to a
 nearby particle's density (the planar density map of Bender et al. 2019,
@@ -47,6 +58,7 @@ from .grid import F1, F3, I1
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
 IV = ti.types.ndarray(dtype=ivec3, ndim=1)
+M3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
 SDF_CACHE_VERSION = 2  # 2: meshes with inconsistent winding are refused or repaired
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # Width of the contact band of the velocity response, × r: a particle counts as touching
@@ -55,6 +67,10 @@ FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # error and float rounding, and is thin enough (a twentieth of r) not to slow particles
 # that merely pass close by.
 CONTACT_BAND = 0.05
+# Initial fluid particles keep this distance (× r) from a dynamic body: the lattice puts some
+# exactly at r, where the trilinear SDF's error (up to ~0.1 r) has the first projection kick
+# them, and through the coupling the body, sideways (measured: 0.3 m/s on a free 8 cm cube).
+DYNAMIC_START_GAP = 1.25
 
 
 # ============================================================================ host side
@@ -164,13 +180,36 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     return grid
 
 
+class PosedSDF:
+    """A moving obstacle's SDF for host-side users such as the diffuse particles: ``sample`` reads
+    the field at the body's pose ``body`` (run.json's record for the frame, obstacle ``index``), or
+    else at its motion law's pose at ``time``; set them per frame."""
+
+    def __init__(self, grid: SDFGrid, law, index: int):
+        self.grid, self.law, self.index, self.time, self.body = grid, law, index, 0.0, None
+
+    def sample(self, pts: np.ndarray) -> np.ndarray:
+        if self.body is not None:
+            from ..config import obstacle_matrix
+
+            M = obstacle_matrix({"mesh": ""}, self.body)
+            R, T = M[:3, :3], M[:3, 3]
+        else:
+            R, T = self.law.pose(self.time)
+        return self.grid.sample((np.asarray(pts, np.float64) - T) @ R)  # x_rest = Rᵀ(x − T)
+
+
 class Obstacles:
     """All obstacles of a scene: SDF grids on the host, packed for the kernels."""
 
-    def __init__(self, scene: Scene, grids: list[SDFGrid]):
+    def __init__(self, scene: Scene, grids: list[SDFGrid], bodies: dict | None = None):
         self.scene = scene
         self.grids = grids
+        self.bodies = bodies or {}  # {obstacle index: sim.bodies.RigidBody}
         self.entries = scene.obstacle
+        from .bodies import motion_laws
+
+        self.laws = motion_laws(scene)
 
     def __len__(self) -> int:
         return len(self.grids)
@@ -179,9 +218,16 @@ class Obstacles:
         """Initial fluid particles to keep: those at least one radius outside every obstacle."""
         r = self.scene.solver.particle_radius
         keep = np.ones(len(pos), bool)
-        for g in self.grids:
-            keep &= g.sample(pos) >= r
+        for k, (g, law) in enumerate(zip(self.grids, self.laws)):
+            R, T = law.pose(0.0)
+            gap = DYNAMIC_START_GAP * r if k in self.bodies else r
+            keep &= g.sample((np.asarray(pos, np.float64) - T) @ R) >= gap  # x_rest = Rᵀ(x − T)
         return keep
+
+    def posed_grids(self) -> list:
+        """The SDFs for host-side tests: static grids as they are, moving ones as :class:`PosedSDF`."""
+        return [PosedSDF(g, law, k) if law.moving or k in self.bodies else g
+                for k, (g, law) in enumerate(zip(self.grids, self.laws))]
 
     def collider(self, solver) -> "ObstacleCollider":
         return ObstacleCollider(self, solver)
@@ -200,7 +246,15 @@ def load_obstacles(scene: Scene) -> Obstacles | None:
         if (g.aabb_hi < lo).any() or (g.aabb_lo > hi).any():
             raise InputError(f"{path}: obstacle[{k}] lies outside the domain {lo.tolist()}..{hi.tolist()} after its transform")
         grids.append(g)
-    return Obstacles(scene, grids)
+    bodies = {}
+    for k, o in enumerate(scene.obstacle):
+        if o.dynamic:
+            from .bodies import RigidBody
+
+            m = load_mesh(scene.resolve(o.mesh), o.repair)
+            m.apply_transform(obstacle_transform(o))
+            bodies[k] = RigidBody(m, o, scene.domain.gravity, lo, hi)
+    return Obstacles(scene, grids, bodies)
 
 
 # ============================================================================ kernels
@@ -244,25 +298,59 @@ def in_box(p: vec3, lo: vec3, hi: vec3) -> ti.i32:
     return p.x >= lo.x and p.y >= lo.y and p.z >= lo.z and p.x <= hi.x and p.y <= hi.y and p.z <= hi.z
 
 
+@ti.func
+def to_rest(rot: ti.template(), trans: ti.template(), o: ti.i32, x: vec3) -> vec3:
+    """x_rest = Rᵀ(x − T): a world point in the obstacle's rest placement, where its SDF lives."""
+    return rot[o].transpose() @ (x - trans[o])
+
+
+@ti.func
+def give(imp: ti.template(), mom: ti.template(), body_of: ti.template(), i: ti.i32, o: ti.i32, x: vec3, dmv: vec3):
+    """Momentum m·Δv that dynamic body o gave particle i (and its moment x × m·Δv about the origin);
+    the body takes the opposite (sim/bodies.RigidBody.set_reaction)."""
+    imp[i] += dmv
+    mom[i] += x.cross(dmv)
+    body_of[i] = o
+
+
+@ti.kernel
+def body_pressure_impulse(n: ti.i32, p: F3, lam: F1, gpsi_b: F3, imp: F3, mom: F3, m_inv_dt: ti.f32):
+    """The dynamic bodies' share of the last Δp_i: λ_i ∇ψ_i,body (momentum m·λ_i∇ψ_i,body/Δt),
+    then ∇ψ_i,body ← 0 for the next iteration."""
+    for i in range(n):
+        gb = gpsi_b[i]
+        if gb.norm_sqr() > 0.0:
+            dmv = m_inv_dt * lam[i] * gb
+            imp[i] += dmv
+            mom[i] += p[i].cross(dmv)
+            gpsi_b[i] = vec3(0.0)
+
+
 @ti.kernel
 def obstacle_penalty(
     n: ti.i32, x: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    stiffness: F1, r: ti.f32, dt: ti.f32,
+    rot: M3, trans: F3, stiffness: F1, r: ti.f32, dt: ti.f32,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, m: ti.f32,
 ):
-    """v ← v + Δt·k·n·(−φ) for φ = sdf − r < 0 (penalty force per unit mass)."""
+    """v ← v + Δt·k·n·(−φ) for φ = sdf − r < 0 (penalty force per unit mass), n = R∇sdf."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(x[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], x[i])
+            xl = to_rest(rot, trans, o, x[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 phi = d - r
                 if phi < 0.0 and g.norm() > 1e-9:
-                    v[i] += dt * stiffness[o] * (-phi) * g.normalized()
+                    dv = dt * stiffness[o] * (-phi) * (rot[o] @ g.normalized())
+                    v[i] += dv
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, x[i], m * dv)
 
 
 @ti.kernel
 def obstacle_project_and_density_map(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
+    rot: M3, trans: F3, r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, gpsi_b: F3, m_inv_dt: ti.f32,
 ):
     """Fused at the start of each constraint iteration (one SDF lookup serves both):
     x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
@@ -270,13 +358,18 @@ def obstacle_project_and_density_map(
     the obstacle's share of ρ_i/ρ0."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+            xl = to_rest(rot, trans, o, p[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < r and g.norm() > 1e-9:
-                    p[i] += (r - d) * g.normalized()
-                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+                    dp = (r - d) * (rot[o] @ g.normalized())
+                    p[i] += dp
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, p[i], m_inv_dt * dp)
+                    xl = to_rest(rot, trans, o, p[i])
+                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < h:
-                    gn = g.normalized() if g.norm() > 1e-9 else vec3(0.0)
+                    gn = rot[o] @ g.normalized() if g.norm() > 1e-9 else vec3(0.0)
                     # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
                     # table size is a compile-time constant) rounds differently, and runs with
                     # obstacles would no longer give the bytes they gave before.
@@ -285,38 +378,54 @@ def obstacle_project_and_density_map(
                     k = ti.min(ti.cast(ti.floor(t), ti.i32), psi_table.shape[0] - 2)
                     f = t - k
                     psi[i] += (1.0 - f) * psi_table[k] + f * psi_table[k + 1]
-                    grad_psi[i] += ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
+                    gp = ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
+                    grad_psi[i] += gp
+                    if dyn[o] == 1:
+                        gpsi_b[i] += gp
+                        body_of[i] = o
 
 
 @ti.kernel
 def obstacle_project(
-    n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3, r: ti.f32
+    n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
+    rot: M3, trans: F3, r: ti.f32, dyn: I1, imp: F3, mom: F3, body_of: I1, m_inv_dt: ti.f32,
 ):
     """x* ← x* + (r − sdf)·n where sdf < r: no particle inside, none closer than its radius."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
+            if in_box(to_rest(rot, trans, o, p[i]), box_lo[o], box_hi[o]):
                 for _ in range(2):  # a second pass settles particles pushed into a crease
-                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+                    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], to_rest(rot, trans, o, p[i]))
                     if d < r and g.norm() > 1e-9:
-                        p[i] += (r - d) * g.normalized()
+                        dp = (r - d) * (rot[o] @ g.normalized())
+                        p[i] += dp
+                        if dyn[o] == 1:
+                            give(imp, mom, body_of, i, o, p[i], m_inv_dt * dp)
 
 
 @ti.kernel
 def obstacle_response(
     n: ti.i32, p: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
-    friction: F1, r: ti.f32, band: ti.f32,
+    rot: M3, trans: F3, vel_a: M3, vel_b: F3, friction: F1, r: ti.f32, band: ti.f32,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, m: ti.f32,
 ):
-    """For particles in contact: drop the inward normal velocity, damp the tangential part."""
+    """For particles in contact, relative to the body's velocity u = A·x + b: drop the
+    inward normal part of v − u, damp its tangential part (friction relative to the body)."""
     for i in range(n):
         for o in range(off.shape[0]):
-            if in_box(p[i], box_lo[o], box_hi[o]):
-                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], p[i])
+            xl = to_rest(rot, trans, o, p[i])
+            if in_box(xl, box_lo[o], box_hi[o]):
+                d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
                 if d < r + band and g.norm() > 1e-9:
-                    nrm = g.normalized()
-                    vn = v[i].dot(nrm)
-                    vt = v[i] - vn * nrm
-                    v[i] = ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
+                    nrm = rot[o] @ g.normalized()
+                    u = vel_a[o] @ p[i] + vel_b[o]
+                    vr = v[i] - u
+                    vn = vr.dot(nrm)
+                    vt = vr - vn * nrm
+                    v_new = u + ti.max(vn, 0.0) * nrm + (1.0 - friction[o]) * vt
+                    if dyn[o] == 1:
+                        give(imp, mom, body_of, i, o, p[i], m * (v_new - v[i]))
+                    v[i] = v_new
 
 
 # ============================================================================ collider
@@ -348,21 +457,140 @@ class ObstacleCollider:
         self.stiffness = arr([o.stiffness for o in obst.entries], "f")
         self.friction = arr([o.friction for o in obst.entries], "f")
         self.band = CONTACT_BAND * solver.r
+        # Poses and step velocities, uploaded each step (sim/bodies.py); identity for static ones.
+        self.laws = obst.laws
+        self.bodies = obst.bodies  # {obstacle index: RigidBody} of the dynamic ones
+        self.moving = any(law.moving for law in self.laws) or bool(self.bodies)
+        # Two-way coupling: per particle, the momentum the dynamic bodies gave it this step, its
+        # moment, which body, and the bodies' share of ∇ψ (size 1 when there is no dynamic body).
+        nb = solver.n if self.bodies else 1
+        self.dyn = arr([1 if j in self.bodies else 0 for j in range(k)], "i")
+        self.imp = ti.Vector.ndarray(3, ti.f32, nb)
+        self.mom = ti.Vector.ndarray(3, ti.f32, nb)
+        self.gpsi_b = ti.Vector.ndarray(3, ti.f32, nb)
+        self.body_of = ti.ndarray(ti.i32, nb)
+        self.m = float(solver.mass)
+        self.inv_dt = 0.0
+        self.in_step = False
+        self.grids = obst.grids
+        self.overlaps: set = set()  # (dynamic body, obstacle) pairs already warned about
+        self.rot = ti.Matrix.ndarray(3, 3, ti.f32, k)
+        self.trans = ti.Vector.ndarray(3, ti.f32, k)
+        self.vel_a = ti.Matrix.ndarray(3, 3, ti.f32, k)
+        self.vel_b = ti.Vector.ndarray(3, ti.f32, k)
+        self.set_poses(solver.time, solver.time)
+
+    def set_poses(self, t0: float, t1: float, dt: float = 0.0) -> None:
+        """Upload every obstacle's pose at t1 and its velocity over the step t0 → t1: kinematic ones
+        from their motion law, dynamic ones advanced by one step ``dt`` (when dt > 0)."""
+        from .bodies import step_velocity
+
+        R, T, A, B = [], [], [], []
+        for j, law in enumerate(self.laws):
+            body = self.bodies.get(j)
+            if body is not None:
+                R0, T0 = body.pose()
+                if dt > 0:
+                    body.advance(dt)
+                R1, T1 = body.pose()
+            else:
+                R0, T0 = law.pose(t0)
+                R1, T1 = law.pose(t1)
+            a, b = step_velocity(R0, T0, R1, T1, t1 - t0) if t1 > t0 else (np.zeros((3, 3)), np.zeros(3))
+            R.append(R1)
+            T.append(T1)
+            A.append(a)
+            B.append(b)
+        self.upload(R, T, A, B)
+
+    def upload(self, R, T, A, B) -> None:
+        """The poses (R, T), float64 on the host (``self.poses``), and step velocities for the kernels."""
+        self.poses = list(zip(R, T))
+        self.rot.from_numpy(np.asarray(R, np.float32))
+        self.trans.from_numpy(np.asarray(T, np.float32))
+        self.vel_a.from_numpy(np.asarray(A, np.float32))
+        self.vel_b.from_numpy(np.asarray(B, np.float32))
 
     def _geo(self):
-        return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi
+        return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi, self.rot, self.trans
+
+    def _coupling(self):
+        return self.dyn, self.imp, self.mom, self.body_of
 
     def apply_forces(self, s, dt: float) -> None:
-        obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt)
+        """First call of a step: move the bodies to their pose at its end, then the penalty."""
+        if self.moving:
+            self.set_poses(s.time, s.time + dt, dt)
+        if self.bodies:
+            self.in_step, self.inv_dt = True, 1.0 / dt
+            for a in (self.imp, self.mom, self.gpsi_b):
+                a.fill(0.0)
+            self.body_of.fill(-1)
+        obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt, *self._coupling(), self.m)
+
+    def body_records(self) -> list[dict]:
+        """Every obstacle's current pose as run.json records it (sim.bodies.pose_record)."""
+        from .bodies import pose_record
+
+        return [pose_record(R, T) for R, T in self.poses]
+
+    def poses_at(self, t: float) -> None:
+        """Bodies at their pose at ``t`` with zero step velocity (after a restore, for output)."""
+        if self.moving:
+            self.set_poses(t, t)
+
+    def _pressure_share(self, s) -> None:
+        if self.bodies and self.in_step:
+            body_pressure_impulse(s.n, s.state.p, s.state.lam, self.gpsi_b, self.imp, self.mom, self.m * self.inv_dt)
 
     def add_density_map(self, s) -> None:
         st = s.state
+        self._pressure_share(s)  # the previous iteration's λ_i ∇ψ_i,body
         obstacle_project_and_density_map(
-            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi
+            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi,
+            *self._coupling(), self.gpsi_b, self.m * self.inv_dt,
         )
 
     def project(self, s) -> None:
-        obstacle_project(s.n, s.state.p, *self._geo(), s.r)
+        self._pressure_share(s)
+        obstacle_project(s.n, s.state.p, *self._geo(), s.r, *self._coupling(), self.m * self.inv_dt)
 
     def respond(self, s) -> None:
-        obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.friction, s.r, self.band)
+        obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.vel_a, self.vel_b, self.friction, s.r,
+                          self.band, *self._coupling(), self.m)
+        if self.bodies and self.in_step:
+            self.in_step = False
+            imp = self.imp.to_numpy().astype(np.float64)
+            mom = self.mom.to_numpy().astype(np.float64)
+            which = self.body_of.to_numpy()
+            for j, body in self.bodies.items():
+                sel = which == j
+                body.set_reaction(imp[sel].sum(0), mom[sel].sum(0), 1.0 / self.inv_dt)
+            self.check_overlaps(s.time + 1.0 / self.inv_dt)
+
+    def check_overlaps(self, t: float) -> None:
+        """Bodies do not collide with each other or with static obstacles: warn (once per pair)
+        when a hull vertex of a dynamic body is inside another obstacle."""
+        for j, body in self.bodies.items():
+            R, T = self.poses[j]
+            verts = (body.hull @ R.T + T)
+            for k, (Rk, Tk) in enumerate(self.poses):
+                if k == j or (j, k) in self.overlaps:
+                    continue
+                if (self.grids[k].sample((verts - Tk) @ Rk) < 0).any():
+                    self.overlaps.add((j, k))
+                    from ..progress import console
+
+                    console.print(f"[yellow]warning:[/] obstacle[{j}] passes into obstacle[{k}] at t={t:.3f} s: "
+                                  "contact between bodies is not modelled")
+
+    # ------------------------------------------------------------ checkpoint
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        if not self.bodies:
+            return {}
+        return {"bodies": np.stack([self.bodies[j].state() for j in sorted(self.bodies)])}
+
+    def restore(self, data: dict) -> None:
+        if self.bodies and "bodies" in data:
+            for row, j in zip(np.asarray(data["bodies"]), sorted(self.bodies)):
+                self.bodies[j].restore(row)

@@ -609,6 +609,8 @@ class PBFSolver:
             "ids": st.ids.to_numpy(),
             "step_count": np.int64(self.step_count),
             "time": np.float64(self.time),
+            **{f"collider{k}_{name}": a for k, c in enumerate(self.colliders) if hasattr(c, "checkpoint")
+               for name, a in c.checkpoint().items()},
         }
 
     def restore(self, ck: dict) -> None:
@@ -618,3 +620,8 @@ class PBFSolver:
         st.ids.from_numpy(np.asarray(ck["ids"], np.int32))
         self.step_count = int(ck["step_count"])
         self.time = float(ck["time"])
+        for k, c in enumerate(self.colliders):  # moving bodies: their state, then their pose at that time
+            if hasattr(c, "restore"):
+                c.restore({key[len(f"collider{k}_"):]: a for key, a in ck.items() if key.startswith(f"collider{k}_")})
+            if hasattr(c, "poses_at"):
+                c.poses_at(self.time)

@@ -79,7 +79,8 @@ class Renderer:
         self.box = ti.Vector.field(3, ti.f32, len(lines))
         self.box.from_numpy(lines)
         self.obstacles = []
-        for v, f, nrm, color in obstacles:
+        self.rest = []  # per drawn obstacle: [index in the scene, rest vertices, rest normals, pose drawn]
+        for v, f, nrm, color, k in obstacles:
             vf = ti.Vector.field(3, ti.f32, len(v))
             vf.from_numpy(v)
             nf = ti.Vector.field(3, ti.f32, len(v))
@@ -87,6 +88,7 @@ class Renderer:
             idx = ti.field(ti.i32, f.size)
             idx.from_numpy(f.reshape(-1))
             self.obstacles.append((vf, idx, nf, color))
+            self.rest.append([k, v, nrm, None])
         self.legend_v = ti.Vector.field(2, ti.f32, 6 * LEGEND_STEPS)
         self.legend_c = ti.Vector.field(3, ti.f32, 6 * LEGEND_STEPS)
         self._legend_geometry()
@@ -151,12 +153,27 @@ class Renderer:
             sc.particles(self.diffuse.pos, radius=self.radius, per_vertex_color=self.diffuse.col,
                          per_vertex_radius=self.diffuse.rad, index_count=n)
         if vis.obstacles:
+            self.move_bodies(frame.bodies)
             for vf, idx, nf, color in self.obstacles:
                 sc.mesh(vf, indices=idx, normals=nf, color=color, two_sided=True)
         if vis.domain:
             sc.lines(self.box, width=BOX_LINE_WIDTH, color=(0.75, 0.75, 0.8))
         self.canvas.set_background_color(self.background)
         self.canvas.scene(sc)
+
+    def move_bodies(self, bodies: list | None) -> None:
+        """Moving obstacles at this frame's pose (run.json's ``bodies``, or the live solver's)."""
+        from .geometry import posed
+
+        for (vf, _, nf, _), rest in zip(self.obstacles, self.rest):
+            k, v, nrm, drawn = rest
+            body = bodies[k] if bodies and k < len(bodies) else None
+            if body is None or body == drawn:
+                continue
+            pv, pn = posed(v, nrm, body)
+            vf.from_numpy(pv)
+            nf.from_numpy(pn)
+            rest[3] = body
 
     def draw_legend(self, state: ViewerState) -> None:
         """Colour bar with its range (the range text sits in a small GUI box under it)."""

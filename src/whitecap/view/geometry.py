@@ -1,4 +1,4 @@
-"""Static geometry for the viewer: obstacle meshes and the domain box."""
+"""Geometry for the viewer: obstacle meshes (at rest, and moved by their pose) and the domain box."""
 
 from __future__ import annotations
 
@@ -7,13 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import obstacle_transform
+from ..config import obstacle_matrix, obstacle_transform
 
 log = logging.getLogger("whitecap.view")
 
 
-def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple]]:
-    """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour) per obstacle.
+def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple, int]]:
+    """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour, obstacle index) per
+    obstacle, in its rest placement (:func:`posed` moves it to a frame's pose).
 
     Relative mesh paths are looked for in ``bases`` in order (the scene
     directory, then the run directory for playback), then the working directory. Missing or unreadable meshes are skipped with a
@@ -22,7 +23,7 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
     import trimesh
 
     out = []
-    for e in entries:
+    for k, e in enumerate(entries):
         path = Path(e.get("render_mesh") or e["mesh"])
         cands = [path] if path.is_absolute() else [b / path for b in bases] + [Path.cwd() / path]
         found = next((c for c in cands if c.is_file()), None)
@@ -36,8 +37,16 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
             continue
         m.apply_transform(obstacle_transform(e))
         color = tuple(float(c) for c in e.get("color", (0.8, 0.78, 0.72)))
-        out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color))
+        out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color, k))
     return out
+
+
+def posed(vertices: np.ndarray, normals: np.ndarray, body: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Rest-placement vertices and normals carried by a body pose from run.json
+    (``{"position", "quaternion"}``): the pose part of ``config.obstacle_matrix``."""
+    M = obstacle_matrix({"mesh": ""}, body)
+    R, T = M[:3, :3], M[:3, 3]
+    return (vertices @ R.T + T).astype(np.float32), (normals @ R.T).astype(np.float32)
 
 
 def box_lines(lower, upper) -> np.ndarray:

@@ -42,6 +42,7 @@ class Frame:
     diffuse_type: np.ndarray | None = None
     diffuse_radius: np.ndarray | None = None
     device: DeviceFluid | None = None
+    bodies: list | None = None  # per obstacle, its pose {"position", "quaternion"} (None: all at rest)
 
     def as_dict(self) -> dict:
         if self.positions is None and self.device is not None:
@@ -130,6 +131,8 @@ class PlaybackSource:
         idx = self.indices[k]
         t = pf.time if pf.time is not None else self.times.get(idx, float(idx))
         fr = Frame(idx, float(t), pf.positions, pf.velocities, pf.density)
+        if self.info is not None:
+            fr.bodies = next((f.get("bodies") for f in self.info.frames if f["index"] == idx), None)
         dpath = self.diffuse.get(idx)
         if dpath is not None and dpath.is_file():
             dfr = read(dpath)
@@ -239,6 +242,9 @@ class LiveSource:
         if with_density and not step_foam:
             s.update_density()
         fr = Frame(self.index, float(s.time), None, device=DeviceFluid(s.state.x, s.state.v, s.state.rho, s.n))
+        moving = next((c for c in s.colliders if getattr(c, "moving", False)), None)
+        if moving is not None:  # moving bodies at their current pose
+            fr.bodies = moving.body_records()
         if step_foam:  # once per output frame: the foam generator works on host arrays
             a = s.arrays(with_density=True)
             fr.positions, fr.velocities, fr.density = a["positions"], a["velocities"], a["density"]
@@ -252,6 +258,9 @@ class LiveSource:
             from ..io import ParticleFrame
 
             pf = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=fr.time)
+            for g in self.hook.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF) at this pose
+                if hasattr(g, "body"):
+                    g.time, g.body = fr.time, fr.bodies[g.index] if fr.bodies else None
             d = self.hook.gen.step(pf, self.index, 1.0 / self.scene.solver.frame_rate)
             self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8), np.asarray(d.arrays["radius"], np.float32))
             self._diffuse_index = self.index

@@ -1,0 +1,276 @@
+"""Rigid bodies: the motion laws of kinematic obstacles and their poses.
+
+An obstacle's signed distance field is sampled once, in its *rest placement*
+(the scene's ``scale``, ``rotate``, ``translate``). A moving obstacle is that
+rest shape carried by a rigid motion, its *pose* at time t:
+
+    x_world = R(t) · x_rest + T(t)
+
+Particles query the SDF through the inverse, x_rest = Rᵀ (x_world − T). The
+laws (``[[obstacle]] motion``):
+
+- ``keyframes``: displacement d and rotation angles θ (about x, then y, then z,
+  about ``centre``, default the obstacle's ``translate``) interpolated between
+  keys, linearly or ``smooth`` (smoothstep, which eases in and out of every
+  key); held before the first and after the last key. R = R(θ), T = c + d − R c.
+- ``piston``: T = X(t)·â, X(t) = ramp(t)·(S/2)·sin(2πt/T_p), or X(t)
+  interpolated from a CSV of (time, displacement) rows.
+- ``flap``: rotation by θ(t) = ramp(t)·A·sin(2πt/T_p) about the hinge axis
+  through the hinge point p: R = R(â, θ), T = p − R p.
+- ``spin``: θ(t) = 2π·rpm/60·t about the axis through ``centre``.
+
+``ramp(t)`` is 1, or the smoothstep of t/ramp when ``ramp`` > 0, so that a wave
+maker starts at rest.
+
+Body velocity: over a step from t₀ to t₁ = t₀ + Δt, the material point of the
+body found at x at t₁ was at x₀ = R₀R₁ᵀ(x − T₁) + T₀, so its velocity is
+u(x) = (x − x₀)/Δt = A·x + b with A = (I − R₀R₁ᵀ)/Δt and b = (R₀R₁ᵀT₁ − T₀)/Δt:
+exactly the displacement the position-based step sees, and exactly zero for a
+static body.
+
+Poses are recorded in ``run.json`` as position T and unit quaternion
+(w, x, y, z) of R; ``config.obstacle_matrix`` composes them with the rest
+placement, the one definition every stage places a body with.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Motion, Obstacle, Scene
+from ..errors import InputError
+
+
+def axis_rotation(axis, angle: float) -> np.ndarray:
+    """3×3 rotation by ``angle`` [rad] about ``axis`` (right-hand rule), float64."""
+    a = np.asarray(axis, np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+
+
+def euler_rotation(deg) -> np.ndarray:
+    """Rotation about x, then y, then z [deg], as the obstacles' ``rotate`` (R = Rz·Ry·Rx)."""
+    rx, ry, rz = (math.radians(v) for v in deg)
+    return axis_rotation([0, 0, 1], rz) @ axis_rotation([0, 1, 0], ry) @ axis_rotation([1, 0, 0], rx)
+
+
+def smoothstep(u: float) -> float:
+    u = min(max(u, 0.0), 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def read_series(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(times, values) from a two-column CSV; a header line is allowed. InputError names the file and line."""
+    if not path.is_file():
+        raise InputError(f"{path}: {what}: file not found")
+    t, x = [], []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        cells = [c.strip() for c in line.replace(";", ",").split(",")]
+        try:
+            a, b = float(cells[0]), float(cells[1])
+        except (ValueError, IndexError):
+            if not t and n == 1:
+                continue  # a header
+            raise InputError(f"{path}: line {n}: {what}: expected 'time, displacement' numbers, got {line!r}") from None
+        if not (math.isfinite(a) and math.isfinite(b)):
+            raise InputError(f"{path}: line {n}: values must be finite numbers")
+        if t and a <= t[-1]:
+            raise InputError(f"{path}: line {n}: times must increase (got {a} after {t[-1]})")
+        t.append(a)
+        x.append(b)
+    if len(t) < 2:
+        raise InputError(f"{path}: {what}: needs at least two rows of time, displacement")
+    return np.asarray(t), np.asarray(x)
+
+
+class MotionLaw:
+    """The pose (R, T) of one obstacle as a function of time."""
+
+    def __init__(self, o: Obstacle, base_dir: Path | str = ".", index: int = 0):
+        self.o = o
+        self.m: Motion | None = o.motion
+        self.series = None
+        m = self.m
+        if m is not None and m.kind == "piston" and m.csv is not None:
+            p = Path(m.csv)
+            self.series = read_series(p if p.is_absolute() else Path(base_dir) / p, f"obstacle[{index}].motion.csv")
+
+    @property
+    def moving(self) -> bool:
+        return self.m is not None
+
+    def _ramp(self, t: float) -> float:
+        m = self.m
+        return smoothstep(t / m.ramp) if m.ramp > 0 else 1.0
+
+    def piston_displacement(self, t: float) -> float:
+        """X(t) [m] along the piston's axis."""
+        m = self.m
+        if self.series is not None:
+            ts, xs = self.series
+            return float(np.interp(t, ts, xs))
+        return self._ramp(t) * 0.5 * m.stroke * math.sin(2.0 * math.pi * t / m.period)
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R 3×3, T 3) in float64 at time ``t`` [s]."""
+        m = self.m
+        if m is None:
+            return np.eye(3), np.zeros(3)
+        if m.kind == "piston":
+            a = np.asarray(m.axis, np.float64)
+            return np.eye(3), self.piston_displacement(t) * a / np.linalg.norm(a)
+        if m.kind == "flap":
+            th = self._ramp(t) * math.radians(m.amplitude) * math.sin(2.0 * math.pi * t / m.period)
+            R = axis_rotation(m.hinge_axis, th)
+            p = np.asarray(m.hinge_point, np.float64)
+            return R, p - R @ p
+        if m.kind == "spin":
+            R = axis_rotation(m.axis, 2.0 * math.pi * m.rpm / 60.0 * t)
+            c = np.asarray(m.centre, np.float64)
+            return R, c - R @ c
+        # keyframes
+        keys = m.keyframes
+        times = [k.time for k in keys]
+        if t <= times[0] or len(keys) == 1:
+            d, ang = keys[0].translate, keys[0].rotate
+        elif t >= times[-1]:
+            d, ang = keys[-1].translate, keys[-1].rotate
+        else:
+            j = int(np.searchsorted(times, t, side="right")) - 1
+            u = (t - times[j]) / (times[j + 1] - times[j])
+            if m.interpolation == "smooth":
+                u = smoothstep(u)
+            a, b = keys[j], keys[j + 1]
+            d = [(1 - u) * x + u * y for x, y in zip(a.translate, b.translate)]
+            ang = [(1 - u) * x + u * y for x, y in zip(a.rotate, b.rotate)]
+        c = np.asarray(m.centre if m.centre is not None else self.o.translate, np.float64)
+        R = euler_rotation(ang)
+        return R, c + np.asarray(d, np.float64) - R @ c
+
+
+def step_velocity(R0, T0, R1, T1, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, b) with u(x) = A·x + b the velocity of the body point at x over a step (see the module doc)."""
+    Q = R0 @ R1.T
+    return (np.eye(3) - Q) / dt, (Q @ T1 - T0) / dt
+
+
+def quaternion(R: np.ndarray) -> list[float]:
+    """Unit quaternion (w, x, y, z) of a rotation matrix, w ≥ 0."""
+    import trimesh.transformations as tf
+
+    M = np.eye(4)
+    M[:3, :3] = R
+    q = tf.quaternion_from_matrix(M)
+    if q[0] < 0:
+        q = -q
+    return [float(v) for v in q]
+
+
+def motion_laws(scene: Scene) -> list[MotionLaw]:
+    return [MotionLaw(o, scene.base_dir, k) for k, o in enumerate(scene.obstacle)]
+
+
+def pose_record(R: np.ndarray, T: np.ndarray) -> dict:
+    """A pose as run.json stores it: position [m] and quaternion (w, x, y, z)."""
+    return {"position": [float(v) for v in T], "quaternion": quaternion(R)}
+
+
+# ============================================================================ dynamic bodies
+def quat_matrix(q: np.ndarray) -> np.ndarray:
+    """3×3 rotation of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+class RigidBody:
+    """A dynamic obstacle: a rigid body moved by gravity and the fluid (two-way coupling).
+
+    Mass properties come from the watertight mesh in its rest placement (trimesh's
+    mass properties: volume, centre of mass c₀, inertia tensor I₀ about c₀). State,
+    in float64: centre of mass c, orientation quaternion q (w, x, y, z), velocity V,
+    angular velocity Ω (world frame). The pose is x = R(q)(x_rest − c₀) + c, so
+    T = c − R c₀.
+
+    Integration (semi-implicit Euler, the quaternion renormalised every step):
+
+        V ← V + Δt (F/M + g)
+        Ω ← Ω + Δt I⁻¹ (τ − Ω × IΩ),  I = R I₀ Rᵀ
+        c ← c + Δt V,  q ← normalise(q + Δt/2 (0, Ω) ⊗ q)
+
+    F and τ are the reaction of the momentum the boundary terms gave the fluid in
+    the previous step (explicit coupling, one step behind). The domain walls stop
+    the body: a hull vertex past a wall moves the body back and removes its
+    velocity into the wall."""
+
+    def __init__(self, mesh, o: Obstacle, gravity, domain_lo, domain_hi):
+        vol = float(mesh.volume)
+        if vol <= 0:
+            raise InputError(f"{o.mesh}: a dynamic obstacle needs a closed mesh with positive volume")
+        self.mass = float(o.mass) if o.mass is not None else float(o.density) * vol
+        rho = self.mass / vol
+        props = mesh.mass_properties  # for unit density
+        self.c0 = np.asarray(props["center_mass"], np.float64)
+        self.I0 = np.asarray(props["inertia"], np.float64) * rho
+        self.hull = np.asarray(mesh.convex_hull.vertices, np.float64)
+        self.g = np.asarray(gravity, np.float64)
+        self.lo, self.hi = np.asarray(domain_lo, np.float64), np.asarray(domain_hi, np.float64)
+        self.c = self.c0.copy()
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.V = np.zeros(3)
+        self.W = np.zeros(3)
+        self.F = np.zeros(3)  # reaction force and torque (about c) of the last step
+        self.tau = np.zeros(3)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        R = quat_matrix(self.q)
+        return R, self.c - R @ self.c0
+
+    def advance(self, dt: float) -> None:
+        """One step of the body under gravity and the fluid's last reaction, stopped at the walls."""
+        R = quat_matrix(self.q)
+        I = R @ self.I0 @ R.T
+        self.V = self.V + dt * (self.F / self.mass + self.g)
+        self.W = self.W + dt * np.linalg.solve(I, self.tau - np.cross(self.W, I @ self.W))
+        self.c = self.c + dt * self.V
+        q = self.q + 0.5 * dt * quat_mul(np.array([0.0, *self.W]), self.q)
+        self.q = q / np.linalg.norm(q)
+        verts = (self.hull - self.c0) @ quat_matrix(self.q).T + self.c
+        below, above = self.lo - verts.min(0), verts.max(0) - self.hi
+        for a in range(3):
+            if below[a] > 0:
+                self.c[a] += below[a]
+                self.V[a] = max(self.V[a], 0.0)
+            elif above[a] > 0:
+                self.c[a] -= above[a]
+                self.V[a] = min(self.V[a], 0.0)
+
+    def set_reaction(self, impulse: np.ndarray, moment: np.ndarray, dt: float) -> None:
+        """The fluid received ``impulse`` (Σ m Δv) and ``moment`` (Σ x × m Δv, about the origin) from
+        this body over a step: the body gets the opposite, F = −J/Δt, τ = −(M − c × J)/Δt."""
+        self.F = -impulse / dt
+        self.tau = -(moment - np.cross(self.c, impulse)) / dt
+
+    def state(self) -> np.ndarray:
+        return np.concatenate([self.c, self.q, self.V, self.W, self.F, self.tau])
+
+    def restore(self, a: np.ndarray) -> None:
+        a = np.asarray(a, np.float64)
+        self.c, self.q, self.V, self.W, self.F, self.tau = a[0:3], a[3:7], a[7:10], a[10:13], a[13:16], a[16:19]
