@@ -268,8 +268,14 @@ class Foam(_Section):
         "simulation: a running estimate that only rises) and the multipliers from the budget",
     )
     budget: float = Field(
-        2.0, gt=0, le=50,
-        description="'auto': diffuse particles per fluid particle at the peak, which it sets k_ta, k_wc, k_vo for [-]",
+        3.0, gt=0, le=50,
+        description="'auto': diffuse particles per fluid particle at the peak, all types together; it sets "
+        "k_ta, k_wc, k_vo for it [-]",
+    )
+    shares: list[float] = Field(
+        [1.0, 1.0, 1.0], min_length=3, max_length=3,
+        description="'auto': how the budget splits into spray, foam, bubbles (relative; each type peaks at "
+        "budget × its share / the sum) [-]",
     )
     # Clamping thresholds φ(I, τmin, τmax) of the potentials. Unset = from the preset.
     ta_min: float | None = Field(None, ge=0, description="trapped-air τmin [m/s]")
@@ -323,6 +329,8 @@ class Foam(_Section):
             r = getattr(self, name)
             if r is not None and not 0 < r[0] <= r[1]:
                 raise ValueError(f"foam.{name} must be [min, max] with 0 < min <= max, got {r}")
+        if min(self.shares) < 0 or sum(self.shares) <= 0:
+            raise ValueError(f"foam.shares must be [spray, foam, bubbles] >= 0 with a positive sum, got {self.shares}")
         return self
 
 

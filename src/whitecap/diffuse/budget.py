@@ -157,6 +157,19 @@ def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: flo
     return p.budget / peak if peak > 0 else s_now
 
 
+def survival_correction(times, born, t_now: float, alive: float, p, dt: float) -> float:
+    """c: the live count at ``t_now`` over what the survival model predicts from the births
+    ``born`` at ``times`` (Σ_f G_f s_f S(t_now − t_f)), once it predicts MIN_PREDICTED, within
+    CORRECTION_LIMIT either way. The simulation's running estimate is multiplied by it, as
+    post-processing's is in rescale: particles that land, surface or leave the domain live
+    otherwise than the foam lifetime says, and only the flow shows how."""
+    age = t_now - np.asarray(times, np.float64)
+    model = float((np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0) * born).sum())
+    if model < MIN_PREDICTED:
+        return 1.0
+    return float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
+
+
 def within_budget(scale: float, births: float, alive: float, n_fluid: float, budget: float) -> float:
     """The scale, lowered where this frame's births (``births`` at scale 1) would take the
     live count past budget × fluid particles: a prediction that ran high is clipped at the
@@ -167,14 +180,18 @@ def within_budget(scale: float, births: float, alive: float, n_fluid: float, bud
     return scale
 
 
-def running_peak(rates: np.ndarray, p, dt: float) -> float:
+def running_peak(rates: np.ndarray, p, dt: float, frames: int | None = None) -> float:
     """The simulation's peak estimate of N_d / N_fluid from the births per frame and fluid
     particle so far (``rates``, oldest first): max over frames f of the mean rate over the
     last ∫S/Δt frames up to f, times ∫S/Δt. A single violent frame counts for what it is; a
-    rate that has held since motion began is taken to hold on."""
+    rate that has held since motion began is taken to hold on, but only until the run ends:
+    with ``frames`` from the first of ``rates`` to the last of the run, ∫S is taken over the
+    ages up to there (a run shorter than a particle's life never accumulates a full one)."""
     if not len(rates):
         return 0.0
     span = mean_residence(p, dt) / dt
+    if frames is not None:
+        span = min(span, float(survival(p, dt, np.arange(0, max(frames, 0) + 1) * dt).sum()))
     w = max(int(round(span)), 1)
     c = np.concatenate([[0.0], np.cumsum(rates)])
     f = np.arange(1, len(rates) + 1)
@@ -193,3 +210,35 @@ def capacity_for(p, n_fluid: int) -> int:
     if not p.auto:
         return PRESET_CAPACITY
     return int(math.ceil(CAPACITY_HEADROOM * p.budget * max(n_fluid, 1))) + 1000
+
+
+# Per-type shares of the budget. A type's particles are born where its new particles land
+# (spray above the surface, bubbles inside) and live as long as its own motion lets them, so
+# the split of the live particles is a property of the flow: 'auto' measures it and scales
+# each type's generation so that type t makes up share_t of the live particles.
+# A type's scale stays within [1/TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT] of the common one
+# (the DualSPHysics dam break needs ~15 for its spray), is set again only once this many
+# particles are alive (fewer give no split to trust), and moves halfway (geometrically)
+# towards its target each frame: the live particles remember the scales of their whole
+# lifetime, so a full step would overshoot.
+TYPE_SCALE_LIMIT = 30.0
+MIN_SPLIT = 50
+TYPE_SCALE_STEP = 0.5
+
+
+def type_scales(live, scales, mult, shares) -> np.ndarray:
+    """The scale c_t of each type's generation, from the live particles of each type (``live``)
+    made with the scales ``scales`` and the user's multipliers ``mult``: at c = 1 and m = 1
+    type t would make up f_t ∝ live_t / (c_t m_t) of them, so c_t = share_t / f_t puts it on its
+    share. Σ_t c_t f_t = Σ share_t = 1: the total stays what the common scale makes it."""
+    live, scales = np.asarray(live, np.float64), np.asarray(scales, np.float64)
+    mult, shares = np.asarray(mult, np.float64), np.asarray(shares, np.float64)
+    on = (mult > 0) & (shares > 0)
+    if live[on].sum() < MIN_SPLIT:
+        return scales
+    unit = np.where(on, live / np.maximum(scales * mult, 1e-30), 0.0)
+    f = unit / unit.sum()
+    target = np.where(f > 0, shares / np.maximum(f, 1e-30), TYPE_SCALE_LIMIT)
+    target = np.clip(target, 1 / TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT)
+    new = scales ** (1 - TYPE_SCALE_STEP) * target ** TYPE_SCALE_STEP
+    return np.where(on, new, scales)

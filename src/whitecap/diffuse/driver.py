@@ -53,6 +53,7 @@ class FoamStage:
         self.gen: FoamGenerator | None = None
         self._pending: DiffuseState | None = None
         self.verbose = verbose
+        self.last_frame: int | None = None  # the run's last frame index, where known (set by simulate)
 
     def on_start(self, solver, out: Path, info: RunInfo) -> None:
         self.start(info)
@@ -62,6 +63,7 @@ class FoamStage:
             self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed,
             obstacles=self.obstacles,
         )
+        self.gen.last_frame = self.last_frame
         if self._pending is not None:
             self.gen.state = self._pending
 
@@ -295,6 +297,7 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
     stage = FoamStage(p, seed, verbose=True, obstacles=grids)
+    stage.last_frame = files[-1][0] if files else None
     stage.start(info)
     if p.model == "foamgenerator":
         tau = _foamgenerator_limits(stage.gen, files, first, up if not src_is_run else None, show_progress)

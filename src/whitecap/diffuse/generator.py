@@ -59,6 +59,12 @@ class DiffuseState:
     history: np.ndarray = field(default_factory=lambda: np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32))
     # peak diffuse-to-fluid ratios so far: all types (its frame), then spray, foam, bubbles at their own peaks
     peaks: np.ndarray = field(default_factory=lambda: np.array([0.0, -1.0, 0.0, 0.0, 0.0]))
+    # 'auto': spray, foam, bubbles' generation scaled by these on top of ``scale``, so each type
+    # takes its share of the budget (budget.type_scales)
+    type_scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    # 'auto' in the simulation: time, scale used and fluid count of each frame in ``history``,
+    # so the live count can be compared with what the survival model predicted for it
+    lived: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @classmethod
     def empty(cls) -> "DiffuseState":
@@ -73,6 +79,7 @@ class DiffuseState:
         if self.tau is not None:
             d["tau"] = self.tau
         d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
+        d["type_scale"], d["lived"] = np.asarray(self.type_scale, np.float64), np.asarray(self.lived, np.float64)
         return d
 
     @classmethod
@@ -84,6 +91,8 @@ class DiffuseState:
             float(d.get("scale", 1.0)),
             np.asarray(d["history"], np.float32) if "history" in d else np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32),
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
+            np.asarray(d.get("type_scale", np.ones(3)), np.float64),
+            np.asarray(d.get("lived", np.zeros((0, 3))), np.float64).reshape(-1, 3),
         )
 
 
@@ -142,6 +151,7 @@ class FoamGenerator:
         self._S = 0
         self.capacity: int | None = None
         self._sized_for = 0  # fluid particle count the capacity was sized for
+        self.last_frame: int | None = None  # the run's last frame index, where known: no peak after it
         self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
         self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
 
@@ -157,6 +167,20 @@ class FoamGenerator:
         """(k_ta, k_wc, k_vo) in use: the preset's, times the budget's scale under 'auto'."""
         s = self.state.scale if self._scaled() else 1.0
         return (self.p.k_ta * s, self.p.k_wc * s, self.p.k_vo * s)
+
+    def type_multipliers(self) -> np.ndarray:
+        """Each type's generation relative to k: the user's multiplier, times, under 'auto' with
+        the budget, the type's scale for its share (a share of 0 makes none of that type)."""
+        m = np.asarray(self.p.type_multipliers, np.float64)
+        if self._scaled():
+            m = m * self.state.type_scale * (np.asarray(self.p.shares, np.float64) > 0)
+        return m
+
+    def _split(self) -> None:
+        """'auto': each type's scale, from the split of the particles alive after the last frame."""
+        st = self.state
+        if self._scaled() and st.counts:
+            st.type_scale = B.type_scales(st.counts[-1][2:], st.type_scale, self.p.type_multipliers, self.p.shares)
 
     def _scaled(self) -> bool:
         return self.p.auto and not ({"k_ta", "k_wc", "k_vo"} & self.p.explicit)
@@ -248,11 +272,20 @@ class FoamGenerator:
             h = st.history
             rates = np.array([B.birth_rate({"ta": h[f, :, 0], "wc": h[f, :, 1], "ke": h[f, :, 2], "vo": h[f, :, 3]},
                                            st.tau, k0, dt) for f in range(len(h))]) / B.HISTORY_SAMPLE
-            peak = B.running_peak(rates, self.p, dt)
+            alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
+            time_ = fluid.time if fluid.time is not None else index * dt
+            if st.counts and len(st.lived) and len(st.lived) == len(rates) - 1:
+                corr = B.survival_correction(
+                    st.lived[:, 0], st.lived[:, 1] * rates[:-1] * st.lived[:, 2], st.counts[-1][1], alive, self.p, dt)
+            else:
+                corr = 1.0
+            # frames from the first moving one to the end of the run, where known (history is one row per frame)
+            left = None if self.last_frame is None else self.last_frame - (index - len(h) + 1)
+            peak = B.running_peak(rates, self.p, dt, left) * corr
             if peak > 0:
                 st.scale = self.p.budget / peak
-                alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
                 st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt), alive, n, self.p.budget)
+            st.lived = np.concatenate([st.lived, [[time_, st.scale, n]]])
         if first:
             self._say_auto(f"running estimate from frame {index}; it only rises")
 
@@ -272,7 +305,9 @@ class FoamGenerator:
         k = self.multipliers()
         return (f"peak diffuse per fluid particle: {pk[0]:.2f} at frame {int(pk[1])} (spray {pk[2]:.2f}, foam {pk[3]:.2f}, "
                 f"bubbles {pk[4]:.2f} at their own peaks)"
-                + (f"; budget {self.p.budget:g}, last multipliers k_ta {k[0]:.3g}, k_wc {k[1]:.3g}, k_vo {k[2]:.3g} 1/s"
+                + (f"; budget {self.p.budget:g} (spray, foam, bubbles {', '.join(f'{x:.2g}' for x in self.p.shares)} of it), "
+                   f"last multipliers k_ta {k[0]:.3g}, k_wc {k[1]:.3g}, k_vo {k[2]:.3g} 1/s, by type "
+                   f"{', '.join(f'{x:.3g}' for x in self.state.type_scale)}"
                    if self._scaled() else ""))
 
     # ------------------------------------------------------------------ one frame
@@ -392,8 +427,9 @@ class FoamGenerator:
             self._running_auto(n, index, dt, fluid)
         elif p.auto and self._scaled():
             self._replan(index, dt)
+        self._split()
         tau = _nd(self.thresholds(), ti.f32)
-        mult = np.asarray(p.type_multipliers, np.float64)
+        mult = self.type_multipliers()
         most = float(mult.max())
         z = np.zeros((0, 3), np.float32)
         none = (z, z, np.zeros(0, np.float32), np.zeros(0, np.uint8), 0)

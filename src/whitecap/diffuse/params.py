@@ -46,7 +46,8 @@ class FoamParams:
     radius: float = 0.5  # × fluid radius
     support: float = 4.0  # × fluid radius
     auto: bool = False
-    budget: float = 2.0  # 'auto': diffuse per fluid particle at the peak
+    budget: float = 3.0  # 'auto': diffuse per fluid particle at the peak
+    shares: tuple = (1 / 3, 1 / 3, 1 / 3)  # 'auto': spray, foam, bubbles' parts of the budget (sum 1)
     type_multipliers: tuple = (1.0, 1.0, 1.0)  # spray, foam, bubbles: generation of each type, relative
     spray_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while spray
     bubble_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while a bubble
@@ -182,6 +183,8 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
             if f.name in PRESETS[name]:
                 explicit.add(f.name)
     values["type_multipliers"] = (cfg.spray_multiplier, cfg.foam_multiplier, cfg.bubble_multiplier)
+    shares = getattr(cfg, "shares", None) or (1.0, 1.0, 1.0)
+    values["shares"] = tuple(float(x) / sum(shares) for x in shares)
     values["auto"] = name == "auto"
     values["explicit"] = frozenset(explicit)
     p = FoamParams(**values)

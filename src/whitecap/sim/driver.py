@@ -37,6 +37,7 @@ CHECKPOINT = "checkpoint.npz"
 
 class FrameHook(Protocol):
     name: str
+    last_frame: int | None  # set before on_start: the run's last frame index (a hook may plan for it)
 
     def on_start(self, solver, out: Path, info: RunInfo) -> None: ...
 
@@ -242,6 +243,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
                 for f in info.frames:
                     f["made_from"] = {k: info.simulation for k in f["files"]}
     for h in hooks:
+        h.last_frame = nframes
         h.on_start(solver, out, info)
 
     bodies = next((c for c in solver.colliders if getattr(c, "moving", False)), None)
