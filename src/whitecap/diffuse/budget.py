@@ -213,31 +213,40 @@ def capacity_for(p, n_fluid: int) -> int:
 
 
 # Per-type shares of the budget. A type's particles are born where its new particles land
-# (spray above the surface, bubbles inside) and live as long as its own motion lets them, so
-# the split of the live particles is a property of the flow: 'auto' measures it and scales
-# each type's generation so that type t makes up share_t of the live particles.
-# A type's scale stays within [1/TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT] of the common one
-# (the DualSPHysics dam break needs ~15 for its spray), is set again only once this many
-# particles are alive (fewer give no split to trust), and moves halfway (geometrically)
-# towards its target each frame: the live particles remember the scales of their whole
-# lifetime, so a full step would overshoot.
-TYPE_SCALE_LIMIT = 30.0
-MIN_SPLIT = 50
+# (spray above the surface, bubbles inside), live as long as their own motion lets them and
+# turn into another type where they go (spray that lands is foam), so how the live particles
+# split is a property of the flow: 'auto' measures it and scales each type's generation so that
+# type t makes up share_t of the live particles.
+# A type's scale stays within [1/TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT] (the DualSPHysics dam
+# break's spray needs ~15), is set once the survival model predicts MIN_PREDICTED particles,
+# and moves halfway (geometrically) towards its target each frame, since a type's scale also
+# changes what the others receive from it.
+TYPE_SCALE_LIMIT = 100.0
 TYPE_SCALE_STEP = 0.5
 
 
-def type_scales(live, scales, mult, shares) -> np.ndarray:
-    """The scale c_t of each type's generation, from the live particles of each type (``live``)
-    made with the scales ``scales`` and the user's multipliers ``mult``: at c = 1 and m = 1
-    type t would make up f_t ∝ live_t / (c_t m_t) of them, so c_t = share_t / f_t puts it on its
-    share. Σ_t c_t f_t = Σ share_t = 1: the total stays what the common scale makes it."""
+def type_scales(born, t_now: float, live, scales, mult, shares, p, dt: float) -> np.ndarray:
+    """The scale c_t of each type's generation. ``born``: per frame so far, (time, new spray,
+    foam, bubbles, and the c_t they were made with); ``live``: each type's particles alive at
+    ``t_now``. With S the survival model, B_t = Σ_f S(t_now − t_f) born_t(f) is what type t
+    would hold if its particles stayed what they were born as, U_t the same at c_t m_t = 1.
+    Type t is φ_t = U_t / Σ U of the births at unit scales, and its particles outlive the
+    average by ρ_t = (live_t / B_t) / (Σ live / Σ B), so c_t = share_t / (φ_t ρ_t) makes it
+    share_t of the live particles, and Σ_t c_t φ_t ρ_t = 1: the total is what the common
+    scale makes it."""
+    born = np.asarray(born, np.float64).reshape(-1, 7)
     live, scales = np.asarray(live, np.float64), np.asarray(scales, np.float64)
     mult, shares = np.asarray(mult, np.float64), np.asarray(shares, np.float64)
     on = (mult > 0) & (shares > 0)
-    if live[on].sum() < MIN_SPLIT:
+    age = t_now - born[:, 0]
+    w = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)[:, None]
+    made = (w * born[:, 1:4]).sum(0)
+    if made[on].sum() < MIN_PREDICTED or live[on].sum() <= 0:
         return scales
-    unit = np.where(on, live / np.maximum(scales * mult, 1e-30), 0.0)
-    f = unit / unit.sum()
+    unit = (w * born[:, 1:4] / np.maximum(born[:, 4:7] * mult, 1e-30)).sum(0)
+    phi_ = np.where(on, unit, 0.0) / max(unit[on].sum(), 1e-30)
+    rho = np.where(made > 0, live / np.maximum(made, 1e-30), 0.0) / (live[on].sum() / made[on].sum())
+    f = phi_ * rho
     target = np.where(f > 0, shares / np.maximum(f, 1e-30), TYPE_SCALE_LIMIT)
     target = np.clip(target, 1 / TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT)
     new = scales ** (1 - TYPE_SCALE_STEP) * target ** TYPE_SCALE_STEP

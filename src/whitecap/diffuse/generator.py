@@ -65,6 +65,8 @@ class DiffuseState:
     # 'auto' in the simulation: time, scale used and fluid count of each frame in ``history``,
     # so the live count can be compared with what the survival model predicted for it
     lived: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # 'auto': per frame, its time, the new spray, foam, bubbles and the type scales they were made with
+    born: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
 
     @classmethod
     def empty(cls) -> "DiffuseState":
@@ -80,6 +82,7 @@ class DiffuseState:
             d["tau"] = self.tau
         d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
         d["type_scale"], d["lived"] = np.asarray(self.type_scale, np.float64), np.asarray(self.lived, np.float64)
+        d["born"] = np.asarray(self.born, np.float64)
         return d
 
     @classmethod
@@ -93,6 +96,7 @@ class DiffuseState:
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
             np.asarray(d.get("type_scale", np.ones(3)), np.float64),
             np.asarray(d.get("lived", np.zeros((0, 3))), np.float64).reshape(-1, 3),
+            np.asarray(d.get("born", np.zeros((0, 7))), np.float64).reshape(-1, 7),
         )
 
 
@@ -179,8 +183,9 @@ class FoamGenerator:
     def _split(self) -> None:
         """'auto': each type's scale, from the split of the particles alive after the last frame."""
         st = self.state
-        if self._scaled() and st.counts:
-            st.type_scale = B.type_scales(st.counts[-1][2:], st.type_scale, self.p.type_multipliers, self.p.shares)
+        if self._scaled() and st.counts and len(st.born):
+            st.type_scale = B.type_scales(st.born, st.counts[-1][1], st.counts[-1][2:], st.type_scale,
+                                          self.p.type_multipliers, self.p.shares, self.p, self._dt)
 
     def _scaled(self) -> bool:
         return self.p.auto and not ({"k_ta", "k_wc", "k_vo"} & self.p.explicit)
@@ -359,6 +364,8 @@ class FoamGenerator:
         nd = len(st.positions)
         c = [int((kind == t).sum()) for t in range(3)]
         time_ = fluid.time if fluid.time is not None else index * dt
+        if self._scaled():
+            st.born = np.concatenate([st.born, [[time_, *np.bincount(new[3], minlength=3)[:3], *st.type_scale]]])
         st.counts.append((index, time_, *c))
         self._track_peak(c, n, index)
         return ParticleFrame(
@@ -427,6 +434,7 @@ class FoamGenerator:
             self._running_auto(n, index, dt, fluid)
         elif p.auto and self._scaled():
             self._replan(index, dt)
+        self._dt = dt
         self._split()
         tau = _nd(self.thresholds(), ti.f32)
         mult = self.type_multipliers()
