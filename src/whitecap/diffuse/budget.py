@@ -157,19 +157,6 @@ def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: flo
     return p.budget / peak if peak > 0 else s_now
 
 
-def survival_correction(times, born, t_now: float, alive: float, p, dt: float) -> float:
-    """c: the live count at ``t_now`` over what the survival model predicts from the births
-    ``born`` at ``times`` (Σ_f G_f s_f S(t_now − t_f)), once it predicts MIN_PREDICTED, within
-    CORRECTION_LIMIT either way. The simulation's running estimate is multiplied by it, as
-    post-processing's is in rescale: particles that land, surface or leave the domain live
-    otherwise than the foam lifetime says, and only the flow shows how."""
-    age = t_now - np.asarray(times, np.float64)
-    model = float((np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0) * born).sum())
-    if model < MIN_PREDICTED:
-        return 1.0
-    return float(np.clip(alive / model, 1 / CORRECTION_LIMIT, CORRECTION_LIMIT))
-
-
 def within_budget(scale: float, births: float, alive: float, n_fluid: float, budget: float) -> float:
     """The scale, lowered where this frame's births (``births`` at scale 1) would take the
     live count past budget × fluid particles: a prediction that ran high is clipped at the
@@ -251,3 +238,21 @@ def type_scales(born, t_now: float, live, scales, mult, shares, p, dt: float) ->
     target = np.clip(target, 1 / TYPE_SCALE_LIMIT, TYPE_SCALE_LIMIT)
     new = scales ** (1 - TYPE_SCALE_STEP) * target ** TYPE_SCALE_STEP
     return np.where(on, new, scales)
+
+
+# Frames whose births give the split of the births now (birth_boost).
+BOOST_FRAMES = 10
+
+
+def birth_boost(born, scales, mult) -> float:
+    """Σ_t c_t φ_t: the births with the type scales c_t over those at c = 1, φ_t being type t's
+    part of the births at unit scales over the last BOOST_FRAMES frames (``born`` as in
+    type_scales). within_budget takes the births times this, so a type scaled far up (spray
+    that lands turns into foam) cannot take the live count past the budget."""
+    b = np.asarray(born, np.float64).reshape(-1, 7)[-BOOST_FRAMES:]
+    mult = np.asarray(mult, np.float64)
+    on = mult > 0
+    unit = np.where(on, (b[:, 1:4] / np.maximum(b[:, 4:7] * mult, 1e-30)).sum(0), 0.0)
+    if unit.sum() <= 0:
+        return 1.0
+    return float((np.asarray(scales, np.float64) * unit).sum() / unit.sum())

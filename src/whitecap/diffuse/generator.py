@@ -62,9 +62,6 @@ class DiffuseState:
     # 'auto': spray, foam, bubbles' generation scaled by these on top of ``scale``, so each type
     # takes its share of the budget (budget.type_scales)
     type_scale: np.ndarray = field(default_factory=lambda: np.ones(3))
-    # 'auto' in the simulation: time, scale used and fluid count of each frame in ``history``,
-    # so the live count can be compared with what the survival model predicted for it
-    lived: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     # 'auto': per frame, its time, the new spray, foam, bubbles and the type scales they were made with
     born: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
 
@@ -81,7 +78,7 @@ class DiffuseState:
         if self.tau is not None:
             d["tau"] = self.tau
         d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
-        d["type_scale"], d["lived"] = np.asarray(self.type_scale, np.float64), np.asarray(self.lived, np.float64)
+        d["type_scale"] = np.asarray(self.type_scale, np.float64)
         d["born"] = np.asarray(self.born, np.float64)
         return d
 
@@ -95,7 +92,6 @@ class DiffuseState:
             np.asarray(d["history"], np.float32) if "history" in d else np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32),
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
             np.asarray(d.get("type_scale", np.ones(3)), np.float64),
-            np.asarray(d.get("lived", np.zeros((0, 3))), np.float64).reshape(-1, 3),
             np.asarray(d.get("born", np.zeros((0, 7))), np.float64).reshape(-1, 7),
         )
 
@@ -187,6 +183,10 @@ class FoamGenerator:
             st.type_scale = B.type_scales(st.born, st.counts[-1][1], st.counts[-1][2:], st.type_scale,
                                           self.p.type_multipliers, self.p.shares, self.p, self._dt)
 
+    def _boost(self) -> float:
+        """How many more particles the type scales make than the common scale alone (budget.birth_boost)."""
+        return B.birth_boost(self.state.born, self.state.type_scale, self.p.type_multipliers)
+
     def _scaled(self) -> bool:
         return self.p.auto and not ({"k_ta", "k_wc", "k_vo"} & self.p.explicit)
 
@@ -252,7 +252,7 @@ class FoamGenerator:
         counts = self.state.counts
         alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
         self.state.scale = B.rescale(times, rate, n_fluid, s_past, alive, self.p, dt, self.state.scale)
-        self.state.scale = B.within_budget(self.state.scale, rate[k], alive, n_fluid[k], self.p.budget)
+        self.state.scale = B.within_budget(self.state.scale, rate[k] * self._boost(), alive, n_fluid[k], self.p.budget)
         self._scales[k] = self.state.scale
 
     def _running_auto(self, n: int, index: int, dt: float, fluid: ParticleFrame) -> None:
@@ -278,19 +278,13 @@ class FoamGenerator:
             rates = np.array([B.birth_rate({"ta": h[f, :, 0], "wc": h[f, :, 1], "ke": h[f, :, 2], "vo": h[f, :, 3]},
                                            st.tau, k0, dt) for f in range(len(h))]) / B.HISTORY_SAMPLE
             alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
-            time_ = fluid.time if fluid.time is not None else index * dt
-            if st.counts and len(st.lived) and len(st.lived) == len(rates) - 1:
-                corr = B.survival_correction(
-                    st.lived[:, 0], st.lived[:, 1] * rates[:-1] * st.lived[:, 2], st.counts[-1][1], alive, self.p, dt)
-            else:
-                corr = 1.0
             # frames from the first moving one to the end of the run, where known (history is one row per frame)
             left = None if self.last_frame is None else self.last_frame - (index - len(h) + 1)
-            peak = B.running_peak(rates, self.p, dt, left) * corr
+            peak = B.running_peak(rates, self.p, dt, left)
             if peak > 0:
                 st.scale = self.p.budget / peak
-                st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt), alive, n, self.p.budget)
-            st.lived = np.concatenate([st.lived, [[time_, st.scale, n]]])
+                st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt) * self._boost(), alive, n,
+                                           self.p.budget)
         if first:
             self._say_auto(f"running estimate from frame {index}; it only rises")
 
@@ -430,12 +424,12 @@ class FoamGenerator:
         the type of each new particle and thinning by its type's multiplier."""
         p = self.p
         v_diff, crest, e_k, vort = pots
+        self._dt = dt
+        self._split()
         if p.auto and not self.looked_ahead:
             self._running_auto(n, index, dt, fluid)
         elif p.auto and self._scaled():
             self._replan(index, dt)
-        self._dt = dt
-        self._split()
         tau = _nd(self.thresholds(), ti.f32)
         mult = self.type_multipliers()
         most = float(mult.max())
@@ -481,11 +475,21 @@ class FoamGenerator:
         nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
         u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)
         want = nd0[:, None] * mult.astype(np.float32)[None, :]  # (generating particle, type)
-        if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
-            limit = np.floor(want + np.float32(0.5))
-        else:
-            limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
-        keep = slot < limit[owner, kind]
+
+        def kept(want):
+            if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
+                limit = np.floor(want + np.float32(0.5))
+            else:
+                limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
+            return slot < limit[owner, kind]
+
+        keep = kept(want)
+        if self._scaled():
+            # The type scales can make one frame's births far more than the birth rate foretold
+            # (a burst of the type scaled furthest up): never past the budget in one frame.
+            room = p.budget * n - (sum(self.state.counts[-1][2:]) if self.state.counts else 0)
+            if keep.sum() > max(room, 0):
+                keep = kept(want * np.float32(max(room, 0) / keep.sum()))
         # Spray and bubbles with their own lifetime range draw it here.
         for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
             if rng is not None:
