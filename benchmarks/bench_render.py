@@ -3,7 +3,7 @@
 A synthetic run with a ~100k-triangle fluid mesh and 20k diffuse particles
 per frame, on the default stage: a glass tank around the domain (the run's
 walls are solid), Blender's physical sky with its sun, the tiled ground.
-Prints seconds per preview frame (320×240, 16 samples), scene update
+Prints seconds per preview frame (320×240, [render].preview_samples), scene update
 included, and the time of one final-quality frame (1920×1080,
 [render].samples). Target: preview ≤ 3 s per frame. Prints the load
 average too: the figures are only comparable on a quiet machine.
@@ -97,7 +97,7 @@ def main() -> None:
         res.update(stage=stage, load=load, cores=os.cpu_count())
         print(f"fluid mesh {tris} triangles, 20000 diffuse particles, Cycles CPU, {stage}")
         print(f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} on {os.cpu_count()} cores")
-        print(f"preview 320x240 16 spp: {per:.2f} s/frame over {a.frames - 1} frames (incl. one scene build "
+        print(f"preview 320x240 {cfg.preview_samples} spp: {per:.2f} s/frame over {a.frames - 1} frames (incl. one scene build "
               f"per call: {first:.2f} s for the first) — target {TARGET_PREVIEW_S} s: {per / TARGET_PREVIEW_S:.2f}x of budget")
         print(f"  CPU time {cpu / (a.frames - 1):.2f} s per frame (worker start and scene build included), "
               f"{cpu / (a.frames - 1) / os.cpu_count():.2f} s per frame spread over {os.cpu_count()} idle cores")

