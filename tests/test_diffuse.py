@@ -817,3 +817,38 @@ def test_each_type_peaks_at_its_share_of_the_budget(tmp_path, shares):
         _, rows = _peak(out, N_BLOCK)
         got = rows[:, 2:].max(0) / N_BLOCK
         assert np.all(np.abs(got / want - 1) <= 0.5), (ahead, got, want)
+
+
+def test_numpy_draws_equal_the_kernel_draws_bit_for_bit():
+    """The per-type thinning and foam dissipation draw on the host (generator.uniform) what
+    the kernels draw on the device (kernels.rand01); a drift between the two copies would
+    silently decorrelate them, so they are compared bit for bit."""
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import uniform
+    from whitecap.sim import runtime
+
+    runtime.init("cpu")
+    n = 4096
+    rng = np.random.default_rng(7)
+    pid = rng.integers(0, 2**32, n, dtype=np.uint32)
+    slot = rng.integers(0, 2**20, n, dtype=np.uint32)
+    seed, frame, draw = 0xDEADBEEF, 123456, 5
+    out = ti.ndarray(ti.f32, n)
+    pid_nd, slot_nd = ti.ndarray(ti.u32, n), ti.ndarray(ti.u32, n)
+    pid_nd.from_numpy(pid)
+    slot_nd.from_numpy(slot)
+
+    def draws(pid, slot, out):
+        for i in range(n):
+            out[i] = K.rand01(ti.u32(seed), ti.u32(frame), pid[i], slot[i], ti.u32(draw))
+
+    # annotations as objects (this module's `from __future__ import annotations` makes them strings)
+    draws.__annotations__ = {k: ti.types.ndarray() for k in ("pid", "slot", "out")}
+    draws = ti.kernel(draws)
+    draws(pid_nd, slot_nd, out)
+    host = uniform(seed, frame, pid, slot, draw)
+    assert host.dtype == np.float32
+    assert np.array_equal(out.to_numpy(), host)
+    assert 0.45 < host.mean() < 0.55  # and they are spread over [0, 1)
