@@ -88,12 +88,16 @@ def percentile_thresholds(pots: dict[str, np.ndarray], moving: np.ndarray, base:
     return tau
 
 
+def births(pots: dict[str, np.ndarray], tau: np.ndarray, k: tuple, dt: float) -> np.ndarray:
+    """Particles born per fluid particle in one frame with multipliers k (before rounding)."""
+    i_k = phi(pots["ke"], tau[4], tau[5])
+    return i_k * (k[0] * phi(pots["ta"], tau[0], tau[1]) + k[1] * phi(pots["wc"], tau[2], tau[3])
+                  + k[2] * phi(pots["vo"], tau[6], tau[7])) * dt
+
+
 def birth_rate(pots: dict[str, np.ndarray], tau: np.ndarray, k: tuple, dt: float) -> float:
     """G: particles born in one frame with multipliers k (before rounding)."""
-    i_k = phi(pots["ke"], tau[4], tau[5])
-    n = i_k * (k[0] * phi(pots["ta"], tau[0], tau[1]) + k[1] * phi(pots["wc"], tau[2], tau[3])
-               + k[2] * phi(pots["vo"], tau[6], tau[7])) * dt
-    return float(n.sum())
+    return float(births(pots, tau, k, dt).sum())
 
 
 def survival(p, dt: float, ages: np.ndarray) -> np.ndarray:

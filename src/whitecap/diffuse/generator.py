@@ -275,8 +275,8 @@ class FoamGenerator:
         if self._scaled():
             k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
             h = st.history
-            rates = np.array([B.birth_rate({"ta": h[f, :, 0], "wc": h[f, :, 1], "ke": h[f, :, 2], "vo": h[f, :, 3]},
-                                           st.tau, k0, dt) for f in range(len(h))]) / B.HISTORY_SAMPLE
+            past = {"ta": h[:, :, 0], "wc": h[:, :, 1], "ke": h[:, :, 2], "vo": h[:, :, 3]}  # (frames, samples)
+            rates = B.births(past, st.tau, k0, dt).sum(axis=1).astype(np.float64) / B.HISTORY_SAMPLE
             alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
             # frames from the first moving one to the end of the run, where known (history is one row per frame)
             left = None if self.last_frame is None else self.last_frame - (index - len(h) + 1)
