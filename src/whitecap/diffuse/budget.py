@@ -122,11 +122,22 @@ def mean_residence(p, dt: float) -> float:
     return float(survival(p, dt, ages).sum() * dt)
 
 
-def predicted_ratio(times: np.ndarray, rate: np.ndarray, fluid: np.ndarray, p, dt: float) -> np.ndarray:
-    """N_d(f) / N_fluid(f) for every frame, from the births per frame."""
-    age = times[:, None] - times[None, :]
-    s = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
-    return per_fluid(s @ rate, fluid)
+def survived(p, dt: float, ages: np.ndarray) -> np.ndarray:
+    """S(a) for ages that may be negative (not yet born: 0)."""
+    ages = np.asarray(ages, np.float64)
+    return np.where(ages >= 0, survival(p, dt, np.maximum(ages, 0.0)), 0.0)
+
+
+def survival_matrix(times: np.ndarray, p, dt: float) -> np.ndarray:
+    """S(t_f − t_g) for every frame f (rows) and birth frame g (columns). It depends on the
+    frame times alone, so a run computes it once, not at every frame."""
+    times = np.asarray(times, np.float64)
+    return survived(p, dt, times[:, None] - times[None, :])
+
+
+def predicted_ratio(surv: np.ndarray, rate: np.ndarray, fluid: np.ndarray) -> np.ndarray:
+    """N_d(f) / N_fluid(f) for every frame, from the births per frame (``surv``: survival_matrix)."""
+    return per_fluid(surv @ rate, fluid)
 
 
 def per_fluid(n_diffuse: np.ndarray, n_fluid: np.ndarray) -> np.ndarray:
@@ -142,16 +153,14 @@ MIN_PREDICTED = 100.0
 CORRECTION_LIMIT = 4.0
 
 
-def rescale(times, rate, n_fluid, s_past, alive: float, p, dt: float, s_now: float) -> float:
+def rescale(surv, rate, n_fluid, s_past, alive: float, p, s_now: float) -> float:
     """One scale for the whole run, set again before frame k = len(s_past): the births G
     (real up to k, interpolated after) convolved with the survival S, times c, the live count
     after frame k − 1 over what the model predicted for it with the scales used so far;
     s = budget / max_f c N_d(f) / N_fluid(f). The count keeps following the violence (one
     scale, not a controller holding it at the budget) while the model learns how long
-    particles really live here."""
+    particles really live here. ``surv``: survival_matrix of the frame times."""
     k = len(s_past)
-    age = times[:, None] - times[None, :]
-    surv = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)
     c = 1.0
     if k > 0:
         model = float(surv[k - 1, :k] @ (s_past * rate[:k]))
@@ -230,7 +239,7 @@ def type_scales(born, t_now: float, live, scales, mult, shares, p, dt: float) ->
     mult, shares = np.asarray(mult, np.float64), np.asarray(shares, np.float64)
     on = (mult > 0) & (shares > 0)
     age = t_now - born[:, 0]
-    w = np.where(age >= 0, survival(p, dt, np.maximum(age, 0.0)), 0.0)[:, None]
+    w = survived(p, dt, age)[:, None]
     made = (w * born[:, 1:4]).sum(0)
     if made[on].sum() < MIN_PREDICTED or live[on].sum() <= 0:
         return scales

@@ -223,18 +223,18 @@ class FoamGenerator:
             t_s = np.array([f.time for f in samples], np.float64)
             rate_s = np.array([B.birth_rate(g[0], tau, k0, dt) for g in got])
             rate = np.interp(times, t_s, rate_s)
-            self._plan = (np.asarray(times, np.float64), rate, np.asarray(n_fluid, np.float64),
+            self._plan = (B.survival_matrix(times, self.p, dt), rate, np.asarray(n_fluid, np.float64),
                           {int(i): k for k, i in enumerate(indices if indices is not None else range(len(times)))})
-            self._set_scale(dt)
+            self._set_scale()
         self.looked_ahead = True
         self._say_auto(f"whole run, {len(samples)} frames sampled")
 
-    def _set_scale(self, dt: float) -> None:
-        times, rate, n_fluid, _ = self._plan
-        ratio = B.predicted_ratio(times, rate, n_fluid, self.p, dt)
+    def _set_scale(self) -> None:
+        surv, rate, n_fluid, _ = self._plan
+        ratio = B.predicted_ratio(surv, rate, n_fluid)
         peak = float(ratio.max()) if len(ratio) else 0.0
         self.state.scale = self.p.budget / peak if peak > 0 else 1.0
-        self._scales = np.full(len(times), np.nan)
+        self._scales = np.full(len(rate), np.nan)
 
     def _replan(self, index: int, dt: float) -> None:
         """Post-processing 'auto': this frame's real birth rate and fluid count replace the interpolated ones,
@@ -243,7 +243,7 @@ class FoamGenerator:
         plan = getattr(self, "_plan", None)
         if plan is None or index not in plan[3]:
             return
-        times, rate, n_fluid, pos = plan
+        surv, rate, n_fluid, pos = plan
         k = pos[index]
         k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
         rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
@@ -251,7 +251,7 @@ class FoamGenerator:
         s_past = np.nan_to_num(self._scales[:k])
         counts = self.state.counts
         alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
-        self.state.scale = B.rescale(times, rate, n_fluid, s_past, alive, self.p, dt, self.state.scale)
+        self.state.scale = B.rescale(surv, rate, n_fluid, s_past, alive, self.p, self.state.scale)
         self.state.scale = B.within_budget(self.state.scale, rate[k] * self._boost(), alive, n_fluid[k], self.p.budget)
         self._scales[k] = self.state.scale
 
