@@ -36,7 +36,7 @@ from . import ROLES, Case, CaseShape
 GEOMETRY_DIR = "geometry"
 #: Room above the case's shapes in the run's domain, as a fraction of their height: splashes
 #: thrown over a tank's rim stay inside (the diffuse stage removes particles that leave the domain).
-DOMAIN_HEADROOM = 0.5
+DOMAIN_HEADROOM = 1.0
 #: Render looks of imported shapes: the tank in light concrete, fixed obstacles in stone, bodies in painted plastic.
 ROLE_LOOKS = {
     "container": {"material": "stone", "color": [0.62, 0.62, 0.6]},
