@@ -150,8 +150,10 @@ def test_fit_recovers_known_rotation_and_translation_of_a_noisy_cube():
     same = fit_pose(cube, cube)
     assert np.abs(np.array(same["quaternion"]) - [1, 0, 0, 0]).max() < 1e-9
     assert np.abs(same["position"]).max() < 1e-9
-    # quaternion signs are continuous from frame to frame (Blender interpolates them per component)
-    qs = np.array([p["quaternion"] for p in poses])
+    # A spin past 180°: quaternion signs stay continuous from frame to frame (Blender interpolates
+    # them per component, so a sign flip would swing the body the long way round between two frames).
+    spin = fit_poses(cube, [(cube - c0) @ rotation([0, 0, 50 * k]).T + c0 for k in range(7)])
+    qs = np.array([p["quaternion"] for p in spin])
     assert (np.sum(qs[1:] * qs[:-1], axis=1) > 0).all()
 
 
