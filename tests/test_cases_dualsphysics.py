@@ -393,7 +393,9 @@ from whitecap.io.run import RunInfo
 from whitecap.render.scene import build_scene, load_frame
 run, out = Path(sys.argv[1]), Path(sys.argv[2])
 info = RunInfo.load(run)
-cfg = Render(preview_resolution=[160, 120], preview_samples=8, device="cpu", glare=0.0, motion_blur=False)
+# [render] container = "glass" asks for whitecap's own tank: the imported one must win
+cfg = Render(preview_resolution=[160, 120], preview_samples=8, device="cpu", glare=0.0, motion_blur=False,
+             container="glass")
 res = {}
 for name in ("with", "without"):
     h = build_scene(info, cfg, "preview", 0, 0, run_dir=run)
@@ -420,7 +422,8 @@ print(json.dumps(res))
 def test_preview_shows_the_building_where_it_projects(dambreak_run, tmp_path):
     """A preview frame of the imported dam break, rendered with and without the building: the
     pixels where the building's box projects change (the building is drawn there, in front of
-    the water and the tank), the tank replaces the drawn glass container, and both obstacles are in."""
+    the water and the tank), the imported tank replaces the drawn glass container even where
+    [render] asks for glass, and both obstacles are in."""
     import imageio.v2 as imageio
     import shutil
 
