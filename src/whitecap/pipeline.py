@@ -135,6 +135,7 @@ def mesh(
     up: str = "z",
     profile: bool = False,
     show_progress: bool = True,
+    cluster: str | None = None,
     **overrides,
 ) -> list[dict]:
     """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
@@ -143,6 +144,8 @@ def mesh(
     ``config`` is a scene TOML whose ``[mesh]`` replaces the run's; ``jobs`` frames
     run in parallel (default: the core count). Returns per-frame stats; meshes of
     a run are recorded in its run.json. ``profile`` prints the time per phase.
+    ``cluster`` (a scheduler address, or local, slurm, pbs) runs the frames on
+    Dask, configured by the ``[cluster]`` section of ``config`` or of the run's scene.
     """
     import os
 
@@ -151,11 +154,20 @@ def mesh(
 
     if jobs is not None and jobs < 1:
         raise InputError(f"mesh: --jobs must be at least 1 (got {jobs})")
-    jobs = jobs or len(os.sched_getaffinity(0))
+    ccfg = None
+    if cluster:
+        from .executor import cluster_settings
+
+        ccfg = cluster_settings(run, config)
+    # splashsurf's own threads: on when one frame has the machine (one job, or a remote worker)
+    frame_jobs = jobs or len(os.sched_getaffinity(0))
+    jobs = jobs or (ccfg.jobs if cluster and cluster != "local" else len(os.sched_getaffinity(0)))
+    if cluster and cluster != "local":
+        frame_jobs = 1
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
-    job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
-    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+    job = plan(run, out=out, radius=radius, config=cfg, jobs=frame_jobs, up=up, **overrides)
+    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress, cluster=cluster, cluster_config=ccfg)
     if profile:
         print(timing.report("mesh profile"))
     return stats
