@@ -147,8 +147,10 @@ class DaskExecutor:
 
     cluster = True
 
-    def __init__(self, client, shared: Path, owns: tuple = ()):
+    def __init__(self, client, shared: Path, owns: tuple = (), frame_threads: int = 0):
         self.summaries: list[Summary] = []
+        #: threads one frame may use on its worker (Cycles), 0 = all the worker's machine has
+        self.frame_threads = frame_threads
         self.client = client
         self.shared = Path(shared).resolve()
         self._owns = owns  # the cluster objects this executor started (closed with it)
@@ -161,7 +163,15 @@ class DaskExecutor:
         return len(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def register(self, plugin, name: str) -> None:
+        """A worker plugin on every worker, present and future (the render stage's Blender processes)."""
         self.client.register_plugin(plugin, name=name)
+
+    def unregister(self, name: str) -> None:
+        """Remove the plugin from every worker (its teardown ends what it started)."""
+        try:
+            self.client.unregister_worker_plugin(name)
+        except Exception:  # a worker that is gone has nothing left to end
+            pass
 
     def check_shared(self) -> None:
         """Fail at once, in one line, when a connected worker cannot see the shared directory."""
@@ -274,7 +284,12 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
         raise ClusterError(f"--cluster {spec}: no Dask scheduler answered at {address} within "
                            f"{cfg.connect_timeout:g} s ({type(exc).__name__}); start one with `dask scheduler` "
                            "or check the address") from None
-    ex = DaskExecutor(client, shared, owns=tuple(owns))
+    threads = 0
+    if spec == "local":
+        threads = max(1, len(os.sched_getaffinity(0)) // n)
+    elif spec in ("slurm", "pbs"):
+        threads = max(1, cfg.cores // cfg.processes)
+    ex = DaskExecutor(client, shared, owns=tuple(owns), frame_threads=threads)
     try:
         if spec == "local":
             client.wait_for_workers(1)
@@ -296,6 +311,9 @@ def batch_cluster(kind: str, cfg):
     kw: dict[str, Any] = dict(
         cores=cfg.cores, processes=cfg.processes, memory=cfg.memory, walltime=cfg.walltime,
         job_name="whitecap", scheduler_options={"dashboard_address": None},
+        # One frame at a time per worker: the frame itself uses the job's cores
+        # (splashsurf's threads, Cycles' threads), as a local run does.
+        worker_extra_args=["--nthreads", "1"],
     )
     if cfg.queue:
         kw["queue"] = cfg.queue

@@ -87,12 +87,14 @@ def run(
     jobs: int | None = None,
     frames: int | None = None,
     show_progress: bool = True,
+    cluster: str | None = None,
 ) -> dict:
     """Scene to movie: simulate (with foam), mesh, render, MP4, in one run directory.
 
     Resumable at every stage: rerunning continues where an interrupted run
     stopped and never redoes finished frames. ``until`` stops after a stage.
     Returns the paths of what was made (``run``, and ``movie``/``blend`` when rendered).
+    ``cluster`` runs mesh and render on Dask (the simulation stays here: it is sequential in time).
     """
     from .errors import InputError
     from .progress import console
@@ -117,9 +119,10 @@ def run(
             else:
                 simulate(sc, out=out, frames=nframes, resume=state == "partial", arch=arch, show_progress=show_progress)
         elif stage == "mesh":
-            mesh(out, jobs=jobs, show_progress=show_progress)
+            mesh(out, jobs=jobs, show_progress=show_progress, cluster=cluster)
         elif stage == "render":
-            r = render(out, quality="preview" if preview else "final", show_progress=show_progress)
+            r = render(out, quality="preview" if preview else "final", show_progress=show_progress, cluster=cluster,
+                       **({"jobs": jobs} if cluster and jobs else {}))
             result.update(r if isinstance(r, dict) else {})
     return result
 
@@ -179,11 +182,17 @@ def export(
     out: str | Path | None = None,
     split_types: bool = False,
     show_progress: bool = True,
+    jobs: int = 1,
+    cluster: str | None = None,
 ) -> dict[str, Path]:
-    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes."""
+    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes.
+
+    ``jobs`` frames in parallel, or on Dask with ``cluster`` (an address, or local, slurm, pbs).
+    """
     from .surface.export import export_run
 
-    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
+    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress, jobs=jobs,
+                      cluster=cluster)
 
 
 # ============================================================================ render
@@ -196,12 +205,17 @@ def render(
     movie: bool = True,
     show_progress: bool = True,
     device: str | None = None,
+    cluster: str | None = None,
 ) -> dict:
-    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render."""
+    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render.
+
+    ``cluster`` (a scheduler address, or local, slurm, pbs) renders on Dask, one
+    Blender process per Dask worker; ``jobs`` then sets the local workers or batch jobs.
+    """
     from .render import render_run
 
     return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie,
-                      show_progress=show_progress, device=device)
+                      show_progress=show_progress, device=device, cluster=cluster)
 
 
 def blender_addon(out: str | Path | None = None) -> Path:
