@@ -111,7 +111,8 @@ class KillOnce(distributed.WorkerPlugin):
         rec.write_mesh = write_mesh
 
 
-def test_a_worker_killed_mid_frame_is_retried_and_leaves_no_partial_file(serial_run, tiny_run, tmp_path, cluster):
+def test_a_worker_killed_mid_frame_is_retried_and_leaves_no_partial_file(serial_run, tiny_run, tmp_path, cluster,
+                                                                          capsys):
     import cloudpickle
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -120,7 +121,7 @@ def test_a_worker_killed_mid_frame_is_retried_and_leaves_no_partial_file(serial_
     with distributed.Client(cluster.scheduler_address, set_as_default=False) as client:
         client.register_plugin(KillOnce(str(marker)), name="kill-once")
         try:
-            stats = pipeline.mesh(run, cluster=cluster.scheduler_address, show_progress=False)
+            stats = pipeline.mesh(run, cluster=cluster.scheduler_address, show_progress=True)
         finally:
             client.unregister_worker_plugin("kill-once")
             client.wait_for_workers(2)
@@ -134,6 +135,12 @@ def test_a_worker_killed_mid_frame_is_retried_and_leaves_no_partial_file(serial_
     for p in files:
         assert len(PlyData.read(str(p))["face"]) > 0
     assert _files(run / "mesh") == _files(serial_run / "mesh")
+    # The summary: every frame counted once, on the workers that made it (the killed one made none).
+    err = capsys.readouterr().err
+    nframes = len(made)
+    assert f"mesh: {nframes} frames on " in err
+    per_worker = [int(ln.split(": ")[1].split()[0]) for ln in err.splitlines() if ln.startswith("  tcp://")]
+    assert sum(per_worker) == nframes and 1 <= len(per_worker) <= 2
     # A rerun skips every finished frame.
     again = pipeline.mesh(run, cluster=cluster.scheduler_address, show_progress=False)
     assert all(s["skipped"] for s in again)
@@ -146,6 +153,21 @@ def test_a_scheduler_that_does_not_answer_is_a_one_line_error(tiny_run, tmp_path
     assert "\n" not in err and err.startswith("error: --cluster tcp://127.0.0.1:9: no Dask scheduler answered")
     assert "within 1 s" in err
     assert not (run / "mesh").exists() or not any((run / "mesh").iterdir())
+
+
+def test_a_frame_that_fails_by_itself_is_named_and_the_others_are_kept(tiny_run, tmp_path, cluster, capsys):
+    run = _small_run(tiny_run, tmp_path / "run")
+    info = RunInfo.load(run)
+    bad = dict(info.files("fluid"))[2]
+    (run / bad).write_bytes((run / bad).read_bytes()[:300])  # a truncated input file
+    assert main(["mesh", str(run), "--cluster", cluster.scheduler_address]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: mesh: 1 of 4 frames failed on the cluster (frame 2: ")
+    assert bad.split("/")[-1] in err[-1] and "rerun to retry them" in err[-1]
+    assert "  frame 2 failed: " in "\n".join(err)  # named in the summary too
+    # the other frames are made and recorded, so a rerun does only frame 2
+    assert [i for i, _ in RunInfo.load(run).files("mesh")] == [0, 1, 3]
+    assert sorted(p.name for p in (run / "mesh").iterdir()) == ["fluid_00000.ply", "fluid_00001.ply", "fluid_00003.ply"]
 
 
 class Elsewhere(distributed.WorkerPlugin):

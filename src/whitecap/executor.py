@@ -365,10 +365,14 @@ class Summary:
         out = [f"{self.stage}: {n} frames on {len(self.per_worker)} workers in {self.wall:.1f} s"
                + (f" ({n / self.wall:.2f} frames/s)" if self.wall > 0 and n else "")]
         for w, ts in sorted(self.per_worker.items()):
-            out.append(f"  {w}: {len(ts)} frames, {sum(ts) / len(ts):.2f} s per frame")
+            out.append(f"  {w}: {len(ts)} frame{'s' if len(ts) > 1 else ''}, {sum(ts) / len(ts):.2f} s per frame")
         for i, msg in sorted(self.failed.items()):
             out.append(f"  frame {i} failed: {msg}")
         return out
+
+
+def _failed_info(summary: Summary) -> str:
+    return f"[red]failed: frame {', '.join(map(str, sorted(summary.failed)))}[/red]"
 
 
 def _one_line(exc: BaseException) -> str:
@@ -377,27 +381,29 @@ def _one_line(exc: BaseException) -> str:
 
 
 def map_frames(ex, stage: str, fn: Callable, tasks: list[tuple[int, tuple]], bar, bar_task,
-               on_done: Callable[[FrameResult], str | None]) -> Summary:
+               on_done: Callable[[FrameResult], str | None], report: bool = True) -> Summary:
     """Run ``fn`` over ``tasks`` on ``ex``, advancing the progress bar and calling ``on_done`` per frame.
 
     ``on_done`` (in this process) records the frame and returns the bar's info
     text. Frames that fail on a cluster are named on the bar and at the end, and
     a :class:`FrameFailed` is raised once every other frame is done; locally the
     first error is raised at once, as before. A cluster executor prints the
-    per-worker summary when it is closed (after the progress bar).
+    per-worker summary when it is closed (after the progress bar) unless ``report`` is False.
     """
     summary = Summary(stage)
-    if ex.cluster:
+    if ex.cluster and report:
         ex.summaries.append(summary)
     t0 = time.perf_counter()
     try:
         for r in ex.map(fn, tasks):
             if r.error is not None:
                 summary.failed[r.index] = _one_line(r.error)
-                bar.update(bar_task, info=f"[red]failed: {', '.join(map(str, sorted(summary.failed)))}")
+                bar.update(bar_task, info=_failed_info(summary))
                 continue
             summary.add(r)
             info = on_done(r)
+            if summary.failed:  # the failed frames stay named on the bar
+                info = f"{info or ''}  {_failed_info(summary)}".strip()
             bar.update(bar_task, advance=1, **({"info": info} if info is not None else {}))
     finally:
         summary.wall = time.perf_counter() - t0

@@ -85,7 +85,7 @@ def save_blend(plugin: str) -> dict:
 
 
 def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[int], need_blend: bool,
-                      bar, task, on_frame) -> set[int]:
+                      bar, task, on_frame, report: bool = True) -> set[int]:
     """Render ``todo`` (and scene.blend when ``need_blend``) on the Dask executor ``ex``.
 
     ``on_frame(index)`` records a finished frame (in this process). Cycles in
@@ -107,7 +107,7 @@ def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[i
 
     try:
         if todo:
-            map_frames(ex, "render", render_frame, [(i, (name, i)) for i in todo], bar, task, done)
+            map_frames(ex, "render", render_frame, [(i, (name, i)) for i in todo], bar, task, done, report=report)
         if need_blend:
             ex.client.submit(save_blend, name, pure=False).result()
     finally:

@@ -238,7 +238,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                 from .cluster import render_on_cluster
 
                 blender = render_on_cluster(ex, run_dir, quality, cfg.device, todo, need_blend, bar, task,
-                                            lambda i: _record(run_dir, [i]))
+                                            lambda i: _record(run_dir, [i]), report=show_progress)
             finally:
                 bar.stop()
                 ex.close()

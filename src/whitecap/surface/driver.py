@@ -149,7 +149,8 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
                     record(job)
                 return f"{s['particles']} particles -> {s['faces']} triangles"
 
-            map_frames(ex, "mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], bar, task, done)
+            map_frames(ex, "mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], bar, task, done,
+                       report=show_progress)
     finally:
         ex.close()
 

@@ -143,7 +143,7 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
     try:
         with progress(disable=None if show_progress else True) as bar:
             task = bar.add_task("export", total=len(work), info="")
-            map_frames(ex, "export", export_frame, tasks, bar, task, lambda r: work[r.index][2])
+            map_frames(ex, "export", export_frame, tasks, bar, task, lambda r: work[r.index][2], report=show_progress)
     finally:
         ex.close()
         for name in series:
