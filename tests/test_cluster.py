@@ -59,7 +59,12 @@ def serial_run(tiny_run, tmp_path_factory) -> Path:
     run = _small_run(tiny_run, tmp_path_factory.mktemp("serial") / "run")
     pipeline.mesh(run, jobs=1, show_progress=False)
     pipeline.render(run, quality="preview", frames=f"0:{FRAMES}", movie=False, show_progress=False)
+    pipeline.export(run, show_progress=False)
     return run
+
+
+def _tree(d: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
 
 
 def test_cluster_frames_are_the_bytes_of_a_serial_run(serial_run, tiny_run, tmp_path, cluster):
@@ -78,6 +83,10 @@ def test_cluster_frames_are_the_bytes_of_a_serial_run(serial_run, tiny_run, tmp_
     info = RunInfo.load(run)
     assert [i for i, _ in info.files("render")] == list(range(FRAMES))
     assert (run / "render" / "scene.blend").is_file()
+    # export: every series file and collection the same bytes as the serial export's
+    pipeline.export(run, cluster=cluster.scheduler_address, show_progress=False)
+    exported = _tree(run / "export")
+    assert "fluid.pvd" in exported and "mesh/mesh_00002.vtp" in exported and exported == _tree(serial_run / "export")
 
 
 class KillOnce(distributed.WorkerPlugin):
