@@ -35,7 +35,8 @@ from whitecap import io  # noqa: E402
 from whitecap.diffuse import driver  # noqa: E402
 from whitecap.diffuse import postprocess  # noqa: E402
 
-DEFAULT_INPUT = "/work/shared/data/dualsphysics_dambreak"
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_INPUT = str(ROOT.parent / "shared/data/dualsphysics_dambreak")
 
 
 def prefetching(pool):

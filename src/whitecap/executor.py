@@ -310,7 +310,7 @@ def batch_cluster(kind: str, cfg):
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
     kw: dict[str, Any] = dict(
         cores=cfg.cores, processes=cfg.processes, memory=cfg.memory, walltime=cfg.walltime,
-        job_name="whitecap", scheduler_options={"dashboard_address": None},
+        job_name="whitecap", scheduler_options={"dashboard_address": ":0"},
         # One frame at a time per worker: the frame itself uses the job's cores
         # (splashsurf's threads, Cycles' threads), as a local run does.
         worker_extra_args=["--nthreads", "1"],
