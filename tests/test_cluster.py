@@ -196,8 +196,16 @@ class Elsewhere(distributed.WorkerPlugin):
         importlib.reload(ex)
 
 
-def test_workers_that_cannot_see_the_run_directory_fail_at_once(tiny_run, tmp_path, cluster, capsys):
+@pytest.mark.parametrize("joined_later", [False, True])
+def test_workers_that_cannot_see_the_run_directory_fail_at_once(tiny_run, tmp_path, cluster, capsys, monkeypatch,
+                                                                joined_later):
+    """Checked before the first frame; a worker that joins after that check fails its first frame, which stops the run."""
     import cloudpickle
+
+    from whitecap.executor import DaskExecutor
+
+    if joined_later:
+        monkeypatch.setattr(DaskExecutor, "check_shared", lambda self: None)
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     run = _small_run(tiny_run, tmp_path / "run")
@@ -209,7 +217,10 @@ def test_workers_that_cannot_see_the_run_directory_fail_at_once(tiny_run, tmp_pa
             client.unregister_worker_plugin("elsewhere")
     err = capsys.readouterr().err.strip()
     assert rc != 0 and "\n" not in err
-    assert err.startswith(f"error: {run.resolve()}: 2 of 2 Dask workers cannot see the run directory")
+    if joined_later:
+        assert err.startswith(f"error: {run.resolve()}: Dask worker tcp://") and "cannot see the run directory" in err
+    else:
+        assert err.startswith(f"error: {run.resolve()}: 2 of 2 Dask workers cannot see the run directory")
     assert not (run / "mesh").exists()
     assert not [p for p in run.iterdir() if p.name.startswith(".whitecap-probe")]
 

@@ -79,11 +79,12 @@ def _worker_name() -> str:
         return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def _shared_task(shared: str, fn: Callable, args: tuple) -> tuple[Any, str, float]:
-    """A Dask task: check this worker sees the shared directory, then run the frame."""
-    if not os.path.isdir(shared):
-        raise RunDirNotShared(f"{shared}: Dask worker {_worker_name()} cannot see this directory; the run directory "
-                              "must be on a filesystem shared by the client and every worker")
+def _shared_task(probe: str, token: str, fn: Callable, args: tuple) -> tuple[Any, str, float]:
+    """A Dask task: check this worker sees the client's run directory (its probe file), then run the frame."""
+    seen = _probe(probe, token)
+    if seen is not True:
+        raise RunDirNotShared(f"{Path(probe).parent}: Dask worker {_worker_name()} cannot see the run directory "
+                              f"({seen}); it must be on a filesystem shared by the client and every worker")
     return _timed(fn, args)
 
 
@@ -154,6 +155,7 @@ class DaskExecutor:
         self.client = client
         self.shared = Path(shared).resolve()
         self._owns = owns  # the cluster objects this executor started (closed with it)
+        self._write_probe()
 
     @property
     def address(self) -> str:
@@ -173,16 +175,23 @@ class DaskExecutor:
         except Exception:  # a worker that is gone has nothing left to end
             pass
 
-    def check_shared(self) -> None:
-        """Fail at once, in one line, when a connected worker cannot see the shared directory."""
-        token = uuid.uuid4().hex
-        probe = self.shared / f"{PROBE_PREFIX}{token}"
+    def _write_probe(self) -> None:
+        """A file only this client's run directory holds, which every task looks for before it runs."""
         self.shared.mkdir(parents=True, exist_ok=True)
-        probe.write_text(token)
-        try:
-            seen = self.client.run(_probe, str(probe), token)
-        finally:
-            probe.unlink(missing_ok=True)
+        for old in self.shared.glob(f"{PROBE_PREFIX}*"):  # left by a client that was killed
+            old.unlink(missing_ok=True)
+        self.token = uuid.uuid4().hex
+        self.probe = self.shared / f"{PROBE_PREFIX}{self.token}"
+        self.probe.write_text(self.token)
+
+    def check_shared(self) -> None:
+        """Fail at once, in one line, when a connected worker cannot see the shared directory.
+
+        Every worker reads the probe file; a directory of the same name on a
+        worker's own disk does not hold it. Workers that join later are checked
+        by each task (:class:`RunDirNotShared`, which stops the run).
+        """
+        seen = self.client.run(_probe, str(self.probe), self.token)
         blind = [addr for addr, ok in seen.items() if ok is not True]
         if blind:
             raise ClusterError(
@@ -203,7 +212,7 @@ class DaskExecutor:
         run = uuid.uuid4().hex[:8]
         futures = {}
         for index, args in tasks:
-            fut = self.client.submit(_shared_task, str(self.shared), fn, args, key=f"{key}-{index:05d}-{run}",
+            fut = self.client.submit(_shared_task, str(self.probe), self.token, fn, args, key=f"{key}-{index:05d}-{run}",
                                      pure=False)
             futures[fut] = index
         try:
@@ -230,6 +239,7 @@ class DaskExecutor:
                 for line in summary.lines():
                     console.print(line, highlight=False)
         self.summaries = []
+        self.probe.unlink(missing_ok=True)
         try:
             self.client.close()
         finally:
@@ -289,7 +299,13 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
         threads = max(1, len(os.sched_getaffinity(0)) // n)
     elif spec in ("slurm", "pbs"):
         threads = max(1, cfg.cores // cfg.processes)
-    ex = DaskExecutor(client, shared, owns=tuple(owns), frame_threads=threads)
+    try:
+        ex = DaskExecutor(client, shared, owns=tuple(owns), frame_threads=threads)
+    except BaseException:
+        client.close()
+        for obj in owns:
+            obj.close()
+        raise
     try:
         if spec == "local":
             client.wait_for_workers(1)
