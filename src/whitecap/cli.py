@@ -15,7 +15,6 @@ import sys
 from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
-from .surface.export import TARGETS
 
 
 # ============================================================================ simulate
@@ -149,16 +148,18 @@ def _cmd_mesh(a) -> int:
 def _add_export(sub) -> None:
     p = sub.add_parser(
         "export",
-        help="write ParaView series (.pvd + VTK XML) of a run",
+        help="write a run as ParaView series (VTK XML, PLY) or as one USD stage or Alembic archive",
         description="Write the fluid particles, diffuse particles and meshes of RUN as ParaView series in "
         "RUN/export: one file per frame plus a collection with each frame's simulated time (.pvd for vtk, "
-        ".series for ply).",
+        ".series for ply); or the whole run as one animated scene for other tools (usd: RUN/export/usd/scene.usd, "
+        "abc: RUN/export/abc/scene.abc) with the fluid surface, diffuse particles, obstacles and camera.",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", choices=TARGETS, help="vtk: .vtp + .pvd (default); ply: PLY + .series")
-    p.add_argument("--out", "-o", help="output directory (default RUN/export)")
+    p.add_argument("--to", default="vtk", metavar="FORMAT",
+                   help="vtk: .vtp + .pvd (default); ply: PLY + .series; usd: USD stage; abc: Alembic archive")
+    p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
-                   "separate series")
+                   "separate series (usd and abc always split them)")
     p.set_defaults(func=_cmd_export)
 
 

@@ -161,14 +161,30 @@ def mesh(
     return stats
 
 
+EXPORT_TARGETS = ("vtk", "ply", "usd", "abc")
+
+
 def export(
     run: str | Path,
     to: str = "vtk",
     out: str | Path | None = None,
     split_types: bool = False,
     show_progress: bool = True,
-) -> dict[str, Path]:
-    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes."""
+) -> dict[str, Path | str]:
+    """Export a run: ParaView series (``vtk``: .pvd + .vtp, ``ply``: PLY + .series) of its
+    particles and meshes, or the whole run as one animated scene (``usd``: a USD stage,
+    ``abc``: an Alembic archive) with the fluid, diffuse particles, obstacles and camera.
+
+    Returns {series or target: path}; a scene export adds {"note": ...} when it left
+    something out (a run without surfaces exports points only)."""
+    from .errors import InputError
+
+    if to in ("usd", "abc"):
+        from .render.exchange import export_scene
+
+        return export_scene(run, to=to, out=out, show_progress=show_progress)
+    if to not in EXPORT_TARGETS:
+        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
     from .surface.export import export_run
 
     return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
