@@ -215,16 +215,19 @@ def test_usd_stage_content_and_validation(scene_run, usd_path, tmp_path):
     assert UsdValidation.ValidationContext(validators).Validate(broken)
 
 
-def test_usd_opens_with_pxr_alone(usd_path):
-    """A fresh interpreter with nothing but pxr resolves the stage and its per-frame layers."""
+def test_usd_opens_with_pxr_alone_after_moving_it(scene_run, tmp_path):
+    """A fresh interpreter with nothing but pxr resolves the stage and its per-frame layers,
+    also after the export directory moved (the stage names its layers by relative paths)."""
+    export(scene_run, to="usd", out=tmp_path / "usd", show_progress=False)
+    shutil.move(tmp_path / "usd", tmp_path / "moved")
     code = ("import sys; from pxr import Usd, UsdGeom; s = Usd.Stage.Open(sys.argv[1]); "
-            "print(len(UsdGeom.Mesh(s.GetPrimAtPath('/World/fluid')).GetPointsAttr().Get(2)), "
+            "print(len(UsdGeom.Mesh(s.GetPrimAtPath('/World/fluid')).GetPointsAttr().Get(2) or []), "
             "'whitecap' in sys.modules)")
-    res = subprocess.run([sys.executable, "-c", code, str(usd_path)], capture_output=True, text=True,
-                         env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, cwd="/")
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "moved" / "scene.usd")], capture_output=True,
+                         text=True, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, cwd="/")
     assert res.returncode == 0, res.stderr
     n, imported = res.stdout.split()
-    assert int(n) == len(read_mesh(usd_path.parents[2] / "mesh/fluid_00002.ply").vertices) and imported == "False"
+    assert int(n) == len(read_mesh(scene_run / "mesh/fluid_00002.ply").vertices) and imported == "False"
 
 
 # ---------------------------------------------------------------------------- points only, reruns, errors
