@@ -258,6 +258,7 @@ def test_rerun_keeps_unchanged_frames_and_never_mixes_simulations(scene_run, tmp
     d = wio.read(run / "diffuse/diffuse_00002.ply")
     d.positions[:] += 0.01
     wio.write(run / "diffuse/diffuse_00002.ply", d)
+    (frames_dir / "frame_00009_0123456789ab.usdc").write_bytes(b"left by an interrupted export")
     export(run, to="usd", show_progress=False)
     after = {p.name: p.stat().st_mtime_ns for p in frames_dir.iterdir()}
     assert len(after) == 4
@@ -277,8 +278,8 @@ def test_export_scene_errors(tmp_path, scene_run, capsys):
     assert err == "error: export: unknown target 'fbx' (choose from vtk, ply, usd, abc)\n"
     run = tmp_path / "run"
     shutil.copytree(scene_run, run, ignore=shutil.ignore_patterns("export"))
-    (run / "mesh" / "fluid_00001.ply").write_bytes(b"not a ply")
+    (run / "diffuse" / "diffuse_00002.ply").write_bytes(b"not a ply")  # found while writing frames
     assert main(["export", str(run), "--to", "usd"]) == 2
     err = capsys.readouterr().err
-    assert "fluid_00001.ply" in err and err.count("\n") == 1
-    assert not (run / "export/usd/scene.usd").exists()  # nothing half-made
+    assert "diffuse_00002.ply" in err and err.count("\n") == 1
+    assert not (run / "export/usd/scene.usd").exists()  # no stage naming a half-made run
