@@ -81,13 +81,15 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--diffuse", type=int, default=20_000)
+    ap.add_argument("--keep", help="build the run in this directory (reused when it exists) instead of a temporary one")
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     print(f"load before: {loadavg()}")
     with tempfile.TemporaryDirectory() as tmp:
-        run = Path(tmp) / "run"
+        run = Path(a.keep) if a.keep else Path(tmp) / "run"
         t0 = time.perf_counter()
-        make_run(run, a.particles, a.frames, a.diffuse)
+        if not (run / "run.json").is_file():
+            make_run(run, a.particles, a.frames, a.diffuse)
         m = read_mesh(run / "mesh/fluid_00000.ply")
         n_fluid = len(wio.read(run / "fluid/fluid_00000.ply"))
         print(f"run: {a.frames} frames of {n_fluid} fluid particles, surface {len(m.vertices)} vertices / "

@@ -199,6 +199,15 @@ def test_usd_stage_content_and_validation(scene_run, usd_path, tmp_path):
                 assert quantile_by_id.setdefault(int(i), float(q)) == pytest.approx(float(q), abs=1e-5)
     q = np.array(list(quantile_by_id.values()))
     assert len(q) > 50 and q.min() < 0.1 and q.max() > 0.9  # spread over the range, not one size
+    # The moving body: its pose of run.json at every frame, and half way between two frames
+    # (what motion blur samples) turned half as far, still a rotation (no shrink as a blend of matrices gives).
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/World/obstacles/obstacle_0"))
+    for f in range(4):
+        np.testing.assert_allclose(np.array(body.ComputeLocalToWorldTransform(f)).T,
+                                   obstacle_matrix(info.obstacles[0], info.body_pose(f, 0)), atol=1e-9)
+    half = np.array(body.ComputeLocalToWorldTransform(1.5)).T[:3, :3]
+    np.testing.assert_allclose(half @ half.T, np.eye(3), atol=1e-9)
+    assert math.degrees(math.atan2(half[1, 0], half[0, 0])) == pytest.approx(15.0)
     # Between frames a clip holds its frame (topology changes): motion blur comes from the velocities.
     assert len(fluid.GetPointsAttr().Get(1.5)) == len(fluid.GetPointsAttr().Get(1))
 

@@ -55,14 +55,17 @@ class FrameGeometry:
 
 @dataclass
 class CacheObstacle:
-    """An obstacle's render mesh in its own coordinates and its 4×4 world matrix
-    (column vectors) per frame index; one entry under key None when it never moves."""
+    """An obstacle's render mesh in its own coordinates, its rest ``placement`` (4×4, column
+    vectors) and, for a moving body, its pose per frame index: (position [m], unit
+    quaternion w x y z), as ``run.json`` records it. World = T(position)·R(quaternion)·placement
+    (:func:`whitecap.config.obstacle_matrix`); ``poses`` is empty when it never moves."""
 
     name: str
     vertices: np.ndarray
     faces: np.ndarray
     color: tuple[float, float, float]
-    matrices: dict[int | None, np.ndarray]
+    placement: np.ndarray
+    poses: dict[int, tuple[list[float], list[float]]]
 
 
 @dataclass

@@ -16,8 +16,9 @@ Prims::
                                 normals (vertex), velocities, extent; time-sampled
       fluid_particles           Points (runs without a surface instead of fluid)
       diffuse/spray|foam|bubble Points: points, widths, ids, velocities, extent
-      obstacles/obstacle_K      Mesh (render mesh in its own coordinates) and
-                                xformOp:transform, time-sampled when the body moves
+      obstacles/obstacle_K      Mesh (render mesh in its own coordinates); xformOp:transform
+                                = its rest placement, and for a moving body before it
+                                xformOp:translate and xformOp:orient per frame (run.json's pose)
       camera                    Camera: xformOp:transform, focalLength, apertures,
                                 clippingRange (and fStop, focusDistance)
 
@@ -163,7 +164,7 @@ def frame_layer(cache: SceneCache, index: int):
 # ---------------------------------------------------------------------------- the stage
 def _define_prims(stage, cache: SceneCache) -> None:
     """World, the fluid and point-set prims (values come from the clips), obstacles, camera."""
-    from pxr import Gf, Sdf, UsdGeom, Vt
+    from pxr import Gf, Usd, UsdGeom, Vt
 
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
@@ -194,7 +195,12 @@ def _define_prims(stage, cache: SceneCache) -> None:
         m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(ob.faces, np.int32).reshape(-1)))
         m.CreateExtentAttr(_extent(np.asarray(ob.vertices, np.float32)))
         m.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*ob.color)]))
-        _set_samples(m.AddTransformOp(), ob.matrices, _matrix)
+        if ob.poses:  # translate and orient per frame (USD slerps the quaternion between frames)
+            move, turn = m.AddTranslateOp(), m.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+            for i, (pos, q) in ob.poses.items():
+                move.Set(Gf.Vec3d(*pos), Usd.TimeCode(i))
+                turn.Set(Gf.Quatd(q[0], Gf.Vec3d(*q[1:])), Usd.TimeCode(i))
+        m.AddTransformOp().Set(_matrix(ob.placement))
     cam = cache.camera
     if cam is not None:
         c = UsdGeom.Camera.Define(stage, CAMERA)

@@ -11,9 +11,8 @@ The scene is the one the renderer builds (no Blender needed to describe it):
   drawn per particle from the render radius range of its type
   (:func:`whitecap.render.scene.diffuse_radius`), at a quantile of that range
   fixed by the particle's id, so a particle keeps its size from frame to frame;
-- the obstacles' render meshes with their world matrix
-  (:func:`whitecap.config.obstacle_matrix` of ``run.json``'s pose) per frame
-  when they move;
+- the obstacles' render meshes with their rest placement and, when they
+  move, ``run.json``'s pose per frame (together :func:`whitecap.config.obstacle_matrix`);
 - the camera as the renderer places it (:func:`whitecap.render.stage.camera_keys`,
   framing at the final resolution's aspect).
 
@@ -28,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render, obstacle_matrix, obstacle_transform
+from ..config import Render, obstacle_transform
 from ..errors import InputError
 from ..io import read, read_mesh, write_scene
 from ..io.cache import CacheCamera, CacheObstacle, FrameGeometry, PointSet, SceneCache
@@ -137,14 +136,15 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
         if m is None:
             notes.append(f"{run_dir / 'run.json'}: obstacles[{k}]: render mesh not found, left out")
             continue
-        poses = {i: info.body_pose(i, k) for i, _ in frames}
-        if any(poses.values()):
-            matrices = {i: obstacle_matrix(entry, p) for i, p in poses.items()}
-        else:
-            matrices = {None: obstacle_matrix(entry)}
+        placement = obstacle_transform(entry)
+        found = {i: info.body_pose(i, k) for i, _ in frames}
+        poses = {}
+        if any(found.values()):  # a frame without a pose is at rest
+            poses = {i: (list(p["position"]), list(p["quaternion"])) if p else ([0.0] * 3, [1.0, 0.0, 0.0, 0.0])
+                     for i, p in found.items()}
         obstacles.append(CacheObstacle(f"obstacle_{k}", np.asarray(m.vertices), np.asarray(m.faces),
-                                       tuple(entry.get("color", OBSTACLE_COLOR)), matrices))
-        rest = np.asarray(m.vertices) @ obstacle_transform(entry)[:3, :3].T + obstacle_transform(entry)[:3, 3]
+                                       tuple(entry.get("color", OBSTACLE_COLOR)), placement, poses))
+        rest = np.asarray(m.vertices) @ placement[:3, :3].T + placement[:3, 3]
         boxes.append(np.array([rest.min(0), rest.max(0)]))
     cache = SceneCache(frame_rate=info.frame_rate, frames=frames, has_mesh=has_mesh, point_sets=point_sets,
                        load=load, fingerprint=fingerprint, obstacles=obstacles, radii=radii, notes=notes)
