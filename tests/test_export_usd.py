@@ -292,3 +292,11 @@ def test_export_scene_errors(tmp_path, scene_run, capsys):
     err = capsys.readouterr().err
     assert "diffuse_00002.ply" in err and err.count("\n") == 1
     assert not (run / "export/usd/scene.usd").exists()  # no stage naming a half-made run
+
+
+def test_missing_usd_core_says_how_to_install(scene_run, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "pxr", None)  # import pxr now raises ImportError
+    assert main(["export", str(scene_run), "--to", "usd", "--out", str(scene_run / "nowhere")]) == 4
+    err = capsys.readouterr().err
+    assert "pip install 'whitecap[usd]'" in err and err.count("\n") == 1
+    assert not (scene_run / "nowhere" / "scene.usd").exists()

@@ -15,7 +15,6 @@ the same attribute. Camera and obstacle motion blur come from keyframes.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
