@@ -47,14 +47,27 @@ def add_moving_block(run: Path) -> None:
     (run / "run.json").write_text(json.dumps(meta))
 
 
+def set_render(run: Path, **render) -> None:
+    """Change [render] keys in the run's scene.toml (what `whitecap render` and export read)."""
+    import tomllib
+
+    import tomli_w
+
+    scene = tomllib.loads((run / "scene.toml").read_text())
+    scene.setdefault("render", {}).update(render)
+    (run / "scene.toml").write_text(tomli_w.dumps(scene))
+
+
 @pytest.fixture(scope="module")
 def scene_run(tiny_run, tmp_path_factory) -> Path:
-    """The tiny dam break, meshed, with synthetic diffuse particles and a moving obstacle."""
+    """The tiny dam break, meshed, with synthetic diffuse particles, a moving obstacle and a
+    camera that moves (start to end, orbiting) with depth of field."""
     run = tmp_path_factory.mktemp("scene") / "run"
     shutil.copytree(tiny_run, run)
     mesh(run, jobs=1, show_progress=False)
     synthetic_diffuse(run)
     add_moving_block(run)
+    set_render(run, camera_start=[0.3, -0.8, 0.5], camera_end=[0.9, -0.6, 0.4], camera_orbit=20.0, fstop=2.8)
     return run
 
 
@@ -99,6 +112,7 @@ for f in map(int, sys.argv[4:]):
                 d["velocity"] = v
         if o.type == "CAMERA":
             d["lens"], d["sensor"] = o.data.lens, o.data.sensor_width
+            d["fstop"], d["focus"] = o.data.dof.aperture_fstop, o.data.dof.focus_distance
 # The renderer's own camera for the same run, at the same frames.
 from whitecap.io.run import RunInfo
 from whitecap.render.driver import render_settings
@@ -107,9 +121,12 @@ info = RunInfo.load(run)
 meshed = [i for i, _ in info.files("mesh")]
 build_scene(info, render_settings(run), "final", min(meshed), max(meshed), run_dir=run)
 out["render_camera"] = {}
+target = bpy.data.objects["camera_target"].location
 for f in map(int, sys.argv[4:]):
     bpy.context.scene.frame_set(f)
-    out["render_camera"][f] = [list(r) for r in bpy.data.objects["camera"].matrix_world]
+    cam = bpy.data.objects["camera"]
+    out["render_camera"][f] = [list(r) for r in cam.matrix_world]
+    out["render_camera"][f].append((cam.matrix_world.translation - target).length)  # focus distance
 print("JSON" + json.dumps(out))
 """
 
@@ -145,15 +162,26 @@ def check_read_back(got: dict, run: Path, points_type: str) -> None:
         # the moving body where run.json puts it
         want = obstacle_matrix(info.obstacles[0], info.body_pose(f, 0))
         np.testing.assert_allclose(fr["obstacle_0"]["matrix"], want, atol=1e-5)
-        # the camera where the renderer puts it
-        np.testing.assert_allclose(fr["camera"]["matrix"], got["render_camera"][f], atol=1e-5)
+        # the camera where the renderer puts it, focused where the renderer focuses
+        matrix = got["render_camera"][f][:4]
+        np.testing.assert_allclose(fr["camera"]["matrix"], matrix, atol=1e-5)
         assert fr["camera"]["lens"] == pytest.approx(32.0) and fr["camera"]["sensor"] == pytest.approx(36.0)
-    assert not np.allclose(got["frames"][1]["obstacle_0"]["matrix"], got["frames"][3]["obstacle_0"]["matrix"])
+        assert fr["camera"]["fstop"] == pytest.approx(2.8, rel=1e-6)
+    for name in ("obstacle_0", "camera"):  # both move
+        assert not np.allclose(got["frames"][1][name]["matrix"], got["frames"][3][name]["matrix"], atol=1e-3)
 
 
 def test_usd_read_back_in_blender(scene_run, usd_path):
     pytest.importorskip("bpy")
-    check_read_back(read_back(usd_path, scene_run), scene_run, "POINTCLOUD")
+    got = read_back(usd_path, scene_run)
+    check_read_back(got, scene_run, "POINTCLOUD")
+    # Blender's USD importer reads a camera's focus distance at one time only: the stage's
+    # own samples are checked against the renderer's focus (on its camera target) per frame.
+    stage = Usd.Stage.Open(str(usd_path))
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/camera"))
+    for f in FRAMES:
+        assert cam.GetFocusDistanceAttr().Get(f) == pytest.approx(got["render_camera"][f][4], rel=1e-5)
+    assert cam.GetFStopAttr().Get() == pytest.approx(2.8, rel=1e-6)
 
 
 def test_alembic_read_back_in_blender(scene_run, tmp_path):
