@@ -30,6 +30,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdValidation  # noqa: E402
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 FRAMES = (1, 3)  # the frames read back in Blender
+SPRAY_RADIUS = [0.001, 0.002]  # [render] spray_radius of the test run [m]; foam and bubbles keep the defaults
 
 
 def add_moving_block(run: Path) -> None:
@@ -67,7 +68,8 @@ def scene_run(tiny_run, tmp_path_factory) -> Path:
     mesh(run, jobs=1, show_progress=False)
     synthetic_diffuse(run)
     add_moving_block(run)
-    set_render(run, camera_start=[0.3, -0.8, 0.5], camera_end=[0.9, -0.6, 0.4], camera_orbit=20.0, fstop=2.8)
+    set_render(run, camera_start=[0.3, -0.8, 0.5], camera_end=[0.9, -0.6, 0.4], camera_orbit=20.0, fstop=2.8,
+               spray_radius=SPRAY_RADIUS)
     return run
 
 
@@ -219,9 +221,11 @@ def test_usd_stage_content_and_validation(scene_run, usd_path, tmp_path):
             np.testing.assert_array_equal(np.array(p.GetPointsAttr().Get(f)), d.positions[keep].astype(np.float32))
             np.testing.assert_array_equal(np.array(p.GetIdsAttr().Get(f)), d.ids[keep])
             np.testing.assert_allclose(np.array(p.GetVelocitiesAttr().Get(f)), d.velocities[keep], rtol=1e-6)
-            # widths: the render radius range of the type (unset in [render]: multiples of r), fixed per particle
+            # widths: the render radius range of the type ([render] spray_radius, or the default in
+            # multiples of r), at a quantile fixed per particle
             w = np.array(p.GetWidthsAttr().Get(f))
-            lo, hi = (2 * k * info.particle_radius for k in DIFFUSE_RADIUS[code])
+            lo, hi = (2 * k for k in SPRAY_RADIUS) if name == "spray" else \
+                (2 * k * info.particle_radius for k in DIFFUSE_RADIUS[code])
             assert len(w) == keep.sum() and ((w >= lo - 1e-7) & (w <= hi + 1e-7)).all()
             for i, q in zip(d.ids[keep], (w - lo) / (hi - lo)):  # a particle keeps its size, even across types
                 assert quantile_by_id.setdefault(int(i), float(q)) == pytest.approx(float(q), abs=1e-5)
