@@ -177,6 +177,9 @@ class _Scene:
             self._entry(b, f"Materials[{i}]", _MATERIAL_FIELDS)
         for i, b in enumerate(self.bodies):
             self._entry(b, f"RigidBodies[{i}]", _BODY_FIELDS)
+        # every body is checked now, whichever export the placement is later taken from
+        self._placements = [self._placement(i) for i in range(len(self.bodies))]
+        self._flags = [self._body_flags(i) for i in range(len(self.bodies))]
 
     def fail(self, field: str, what: str) -> InputError:
         return InputError(f"{self.path}: {field}: {what}")
@@ -241,6 +244,13 @@ class _Scene:
 
     def body_placement(self, i: int) -> tuple[Path, np.ndarray, np.ndarray, np.ndarray]:
         """(mesh file, scale, R, t) of RigidBodies[i]: world = R·(scale ∘ v) + t."""
+        return self._placements[i]
+
+    def body_flags(self, i: int) -> tuple[bool, bool]:
+        """(isWall, isDynamic) of RigidBodies[i]."""
+        return self._flags[i]
+
+    def _placement(self, i: int) -> tuple[Path, np.ndarray, np.ndarray, np.ndarray]:
         b, at = self.bodies[i], f"RigidBodies[{i}]."
         mesh = b.get("geometryFile")
         if not isinstance(mesh, str) or not mesh:
@@ -254,8 +264,7 @@ class _Scene:
             raise self.fail(f"{at}rotationAxis", "a zero axis with a non-zero rotationAngle")
         return (self.path.parent / mesh), scale, _axis_angle(axis / (norm or 1.0), angle), t
 
-    def body_flags(self, i: int) -> tuple[bool, bool]:
-        """(isWall, isDynamic) of RigidBodies[i]."""
+    def _body_flags(self, i: int) -> tuple[bool, bool]:
         b, at = self.bodies[i], f"RigidBodies[{i}]."
         return self.flag(b, "isWall", at), self.flag(b, "isDynamic", at)
 

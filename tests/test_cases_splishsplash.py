@@ -1,0 +1,329 @@
+"""SPlisHSPlasH cases (whitecap.cases.splishsplash): fluid ordered by id, the tank as the
+container, the floating sphere as a moving body whose poses reproduce the solver's own
+per-frame meshes, and one-line errors for bad input.
+
+tests/data/splishsplash_rigid is a cut of the real SPlisHSPlasH 2.16 output in
+../shared/data/splishsplash_rigid (frames 1, 29, 30; 40 fluid particles; see its
+make_tiny.py). The tests on the full output skip when that folder is absent.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from whitecap.cases import splishsplash
+from whitecap.config import obstacle_matrix
+from whitecap.errors import InputError
+from whitecap.io import read, read_mesh
+from whitecap.io.axes import to_z_up
+
+TINY = Path(__file__).resolve().parent / "data" / "splishsplash_rigid"
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "splishsplash_rigid"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="shared SPlisHSPlasH data not present")
+
+TOL = 1e-4  # [m] the issue's tolerance for poses against the exported meshes
+# A particle followed from frame k to k+1 moves as its velocities say: |Δx − ½(v_k + v_k+1)·Δt|
+# is small. Measured on the sample: median ≤ 0.0075 m, largest 0.116 m (a splash at 9.6 m/s,
+# with frames up to one 5 ms step late); rows holding different particles are off by a median of about 1.8 m.
+MEDIAN_RESIDUAL = 0.015  # [m] a quarter of the particle spacing 2r = 0.06 m
+MAX_RESIDUAL = 0.2  # [m]
+ROW_JUMP = 0.5  # [m] median residual of rows that hold different particles (measured 1.8 m)
+
+
+def write_splishsplash_vtk(path: Path, pos, ids, vel, density) -> None:
+    """A particle file in SPlisHSPlasH's legacy VTK layout (binary, big-endian): POINTS,
+    one VTK_VERTEX cell per particle, ``id`` as unsigned_int SCALARS, velocity and density
+    as FIELD arrays."""
+    pos = np.asarray(pos, ">f4").reshape(-1, 3)
+    n = len(pos)
+    parts = [b"# vtk DataFile Version 4.1\nSPlisHSPlasH particle data\nBINARY\nDATASET UNSTRUCTURED_GRID\n",
+             f"POINTS {n} float\n".encode(), pos.tobytes(), b"\n",
+             f"CELLS {n} {2 * n}\n".encode(),
+             np.stack([np.ones(n), np.arange(n)], 1).astype(">i4").tobytes(), b"\n",
+             f"CELL_TYPES {n}\n".encode(), np.ones(n, ">i4").tobytes(), b"\n",
+             f"POINT_DATA {n}\n".encode()]
+    if ids is not None:
+        parts += [b"SCALARS id unsigned_int 1\nLOOKUP_TABLE id_table\n", np.asarray(ids, ">u4").tobytes(), b"\n"]
+    parts += [b"FIELD FieldData 2\n", f"velocity 3 {n} float\n".encode(), np.asarray(vel, ">f4").tobytes(), b"\n",
+              f"density 1 {n} float\n".encode(), np.asarray(density, ">f4").tobytes(), b"\n"]
+    Path(path).write_bytes(b"".join(parts))
+
+
+def _copy(tmp_path: Path, src: Path = TINY) -> Path:
+    out = tmp_path / "case"
+    shutil.copytree(src, out, ignore=shutil.ignore_patterns("*.py", "__pycache__"))
+    return out
+
+
+def _z_up(v) -> np.ndarray:
+    return np.asarray(to_z_up(np.asarray(v, np.float32), None, "y")[0], np.float64)
+
+
+def _posed(pose: dict, points: np.ndarray) -> np.ndarray:
+    """Rest-placement points carried by a run.json pose, through the project's one transform."""
+    M = obstacle_matrix({"mesh": ""}, pose)
+    return points @ M[:3, :3].T + M[:3, 3]
+
+
+def _kinematic_residual(a, b, dt: float) -> np.ndarray:
+    """Per row, how far frame b's position is from frame a's carried by the mean velocity [m]."""
+    return np.linalg.norm(b.positions - a.positions - 0.5 * (a.velocities + b.velocities) * dt, axis=1)
+
+
+def _by_role(case, role: str):
+    return [s for s in case.shapes if s.role == role]
+
+
+def _check_tank_and_sphere(case, n_frames: int) -> None:
+    (tank,) = _by_role(case, "container")
+    (sphere,) = _by_role(case, "body")
+    assert len(case.shapes) == 2
+    # the tank: unit box ×3.1 at (0, 1.5, 0), y up -> z up: x, y in ±1.55, z from −0.05 to 3.05
+    assert tank.poses is None
+    np.testing.assert_allclose(tank.vertices.min(0), [-1.55, -1.55, -0.05], atol=1e-5)
+    np.testing.assert_allclose(tank.vertices.max(0), [1.55, 1.55, 3.05], atol=1e-5)
+    # the sphere: radius 0.5 about (0.005, 0.99985, 0) y up at the first frame
+    centre = sphere.vertices.mean(0)
+    np.testing.assert_allclose(centre, [0.005, 0.0, 0.99985], atol=2e-3)
+    np.testing.assert_allclose(np.linalg.norm(sphere.vertices - centre, axis=1).max(), 0.5, atol=2e-3)
+    assert len(sphere.poses) == n_frames
+    assert sphere.poses[0]["position"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-9)  # at rest at the first frame
+    assert sphere.poses[0]["quaternion"] == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-9)
+    assert np.linalg.norm(sphere.poses[-1]["position"]) > 0.1  # it moved
+
+
+def _check_constants(case) -> None:
+    assert case.solver == "splishsplash"
+    assert case.particle_radius == pytest.approx(0.03)
+    assert case.frame_dt == pytest.approx(0.04)
+    assert case.rest_density == pytest.approx(1000.0)
+    assert case.particle_mass == pytest.approx(0.1728)  # 1000 · 0.8 · 0.06³ (the sample's README)
+    np.testing.assert_allclose(case.gravity, [0.0, 0.0, -9.81], atol=1e-12)
+    assert case.times == pytest.approx([(k - 1) * 0.04 for k, _ in case.fluid])
+
+
+def _check_poses_reproduce_obj(case, obj_dir: Path, frames) -> float:
+    """Carry frame 1's exported sphere mesh by each frame's pose; compare vertex by vertex
+    with that frame's exported mesh (both turned z up). Returns the largest error."""
+    (sphere,) = _by_role(case, "body")
+    rest = _z_up(read_mesh(obj_dir / "rb_data_1_1.obj").vertices)
+    # the case's rest mesh is frame 1's mesh (as a set: the model's vertex order differs)
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(rest).query(sphere.vertices)[0].max() < TOL
+    pose_of = dict(zip([k for k, _ in case.fluid], sphere.poses))
+    worst = 0.0
+    for k in frames:
+        exported = _z_up(read_mesh(obj_dir / f"rb_data_1_{k}.obj").vertices)
+        worst = max(worst, float(np.abs(_posed(pose_of[k], rest) - exported).max()))
+    return worst
+
+
+# ============================================================================ the committed cut
+def test_tiny_case_finds_tank_as_container_and_sphere_as_moving_body():
+    assert splishsplash.is_case(TINY)
+    case = splishsplash.read_case(TINY)
+    assert [k for k, _ in case.fluid] == [1, 29, 30]
+    _check_tank_and_sphere(case, 3)
+    _check_constants(case)
+
+
+def test_tiny_bin_poses_reproduce_exported_obj_meshes():
+    case = splishsplash.read_case(TINY)
+    assert _check_poses_reproduce_obj(case, TINY / "obj", (1, 29, 30)) < TOL
+
+
+def test_tiny_fluid_follows_id_across_the_solver_resort():
+    """SPlisHSPlasH re-sorts its particles between frames 29 and 30: read as the case says,
+    row i is the same particle in both (it moves at most v_max·Δt); in file order it is not."""
+    case = splishsplash.read_case(TINY)
+    files = dict(case.fluid)
+    a, b = (read(files[k], up=case.up, **case.fluid_reader_options) for k in (29, 30))
+    np.testing.assert_array_equal(a.ids, b.ids)
+    res = _kinematic_residual(a, b, case.frame_dt)
+    assert np.median(res) < MEDIAN_RESIDUAL and res.max() < MAX_RESIDUAL
+    raw_a, raw_b = (read(files[k], up=case.up) for k in (29, 30))
+    assert not np.array_equal(raw_a.ids, raw_b.ids)
+    assert np.median(_kinematic_residual(raw_a, raw_b, case.frame_dt)) > ROW_JUMP
+
+
+def test_tiny_obj_export_alone_gives_the_bin_motion(tmp_path):
+    """Without the BIN, the per-frame OBJ meshes are read and each pose is fitted (Kabsch)."""
+    d = _copy(tmp_path)
+    shutil.rmtree(d / "rigid_bodies")
+    case = splishsplash.read_case(d)
+    _check_tank_and_sphere(case, 3)
+    (sphere,) = _by_role(case, "body")
+    assert "obj" in sphere.source
+    # OBJ text keeps 6 digits, so the fit is as good as the file
+    assert _check_poses_reproduce_obj(case, d / "obj", (1, 29, 30)) < TOL
+    ref = _by_role(splishsplash.read_case(TINY), "body")[0]
+    for p, q in zip(sphere.poses, ref.poses):
+        assert np.abs(_posed(p, sphere.vertices) - _posed(q, sphere.vertices)).max() < TOL
+
+
+def test_scene_json_alone_gives_the_static_boundaries_with_their_placement(tmp_path):
+    d = _copy(tmp_path)
+    shutil.rmtree(d / "rigid_bodies")
+    shutil.rmtree(d / "obj")
+    with pytest.warns(UserWarning, match=r"RigidBodies\[1\] is dynamic"):
+        case = splishsplash.read_case(d)
+    (tank,) = case.shapes  # the dynamic sphere's motion is unknown: left out
+    assert tank.role == "container" and tank.poses is None
+    np.testing.assert_allclose(tank.vertices.min(0), [-1.55, -1.55, -0.05], atol=1e-6)
+    np.testing.assert_allclose(tank.vertices.max(0), [1.55, 1.55, 3.05], atol=1e-6)
+    # scale, then a quarter turn about x, then translation; y up -> z up
+    scene_file = d / "Scenes" / "WC_RigidSample.json"
+    scene = json.loads(scene_file.read_text())
+    scene["RigidBodies"][0].update(scale=[1, 2, 3], rotationAxis=[1, 0, 0], rotationAngle=np.pi / 2,
+                                   translation=[0, 5, 0], isWall=False)
+    scene["RigidBodies"].pop()
+    scene_file.write_text(json.dumps(scene))
+    (box,) = splishsplash.read_case(d).shapes
+    assert box.role == "obstacle"
+    # y up: x ±0.5, y ±1.5 (was z), z ±1 (was y), then +5 in y; z up: (x, −z, y)
+    np.testing.assert_allclose(box.vertices.min(0), [-0.5, -1.0, 3.5], atol=1e-6)
+    np.testing.assert_allclose(box.vertices.max(0), [0.5, 1.0, 6.5], atol=1e-6)
+
+
+# ============================================================================ bad input
+def _truncate(path: Path, n: int) -> None:
+    path.write_bytes(path.read_bytes()[:n])
+
+
+def _json_edit(fn):
+    def edit(d: Path) -> None:
+        p = d / "Scenes" / "WC_RigidSample.json"
+        scene = json.loads(p.read_text())
+        fn(scene)
+        p.write_text(json.dumps(scene))
+    return edit
+
+
+def _bad_rotation(d: Path) -> None:
+    p = d / "rigid_bodies" / "rb_data_29.bin"
+    a = np.frombuffer(p.read_bytes(), "<f4").copy()
+    a[12 + 3:12 + 12] = 2.0  # body 1's rotation: all entries 2
+    p.write_bytes(a.tobytes())
+
+
+def _no_ids(d: Path) -> None:
+    p = d / "vtk" / "ParticleData_Fluid_29.vtk"
+    f = read(p)
+    write_splishsplash_vtk(p, f.positions, None, f.velocities, f.density)
+
+
+BAD = {
+    "truncated header": (lambda d: _truncate(d / "rigid_bodies" / "rb_data_1.bin", 30),
+                         r"rb_data_1\.bin: body 0 (mesh name|scale|isWall|colour)|rb_data_1\.bin: number of bodies"),
+    "short pose block": (lambda d: _truncate(d / "rigid_bodies" / "rb_data_30.bin", 90),
+                         r"rb_data_30\.bin: pose block: 90 bytes, 96 expected"),
+    "first BIN missing": (lambda d: (d / "rigid_bodies" / "rb_data_1.bin").unlink(),
+                          r"rb_data_1\.bin: missing"),
+    "BIN frames != fluid frames": (lambda d: (d / "rigid_bodies" / "rb_data_29.bin").unlink(),
+                                   r"rigid_bodies: rigid-body poses .*2 frames but the fluid has 3 \(missing frames 29\)"),
+    "not a rotation": (_bad_rotation, r"rb_data_29\.bin: body 1 rotation: not a rotation matrix"),
+    "OBJ frames != fluid frames": (lambda d: (shutil.rmtree(d / "rigid_bodies"),
+                                              (d / "obj" / "rb_data_1_29.obj").unlink()),
+                                   r"obj: body 1 meshes .*2 frames but the fluid has 3"),
+    "misspelt field": (_json_edit(lambda s: s["RigidBodies"][0].update(translaton=s["RigidBodies"][0].pop("translation"))),
+                       r"WC_RigidSample\.json: RigidBodies\[0\]\.translaton: unknown field \(did you mean 'translation'\?\)"),
+    "misspelt config field": (_json_edit(lambda s: s["Configuration"].update(ParticleRadius=s["Configuration"].pop("particleRadius"))),
+                              r"WC_RigidSample\.json: Configuration\.ParticleRadius: unknown field"),
+    "malformed field": (_json_edit(lambda s: s["RigidBodies"][0].update(scale="big")),
+                        r"WC_RigidSample\.json: RigidBodies\[0\]\.scale: expected 3 numbers"),
+    "bad radius": (_json_edit(lambda s: s["Configuration"].update(particleRadius=-1)),
+                   r"WC_RigidSample\.json: Configuration\.particleRadius: expected a positive number"),
+    "body count": (_json_edit(lambda s: s["RigidBodies"].pop()),
+                   r"rb_data_1\.bin: 2 rigid bodies, but .*WC_RigidSample\.json: RigidBodies lists 1"),
+    "not JSON": (lambda d: (d / "Scenes" / "WC_RigidSample.json").write_text("{\"Configuration\": {,}}"),
+                 r"WC_RigidSample\.json: not valid JSON \(line 1"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD))
+def test_bad_input_is_one_line_naming_file_and_field(tmp_path, name):
+    spoil, message = BAD[name]
+    d = _copy(tmp_path)
+    spoil(d)
+    with pytest.raises(InputError, match=message) as err:
+        splishsplash.read_case(d)
+    assert "\n" not in str(err.value)
+
+
+def test_fluid_without_ids_is_refused_when_read_for_the_case(tmp_path):
+    d = _copy(tmp_path)
+    _no_ids(d)
+    case = splishsplash.read_case(d)
+    path = dict(case.fluid)[29]
+    with pytest.raises(InputError, match=r"ParticleData_Fluid_29\.vtk: missing array 'id'") as err:
+        read(path, up=case.up, **case.fluid_reader_options)
+    assert "\n" not in str(err.value)
+
+
+def test_duplicate_ids_are_refused(tmp_path):
+    p = tmp_path / "ParticleData_Fluid_1.vtk"
+    write_splishsplash_vtk(p, np.zeros((3, 3)), [4, 7, 4], np.zeros((3, 3)), np.ones(3))
+    with pytest.raises(InputError, match=r"ParticleData_Fluid_1\.vtk: id: 1 ids appear more than once \(e\.g\. 4\)"):
+        read(p, by_id=True)
+
+
+# ============================================================================ the full shared output
+@needs_real
+def test_real_case_finds_tank_as_container_and_sphere_as_moving_body():
+    assert splishsplash.is_case(REAL)
+    case = splishsplash.read_case(REAL)
+    assert [k for k, _ in case.fluid] == list(range(1, 52))
+    assert case.times[-1] == pytest.approx(2.0)
+    _check_tank_and_sphere(case, 51)
+    _check_constants(case)
+    # the README's frame-26 pose, y up: the sphere's centre is the mesh origin carried by the pose
+    (sphere,) = _by_role(case, "body")
+    origin_1 = _z_up([[0.0050, 0.99985, 0.0]])[0]
+    np.testing.assert_allclose(_posed(sphere.poses[25], origin_1[None])[0],
+                               _z_up([[0.5423, 0.5713, -0.3079]])[0], atol=1e-3)
+
+
+@needs_real
+def test_real_bin_poses_reproduce_every_exported_obj_mesh():
+    case = splishsplash.read_case(REAL)
+    assert _check_poses_reproduce_obj(case, REAL / "obj", range(1, 52)) < TOL
+
+
+@needs_real
+def test_real_fluid_follows_id_in_every_frame():
+    case = splishsplash.read_case(REAL)
+    frames = [read(p, up=case.up, **case.fluid_reader_options) for _, p in case.fluid]
+    raw = [read(p, up=case.up) for _, p in case.fluid]
+    resorted = 0
+    for k in range(len(frames) - 1):
+        np.testing.assert_array_equal(frames[k].ids, frames[k + 1].ids)
+        res = _kinematic_residual(frames[k], frames[k + 1], case.frame_dt)
+        assert np.median(res) < MEDIAN_RESIDUAL and res.max() < MAX_RESIDUAL, f"frame {k + 1} -> {k + 2}"
+        resorted += bool(np.median(_kinematic_residual(raw[k], raw[k + 1], case.frame_dt)) > ROW_JUMP)
+    assert resorted >= 1  # the solver did re-sort: in file order, rows jump
+
+
+@needs_real
+@pytest.mark.parametrize("form", ["vtk", "ply", "obj"])
+def test_real_per_frame_mesh_forms_give_the_bin_motion(tmp_path, form):
+    d = tmp_path / form
+    (d / "vtk").mkdir(parents=True)
+    for name in ("Scenes", "models", form) if form != "vtk" else ("Scenes", "models"):
+        (d / name).symlink_to(REAL / name)
+    for p in (REAL / "vtk").iterdir():
+        if p.name.startswith("ParticleData_") or form == "vtk":
+            (d / "vtk" / p.name).symlink_to(p)
+    case = splishsplash.read_case(d)
+    _check_tank_and_sphere(case, 51)
+    (sphere,) = _by_role(case, "body")
+    assert f"{form}/rb_data_1_<k>.{form}" in sphere.source
+    ref = _by_role(splishsplash.read_case(REAL), "body")[0]
+    worst = max(np.abs(_posed(p, sphere.vertices) - _posed(q, sphere.vertices)).max()
+                for p, q in zip(sphere.poses, ref.poses))
+    assert worst < TOL
