@@ -431,15 +431,26 @@ def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: 
     return cam
 
 
+def obstacle_path(src: str, info: RunInfo, run_dir: Path | None) -> Path | None:
+    """Where an obstacle's mesh file is: absolute as given; a relative path in the scene's
+    directory (``extra.scene_dir``, whitecap's own runs), else in the run directory (imported
+    cases: cases/run_dir.py), else the working directory. None when not found."""
+    p = Path(src)
+    if p.is_absolute():
+        return p if p.is_file() else None
+    bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
+    bases += [run_dir] if run_dir is not None else []
+    return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)
+
+
 def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None) -> None:
     """The high-poly render mesh of an obstacle, with the scene's transform."""
     import bpy
     import trimesh
 
-    base = Path(info.extra.get("scene_dir", "."))
     src = entry.get("render_mesh") or entry.get("mesh")
-    path = Path(src) if Path(src).is_absolute() else base / src
-    if not path.is_file():
+    path = obstacle_path(src, info, run_dir)
+    if path is None:
         return
     m = trimesh.load(str(path), force="mesh")
     m.apply_transform(obstacle_transform(entry))

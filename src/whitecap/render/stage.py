@@ -93,7 +93,11 @@ def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
 
 
 def container_kind(cfg: Render, info: RunInfo) -> str:
-    """``[render].container``, or its default: glass where the run's walls held the fluid, else none."""
+    """``[render].container``, or its default: glass where the run's walls held the fluid, else none.
+    A run with a container of its own (an imported tank: an obstacle with role "container") gets
+    none: its tank is drawn as that obstacle, and a second glass box around the domain would hide it."""
+    if any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles):
+        return "none"
     if cfg.container is not None:
         return cfg.container
     return "glass" if info.solid_walls() else "none"
