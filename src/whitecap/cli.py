@@ -108,6 +108,9 @@ def _add_import(sub) -> None:
     p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
     p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
                    "places the floating body, in place of fitting it to its particles")
+    p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
+                   "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
+    p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
     p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
     p.set_defaults(func=_cmd_import)
 
@@ -116,7 +119,7 @@ def _cmd_import(a) -> int:
     from . import pipeline
 
     info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
-                                force=a.force)
+                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force)
     roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
     print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
     return 0

@@ -314,6 +314,19 @@ def _role(wall: bool, moves: bool) -> str:
     return "container" if wall else ("body" if moves else "obstacle")
 
 
+#: How a wall that encloses the fluid on every side is rendered: a closed tank drawn opaque would
+#: hide the water (SPlisHSPlasH itself does not draw walls), so it is a thin glass pane.
+ENCLOSING_WALL_LOOK = {"material": "glass", "color": [0.93, 0.97, 0.96]}
+
+
+def _look(wall: bool, vertices: np.ndarray, faces: np.ndarray) -> dict | None:
+    """The render look of a wall whose mesh is closed (it holds the fluid inside), else the role's."""
+    import trimesh
+
+    closed = trimesh.Trimesh(vertices, faces, process=True).is_watertight
+    return dict(ENCLOSING_WALL_LOOK) if wall and closed else None
+
+
 def _names(stems: list[str]) -> list[str]:
     seen: dict[str, int] = {}
     out = []
@@ -399,7 +412,7 @@ def _from_bin(d: Path, bins: dict[int, Path], scene: _Scene, frames: list[int], 
         shapes.append(CaseShape(
             name=names[i], vertices=world @ M.T, faces=f, role=_role(wall, moves or dynamic),
             poses=_relative_poses(Rs[i], ts[i], M) if (moves or dynamic) and len(ks) > 1 else None,
-            source=f"rigid body {i} ({d.name}/rb_data_<k>.bin, {name})",
+            source=f"rigid body {i} ({d.name}/rb_data_<k>.bin, {name})", look=_look(wall, v, f),
         ))
     return shapes
 
@@ -514,6 +527,7 @@ def _from_meshes(d: Path, files: dict[int, dict[int, Path]], scene: _Scene, fram
         shapes.append(CaseShape(
             name=names[i], vertices=rest_v, faces=np.asarray(rest.faces), role=_role(wall, poses is not None),
             poses=poses, source=f"rigid body {i} ({d.name}/rb_data_{i}_<k>.{d.name})",
+            look=_look(wall, rest_v, np.asarray(rest.faces)),
         ))
     return shapes
 
@@ -534,7 +548,7 @@ def _from_scene(scene: _Scene, M: np.ndarray) -> list[CaseShape]:
         v, f = _welded(mesh)
         world = (v * scale) @ R.T + t
         shapes.append(CaseShape(name=names[i], vertices=world @ M.T, faces=f, role=_role(wall, False),
-                                source=f"rigid body {i} ({scene.path.name} RigidBodies[{i}])"))
+                                source=f"rigid body {i} ({scene.path.name} RigidBodies[{i}])", look=_look(wall, v, f)))
     return shapes
 
 
