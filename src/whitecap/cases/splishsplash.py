@@ -49,6 +49,7 @@ from ..errors import InputError
 from ..io import read_mesh
 from ..io.axes import to_z_up
 from . import Case, CaseShape
+from .rigid_fit import kabsch, pose
 
 SOLVER = "splishsplash"
 
@@ -372,7 +373,7 @@ def _relative_poses(Rs: list[np.ndarray], ts: list[np.ndarray], M: np.ndarray) -
     R1, t1 = Rs[0], ts[0]
     for R, t in zip(Rs, ts):
         D = R @ R1.T
-        poses.append(_pose(M @ D @ M.T, M @ (t - D @ t1), poses[-1] if poses else None))
+        poses.append(pose(M @ D @ M.T, M @ (t - D @ t1), poses[-1] if poses else None))
     return poses
 
 
@@ -519,8 +520,8 @@ def _from_meshes(d: Path, files: dict[int, dict[int, Path]], scene: _Scene, fram
                 moved.append(np.asarray(mk.vertices, np.float64) @ M.T)
             poses = []
             for q in moved:
-                R, t = _kabsch(rest_v, q)
-                poses.append(_pose(R, t, poses[-1] if poses else None))
+                R, t = kabsch(rest_v, q)
+                poses.append(pose(R, t, poses[-1] if poses else None))
             moves = any(np.abs(q - rest_v).max() > _MOVING_TOL for q in moved)
             if not (moves or dynamic):
                 poses = None
@@ -550,28 +551,3 @@ def _from_scene(scene: _Scene, M: np.ndarray) -> list[CaseShape]:
         shapes.append(CaseShape(name=names[i], vertices=world @ M.T, faces=f, role=_role(wall, False),
                                 source=f"rigid body {i} ({scene.path.name} RigidBodies[{i}])", look=_look(wall, v, f)))
     return shapes
-
-
-# ---------------------------------------------------------------------------- rigid fit
-# Private until cases/rigid_fit.py (the DualSPHysics importer's Kabsch fit) is on this branch;
-# then these two become imports from there.
-def _kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) minimising Σ|R·rest_i + t − moved_i]² (Kabsch 1976; the sign guard keeps R proper)."""
-    p0, q0 = rest.mean(0), moved.mean(0)
-    U, _, Vt = np.linalg.svd((rest - p0).T @ (moved - q0))
-    d = 1.0 if np.linalg.det(Vt.T @ U.T) >= 0 else -1.0
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, q0 - R @ p0
-
-
-def _pose(R: np.ndarray, t: np.ndarray, previous: dict | None = None) -> dict:
-    """``{"position", "quaternion" (w, x, y, z)}`` as run.json records it, the quaternion's sign
-    kept nearest the previous pose's so that per-component interpolation takes the short way."""
-    import trimesh.transformations as tf
-
-    H = np.eye(4)
-    H[:3, :3] = R
-    q = tf.quaternion_from_matrix(H)
-    if (previous is not None and float(np.dot(q, previous["quaternion"])) < 0) or (previous is None and q[0] < 0):
-        q = -q
-    return {"position": [float(x) for x in t], "quaternion": [float(x) for x in q]}
