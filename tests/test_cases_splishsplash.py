@@ -446,3 +446,31 @@ def test_an_open_wall_keeps_the_container_look(tmp_path):
     assert tank.role == "container" and tank.look is None
     (closed,) = _by_role(splishsplash.read_case(TINY), "container")
     assert closed.look["material"] == "glass"
+
+
+ADDON_LOAD = r"""
+run = sys.argv[3]
+bpy.ops.whitecap.load(filepath=run)
+res = {}
+for o in sc.objects:
+    if o.name.startswith("obstacle_") and o.data.materials:
+        res[o.name] = sorted(n.bl_idname for n in o.data.materials[0].node_tree.nodes)
+print(json.dumps(res))
+"""
+
+
+def test_blender_addon_draws_the_closed_tank_as_glass(tmp_path):
+    """The add-on (which ships without whitecap) gives the glass tank the same see-through pane."""
+    pytest.importorskip("bpy")
+    from tests.test_addon import run_blender
+    from whitecap.cli import main
+
+    zp = tmp_path / "addon.zip"
+    assert main(["blender-addon", "--out", str(zp)]) == 0
+    from whitecap.pipeline import import_case
+
+    import_case(TINY, tmp_path / "run", show_progress=False)
+    res = run_blender(ADDON_LOAD, zp, tmp_path, tmp_path / "run")
+    res.pop("stdout")
+    sphere, tank = res["obstacle_0"], res["obstacle_1"]  # moving bodies come first
+    assert "ShaderNodeBsdfTransparent" in tank and "ShaderNodeBsdfTransparent" not in sphere, res
