@@ -486,3 +486,37 @@ def test_addon_copy_of_the_thin_glass_reflectance_matches_the_renderer():
     from whitecap.render.scene import THIN_GLASS_IOR
 
     assert copies == [THIN_GLASS_IOR]
+
+
+def test_partio_export_alone_is_read_in_id_order_too(tmp_path):
+    """With only the partio export (enablePartioExport), the fluid comes from partio/*.bgeo,
+    followed by id in the same way."""
+    from tests.conftest import write_partio_bgeo
+
+    d = _copy(tmp_path)
+    (d / "partio").mkdir()
+    for p in sorted((d / "vtk").glob("ParticleData_*.vtk")):
+        f = read(p)  # file order, file axes
+        write_partio_bgeo(d / "partio" / p.with_suffix(".bgeo").name, f.positions,
+                          {"id": f.ids.astype(np.int32), "velocity": f.velocities, "density": f.density})
+        p.unlink()
+    case = splishsplash.read_case(d)
+    assert [p.suffix for _, p in case.fluid] == [".bgeo"] * 3
+    files = dict(case.fluid)
+    a, b = (read(files[k], up=case.up, **case.fluid_reader_options) for k in (29, 30))
+    np.testing.assert_array_equal(a.ids, b.ids)
+    assert np.median(_kinematic_residual(a, b, case.frame_dt)) < MEDIAN_RESIDUAL
+    raw_a, raw_b = (read(files[k], up=case.up) for k in (29, 30))
+    assert np.median(_kinematic_residual(raw_a, raw_b, case.frame_dt)) > ROW_JUMP
+
+
+def test_several_fluid_models_need_a_choice(tmp_path):
+    d = _copy(tmp_path)
+    for p in sorted((d / "vtk").glob("ParticleData_Fluid_*.vtk")):
+        shutil.copyfile(p, p.with_name(p.name.replace("_Fluid_", "_Oil_")))
+    with pytest.raises(InputError, match=r"vtk: several fluid models \(Fluid, Oil\); choose one"):
+        splishsplash.read_case(d)
+    case = splishsplash.read_case(d, model="Oil")
+    assert [p.name for _, p in case.fluid] == [f"ParticleData_Oil_{k}.vtk" for k in (1, 29, 30)]
+    with pytest.raises(InputError, match=r"vtk: no fluid model 'Water' \(found Fluid, Oil\)"):
+        splishsplash.read_case(d, model="Water")

@@ -3,10 +3,11 @@
 A SPlisHSPlasH run (``SPHSimulator --output-dir OUT scene.json``) leaves, in OUT:
 
 - ``vtk/ParticleData_<model>_<k>.vtk``: the fluid of one fluid model per
-  frame k = 1, 2, ... (legacy binary VTK, read by ``io/vtk_legacy.py``). The
-  solver z-sorts its particles, so the row order differs from frame to frame;
-  the rows are put in ``id`` order on reading (``by_id``), which needs ``id`` in
-  the scene's ``particleAttributes``.
+  frame k = 1, 2, ... (legacy binary VTK, read by ``io/vtk_legacy.py``), or,
+  when there is no VTK export, ``partio/ParticleData_<model>_<k>.bgeo``
+  (``io/bgeo.py``). The solver z-sorts its particles, so the row order differs
+  from frame to frame; the rows are put in ``id`` order on reading
+  (``by_id``), which needs ``id`` in the scene's ``particleAttributes``.
 - the rigid bodies (boundaries, walls, floating bodies) in up to four forms,
   read in this order of preference, the first one present winning:
 
@@ -62,8 +63,9 @@ DEFAULT_FLUID_ID = "Fluid"
 #: a fluid particle's volume is V = 0.8·(2r)³ (SPlisHSPlasH FluidModel, "volume of a particle")
 PARTICLE_VOLUME_FACTOR = 0.8
 
-FLUID_FOLDER = "vtk"
-_FLUID_FILE = re.compile(r"^ParticleData_(?P<model>.+)_(?P<k>\d+)\.vtk$")
+#: fluid exports (folder, file pattern), in order of preference: VTK (enableVTKExport), partio (enablePartioExport)
+FLUID_FORMS = (("vtk", re.compile(r"^ParticleData_(?P<model>.+)_(?P<k>\d+)\.vtk$")),
+               ("partio", re.compile(r"^ParticleData_(?P<model>.+)_(?P<k>\d+)\.bgeo$")))
 BIN_FOLDER = "rigid_bodies"
 _BIN_FILE = re.compile(r"^rb_data_(?P<k>\d+)\.bin$")
 #: per-frame world-space mesh exports, in order of preference after the BIN (folder = extension)
@@ -82,9 +84,20 @@ _BODY_FIELDS = ("geometryFile", "translation", "rotationAxis", "rotationAngle", 
 
 # ============================================================================ entry points
 def is_case(folder: str | Path) -> bool:
-    """True when ``folder`` is a SPlisHSPlasH output folder (it has ``vtk/ParticleData_*_<k>.vtk``)."""
-    d = Path(folder) / FLUID_FOLDER
-    return d.is_dir() and any(_FLUID_FILE.match(p.name) for p in d.iterdir())
+    """True when ``folder`` is a SPlisHSPlasH output folder (``vtk/ParticleData_*_<k>.vtk`` or
+    ``partio/ParticleData_*_<k>.bgeo``)."""
+    return any(_fluid_files(Path(folder) / sub, pattern) for sub, pattern in FLUID_FORMS)
+
+
+def _fluid_files(d: Path, pattern: re.Pattern) -> dict[str, dict[int, Path]]:
+    """{model: {frame: file}} of one fluid export folder."""
+    out: dict[str, dict[int, Path]] = {}
+    if d.is_dir():
+        for p in d.iterdir():
+            m = pattern.match(p.name)
+            if m:
+                out.setdefault(m["model"], {})[int(m["k"])] = p
+    return out
 
 
 def read_case(folder: str | Path, up: str = "y", scene_json: str | Path | None = None,
@@ -125,16 +138,15 @@ def read_case(folder: str | Path, up: str = "y", scene_json: str | Path | None =
 
 # ============================================================================ fluid
 def _fluid_frames(folder: Path, model: str | None) -> tuple[str, list[tuple[int, Path]]]:
-    d = folder / FLUID_FOLDER
-    by_model: dict[str, dict[int, Path]] = {}
-    if d.is_dir():
-        for p in d.iterdir():
-            m = _FLUID_FILE.match(p.name)
-            if m:
-                by_model.setdefault(m["model"], {})[int(m["k"])] = p
-    if not by_model:
-        raise InputError(f"{d}: no SPlisHSPlasH fluid files (ParticleData_<model>_<frame>.vtk); "
-                         "enable enableVTKExport in the scene's Configuration")
+    """The fluid model's frames from the first fluid export present (VTK, else partio)."""
+    for sub, pattern in FLUID_FORMS:
+        d = folder / sub
+        by_model = _fluid_files(d, pattern)
+        if by_model:
+            break
+    else:
+        raise InputError(f"{folder}: no SPlisHSPlasH fluid files (vtk/ParticleData_<model>_<frame>.vtk or "
+                         "partio/ParticleData_<model>_<frame>.bgeo); enable enableVTKExport in the scene's Configuration")
     if model is None:
         if len(by_model) > 1:
             raise InputError(f"{d}: several fluid models ({', '.join(sorted(by_model))}); choose one")
