@@ -37,11 +37,12 @@ GEOMETRY_DIR = "geometry"
 #: Room above the case's shapes in the run's domain, as a fraction of their height: splashes
 #: thrown over a tank's rim stay inside (the diffuse stage removes particles that leave the domain).
 DOMAIN_HEADROOM = 1.0
-#: Render looks of imported shapes: the tank in light concrete, fixed obstacles in stone, bodies in painted plastic.
+#: Render looks of imported shapes: the tank in light grey stone, fixed obstacles in terracotta clay (so a
+#: building stands out against the tank's floor), bodies in orange plastic.
 ROLE_LOOKS = {
-    "container": {"material": "stone", "color": [0.62, 0.62, 0.6]},
-    "obstacle": {"material": "stone", "color": [0.8, 0.78, 0.72]},
-    "body": {"material": "plastic", "color": [0.8, 0.35, 0.12]},
+    "container": {"material": "stone", "color": [0.6, 0.62, 0.65]},
+    "obstacle": {"material": "clay", "color": [0.7, 0.36, 0.22]},
+    "body": {"material": "plastic", "color": [0.9, 0.5, 0.08]},
 }
 
 

@@ -92,11 +92,16 @@ def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
     return p
 
 
+def has_own_container(info: RunInfo) -> bool:
+    """Whether the run brings its own tank: an obstacle with role "container" (an imported case)."""
+    return any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles)
+
+
 def container_kind(cfg: Render, info: RunInfo) -> str:
     """``[render].container``, or its default: glass where the run's walls held the fluid, else none.
     A run with a container of its own (an imported tank: an obstacle with role "container") gets
     none: its tank is drawn as that obstacle, and a second glass box around the domain would hide it."""
-    if any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles):
+    if has_own_container(info):
         return "none"
     if cfg.container is not None:
         return cfg.container
@@ -166,7 +171,10 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
     if cfg.camera_start:
         start = np.array(cfg.camera_start, float)
     else:
-        view = VIEW_DIRECTION_BASIN if container_kind(cfg, info) == "basin" else VIEW_DIRECTION
+        # An opaque tank, drawn (basin) or the case's own (an imported container), is seen from high
+        # enough to look over its front wall.
+        opaque = container_kind(cfg, info) == "basin" or has_own_container(info)
+        view = VIEW_DIRECTION_BASIN if opaque else VIEW_DIRECTION
         dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
         u = np.asarray(view, float) / np.linalg.norm(view)
         start = target + dist * u
