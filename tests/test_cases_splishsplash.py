@@ -520,3 +520,26 @@ def test_several_fluid_models_need_a_choice(tmp_path):
     assert [p.name for _, p in case.fluid] == [f"ParticleData_Oil_{k}.vtk" for k in (1, 29, 30)]
     with pytest.raises(InputError, match=r"vtk: no fluid model 'Water' \(found Fluid, Oil\)"):
         splishsplash.read_case(d, model="Water")
+
+
+def test_the_camera_looks_at_a_glass_tank_from_the_side_and_over_an_opaque_one(tmp_path):
+    """Over an opaque tank's wall the camera must look down from high up; through a glass one it
+    keeps the usual side view, which shows the water's profile."""
+    from whitecap.config import Render
+    from whitecap.io.run import RunInfo
+    from whitecap.pipeline import import_case
+    from whitecap.render.stage import camera_path
+
+    import_case(TINY, tmp_path / "run", show_progress=False)
+    info = RunInfo.load(tmp_path / "run")
+    bounds = ([-1.55, -1.55, -0.05], [1.55, 1.55, 3.05])
+
+    def elevation(obstacles) -> float:
+        info.obstacles = obstacles
+        start, _, target = camera_path(Render(), info, bounds)
+        d = np.subtract(start, target)
+        return float(np.degrees(np.arctan2(d[2], np.linalg.norm(d[:2]))))
+
+    glass = elevation(info.obstacles)
+    stone = elevation([{**o, "material": "stone"} for o in info.obstacles])
+    assert glass < 35 < 60 < stone, (glass, stone)

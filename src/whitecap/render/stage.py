@@ -172,8 +172,10 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
         start = np.array(cfg.camera_start, float)
     else:
         # An opaque tank, drawn (basin) or the case's own (an imported container), is seen from high
-        # enough to look over its front wall.
-        opaque = container_kind(cfg, info) == "basin" or has_own_container(info)
+        # enough to look over its front wall; a glass one (a closed tank, cases/splishsplash.py) from the side.
+        opaque = container_kind(cfg, info) == "basin" or any(
+            isinstance(o, dict) and o.get("role") == "container" and o.get("material") != "glass"
+            for o in info.obstacles)
         view = VIEW_DIRECTION_BASIN if opaque else VIEW_DIRECTION
         dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
         u = np.asarray(view, float) / np.linalg.norm(view)
