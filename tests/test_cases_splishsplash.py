@@ -543,3 +543,29 @@ def test_the_camera_looks_at_a_glass_tank_from_the_side_and_over_an_opaque_one(t
     glass = elevation(info.obstacles)
     stone = elevation([{**o, "material": "stone"} for o in info.obstacles])
     assert glass < 35 < 60 < stone, (glass, stone)
+
+
+def write_splishsplash_mesh_vtk(path: Path, vertices, faces) -> None:
+    """A triangle mesh in the layout of SPlisHSPlasH's rigid-body VTK export (binary,
+    big-endian UNSTRUCTURED_GRID: POINTS, CELLS of (3, a, b, c), CELL_TYPES 5)."""
+    v = np.asarray(vertices, ">f4").reshape(-1, 3)
+    f = np.asarray(faces).reshape(-1, 3)
+    cells = np.hstack([np.full((len(f), 1), 3), f]).astype(">i4")
+    Path(path).write_bytes(b"".join([
+        b"# vtk DataFile Version 4.2\nSPlisHSPlasH mesh data\nBINARY\nDATASET UNSTRUCTURED_GRID\n",
+        f"POINTS {len(v)} float\n".encode(), v.tobytes(), b"\n",
+        f"CELLS {len(f)} {4 * len(f)}\n".encode(), cells.tobytes(), b"\n",
+        f"CELL_TYPES {len(f)}\n".encode(), np.full(len(f), 5, ">i4").tobytes(), b"\n"]))
+
+
+def test_legacy_vtk_triangle_meshes_read_through_the_registry(tmp_path):
+    """The rigid-body VTK export is a mesh format of the one registry: vertices and triangles as
+    written; a particle file (one-point cells) is refused with its name."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]], float)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    write_splishsplash_mesh_vtk(tmp_path / "rb_data_1_1.vtk", v, f)
+    m = read_mesh(tmp_path / "rb_data_1_1.vtk")
+    np.testing.assert_array_equal(m.vertices, v)
+    np.testing.assert_array_equal(m.faces, f)
+    with pytest.raises(InputError, match=r"ParticleData_Fluid_1\.vtk: cell 0 has 1 points; only triangle meshes"):
+        read_mesh(TINY / "vtk" / "ParticleData_Fluid_1.vtk")
