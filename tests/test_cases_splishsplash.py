@@ -227,6 +227,8 @@ BAD = {
                           r"rb_data_1\.bin: missing"),
     "BIN frames != fluid frames": (lambda d: (d / "rigid_bodies" / "rb_data_29.bin").unlink(),
                                    r"rigid_bodies: rigid-body poses .*2 frames but the fluid has 3 \(missing frames 29\)"),
+    "dynamic body without poses": (lambda d: [(d / "rigid_bodies" / f"rb_data_{k}.bin").unlink() for k in (29, 30)],
+                                   r"rigid_bodies: only rb_data_1\.bin, but .*RigidBodies\[1\]\.isDynamic is true"),
     "not a rotation": (_bad_rotation, r"rb_data_29\.bin: body 1 rotation: not a rotation matrix"),
     "OBJ frames != fluid frames": (lambda d: (shutil.rmtree(d / "rigid_bodies"),
                                               (d / "obj" / "rb_data_1_29.obj").unlink()),
@@ -569,3 +571,16 @@ def test_legacy_vtk_triangle_meshes_read_through_the_registry(tmp_path):
     np.testing.assert_array_equal(m.faces, f)
     with pytest.raises(InputError, match=r"ParticleData_Fluid_1\.vtk: cell 0 has 1 points; only triangle meshes"):
         read_mesh(TINY / "vtk" / "ParticleData_Fluid_1.vtk")
+
+
+def test_a_scene_of_static_bodies_writes_the_first_bin_alone(tmp_path):
+    """SPlisHSPlasH writes only rb_data_1.bin when no body moves: every body is fixed there."""
+    d = _copy(tmp_path)
+    for k in (29, 30):
+        (d / "rigid_bodies" / f"rb_data_{k}.bin").unlink()
+    _json_edit(lambda s: s["RigidBodies"][1].update(isDynamic=False))(d)
+    case = splishsplash.read_case(d)
+    assert [(s.name, s.role, s.poses) for s in case.shapes] == [("UnitBox", "container", None),
+                                                                  ("sphere", "obstacle", None)]
+    centre = case.shapes[1].vertices.mean(0)
+    np.testing.assert_allclose(centre, [0.005, 0.0, 0.99985], atol=2e-3)
