@@ -242,3 +242,25 @@ def test_slurm_section_becomes_the_job_script():
     assert "#SBATCH --mem=60G" in lines  # 64 GB = 59.6 GiB, which dask-jobqueue rounds to whole GiB
     worker = next(ln for ln in lines if "dask_worker" in ln)
     assert worker.endswith("--nthreads 1"), worker  # one frame at a time; the frame uses the job's 16 cores
+
+
+def test_pbs_section_becomes_the_job_script():
+    from whitecap.executor import batch_cluster
+
+    c = batch_cluster("pbs", Cluster(cores=8, memory="32GB", walltime="02:30:00", queue="workq"))
+    try:
+        lines = c.job_script().splitlines()
+    finally:
+        c.close()
+    for want in ("#PBS -q workq", "#PBS -l select=1:ncpus=8:mem=30GB", "#PBS -l walltime=02:30:00"):
+        assert want in lines, (want, lines)
+
+
+def test_slurm_without_sbatch_is_a_one_line_error(tiny_run, tmp_path, capsys, monkeypatch):
+    run = _small_run(tiny_run, tmp_path / "run")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch here
+    assert main(["mesh", str(run), "--cluster", "slurm"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err == ("error: --cluster slurm: 'sbatch' is not on the PATH; run whitecap where slurm jobs are submitted "
+                   "from (a login node)")
+    assert not (run / "mesh").exists()

@@ -23,6 +23,7 @@ it imports Dask only when a cluster is asked for.
 from __future__ import annotations
 
 import os
+import shutil
 import time
 import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -37,6 +38,8 @@ from .workers import die_with_parent
 CLUSTER_HINT = "install it with: pip install 'whitecap[cluster]' (dask, distributed, dask-jobqueue)"
 #: seconds to wait for a Dask scheduler to answer before giving up (``[cluster] connect_timeout``)
 CONNECT_TIMEOUT = 10.0
+#: the command each batch system submits jobs with (dask-jobqueue calls it)
+SUBMIT_COMMAND = {"slurm": "sbatch", "pbs": "qsub"}
 #: file name prefix of the probe written into the shared directory to check that workers see it
 PROBE_PREFIX = ".whitecap-probe-"
 
@@ -280,6 +283,10 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
         owns.append(cluster)
         address = cluster.scheduler_address
     elif spec in ("slurm", "pbs"):
+        submit = SUBMIT_COMMAND[spec]
+        if shutil.which(submit) is None:  # else the jobs would fail in the background and the bar wait for ever
+            raise ClusterError(f"--cluster {spec}: '{submit}' is not on the PATH; run whitecap where {spec} jobs are "
+                               "submitted from (a login node)")
         cluster = batch_cluster(spec, cfg)
         owns.append(cluster)
         cluster.scale(jobs=jobs or cfg.jobs)
@@ -324,6 +331,11 @@ def batch_cluster(kind: str, cfg):
     except ImportError:
         raise MissingDependency(f"--cluster {kind} needs 'dask-jobqueue', which is not installed; {CLUSTER_HINT}") from None
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
+    return cls(**batch_options(cfg))
+
+
+def batch_options(cfg) -> dict[str, Any]:
+    """dask-jobqueue's keyword arguments for one batch job described by the ``[cluster]`` section."""
     kw: dict[str, Any] = dict(
         cores=cfg.cores, processes=cfg.processes, memory=cfg.memory, walltime=cfg.walltime,
         job_name="whitecap", scheduler_options={"dashboard_address": ":0"},
@@ -343,7 +355,7 @@ def batch_cluster(kind: str, cfg):
         kw["job_script_prologue"] = list(cfg.setup)
     if cfg.local_directory:
         kw["local_directory"] = cfg.local_directory
-    return cls(**kw)
+    return kw
 
 
 def cluster_settings(run_dir: str | Path | None = None, scene_file: str | Path | None = None):
