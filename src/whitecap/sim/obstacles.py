@@ -38,6 +38,9 @@ because the SDF is needed for collisions anyway, it costs one lookup per
 particle instead of thousands of extra neighbours, and it does not depend on
 how well a surface is sampled; its error is the planar approximation on
 strongly curved parts, smaller than a particle for shapes larger than h.
+A dynamic body has none: with it a floating body rode a particle radius too
+high (README, Floating bodies); the fluid meets it by contact alone, whose
+momentum (projection, penalty, velocity response) the body takes back.
 """
 
 import hashlib
@@ -389,7 +392,7 @@ def obstacle_project_and_density_map(
     x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
     iteration, or follows the prediction), then ψ_i += ψ(sdf), ∇ψ_i += ψ'(sdf)·∇sdf,
     the obstacle's share of ρ_i/ρ0 (static and kinematic obstacles only: a dynamic body
-    has no density map, see DYNAMIC_DENSITY_MAP)."""
+    has no density map, see the module doc)."""
     for i in range(n):
         for o in range(off.shape[0]):
             xl = to_rest(rot, trans, o, p[i])
