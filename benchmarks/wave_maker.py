@@ -66,8 +66,9 @@ def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float
 
 def run_flume(r: float = 0.01, h: float = 0.2, S: float = 0.04, T: float = 1.0, length: float = 4.0,
               ramp: float = 1.0, gauge: float = 1.0, duration: float = 5.0, progress: bool = False,
-              solver: dict | None = None):
-    """(times, η at the gauge, measured H, Biésel H): the flume run and its wave height."""
+              solver: dict | None = None, gauge_width: float | None = None):
+    """(times, η at the gauge, measured H, Biésel H, fitted window, mean level): the flume run and its
+    wave height. The gauge reads the particle columns within ``gauge_width`` (default 2r) of it."""
     from whitecap.sim.driver import build_solver
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -78,7 +79,7 @@ def run_flume(r: float = 0.01, h: float = 0.2, S: float = 0.04, T: float = 1.0, 
     for f in range(1, int(round(duration * 30)) + 1):
         s.advance_frame(f)
         x = s.state.x.to_numpy()
-        near = x[np.abs(x[:, 0] - x_gauge) < 2 * r]
+        near = x[np.abs(x[:, 0] - x_gauge) < (gauge_width or 2 * r)]
         cols = np.floor(near[:, 0] / (2 * r)).astype(int) * 1000 + np.floor(near[:, 1] / (2 * r)).astype(int)
         tops = [near[cols == c, 2].max() for c in np.unique(cols)]  # the top particle of each column
         ts.append(s.time)
