@@ -15,7 +15,11 @@ import sys
 from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
-from .surface.export import TARGETS
+
+
+CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), local (a local cluster of --jobs "
+                "workers), or slurm / pbs (batch jobs described by the scene's [cluster] section); needs "
+                "pip install 'whitecap[cluster]'")
 
 
 # ============================================================================ simulate
@@ -108,6 +112,9 @@ def _add_import(sub) -> None:
     p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
     p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
                    "places the floating body, in place of fitting it to its particles")
+    p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
+                   "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
+    p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
     p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
     p.set_defaults(func=_cmd_import)
 
@@ -116,7 +123,7 @@ def _cmd_import(a) -> int:
     from . import pipeline
 
     info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
-                                force=a.force)
+                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force)
     roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
     print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
     return 0
@@ -151,6 +158,7 @@ def _add_mesh(sub) -> None:
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_mesh)
 
@@ -169,7 +177,7 @@ def _cmd_mesh(a) -> int:
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, profile=a.profile, **overrides)
+                          up=a.up, profile=a.profile, cluster=a.cluster, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
@@ -180,23 +188,27 @@ def _cmd_mesh(a) -> int:
 def _add_export(sub) -> None:
     p = sub.add_parser(
         "export",
-        help="write ParaView series (.pvd + VTK XML) of a run",
+        help="write a run as ParaView series (VTK XML, PLY) or as one USD stage or Alembic archive",
         description="Write the fluid particles, diffuse particles and meshes of RUN as ParaView series in "
         "RUN/export: one file per frame plus a collection with each frame's simulated time (.pvd for vtk, "
-        ".series for ply).",
+        ".series for ply); or the whole run as one animated scene for other tools (usd: RUN/export/usd/scene.usd, "
+        "abc: RUN/export/abc/scene.abc) with the fluid surface, diffuse particles, obstacles and camera.",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", choices=TARGETS, help="vtk: .vtp + .pvd (default); ply: PLY + .series")
-    p.add_argument("--out", "-o", help="output directory (default RUN/export)")
+    p.add_argument("--to", default="vtk", metavar="FORMAT",
+                   help="vtk: .vtp + .pvd (default); ply: PLY + .series; usd: USD stage; abc: Alembic archive")
+    p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
-                   "separate series")
+                   "separate series (usd and abc always split them)")
+    p.add_argument("--jobs", "-j", type=int, default=1, help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
+    p.add_argument("--cluster", metavar="WHERE", help="vtk, ply: " + CLUSTER_HELP)
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(a) -> int:
     from . import pipeline
 
-    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types)
+    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types, jobs=a.jobs, cluster=a.cluster)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0
@@ -255,6 +267,7 @@ def _add_render(sub) -> None:
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
     p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.set_defaults(func=_cmd_render)
 
 
@@ -262,7 +275,7 @@ def _cmd_render(a) -> int:
     from . import pipeline
 
     r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie,
-                         device=a.device)
+                         device=a.device, cluster=a.cluster)
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")
@@ -301,6 +314,7 @@ def _add_run(sub) -> None:
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
     p.set_defaults(func=_cmd_run)
 
@@ -308,7 +322,8 @@ def _add_run(sub) -> None:
 def _cmd_run(a) -> int:
     from . import pipeline
 
-    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames)
+    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames,
+                     cluster=a.cluster)
     print(f"run directory: {r['run']}")
     for key in ("movie", "blend"):
         if r.get(key):

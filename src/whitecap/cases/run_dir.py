@@ -125,7 +125,8 @@ def _new_info(case: Case, identity: str, first_positions: np.ndarray | None) -> 
 
 def _obstacle_entry(shape: CaseShape, rel: str) -> dict:
     return {"name": shape.name, "role": shape.role, "source": shape.source, "mesh": rel, "render_mesh": rel,
-            "translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0, **ROLE_LOOKS[shape.role]}
+            "translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0,
+            **ROLE_LOOKS[shape.role], **(shape.look or {})}  # a shape's own look (e.g. glass) wins
 
 
 def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False) -> RunInfo:
