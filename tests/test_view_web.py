@@ -105,15 +105,20 @@ def _camera(viewer):
     return project, focal, (W, H)
 
 
-def _colormap_distance(img: np.ndarray) -> np.ndarray:
-    """Per pixel, the RGB distance to the nearest colour of the fluid colour map."""
+FLUID_TOL = 30.0  # RGB distance within which a pixel counts as fluid-coloured
+GREY_CHROMA = 25.0  # max - min channel below which a pixel is grey (background, panel, box); the map's colours are all above
+
+
+def _fluid_coloured(img: np.ndarray) -> np.ndarray:
+    """Pixels within FLUID_TOL of a colour of the fluid colour map."""
     from whitecap.view.colors import colormap
 
     ramp = colormap(np.linspace(0.0, 1.0, 64), 0.0, 1.0) * 255.0
-    return np.min(np.linalg.norm(img[..., None, :] - ramp[None, None], axis=-1), axis=-1)
-
-
-FLUID_TOL = 30.0  # RGB distance within which a pixel counts as fluid-coloured
+    out = np.zeros(img.shape[:2], bool)
+    cand = np.ptp(img, axis=-1) > GREY_CHROMA
+    px = img[cand].astype(np.float32)
+    out[cand] = np.min(((px[:, None, :] - ramp[None]) ** 2).sum(-1), axis=1) < FLUID_TOL ** 2
+    return out
 
 
 def _fluid_mask_checks(viewer, page, positions):
@@ -125,7 +130,7 @@ def _fluid_mask_checks(viewer, page, positions):
     panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
     xy, depth = project(positions)
     assert (xy[:, 0] < panel_x).all() and (xy[:, 0] > 0).all() and (xy[:, 1] > 0).all() and (xy[:, 1] < H).all()
-    fluid = _colormap_distance(img[:, :panel_x]) < FLUID_TOL
+    fluid = _fluid_coloured(img[:, :panel_x])
     # where the fluid projects: a disc of the particle radius (plus a pixel) around each particle
     rad = float(viewer.source.radius) * viewer.point_scale * focal / depth + 1.5
     where = np.zeros_like(fluid)
