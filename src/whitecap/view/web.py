@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
+import logging
 import socket
 import threading
 import time
@@ -39,6 +40,8 @@ from .app import FOAM_SLIDERS, _advance, _current, _new_state, open_source
 from .colors import DIFFUSE_COLORS, colormap, fitted_range, fluid_scalar, free_fall_speed
 from .geometry import box_lines, load_obstacle_meshes
 
+log = logging.getLogger("whitecap.view")
+
 DEFAULT_HOST = "localhost"  # serve on this machine only; --host 0.0.0.0 opens it up
 DEFAULT_PORT = 8080
 MAX_POINTS = 300_000  # fluid (and per-type diffuse) points drawn at most; more are subsampled
@@ -49,9 +52,10 @@ DOMAIN_COLOR = (191, 191, 204)  # domain box outline, as GGUI's (0.75, 0.75, 0.8
 DOMAIN_LINE_PX = 2.0  # domain box outline width [px]
 SURFACE_COLOR = (90, 150, 220)  # reconstructed fluid surface
 SURFACE_OPACITY = 0.7
-COLORBAR_PX = (16, 256)
-FLOAT16_EPS = 2.0 ** -11  # relative rounding error of a half-precision float
-POSITION_TOLERANCE = 0.1  # largest rounding of a drawn position, in particle radii  # colour bar image height, width [px]
+COLORBAR_PX = (16, 256)  # colour bar image height, width [px]
+# Point shapes offered. Discs look like GGUI's spheres; squares skip a per-pixel test and draw
+# faster where WebGL runs in software (headless Chromium's SwiftShader).
+POINT_SHAPES = ("circle", "square")
 INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
 
 
@@ -70,6 +74,8 @@ def check_port_free(host: str, port: int) -> None:
         raise WhitecapError(f"view --web: cannot resolve host '{host}' ({exc.strerror})") from None
     for family, kind, proto, _, addr in infos:
         with socket.socket(family, kind, proto) as s:
+            # as the server binds: a port left in TIME_WAIT is free, one with a listener is not
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind(addr)
             except OSError as exc:
@@ -98,11 +104,14 @@ class WebViewer:
     """
 
     def __init__(self, target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
-                 color_mode: str | None = None, max_points: int = MAX_POINTS, paced: bool = True):
+                 color_mode: str | None = None, max_points: int = MAX_POINTS, paced: bool = True,
+                 point_shape: str = "circle"):
         try:
             import viser
         except ImportError:
             raise WhitecapError(INSTALL_HINT) from None
+        if point_shape not in POINT_SHAPES:
+            raise InputError(f"view --web: point shape must be one of {', '.join(POINT_SHAPES)}, got '{point_shape}'")
         if max_points < 1:
             raise InputError(f"view --max-points: expected at least 1, got {max_points}")
         self.source, self.cfg = open_source(target, arch, up)  # a missing run stops here, before any server
@@ -116,10 +125,12 @@ class WebViewer:
         self.state.paused = not self.live  # playback waits for play; live simulates at once
         self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True, "surface": False}
         self.point_scale = float(self.cfg.point_scale)
+        self.point_shape = point_shape
         self.speed_scale = free_fall_speed(self.source.bounds)
         self.drawn_frame: int | None = None  # source frame index of the picture last sent
         self.frames_sent = 0
         self.note = ""
+        self.error: str | None = None  # the last frame that could not be shown, and why
         self._pending: dict = {}  # live parameter changes, applied by the loop between steps
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -154,13 +165,13 @@ class WebViewer:
         b = self.source.bounds
         self.h_domain = sc.add_line_segments("/domain", box_lines(b.lower, b.upper).reshape(-1, 2, 3), DOMAIN_COLOR,
                                              thickness=DOMAIN_LINE_PX, thickness_units="screen")
-        # Points go to the browser relative to the domain's centre, in half precision when that
-        # places them within POSITION_TOLERANCE particle radii (half the bytes to send), else in single.
+        # Points go to the browser in single precision, relative to the domain's centre. (Half
+        # precision would halve the bytes but costs more to draw than it saves where WebGL runs
+        # in software: Chromium's SwiftShader converts half-float vertices on the CPU.)
         self.origin = 0.5 * (np.asarray(b.lower, float) + np.asarray(b.upper, float))
-        half = float(np.max(np.asarray(b.upper, float) - np.asarray(b.lower, float))) / 2
-        self.precision = "float16" if half * FLOAT16_EPS <= POSITION_TOLERANCE * float(self.source.radius) else "float32"
+        self.precision = "float32"
         empty = np.zeros((1, 3), np.float32)
-        opts = dict(point_size=self._size(), point_shape="circle", point_shading="flat", visible=False,
+        opts = dict(point_size=self._size(), point_shape=self.point_shape, point_shading="flat", visible=False,
                     precision=self.precision, position=tuple(self.origin))
         self.h_fluid = sc.add_point_cloud("/fluid", empty, (0, 0, 0), **opts)
         self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])), **opts)
@@ -220,6 +231,7 @@ class WebViewer:
                                           .reshape(*COLORBAR_PX, 3), format="png")
             self.g_range = g.add_markdown("")
             self.g_size = g.add_slider("point size", 0.1, 4.0, 0.05, self.point_scale)
+            self.g_shape = g.add_dropdown("point shape", POINT_SHAPES, initial_value=self.point_shape)
             self.g_show = {}
             kinds = ["fluid", *TYPE_NAMES, "obstacles", "domain"] + (["surface"] if self.surfaces else [])
             for kind in kinds:
@@ -228,6 +240,7 @@ class WebViewer:
                 self.g_show[kind] = h
         self.g_color.on_update(lambda e: self._poke(color_mode=self.g_color.value, color_range=None))
         self.g_size.on_update(lambda e: self._set_size(self.g_size.value))
+        self.g_shape.on_update(lambda e: self._set_shape(self.g_shape.value))
 
     # ------------------------------------------------------------------ events (viser's threads)
     def _poke(self, **changes) -> None:
@@ -250,6 +263,10 @@ class WebViewer:
 
     def _set_size(self, scale: float) -> None:
         self.point_scale = float(scale)
+        self._changed()
+
+    def _set_shape(self, shape: str) -> None:
+        self.point_shape = shape
         self._changed()
 
     def _set_pending(self, key, value) -> None:
@@ -316,17 +333,28 @@ class WebViewer:
 
     def _loop(self) -> None:
         while not self._stop.is_set():
-            if self.live:
-                self._apply_pending()
-            if not self.paced and not self.live:
-                self.state.last_advance = None  # every pass advances a frame
-            _advance(self.state, self.source)
-            key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
-            if key != self._drawn_key:
-                self._drawn_key = key  # taken before drawing: an event during the draw draws again
-                self._draw(_current(self.source, self.state))
+            try:
+                self._step()
+            except WhitecapError as exc:  # a bad frame: say so in the panel and wait for the user
+                self.error = str(exc)
+                self.state.paused = True
+                self.g_info.content = f"**error:** {self.error}"
+                log.warning("%s", self.error)
+                self._drawn_key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
             self._wake.wait(PLAY_WAIT_S if not self.state.paused else IDLE_WAIT_S)
             self._wake.clear()
+
+    def _step(self) -> None:
+        """Apply pending live settings, advance when playing, and draw when anything changed."""
+        if self.live:
+            self._apply_pending()
+        if not self.paced and not self.live:
+            self.state.last_advance = None  # every pass advances a frame
+        _advance(self.state, self.source)
+        key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
+        if key != self._drawn_key:
+            self._drawn_key = key  # taken before drawing: an event during the draw draws again
+            self._draw(_current(self.source, self.state))
 
     # ------------------------------------------------------------------ drawing
     def _sub(self, n: int) -> np.ndarray | None:
@@ -354,6 +382,7 @@ class WebViewer:
                 self.h_fluid.points = np.asarray(pos - self.origin, np.float32)
                 self.h_fluid.colors = _u8(colormap(values, *st.color_range))
                 self.h_fluid.point_size = size
+                self.h_fluid.point_shape = self.point_shape
                 self.h_fluid.visible = True
             else:
                 self.h_fluid.visible = False
@@ -370,6 +399,7 @@ class WebViewer:
                     sel = sel[idx]
                 h.points = np.asarray(fr.diffuse_positions[sel] - self.origin, np.float32)
                 h.point_size = float(np.median(fr.diffuse_radius[sel])) * self.point_scale
+                h.point_shape = self.point_shape
                 h.visible = True
             for k, h in self.h_obstacles:
                 h.visible = self.show["obstacles"]
