@@ -852,3 +852,33 @@ def test_numpy_draws_equal_the_kernel_draws_bit_for_bit():
     assert host.dtype == np.float32
     assert np.array_equal(out.to_numpy(), host)
     assert 0.45 < host.mean() < 0.55  # and they are spread over [0, 1)
+
+
+def _births_and_live(out: Path, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the new particles of each type (ids not seen before, by their type when first
+    written) and the live particles of each type."""
+    born, live, seen = np.zeros((frames, 3)), np.zeros((frames, 3)), -1
+    for i in range(frames):
+        d = diffuse(out, i)
+        kind = d.arrays["type"].astype(int)
+        new = d.ids.astype(np.int64) > seen
+        born[i] = np.bincount(kind[new], minlength=3)[:3]
+        live[i] = np.bincount(kind, minlength=3)[:3]
+        seen = max(seen, int(d.ids.max())) if len(d.ids) else seen
+    return born, live
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_no_type_is_born_past_its_share_of_the_budget(tmp_path, ahead):
+    """A frame's new particles of a type never take that type past budget × its share: a type
+    born early and living long (foam) cannot fill the room of one born later or living
+    briefly (spray). Each frame's births of type t are at most the room its live count left
+    after the last frame (the thinning rounds stochastically: + 3√room + 5)."""
+    src = _gentle_then_violent(tmp_path / "in")
+    out = tmp_path / "o"
+    postprocess(src, out=out, params=_auto(budget=1.5), dt=1 / 30, radius=0.01, show_progress=False,
+                look_ahead=ahead)
+    born, live = _births_and_live(out, 24)
+    room = np.maximum(1.5 / 3 * N_BLOCK - np.vstack([np.zeros(3), live[:-1]]), 0)
+    assert born.sum() > 0.5 * N_BLOCK
+    assert (born <= room + 3 * np.sqrt(room) + 5).all(), np.argwhere(born > room + 3 * np.sqrt(room) + 5)
