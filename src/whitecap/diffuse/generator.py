@@ -505,10 +505,12 @@ class FoamGenerator:
         if self._scaled():
             # The type scales can make one frame's births far more than the birth rate foretold
             # (a burst of the type scaled furthest up): never past the budget in one frame, and
-            # no type past its share of it, so a type born early and living long (foam) cannot
-            # take the room of one born later or living briefly (spray).
+            # no type past its share of it (times its own multiplier, which the budget counts at 1),
+            # so a type born early and living long (foam) cannot take the room of one born later
+            # or living briefly (spray).
             live = np.asarray(self.state.counts[-1][2:] if self.state.counts else (0, 0, 0), np.float64)
-            room = np.maximum(p.budget * n * np.asarray(p.shares, np.float64) - live, 0.0)
+            share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
+            room = np.maximum(p.budget * n * share - live, 0.0)
             made = np.bincount(kind[keep], minlength=3)[:3].astype(np.float64)
             cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0)
             if (cut < 1).any():
