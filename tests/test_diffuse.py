@@ -882,3 +882,31 @@ def test_no_type_is_born_past_its_share_of_the_budget(tmp_path, ahead):
     room = np.maximum(1.5 / 3 * N_BLOCK - np.vstack([np.zeros(3), live[:-1]]), 0)
     assert born.sum() > 0.5 * N_BLOCK
     assert (born <= room + 3 * np.sqrt(room) + 5).all(), np.argwhere(born > room + 3 * np.sqrt(room) + 5)
+
+
+def test_a_types_room_is_its_share_times_its_multiplier(tmp_path, monkeypatch):
+    """The budget counts a type's multiplier at 1, so the room a frame's births of a type may
+    fill is budget × share × multiplier less that type's live count: with spray 20 short of
+    its share, a multiplier of 1 lets about 20 be born and a multiplier of 2 lets more.
+    (The type scales are held at 1, so that only the room decides.)"""
+    from whitecap.diffuse import budget as Bud
+    from whitecap.diffuse.generator import FoamGenerator
+
+    monkeypatch.setattr(Bud, "type_scales", lambda born, t, live, scales, *a: scales)
+    _gentle_then_violent(tmp_path / "in", frames=5)
+    frames = [io.read(f) for f in sorted((tmp_path / "in").glob("f_*.ply"))]
+    n, budget = len(frames[0]), 30.0
+
+    def spray_born(m: float) -> int:
+        gen = FoamGenerator(_auto(budget=budget, spray_multiplier=m), radius=0.01, domain=((0, 0, 0), (1, 1, 1)),
+                            gravity=(0, 0, -9.81), seed=1)
+        for i, f in enumerate(frames[:4]):
+            gen.step(f, i, 1 / 30)
+        i, t, *_ = gen.state.counts[-1]
+        gen.state.counts[-1] = (i, t, budget / 3 * n - 20, 0, 0)  # spray 20 short of its share, nothing else
+        before = gen.state.next_id
+        d = gen.step(frames[4], 4, 1 / 30)
+        return int(((d.ids >= before) & (d.arrays["type"] == 0)).sum())
+
+    one, two = spray_born(1.0), spray_born(2.0)
+    assert one <= 20 + 3 * np.sqrt(20) + 5 and two > 2 * (20 + 3 * np.sqrt(20) + 5), (one, two)
