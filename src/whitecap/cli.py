@@ -15,7 +15,6 @@ import sys
 from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
-from .surface.export import TARGETS
 
 
 # ============================================================================ simulate
@@ -91,6 +90,40 @@ def _cmd_foam(a) -> int:
     return 0
 
 
+# ============================================================================ import
+def _add_import(sub) -> None:
+    p = sub.add_parser(
+        "import",
+        help="a whole case from DualSPHysics or SPlisHSPlasH (fluid, tank, obstacles, bodies) as a run directory",
+        description="Convert CASE_OUTPUT, a DualSPHysics output folder (PartFluid_/PartAll_ VTK and the case XML) "
+        "or a SPlisHSPlasH output folder, into the run directory OUT: the fluid frames, one mesh per "
+        "boundary shape under OUT/geometry (the tank as the container) and the poses of moving bodies. "
+        "Then `whitecap foam OUT`, `mesh OUT` and `render OUT` continue from there. Resumable.",
+    )
+    p.add_argument("case_output", help="the solver's output folder")
+    p.add_argument("--out", "-o", required=True, help="run directory to write")
+    p.add_argument("--up", choices=["z", "y"], help="up axis of the case (default: z for DualSPHysics, y for "
+                   "SPlisHSPlasH)")
+    p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
+    p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
+                   "places the floating body, in place of fitting it to its particles")
+    p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
+                   "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
+    p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
+    p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
+    p.set_defaults(func=_cmd_import)
+
+
+def _cmd_import(a) -> int:
+    from . import pipeline
+
+    info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
+                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force)
+    roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
+    print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
+    return 0
+
+
 # ============================================================================ mesh
 def _add_mesh(sub) -> None:
     p = sub.add_parser(
@@ -149,16 +182,18 @@ def _cmd_mesh(a) -> int:
 def _add_export(sub) -> None:
     p = sub.add_parser(
         "export",
-        help="write ParaView series (.pvd + VTK XML) of a run",
+        help="write a run as ParaView series (VTK XML, PLY) or as one USD stage or Alembic archive",
         description="Write the fluid particles, diffuse particles and meshes of RUN as ParaView series in "
         "RUN/export: one file per frame plus a collection with each frame's simulated time (.pvd for vtk, "
-        ".series for ply).",
+        ".series for ply); or the whole run as one animated scene for other tools (usd: RUN/export/usd/scene.usd, "
+        "abc: RUN/export/abc/scene.abc) with the fluid surface, diffuse particles, obstacles and camera.",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", choices=TARGETS, help="vtk: .vtp + .pvd (default); ply: PLY + .series")
-    p.add_argument("--out", "-o", help="output directory (default RUN/export)")
+    p.add_argument("--to", default="vtk", metavar="FORMAT",
+                   help="vtk: .vtp + .pvd (default); ply: PLY + .series; usd: USD stage; abc: Alembic archive")
+    p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
-                   "separate series")
+                   "separate series (usd and abc always split them)")
     p.set_defaults(func=_cmd_export)
 
 
@@ -294,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"whitecap {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_simulate, _add_foam, _add_mesh, _add_export, _add_view, _add_render, _add_blender_addon, _add_run):
+    for add in (_add_simulate, _add_foam, _add_import, _add_mesh, _add_export, _add_view, _add_render, _add_blender_addon, _add_run):
         add(sub)
     return parser
 
@@ -326,6 +361,7 @@ _RESUME_HINT = {
     "simulate": "; rerun with --resume to continue from the last checkpoint",
     "run": "; rerun the same command to continue where it stopped",
     "mesh": "; rerun the same command: frames already meshed are skipped",
+    "import": "; rerun the same command: frames already imported are skipped",
     "render": "; rerun the same command: frames already rendered are skipped",
 }
 OS_ERROR_EXIT = 5

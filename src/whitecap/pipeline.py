@@ -161,14 +161,30 @@ def mesh(
     return stats
 
 
+EXPORT_TARGETS = ("vtk", "ply", "usd", "abc")
+
+
 def export(
     run: str | Path,
     to: str = "vtk",
     out: str | Path | None = None,
     split_types: bool = False,
     show_progress: bool = True,
-) -> dict[str, Path]:
-    """ParaView series (.pvd + .vtp, or PLY + .series) of a run's particles and meshes."""
+) -> dict[str, Path | str]:
+    """Export a run: ParaView series (``vtk``: .pvd + .vtp, ``ply``: PLY + .series) of its
+    particles and meshes, or the whole run as one animated scene (``usd``: a USD stage,
+    ``abc``: an Alembic archive) with the fluid, diffuse particles, obstacles and camera.
+
+    Returns {series or target: path}; a scene export adds {"note": ...} when it left
+    something out (a run without surfaces exports points only)."""
+    from .errors import InputError
+
+    if to in ("usd", "abc"):
+        from .render.exchange import export_scene
+
+        return export_scene(run, to=to, out=out, show_progress=show_progress)
+    if to not in EXPORT_TARGETS:
+        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
     from .surface.export import export_run
 
     return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
@@ -230,6 +246,57 @@ def foam(
     from .diffuse import postprocess
 
     return postprocess(input, out=out, case=case, **kw)
+
+
+# ============================================================================ import a foreign case
+def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | None = None,
+              floating_csv: str | Path | None = None, scene_json: str | Path | None = None,
+              fluid_model: str | None = None):
+    """A DualSPHysics or SPlisHSPlasH output folder as a :class:`whitecap.cases.Case`.
+    ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH ones."""
+    from .cases import dualsphysics
+    from .errors import InputError
+
+    src = Path(case_output)
+    if not src.exists():
+        raise InputError(f"{src}: no such file or directory")
+    if dualsphysics.is_case(src):
+        for opt, val in (("--scene", scene_json), ("--fluid-model", fluid_model)):
+            if val is not None:
+                raise InputError(f"{src}: {opt} is for SPlisHSPlasH cases; this is DualSPHysics output")
+        return dualsphysics.read_case(src, xml=xml, up=up or "z", floating_csv=floating_csv)
+    try:
+        from .cases import splishsplash
+    except ImportError:
+        splishsplash = None
+    if splishsplash is not None and splishsplash.is_case(src):
+        for opt, val in (("--xml", xml), ("--floating-csv", floating_csv)):
+            if val is not None:
+                raise InputError(f"{src}: {opt} is for DualSPHysics cases; this is SPlisHSPlasH output")
+        return splishsplash.read_case(src, up=up or "y", scene_json=scene_json, model=fluid_model)
+    raise InputError(f"{src}: neither a DualSPHysics output folder (PartFluid_*.vtk / PartAll_*.vtk) nor "
+                     "SPlisHSPlasH output")
+
+
+def import_case(
+    case_output: str | Path,
+    out: str | Path,
+    up: str | None = None,
+    xml: str | Path | None = None,
+    floating_csv: str | Path | None = None,
+    scene_json: str | Path | None = None,
+    fluid_model: str | None = None,
+    force: bool = False,
+    show_progress: bool = True,
+) -> RunInfo:
+    """A whole case from another solver (fluid, tank, obstacles, moving bodies) -> a run directory
+    that ``foam``, ``mesh``, ``view`` and ``render`` continue from. Resumable. The case is read and
+    checked in full before anything is written."""
+    from .cases.run_dir import write_case
+
+    case = read_case(case_output, up=up, xml=xml, floating_csv=floating_csv, scene_json=scene_json,
+                     fluid_model=fluid_model)
+    return write_case(case, out, show_progress=show_progress, force=force)
 
 
 # ============================================================================ view

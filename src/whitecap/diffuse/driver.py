@@ -14,8 +14,6 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,7 +23,7 @@ from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
-from ..io.run import RunInfo, frame_name
+from ..io.run import RunInfo, frame_name, source_identity
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
@@ -277,8 +275,7 @@ def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radiu
 
 def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
     """Identity of a foreign sequence: its files' names, sizes and modification times."""
-    stats = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for _, path in files]
-    return hashlib.sha256(json.dumps([up, stats]).encode()).hexdigest()[:16]
+    return source_identity([path for _, path in files], up)
 
 
 def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,

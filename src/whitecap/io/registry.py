@@ -1,11 +1,13 @@
 """The one format registry: readers and writers per format, one module each (as meshio does).
 
 A format module calls :func:`register` at import time with the kind of data it
-holds: ``particles`` (a :class:`~whitecap.io.frame.ParticleFrame`) or ``mesh``
-(a :class:`~whitecap.io.mesh.SurfaceMesh`). One extension may serve both kinds
+holds: ``particles`` (a :class:`~whitecap.io.frame.ParticleFrame`), ``mesh``
+(a :class:`~whitecap.io.mesh.SurfaceMesh`) or ``scene`` (a whole run as one
+animated scene, :class:`~whitecap.io.cache.SceneCache`: USD, Alembic). One extension may serve both kinds
 (``.ply``); the caller says which it wants. :func:`read` / :func:`write` move
 particle frames, :func:`read_mesh` / :func:`write_mesh` surface meshes; each
-picks the format from the file extension or an explicit name.
+picks the format from the file extension or an explicit name; :func:`write_scene`
+writes a whole run.
 
 Solvers name the same array differently (``Vel``, ``velocity``, ``v``); every
 reader finds the standard arrays with :func:`find_array` and the alias tables
@@ -22,11 +24,13 @@ from ..errors import InputError
 from .frame import ParticleFrame
 
 if TYPE_CHECKING:
+    from .cache import SceneCache
     from .mesh import SurfaceMesh
 
 PARTICLES = "particles"
 MESH = "mesh"
-KINDS = (PARTICLES, MESH)
+SCENE = "scene"
+KINDS = (PARTICLES, MESH, SCENE)
 
 # Point-array names per quantity, lower case, in order of preference:
 # DualSPHysics (Vel, Rhop/Rho, Idp), SPlisHSPlasH (velocity, density, id), short forms.
@@ -121,3 +125,9 @@ def read_mesh(path: str | Path, fmt: str | None = None) -> "SurfaceMesh":
 def write_mesh(path: str | Path, mesh: "SurfaceMesh", fmt: str | None = None) -> None:
     """Write a surface mesh atomically; the format comes from the extension unless named."""
     _write(path, mesh, fmt, MESH)
+
+
+def write_scene(path: str | Path, cache: "SceneCache", fmt: str | None = None, **options) -> None:
+    """Write a whole run as one animated scene (USD, Alembic); the format comes from the
+    extension unless named. The file at ``path`` appears complete or not at all."""
+    _write(path, cache, fmt, SCENE, **options)

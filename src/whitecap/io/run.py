@@ -56,6 +56,14 @@ def simulation_identity(scene_toml: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def source_identity(paths: list[Path], up: str, extra: object = None) -> str:
+    """Identity of a foreign sequence (a run converted from another solver's files): the files'
+    absolute names, sizes and modification times, the up axis, and ``extra`` (JSON) when given."""
+    stats = [(str(Path(p).resolve()), Path(p).stat().st_size, Path(p).stat().st_mtime_ns) for p in paths]
+    key = [up, stats] if extra is None else [up, stats, extra]
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def check_relpath(rel: Any, where: str) -> str:
     """``rel`` if it is a relative path that stays inside the run, else an InputError naming ``where``."""
     if not isinstance(rel, str) or not rel or "\0" in rel:

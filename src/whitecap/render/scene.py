@@ -15,7 +15,6 @@ the same attribute. Camera and obstacle motion blur come from keyframes.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,9 +159,39 @@ def bubble_material():
     return mat
 
 
+#: Fresnel reflectance of the thin-glass obstacle preset: window glass [-]
+THIN_GLASS_IOR = 1.5
+
+
+def thin_glass_material(color) -> "object":
+    """A pane without thickness (an imported tank's wall that encloses the fluid): light passes
+    straight through, tinted by ``color``, and the Fresnel share of glass of THIN_GLASS_IOR is
+    reflected. A refracting glass would need walls with two faces (see stage.glass_material)."""
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_obstacle_glass")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.remove(nt.nodes.get("Principled BSDF"))
+    through = nt.nodes.new("ShaderNodeBsdfTransparent")
+    through.inputs["Color"].default_value = (*color, 1.0)
+    mirror = nt.nodes.new("ShaderNodeBsdfGlossy")
+    mirror.inputs["Roughness"].default_value = 0.0
+    fresnel = nt.nodes.new("ShaderNodeFresnel")
+    fresnel.inputs["IOR"].default_value = THIN_GLASS_IOR
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    nt.links.new(fresnel.outputs[0], mix.inputs[0])
+    nt.links.new(through.outputs[0], mix.inputs[1])
+    nt.links.new(mirror.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], nt.nodes.get("Material Output").inputs["Surface"])
+    return mat
+
+
 def obstacle_material(entry: dict):
     import bpy
 
+    if entry.get("material") == "glass":
+        return thin_glass_material(entry.get("color", [0.93, 0.97, 0.96]))
     mat = bpy.data.materials.new(f"whitecap_obstacle_{entry.get('material', 'stone')}")
     _, bsdf = _principled(mat)
     bsdf.inputs["Base Color"].default_value = (*entry.get("color", [0.8, 0.78, 0.72]), 1.0)
@@ -407,26 +436,21 @@ def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: 
     """The camera, keyframed from start to end (and around the orbit) over first..last;
     without camera keys it frames the fluid and the obstacles (stage.camera_path)."""
     import bpy
+    from mathutils import Vector
 
     cam_data = bpy.data.cameras.new("camera")
     cam_data.lens = cfg.lens
     cam = bpy.data.objects.new("camera", cam_data)
     sc.collection.objects.link(cam)
     sc.camera = cam
-    bounds = stage.scene_bounds(run_dir, info, [o for o in sc.objects if o.name.startswith("obstacle_")])
-    start, end, target = stage.camera_path(cfg, info, bounds, aspect=sc.render.resolution_x / sc.render.resolution_y)
-    cam_data.clip_start = 1e-3 * float(np.linalg.norm(np.subtract(start, target)))
-    cam_data.clip_end = 1e3 * float(np.linalg.norm(np.subtract(start, target)))
+    boxes = [np.array([tuple(o.matrix_world @ Vector(c)) for c in o.bound_box])
+             for o in sc.objects if o.name.startswith("obstacle_")]
+    bounds = stage.scene_bounds(run_dir, info, boxes)
+    keys, target = stage.camera_keys(cfg, info, bounds, first, last, sc.render.resolution_x / sc.render.resolution_y)
+    cam_data.clip_start, cam_data.clip_end = stage.camera_clip(keys[first], target)
     stage.depth_of_field(cam, cfg, _look_at(cam, target))
-    for frame in range(first, last + 1):
-        u = 0.0 if last == first else (frame - first) / (last - first)
-        p = (1 - u) * np.array(start) + u * np.array(end)
-        if cfg.camera_orbit:
-            ang = math.radians(cfg.camera_orbit) * u
-            d = p - np.array(target)
-            rot = np.array([[math.cos(ang), -math.sin(ang), 0], [math.sin(ang), math.cos(ang), 0], [0, 0, 1]])
-            p = np.array(target) + rot @ d
-        cam.location = p.tolist()
+    for frame, p in keys.items():
+        cam.location = p
         cam.keyframe_insert("location", frame=frame)
     return cam
 
@@ -434,14 +458,10 @@ def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: 
 def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None) -> None:
     """The high-poly render mesh of an obstacle, with the scene's transform."""
     import bpy
-    import trimesh
 
-    base = Path(info.extra.get("scene_dir", "."))
-    src = entry.get("render_mesh") or entry.get("mesh")
-    path = Path(src) if Path(src).is_absolute() else base / src
-    if not path.is_file():
+    m = stage.obstacle_render_mesh(entry, info, run_dir)
+    if m is None:
         return
-    m = trimesh.load(str(path), force="mesh")
     m.apply_transform(obstacle_transform(entry))
     obj = bpy.data.objects.new(f"obstacle_{k}", make_mesh(f"obstacle_{k}", m.vertices, m.faces))
     obj.data.materials.append(obstacle_material(entry))

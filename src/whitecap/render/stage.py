@@ -92,8 +92,17 @@ def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
     return p
 
 
+def has_own_container(info: RunInfo) -> bool:
+    """Whether the run brings its own tank: an obstacle with role "container" (an imported case)."""
+    return any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles)
+
+
 def container_kind(cfg: Render, info: RunInfo) -> str:
-    """``[render].container``, or its default: glass where the run's walls held the fluid, else none."""
+    """``[render].container``, or its default: glass where the run's walls held the fluid, else none.
+    A run with a container of its own (an imported tank: an obstacle with role "container") gets
+    none: its tank is drawn as that obstacle, and a second glass box around the domain would hide it."""
+    if has_own_container(info):
+        return "none"
     if cfg.container is not None:
         return cfg.container
     return "glass" if info.solid_walls() else "none"
@@ -162,7 +171,12 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
     if cfg.camera_start:
         start = np.array(cfg.camera_start, float)
     else:
-        view = VIEW_DIRECTION_BASIN if container_kind(cfg, info) == "basin" else VIEW_DIRECTION
+        # An opaque tank, drawn (basin) or the case's own (an imported container), is seen from high
+        # enough to look over its front wall; a glass one (a closed tank, cases/splishsplash.py) from the side.
+        opaque = container_kind(cfg, info) == "basin" or any(
+            isinstance(o, dict) and o.get("role") == "container" and o.get("material") != "glass"
+            for o in info.obstacles)
+        view = VIEW_DIRECTION_BASIN if opaque else VIEW_DIRECTION
         dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
         u = np.asarray(view, float) / np.linalg.norm(view)
         start = target + dist * u
@@ -392,15 +406,65 @@ def _nice_tile(x: float) -> float:
 
 
 def scene_bounds(run_dir: Path | None, info: RunInfo, obstacles=()) -> tuple[np.ndarray, np.ndarray]:
-    """What the default camera frames: the fluid over the run plus the obstacle objects' boxes."""
+    """What the default camera frames: the fluid over the run plus the obstacles' boxes.
+
+    ``obstacles`` holds one (n, 3) array of world points per obstacle (its box
+    corners or its vertices), so the framing needs no Blender."""
     b = fluid_bounds(run_dir, info) if run_dir is not None else None
     lo, hi = (b if b is not None else (np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)))
-    for obj in obstacles:
-        from mathutils import Vector
-
-        pts = np.array([tuple(obj.matrix_world @ Vector(c)) for c in obj.bound_box])
-        lo, hi = np.minimum(lo, pts.min(0)), np.maximum(hi, pts.max(0))
+    for pts in obstacles:
+        pts = np.asarray(pts, float).reshape(-1, 3)
+        if len(pts):
+            lo, hi = np.minimum(lo, pts.min(0)), np.maximum(hi, pts.max(0))
     return lo, hi
+
+
+def image_aspect(cfg: Render, preview: bool = False) -> float:
+    """Width / height of the rendered image at this quality."""
+    w, h = cfg.preview_resolution if preview else cfg.resolution
+    return int(w) / int(h)
+
+
+def camera_keys(cfg: Render, info: RunInfo, bounds, first: int, last: int,
+                aspect: float) -> tuple[dict[int, list[float]], list[float]]:
+    """The camera position at every frame first..last and the point it looks at.
+
+    Positions run linearly from :func:`camera_path`'s start to its end and turn
+    ``camera_orbit`` degrees about the vertical through the target over the run.
+    The renderer keys its camera with these; the USD and Alembic exports write them."""
+    start, end, target = camera_path(cfg, info, bounds, aspect=aspect)
+    keys: dict[int, list[float]] = {}
+    for frame in range(first, last + 1):
+        u = 0.0 if last == first else (frame - first) / (last - first)
+        p = (1 - u) * np.array(start) + u * np.array(end)
+        if cfg.camera_orbit:
+            ang = math.radians(cfg.camera_orbit) * u
+            d = p - np.array(target)
+            rot = np.array([[math.cos(ang), -math.sin(ang), 0], [math.sin(ang), math.cos(ang), 0], [0, 0, 1]])
+            p = np.array(target) + rot @ d
+        keys[frame] = p.tolist()
+    return keys, target
+
+
+def camera_clip(position, target) -> tuple[float, float]:
+    """Near and far clipping distances [m]: 10⁻³ and 10³ times the distance to the target."""
+    d = float(np.linalg.norm(np.subtract(position, target)))
+    return 1e-3 * d, 1e3 * d
+
+
+def look_at_matrix(position, target) -> np.ndarray:
+    """4×4 world matrix (column vectors) of a camera at ``position`` looking at ``target``
+    with z up, as Blender's TRACK_TO (−z toward the target, y up) places it."""
+    fwd = np.subtract(target, position).astype(float)
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    if np.linalg.norm(right) < 1e-9:  # looking straight down or up: keep x as right
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, position
+    return m
 
 
 def depth_of_field(cam, cfg: Render, target_obj) -> None:
@@ -419,6 +483,31 @@ def depth_of_field(cam, cfg: Render, target_obj) -> None:
         dof.focus_object = focus
     else:
         dof.focus_object = target_obj
+
+
+# ============================================================================ obstacles
+def obstacle_path(src: str, info: RunInfo, run_dir: Path | None) -> Path | None:
+    """Where an obstacle's mesh file is: absolute as given; a relative path in the scene's
+    directory (``extra.scene_dir``, whitecap's own runs), else in the run directory (imported
+    cases: cases/run_dir.py), else the working directory. None when not found."""
+    p = Path(src)
+    if p.is_absolute():
+        return p if p.is_file() else None
+    bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
+    bases += [Path(run_dir)] if run_dir is not None else []
+    return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)
+
+
+def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None):
+    """The obstacle's render mesh (``render_mesh``, else its collision ``mesh``) as a trimesh in
+    its own coordinates, found by :func:`obstacle_path`; None when the file is missing."""
+    import trimesh
+
+    src = entry.get("render_mesh") or entry.get("mesh")
+    path = obstacle_path(src, info, run_dir) if src else None
+    if path is None:
+        return None
+    return trimesh.load(str(path), force="mesh")
 
 
 # ============================================================================ obstacle textures

@@ -141,11 +141,11 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
             write_series(path, entries)
         written[name] = path
     files = {path.name for path in written.values()} | {rel for entries in series.values() for _, rel in entries}
-    _replace_previous(out, info.simulation, files)
+    replace_previous(out, info.simulation, files)
     return written
 
 
-def _replace_previous(out: Path, simulation: str, files: set[str]) -> None:
+def replace_previous(out: Path, simulation: str, files: set[str]) -> None:
     """Remove what the previous export wrote and this one did not; record this one in export.json."""
     old: list = []
     try:
