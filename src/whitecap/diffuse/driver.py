@@ -66,10 +66,11 @@ class FoamStage:
             self.gen.state = self._pending
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
-        for g in self.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF): at this frame's pose
-            if hasattr(g, "time"):
-                g.time = frame.time if frame.time is not None else index * dt
-                g.body = info.body_pose(index, g.index)
+        t = frame.time if frame.time is not None else index * dt
+        for g in self.obstacles or []:  # obstacles (sim.obstacles.PosedSDF): this frame's pose and the last one's
+            first = index == 0
+            g.at_frame(t, info.body_pose(index, g.index), 0.0 if first else dt,
+                       None if first else info.body_pose(index - 1, g.index))
         d = self.gen.step(frame, index, dt)
         rel = frame_name("diffuse", index)
         write(out / rel, d)

@@ -24,6 +24,7 @@ import numpy as np
 import taichi as ti
 
 from ..io import ParticleFrame
+from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
@@ -41,6 +42,17 @@ MAX_FLUID_NEIGHBOURS = 96
 # (the kernels use draws 0-4 of the (seed, frame, id, slot) counter).
 DRAW_LIFE, DRAW_DISSIPATE = 6, 7
 ROUNDING_SLOT = 0xFFFF  # the slot number of kernels.generate's stochastic-rounding draw
+# Diffuse particles and obstacles (static or moving), see FoamGenerator._obstacles:
+# - a foam particle within BODY_CONTACT·r of a moving body at the start of a frame rides on it:
+#   one fluid-particle diameter, the fluid's own contact with a body (its centres keep r from it);
+# - a particle pushed out of an obstacle is put SURFACE_OFFSET·r outside it, where the fluid's
+#   centres rest (sim/obstacles.py projects them to sdf = r);
+# - spray bouncing off keeps SPRAY_RESTITUTION of its normal speed relative to the body: our
+#   choice for the look of droplets glancing off a wet hull, not a measured value (0 makes them
+#   slide along it).
+BODY_CONTACT = 2.0
+SURFACE_OFFSET = 1.0
+SPRAY_RESTITUTION = 0.5
 
 
 @dataclass
@@ -168,7 +180,7 @@ class FoamGenerator:
         self._sized_for = 0  # fluid particle count the capacity was sized for
         self.last_frame: int | None = None  # the run's last frame index, where known: no peak after it
         self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
-        self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
+        self.obstacles = obstacles or []  # sim.obstacles.PosedSDF: see _obstacles, and nothing is born inside
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -435,7 +447,61 @@ class FoamGenerator:
             foam = kd == 1
             gone = uniform(self.seed, index, st.ids, 0, DRAW_DISSIPATE) >= math.exp(-p.foam_dissipation * dt)
             k &= ~(foam & gone)
-        return xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
+        x, v, lf, ids, kd = xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
+        if self.obstacles:
+            x, v, alive = self._obstacles(st.positions[k], x, v, kd)
+            x, v, lf, ids, kd = x[alive], v[alive], lf[alive], ids[alive], kd[alive]
+        return x, v, lf, ids, kd
+
+    def _obstacles(self, x0: np.ndarray, x: np.ndarray, v: np.ndarray, kind: np.ndarray):
+        """Diffuse particles against the obstacles (sim.obstacles.PosedSDF, at this frame's pose and
+        the last one's), after advection from x0 to x: foam touching a moving body at the frame's start
+        rides on it, carried rigidly over the frame with the body's velocity there; spray that ends the
+        frame inside bounces (its normal velocity relative to the body reflected, times
+        SPRAY_RESTITUTION) and foam inside moves with the body, both put back outside; a bubble inside,
+        or a particle that cannot be put outside (a crease), is removed. Returns (x, v, alive)."""
+        x, v = x.astype(np.float64), v.astype(np.float64)
+        alive = np.ones(len(x), bool)
+        for g in self.obstacles:
+            if g.moved:
+                ride = (kind == FOAM) & (g.sample(x0, before=True) < BODY_CONTACT * self.r)
+                if ride.any():
+                    x[ride] = g.carry(x0[ride])
+                    v[ride] = g.velocity(x[ride])
+            d = g.sample(x)
+            hit = alive & (d <= 0.0)
+            alive &= ~(hit & (kind == BUBBLE))
+            hit &= kind != BUBBLE
+            if not hit.any():
+                continue
+            xh, n = self._entry(g, x0[hit], x[hit], d[hit])
+            xh = xh + SURFACE_OFFSET * self.r * n
+            u = g.velocity(xh)
+            vr = v[hit] - u
+            vn = np.minimum((vr * n).sum(1), 0.0)
+            spray = kind[hit] == SPRAY
+            vh = np.where(spray[:, None], u + vr - (1.0 + SPRAY_RESTITUTION) * vn[:, None] * n, u)
+            x[hit], v[hit] = xh, vh
+            alive[hit] = g.sample(xh) > 0.0
+        return x.astype(np.float32), v.astype(np.float32), alive
+
+    @staticmethod
+    def _entry(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, steps: int = 16):
+        """Where particles that moved from x0 to x (inside obstacle g) crossed its surface, and the
+        normal there: the crossing on the segment, by bisection on the SDF at this frame's pose, for
+        those that started outside it (so a fast drop bounces off the face it came through, not the
+        nearest one); the nearest surface point for those the body moved onto."""
+        x0 = np.asarray(x0, np.float64)
+        out = g.sample(x0) > 0.0
+        lo, hi = np.zeros(len(x)), np.ones(len(x))
+        for _ in range(steps):
+            mid = 0.5 * (lo + hi)
+            outside = g.sample(x0 + mid[:, None] * (x - x0)) > 0.0
+            lo, hi = np.where(outside, mid, lo), np.where(outside, hi, mid)
+        crossing = x0 + lo[:, None] * (x - x0)  # the last point found outside
+        p = np.where(out[:, None], crossing, x)
+        n = g.normal(p)
+        return np.where(out[:, None], p, x - d[:, None] * n), n
 
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
         """(2) generation, in parallel per fluid particle into its own run of the output; then
