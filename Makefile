@@ -15,7 +15,7 @@ $(VENV)/.installed: pyproject.toml
 	@$(MAKE) --no-print-directory deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[render,usd,web,test]"
+	$(PY) -m pip install --quiet -e ".[render,usd,cluster,web,test]"
 	@touch $@
 
 deps:

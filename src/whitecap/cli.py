@@ -17,6 +17,11 @@ from .errors import WhitecapError
 from .pipeline import RUN_STAGES
 
 
+CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), local (a local cluster of --jobs "
+                "workers), or slurm / pbs (batch jobs described by the scene's [cluster] section); needs "
+                "pip install 'whitecap[cluster]'")
+
+
 # ============================================================================ simulate
 def _add_simulate(sub) -> None:
     p = sub.add_parser(
@@ -153,6 +158,7 @@ def _add_mesh(sub) -> None:
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_mesh)
 
@@ -171,7 +177,7 @@ def _cmd_mesh(a) -> int:
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, profile=a.profile, **overrides)
+                          up=a.up, profile=a.profile, cluster=a.cluster, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
@@ -194,13 +200,15 @@ def _add_export(sub) -> None:
     p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series (usd and abc always split them)")
+    p.add_argument("--jobs", "-j", type=int, default=1, help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
+    p.add_argument("--cluster", metavar="WHERE", help="vtk, ply: " + CLUSTER_HELP)
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(a) -> int:
     from . import pipeline
 
-    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types)
+    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types, jobs=a.jobs, cluster=a.cluster)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0
@@ -270,6 +278,7 @@ def _add_render(sub) -> None:
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
     p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.set_defaults(func=_cmd_render)
 
 
@@ -277,7 +286,7 @@ def _cmd_render(a) -> int:
     from . import pipeline
 
     r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie,
-                         device=a.device)
+                         device=a.device, cluster=a.cluster)
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")
@@ -316,6 +325,7 @@ def _add_run(sub) -> None:
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
     p.set_defaults(func=_cmd_run)
 
@@ -323,7 +333,8 @@ def _add_run(sub) -> None:
 def _cmd_run(a) -> int:
     from . import pipeline
 
-    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames)
+    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames,
+                     cluster=a.cluster)
     print(f"run directory: {r['run']}")
     for key in ("movie", "blend"):
         if r.get(key):

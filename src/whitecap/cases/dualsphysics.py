@@ -96,16 +96,6 @@ def _xml(folder: Path, xml: str | Path | None) -> tuple[CaseInfo | None, Path | 
     return (read_case_xml(xmls[0]), xmls[0]) if xmls else (None, None)
 
 
-def _spacing(folder: Path, info: CaseInfo | None, pos: np.ndarray) -> float:
-    """dp from the XML, else the nearest-neighbour distance of the boundary particles."""
-    if info is not None:
-        return info.dp
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(pos).query(pos, k=2)
-    return float(np.median(d[:, 1]))
-
-
 def _groups(info: CaseInfo | None, mks: list[int]) -> list[tuple[str, list[int]]]:
     """Shapes as (name, Mks): the XML's shapes (Mks present in the data), then every other Mk alone."""
     groups, seen = [], set()
@@ -146,7 +136,7 @@ def read_case(folder: str | Path, xml: str | Path | None = None, up: str = "z",
         return case
     first_index = min(bound)
     b0 = _boundary_particles(bound[first_index])
-    dp = _spacing(folder, info, b0["pos"])
+    dp = info.dp
     mks = sorted(int(m) for m in np.unique(b0["Mk"]))
     for m in mks:
         n = int((b0["Mk"] == m).sum())

@@ -39,8 +39,8 @@ from .atomic import write_text
 
 FORMAT_VERSION = 1
 RUN_JSON = "run.json"
-#: scene keys that do not change the simulated frames, left out of the identity
-IDENTITY_IGNORES = ("output.frames",)
+#: scene keys (or whole sections) that do not change the simulated frames, left out of the identity
+IDENTITY_IGNORES = ("output.frames", "cluster")
 
 
 def simulation_identity(scene_toml: str) -> str:

@@ -412,6 +412,16 @@ def _configure_output(sc, fps: float, first: int, last: int) -> None:
     sc.frame_start, sc.frame_end = first, last
     sc.render.image_settings.file_format = "PNG"
     sc.render.film_transparent = False
+    # No metadata in the PNGs: Blender stamps the date and Cycles' render times into
+    # text chunks, so the same frame rendered twice (or on another worker) would differ
+    # in its bytes. With every stamp field off no text chunk is written at all.
+    for name in _STAMP_FIELDS:
+        setattr(sc.render, f"use_stamp_{name}", False)
+
+
+#: Blender's per-image metadata fields (RenderSettings.use_stamp_*), all turned off
+_STAMP_FIELDS = ("date", "time", "render_time", "frame", "frame_range", "memory", "hostname", "camera", "lens",
+                 "scene", "marker", "filename", "sequencer_strip", "note")
 
 
 def _add_diffuse_objects(sc, cfg: Render, info: RunInfo) -> dict:
