@@ -910,3 +910,28 @@ def test_a_types_room_is_its_share_times_its_multiplier(tmp_path, monkeypatch):
 
     one, two = spray_born(1.0), spray_born(2.0)
     assert one <= 20 + 3 * np.sqrt(20) + 5 and two > 2 * (20 + 3 * np.sqrt(20) + 5), (one, two)
+
+
+@pytest.mark.parametrize("foam_live, aging", [(0.0, 1.0), (4.0, 2.0)])
+def test_foam_past_its_share_ages_faster(tmp_path, foam_live, aging):
+    """Foam fed by landing spray and surfacing bubbles keeps its birth lifetime, so fewer foam
+    births cannot hold it to its share: under 'auto' foam's lifetime counts down λ times faster
+    than the clock, λ moving halfway (geometrically) from 1 towards live / target. With no foam
+    alive its lifetimes fall by Δt a frame; with 4 × its share alive, by √4 Δt = 2 Δt."""
+    from whitecap.diffuse.generator import FoamGenerator
+
+    _gentle_then_violent(tmp_path / "in", frames=6)
+    frames = [io.read(f) for f in sorted((tmp_path / "in").glob("f_*.ply"))]
+    n, budget, dt = len(frames[0]), 2.0, 1 / 30
+    gen = FoamGenerator(_auto(budget=budget), radius=0.01, domain=((0, 0, 0), (1, 1, 1)), gravity=(0, 0, -9.81), seed=1)
+    for i, f in enumerate(frames[:5]):
+        d0 = gen.step(f, i, dt)
+    i, t, *_ = gen.state.counts[-1]
+    gen.state.counts[-1] = (i, t, 0, foam_live * budget / 3 * n, 0)
+    gen.state.foam_aging = 1.0
+    life0 = dict(zip(d0.ids.tolist(), d0.arrays["lifetime"].tolist()))
+    d1 = gen.step(frames[5], 5, dt)
+    old = np.isin(d1.ids, d0.ids) & (d1.arrays["type"] == 1)
+    assert old.sum() > 20
+    fell = np.array([life0[k] for k in d1.ids[old].tolist()]) - d1.arrays["lifetime"][old]
+    assert np.allclose(fell, aging * dt, rtol=1e-3), (fell.min(), fell.max(), aging * dt)
