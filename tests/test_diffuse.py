@@ -941,3 +941,12 @@ def test_foam_past_its_share_ages_faster(tmp_path, foam_live, aging):
     assert old.sum() > 20
     fell = np.array([life0[k] for k in d1.ids[old].tolist()]) - d1.arrays["lifetime"][old]
     assert np.allclose(fell, aging * dt, rtol=1e-3), (fell.min(), fell.max(), aging * dt)
+
+
+def test_foam_aging_survives_a_checkpoint():
+    """A resumed run ages its foam as the uninterrupted one would: λ is part of the checkpoint."""
+    from whitecap.diffuse.generator import DiffuseState
+
+    st = DiffuseState.empty()
+    st.foam_aging = 3.5
+    assert DiffuseState.from_arrays(st.to_arrays()).foam_aging == 3.5
