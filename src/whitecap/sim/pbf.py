@@ -7,8 +7,8 @@ One step, following Algorithm 1 of the paper:
     neighbours of x*                       grid.NeighborGrid.build (once per step)
     repeat `iterations` times:
         λ_i  = −C_i / (Σ_k |∇_k C_i|² + ε)  compute_lambda,  C_i = ρ_i/ρ0 − 1
-        Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   compute_delta_p
-        x*  ← x* + Δp, then collisions     apply_delta_p
+        Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   correct_positions
+        x*  ← x* + Δp, then collisions     (same kernel, with the next walls' ψ)
     v ← (x* − x)/Δt                        update_velocity
     XSPH viscosity and vorticity ω         compute_vorticity_and_xsph (one neighbour pass)
     vorticity confinement                  apply_vorticity_confinement
@@ -62,6 +62,23 @@ def lookup(table: ti.template(), d: ti.f32, h: ti.f32) -> ti.f32:
     return (1.0 - f) * table[k] + f * table[k + 1]
 
 
+@ti.func
+def wall_share(pi: vec3, lo: vec3, hi: vec3, h: ti.f32, psi_table: ti.template(), dpsi_table: ti.template()):
+    """(ψ, ∇ψ) = (Σ_walls ψ(d), Σ_walls ψ'(d) n_wall) of a point, for the six domain walls."""
+    s = 0.0
+    g = vec3(0.0)
+    for a in ti.static(range(3)):
+        d_lo = pi[a] - lo[a]
+        if d_lo < h:
+            s += lookup(psi_table, d_lo, h)
+            g[a] += lookup(dpsi_table, d_lo, h)  # dψ/dd · ∂d/∂x_a (= +1)
+        d_hi = hi[a] - pi[a]
+        if d_hi < h:
+            s += lookup(psi_table, d_hi, h)
+            g[a] -= lookup(dpsi_table, d_hi, h)
+    return s, g
+
+
 @ti.kernel
 def wall_density_map(
     n: ti.i32, p: F3, lo: vec3, hi: vec3, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3
@@ -71,17 +88,7 @@ def wall_density_map(
     ψ is the boundary's share of ρ_i/ρ0; its gradient enters ∇_i C_i.
     """
     for i in range(n):
-        s = 0.0
-        g = vec3(0.0)
-        for a in ti.static(range(3)):
-            d_lo = p[i][a] - lo[a]
-            if d_lo < h:
-                s += lookup(psi_table, d_lo, h)
-                g[a] += lookup(dpsi_table, d_lo, h)  # dψ/dd · ∂d/∂x_a (= +1)
-            d_hi = hi[a] - p[i][a]
-            if d_hi < h:
-                s += lookup(psi_table, d_hi, h)
-                g[a] -= lookup(dpsi_table, d_hi, h)
+        s, g = wall_share(p[i], lo, hi, h, psi_table, dpsi_table)
         psi[i] = s
         grad_psi[i] = g
 
@@ -125,13 +132,12 @@ def compute_lambda(
 
 
 @ti.kernel
-def compute_delta_p(
+def correct_positions(
     n: ti.i32,
     p: F3,
     nb_count: I1,
     nb: I2,
     lam: F1,
-    grad_psi: F3,
     mass: ti.f32,
     rho0: ti.f32,
     h: ti.f32,
@@ -140,10 +146,25 @@ def compute_delta_p(
     scorr_k: ti.f32,
     scorr_inv_w_dq: ti.f32,
     scorr_n: ti.template(),
-    dp: F3,
+    clamp_lo: vec3,
+    clamp_hi: vec3,
+    next_walls: ti.i32,
+    wall_lo: vec3,
+    wall_hi: vec3,
+    psi_table: F1,
+    dpsi_table: F1,
+    psi: F1,
+    grad_psi: F3,
+    p_out: F3,
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
-    s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction)."""
+    s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction);
+    x*_i ← x*_i + Δp_i kept inside the walls (clamp_lo/hi: the walls shrunk by r),
+    written to ``p_out`` (Jacobi: every Δp reads the old x*).
+
+    With ``next_walls`` set, the same pass also evaluates the walls' density
+    map ψ_i, ∇ψ_i at the new x*_i for the next iteration (:func:`wall_share`),
+    which saves two passes over the particles per iteration."""
     for i in range(n):
         pi = p[i]
         li = lam[i]
@@ -157,14 +178,13 @@ def compute_delta_p(
             for _ in ti.static(range(scorr_n)):
                 qn *= q
             acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
-        dp[i] = (mass / rho0) * acc + li * grad_psi[i]
-
-
-@ti.kernel
-def apply_delta_p(n: ti.i32, p: F3, dp: F3, lo: vec3, hi: vec3):
-    """x* ← x* + Δp, then keep x* inside the walls (lo/hi already shrunk by r)."""
-    for i in range(n):
-        p[i] = ti.math.clamp(p[i] + dp[i], lo, hi)
+        dp = (mass / rho0) * acc + li * grad_psi[i]
+        pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
+        p_out[i] = pn
+        if next_walls:
+            s, g = wall_share(pn, wall_lo, wall_hi, h, psi_table, dpsi_table)
+            psi[i] = s
+            grad_psi[i] = g
 
 
 @ti.kernel
@@ -304,9 +324,12 @@ def estimate_particle_count(scene: Scene) -> int:
 
 
 def bytes_per_particle(max_neighbors: int) -> int:
-    """Device memory per particle: state (x, x*, v, v_tmp, Δp, ω, ∇ψ: 7 vec3; ρ, λ, ψ, id, tmp id: 5
+    """Device memory per particle: state (x, x*, v, v_tmp, ω, ∇ψ: 6 vec3; ρ, λ, ψ, id, tmp id: 5
     scalars) plus grid (cell, rank, order, sorted copy of x*, count, neighbours)."""
-    return 4 * (7 * 3 + 5) + 4 * (7 + max_neighbors)
+    return 4 * (STATE_WORDS + 7 + max_neighbors)
+
+
+STATE_WORDS = 6 * 3 + 5  # 4-byte words of FluidState per particle
 
 
 # A run may plan to use at most this share of the memory that is free when it starts:
@@ -375,8 +398,7 @@ class FluidState:
     x: object  # positions                         vec3 [m]
     p: object  # predicted positions x*            vec3 [m]
     v: object  # velocities                        vec3 [m/s]
-    v_tmp: object  # scratch (XSPH output, reorder) vec3
-    dp: object  # position corrections Δp          vec3 [m]
+    v_tmp: object  # scratch (XSPH output, corrected x*, reorder) vec3
     omega: object  # vorticity ω                  vec3 [1/s]
     grad_psi: object  # ∇ of boundary density share vec3 [1/m]
     rho: object  # density ρ                        f32 [kg/m³]
@@ -390,7 +412,7 @@ class FluidState:
         v3 = lambda: ti.Vector.ndarray(3, ti.f32, n)  # noqa: E731
         f1 = lambda: ti.ndarray(ti.f32, n)  # noqa: E731
         i1 = lambda: ti.ndarray(ti.i32, n)  # noqa: E731
-        return cls(n, v3(), v3(), v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1(), i1())
+        return cls(n, v3(), v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1(), i1())
 
 
 @dataclass
@@ -464,7 +486,7 @@ class PBFSolver:
         return self.scene.solver
 
     def memory_bytes(self) -> int:
-        return self.n * (4 * (7 * 3 + 5)) + self.grid.nbytes()
+        return self.n * 4 * STATE_WORDS + self.grid.nbytes()
 
     # ---------------------------------------------------------------- one step
     def reorder(self) -> None:
@@ -507,14 +529,19 @@ class PBFSolver:
             if overflow:
                 self.stats.neighbor_overflow += overflow
         with timer("pbf.constraints"):
-            for _ in range(s.iterations):
-                self.boundary_density()
+            self.boundary_density()
+            for it in range(s.iterations):
+                if it > 0:  # the walls' share came with the previous correction
+                    for c in self.colliders:
+                        c.add_density_map(self)
                 self.compute_lambda()
-                compute_delta_p(
-                    n, st.p, g.nb_count, g.nb, st.lam, st.grad_psi, self.mass, self.rho0, self.h, self.kernel.poly6,
-                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, st.dp,
+                correct_positions(
+                    n, st.p, g.nb_count, g.nb, st.lam, self.mass, self.rho0, self.h, self.kernel.poly6,
+                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.wall_lo, self.wall_hi,
+                    int(it + 1 < s.iterations), self.domain_lo, self.domain_hi, self.psi_table, self.dpsi_table,
+                    st.psi, st.grad_psi, st.v_tmp,
                 )
-                apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
+                st.p, st.v_tmp = st.v_tmp, st.p
             # Colliders project at the start of each iteration (fused with their
             # density map, see boundary_density) and once more here: the last
             # Δp pushes particles back inside the contact distance r, and
