@@ -324,12 +324,12 @@ def estimate_particle_count(scene: Scene) -> int:
 
 
 def bytes_per_particle(max_neighbors: int) -> int:
-    """Device memory per particle: state (x, x*, v, v_tmp, ω, ∇ψ: 6 vec3; ρ, λ, ψ, id, tmp id: 5
+    """Device memory per particle: state (x, x*, v, v_tmp, ∇ψ or ω: 5 vec3; ρ, λ, ψ, id: 4
     scalars) plus grid (cell, rank, order, sorted copy of x*, count, neighbours)."""
     return 4 * (STATE_WORDS + 7 + max_neighbors)
 
 
-STATE_WORDS = 6 * 3 + 5  # 4-byte words of FluidState per particle
+STATE_WORDS = 5 * 3 + 4  # 4-byte words of FluidState per particle
 
 
 # A run may plan to use at most this share of the memory that is free when it starts:
@@ -399,20 +399,18 @@ class FluidState:
     p: object  # predicted positions x*            vec3 [m]
     v: object  # velocities                        vec3 [m/s]
     v_tmp: object  # scratch (XSPH output, corrected x*, reorder) vec3
-    omega: object  # vorticity ω                  vec3 [1/s]
-    grad_psi: object  # ∇ of boundary density share vec3 [1/m]
+    grad_psi: object  # ∇ of boundary density share vec3 [1/m]; after the constraints: vorticity ω [1/s]
     rho: object  # density ρ                        f32 [kg/m³]
     lam: object  # Lagrange multipliers λ           f32 [m²]
     psi: object  # boundary density share ψ         f32 [-]
     ids: object  # persistent particle ids          i32
-    ids_tmp: object
 
     @classmethod
     def allocate(cls, n: int) -> "FluidState":
         v3 = lambda: ti.Vector.ndarray(3, ti.f32, n)  # noqa: E731
         f1 = lambda: ti.ndarray(ti.f32, n)  # noqa: E731
         i1 = lambda: ti.ndarray(ti.i32, n)  # noqa: E731
-        return cls(n, v3(), v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1(), i1())
+        return cls(n, v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1())
 
 
 @dataclass
@@ -498,8 +496,9 @@ class PBFSolver:
         st.x, st.v_tmp = st.v_tmp, st.x
         gather_vec3(n, order, st.v, st.v_tmp)
         st.v, st.v_tmp = st.v_tmp, st.v
-        gather_i32(n, order, st.ids, st.ids_tmp)
-        st.ids, st.ids_tmp = st.ids_tmp, st.ids
+        # The grid's rank array (scratch of the sort, free until the next one) takes the gathered ids.
+        gather_i32(n, order, st.ids, self.grid.rank)
+        st.ids, self.grid.rank = self.grid.rank, st.ids
 
     def boundary_density(self) -> None:
         st = self.state
@@ -556,16 +555,18 @@ class PBFSolver:
             # ω and XSPH share one neighbour pass (both read the velocities
             # after the position update); confinement then uses ω of the
             # neighbours and is added on top of the XSPH-smoothed velocity.
+            # ω is kept in ∇ψ's array: ∇ψ is dead once the constraints are done
+            # (recomputed before the next step's first λ), which saves 12 B a particle.
             k = self.kernel
             with timer("pbf.vorticity_xsph"):
                 compute_vorticity_and_xsph(
                     n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.poly6, k.spiky, s.xsph_c,
-                    st.omega, st.v_tmp,
+                    st.grad_psi, st.v_tmp,
                 )
                 st.v, st.v_tmp = st.v_tmp, st.v
                 if s.vorticity_epsilon > 0:
                     apply_vorticity_confinement(
-                        n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, k.spiky,
+                        n, st.p, g.nb_count, g.nb, st.rho, st.grad_psi, self.mass, self.h, k.spiky,
                         s.vorticity_epsilon, dt, st.v,
                     )
         st.x, st.p = st.p, st.x  # x ← x*
