@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml
 	@$(MAKE) --no-print-directory deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[render,usd,test]"
+	$(PY) -m pip install --quiet -e ".[render,usd,cluster,test]"
 	@touch $@
 
 deps:

@@ -1,6 +1,7 @@
 """Benchmark of `whitecap mesh` (issue 5).
 
     PYTHONPATH=src python benchmarks/bench_mesh.py [--particles 100000] [--frames 20] [--repeat 3]
+    PYTHONPATH=src python benchmarks/bench_mesh.py --cluster local [--frames 20] [--repeat 3]
 
 Prints
   1. time per frame for one 100k-particle frame (the whole per-frame function:
@@ -8,6 +9,14 @@ Prints
   2. the overhead of that function over a bare ``pysplashsurf.reconstruction_pipeline``
      call on the same particles with the same settings (target <= 10 %),
   3. wall time for N frames with --jobs 1 against --jobs 2 (pool start included).
+
+With ``--cluster local`` (issue 17) it prints instead frames/s of the local
+process pool and of a local Dask cluster (``pip install 'whitecap[cluster]'``)
+with 1 and 2 workers, the same frames, interleaved repeats (median), and the
+Dask path's overhead per frame (target < 10 % on 2 cores). The cluster is
+started once before timing, as a running cluster is; its start-up is printed
+apart. The machine's load (/proc/loadavg) is printed: timings on a shared
+machine move with it.
 
 Frames are synthetic: a jittered lattice of fluid (spacing 2r) with a
 travelling wave on its surface and a few flying droplets, so the surface has
@@ -73,7 +82,10 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--cluster", choices=["local"], help="compare the process pool with a local Dask cluster")
     a = ap.parse_args()
+    if a.cluster:
+        return bench_cluster(a)
     import pysplashsurf
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -128,6 +140,53 @@ def main() -> None:
         same = all((tmp / "jobs1" / name(k)).read_bytes() == (tmp / "jobs2" / name(k)).read_bytes()
                    for k in range(a.frames))
         print(f"speed-up --jobs 2 / --jobs 1: {walls[1] / walls[2]:.2f}x; outputs byte-identical: {same}")
+
+
+def loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
+
+
+def bench_cluster(a) -> None:
+    """frames/s: process pool against a local Dask cluster, 1 and 2 workers; Dask overhead per frame."""
+    import distributed
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        seq = tmp / "seq"
+        for k in range(a.frames):
+            wio.write(seq / f"fluid_{k:05d}.ply", synthetic_frame(a.particles, k))
+        print(f"machine: {len(os.sched_getaffinity(0))} cores, load {loadavg()} (1, 5, 15 min); "
+              f"{a.frames} frames of {a.particles} particles; median of {a.repeat} interleaved repeats")
+        rows = []
+        for workers in (1, 2):
+            t0 = time.perf_counter()
+            cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                               dashboard_address=None, silence_logs=40)
+            start = time.perf_counter() - t0
+            pool, dask = [], []
+            try:
+                for _ in range(a.repeat):  # interleaved: both see the same load
+                    for times, cl in ((pool, None), (dask, cluster.scheduler_address)):
+                        job = plan(seq, out=tmp / f"w{workers}{'d' if cl else 'p'}", radius=R, jobs=workers)
+                        t0 = time.perf_counter()
+                        run_mesh(job, jobs=workers, force=True, show_progress=False, cluster=cl)
+                        times.append(time.perf_counter() - t0)
+            finally:
+                cluster.close()
+            tp, td = statistics.median(pool), statistics.median(dask)
+            name = "fluid_{:05d}.ply".format
+            same = all((tmp / f"w{workers}p" / name(k)).read_bytes() == (tmp / f"w{workers}d" / name(k)).read_bytes()
+                       for k in range(a.frames))
+            over = (td - tp) / a.frames
+            rows.append((workers, tp, td))
+            print(f"{workers} worker{'s' if workers > 1 else ' '}: process pool {a.frames / tp:6.2f} frames/s, "
+                  f"Dask {a.frames / td:6.2f} frames/s; Dask overhead {1000 * over:+7.1f} ms per frame "
+                  f"({100 * (td / tp - 1):+5.1f} %); cluster start {start:.1f} s (not counted); "
+                  f"byte-identical: {same}")
+        print(f"load after: {loadavg()}")
 
 
 if __name__ == "__main__":

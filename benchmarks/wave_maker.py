@@ -45,8 +45,7 @@ def biesel(T: float, h: float) -> float:
     return 2 * (math.cosh(kh2) - 1) / (math.sinh(kh2) + kh2)
 
 
-def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float, iterations: int = 4,
-                xsph: float = 0.05):
+def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float, solver: dict | None = None):
     import trimesh
 
     from whitecap.config import scene_from_dict
@@ -57,7 +56,7 @@ def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float
     x0 = 0.1  # the paddle's rest centre; its face is at x0 + 0.02
     return scene_from_dict({
         "domain": {"upper": [length, width, 2.0 * h]},
-        "solver": {"particle_radius": r, "frame_rate": 30.0, "iterations": iterations, "xsph_c": xsph},
+        "solver": {"particle_radius": r, "frame_rate": 30.0, **(solver or {})},
         "fluid": [{"lower": [x0 + 0.02, 0.0, 0.0], "upper": [length, width, h]}],
         "obstacle": [{"mesh": str(paddle), "translate": [x0, width / 2, 1.1 * h - 0.01], "friction": 0.0,
                       "motion": {"kind": "piston", "axis": [1, 0, 0], "stroke": S, "period": T, "ramp": ramp}}],
@@ -67,19 +66,20 @@ def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float
 
 def run_flume(r: float = 0.01, h: float = 0.2, S: float = 0.04, T: float = 1.0, length: float = 4.0,
               ramp: float = 1.0, gauge: float = 1.0, duration: float = 5.0, progress: bool = False,
-              iterations: int = 4, xsph: float = 0.05):
-    """(times, η at the gauge, measured H, Biésel H): the flume run and its wave height."""
+              solver: dict | None = None, gauge_width: float | None = None):
+    """(times, η at the gauge, measured H, Biésel H, fitted window, mean level): the flume run and its
+    wave height. The gauge reads the particle columns within ``gauge_width`` (default 2r) of it."""
     from whitecap.sim.driver import build_solver
 
     with tempfile.TemporaryDirectory() as tmp:
-        sc = flume_scene(Path(tmp), r, h, S, T, length, ramp, iterations, xsph)
+        sc = flume_scene(Path(tmp), r, h, S, T, length, ramp, solver)
         s = build_solver(sc)
     x_gauge = 0.12 + gauge
     ts, eta = [], []
     for f in range(1, int(round(duration * 30)) + 1):
         s.advance_frame(f)
         x = s.state.x.to_numpy()
-        near = x[np.abs(x[:, 0] - x_gauge) < 2 * r]
+        near = x[np.abs(x[:, 0] - x_gauge) < (gauge_width or 2 * r)]
         cols = np.floor(near[:, 0] / (2 * r)).astype(int) * 1000 + np.floor(near[:, 1] / (2 * r)).astype(int)
         tops = [near[cols == c, 2].max() for c in np.unique(cols)]  # the top particle of each column
         ts.append(s.time)
@@ -121,7 +121,7 @@ def main(argv=None) -> int:
     rows = []
     for T in a.periods:
         ts, eta, H, H_th, win, mean = run_flume(a.radius, a.depth, a.stroke, T, gauge=a.gauge, progress=True,
-                                          iterations=a.iterations, xsph=a.xsph)
+                                          solver={"iterations": a.iterations, "xsph_c": a.xsph})
         kh = wavenumber(T, a.depth) * a.depth
         rows.append((T, kh, H, H_th))
         print(f"T={T:.2f} s  kh={kh:.2f}  H={H * 1000:.1f} mm  Biésel {H_th * 1000:.1f} mm  "

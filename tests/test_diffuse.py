@@ -852,3 +852,61 @@ def test_numpy_draws_equal_the_kernel_draws_bit_for_bit():
     assert host.dtype == np.float32
     assert np.array_equal(out.to_numpy(), host)
     assert 0.45 < host.mean() < 0.55  # and they are spread over [0, 1)
+
+
+def _births_and_live(out: Path, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the new particles of each type (ids not seen before, by their type when first
+    written) and the live particles of each type."""
+    born, live, seen = np.zeros((frames, 3)), np.zeros((frames, 3)), -1
+    for i in range(frames):
+        d = diffuse(out, i)
+        kind = d.arrays["type"].astype(int)
+        new = d.ids.astype(np.int64) > seen
+        born[i] = np.bincount(kind[new], minlength=3)[:3]
+        live[i] = np.bincount(kind, minlength=3)[:3]
+        seen = max(seen, int(d.ids.max())) if len(d.ids) else seen
+    return born, live
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_no_type_is_born_past_its_share_of_the_budget(tmp_path, ahead):
+    """A frame's new particles of a type never take that type past budget × its share: a type
+    born early and living long (foam) cannot fill the room of one born later or living
+    briefly (spray). Each frame's births of type t are at most the room its live count left
+    after the last frame (the thinning rounds stochastically: + 3√room + 5)."""
+    src = _gentle_then_violent(tmp_path / "in")
+    out = tmp_path / "o"
+    postprocess(src, out=out, params=_auto(budget=1.5), dt=1 / 30, radius=0.01, show_progress=False,
+                look_ahead=ahead)
+    born, live = _births_and_live(out, 24)
+    room = np.maximum(1.5 / 3 * N_BLOCK - np.vstack([np.zeros(3), live[:-1]]), 0)
+    assert born.sum() > 0.5 * N_BLOCK
+    assert (born <= room + 3 * np.sqrt(room) + 5).all(), np.argwhere(born > room + 3 * np.sqrt(room) + 5)
+
+
+def test_a_types_room_is_its_share_times_its_multiplier(tmp_path, monkeypatch):
+    """The budget counts a type's multiplier at 1, so the room a frame's births of a type may
+    fill is budget × share × multiplier less that type's live count: with spray 20 short of
+    its share, a multiplier of 1 lets about 20 be born and a multiplier of 2 lets more.
+    (The type scales are held at 1, so that only the room decides.)"""
+    from whitecap.diffuse import budget as Bud
+    from whitecap.diffuse.generator import FoamGenerator
+
+    monkeypatch.setattr(Bud, "type_scales", lambda born, t, live, scales, *a: scales)
+    _gentle_then_violent(tmp_path / "in", frames=5)
+    frames = [io.read(f) for f in sorted((tmp_path / "in").glob("f_*.ply"))]
+    n, budget = len(frames[0]), 30.0
+
+    def spray_born(m: float) -> int:
+        gen = FoamGenerator(_auto(budget=budget, spray_multiplier=m), radius=0.01, domain=((0, 0, 0), (1, 1, 1)),
+                            gravity=(0, 0, -9.81), seed=1)
+        for i, f in enumerate(frames[:4]):
+            gen.step(f, i, 1 / 30)
+        i, t, *_ = gen.state.counts[-1]
+        gen.state.counts[-1] = (i, t, budget / 3 * n - 20, 0, 0)  # spray 20 short of its share, nothing else
+        before = gen.state.next_id
+        d = gen.step(frames[4], 4, 1 / 30)
+        return int(((d.ids >= before) & (d.arrays["type"] == 0)).sum())
+
+    one, two = spray_born(1.0), spray_born(2.0)
+    assert one <= 20 + 3 * np.sqrt(20) + 5 and two > 2 * (20 + 3 * np.sqrt(20) + 5), (one, two)

@@ -17,6 +17,11 @@ from .errors import WhitecapError
 from .pipeline import RUN_STAGES
 
 
+CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), local (a local cluster of --jobs "
+                "workers), or slurm / pbs (batch jobs described by the scene's [cluster] section); needs "
+                "pip install 'whitecap[cluster]'")
+
+
 # ============================================================================ simulate
 def _add_simulate(sub) -> None:
     p = sub.add_parser(
@@ -90,6 +95,40 @@ def _cmd_foam(a) -> int:
     return 0
 
 
+# ============================================================================ import
+def _add_import(sub) -> None:
+    p = sub.add_parser(
+        "import",
+        help="a whole case from DualSPHysics or SPlisHSPlasH (fluid, tank, obstacles, bodies) as a run directory",
+        description="Convert CASE_OUTPUT, a DualSPHysics output folder (PartFluid_/PartAll_ VTK and the case XML) "
+        "or a SPlisHSPlasH output folder, into the run directory OUT: the fluid frames, one mesh per "
+        "boundary shape under OUT/geometry (the tank as the container) and the poses of moving bodies. "
+        "Then `whitecap foam OUT`, `mesh OUT` and `render OUT` continue from there. Resumable.",
+    )
+    p.add_argument("case_output", help="the solver's output folder")
+    p.add_argument("--out", "-o", required=True, help="run directory to write")
+    p.add_argument("--up", choices=["z", "y"], help="up axis of the case (default: z for DualSPHysics, y for "
+                   "SPlisHSPlasH)")
+    p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
+    p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
+                   "places the floating body, in place of fitting it to its particles")
+    p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
+                   "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
+    p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
+    p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
+    p.set_defaults(func=_cmd_import)
+
+
+def _cmd_import(a) -> int:
+    from . import pipeline
+
+    info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
+                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force)
+    roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
+    print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
+    return 0
+
+
 # ============================================================================ mesh
 def _add_mesh(sub) -> None:
     p = sub.add_parser(
@@ -119,6 +158,7 @@ def _add_mesh(sub) -> None:
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_mesh)
 
@@ -137,7 +177,7 @@ def _cmd_mesh(a) -> int:
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
     stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, profile=a.profile, **overrides)
+                          up=a.up, profile=a.profile, cluster=a.cluster, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")
@@ -160,13 +200,15 @@ def _add_export(sub) -> None:
     p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series (usd and abc always split them)")
+    p.add_argument("--jobs", "-j", type=int, default=1, help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
+    p.add_argument("--cluster", metavar="WHERE", help="vtk, ply: " + CLUSTER_HELP)
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(a) -> int:
     from . import pipeline
 
-    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types)
+    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types, jobs=a.jobs, cluster=a.cluster)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0
@@ -225,6 +267,7 @@ def _add_render(sub) -> None:
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
     p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.set_defaults(func=_cmd_render)
 
 
@@ -232,7 +275,7 @@ def _cmd_render(a) -> int:
     from . import pipeline
 
     r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie,
-                         device=a.device)
+                         device=a.device, cluster=a.cluster)
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")
@@ -271,6 +314,7 @@ def _add_run(sub) -> None:
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
+    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
     p.set_defaults(func=_cmd_run)
 
@@ -278,7 +322,8 @@ def _add_run(sub) -> None:
 def _cmd_run(a) -> int:
     from . import pipeline
 
-    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames)
+    r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames,
+                     cluster=a.cluster)
     sec = r["stage_seconds"]
     print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in sec.items())
           + f"; total {sum(sec.values()):.1f} s (in {r['profile']})")
@@ -298,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"whitecap {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_simulate, _add_foam, _add_mesh, _add_export, _add_view, _add_render, _add_blender_addon, _add_run):
+    for add in (_add_simulate, _add_foam, _add_import, _add_mesh, _add_export, _add_view, _add_render, _add_blender_addon, _add_run):
         add(sub)
     return parser
 
@@ -330,6 +375,7 @@ _RESUME_HINT = {
     "simulate": "; rerun with --resume to continue from the last checkpoint",
     "run": "; rerun the same command to continue where it stopped",
     "mesh": "; rerun the same command: frames already meshed are skipped",
+    "import": "; rerun the same command: frames already imported are skipped",
     "render": "; rerun the same command: frames already rendered are skipped",
 }
 OS_ERROR_EXIT = 5

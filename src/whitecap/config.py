@@ -233,7 +233,8 @@ class Obstacle(_Section):
     repair: bool = Field(False, description="try to repair a mesh that is not watertight")
     stiffness: float = Field(5.0e4, ge=0, description="penalty stiffness k in F = k·n·(−sdf) [1/s²]")
     sdf_resolution: float = Field(1.0, gt=0, le=4.0, description="SDF grid spacing as a multiple of r [-]")
-    material: str = Field("stone", description="render material preset: stone, clay, metal, plastic")
+    material: str = Field("stone", description="render material preset: stone, clay, metal, plastic, glass "
+                          "(a thin pane: seen through without refraction, as a closed tank's walls)")
     color: Vec3 = Field([0.8, 0.78, 0.72], description="render base colour, linear RGB [0-1]")
     texture: str | None = Field(
         None, description="image texture (PNG, JPEG...) mapped by the render mesh's UVs, relative to the scene file; "
@@ -461,6 +462,32 @@ class Render(_Section):
         return self
 
 
+# --------------------------------------------------------------------------- cluster
+class Cluster(_Section):
+    """Per-frame stages on a Dask cluster (``--cluster slurm|pbs|local|ADDRESS``); see the README.
+
+    ``cores``, ``memory``, ``walltime``, ``queue`` and ``account`` describe one
+    batch job (dask-jobqueue); ``jobs`` is how many such jobs to start.
+    """
+
+    jobs: int = Field(1, ge=1, le=100_000, description="batch jobs to start (slurm, pbs) or local workers (local) [-]")
+    cores: int = Field(4, ge=1, le=4096, description="cores per batch job [-]")
+    processes: int = Field(1, ge=1, le=4096, description="Dask worker processes per batch job (one Blender each) [-]")
+    memory: str = Field("16GB", pattern=r"^\d+(\.\d+)?\s*[KMGT]i?B$", description="memory per batch job, e.g. 16GB")
+    walltime: str = Field("01:00:00", pattern=r"^(\d+-)?\d{1,3}:\d{2}(:\d{2})?$", description="time limit per batch job, HH:MM:SS")
+    queue: str | None = Field(None, description="partition (Slurm) or queue (PBS); unset = the site's default")
+    account: str | None = Field(None, description="account or project to charge; unset = the user's default")
+    interface: str | None = Field(None, description="network interface the workers talk on (e.g. ib0); unset = the default")
+    job_extra: list[str] = Field(default_factory=list, description="extra #SBATCH/#PBS options, e.g. ['--gres=gpu:1']")
+    setup: list[str] = Field(
+        default_factory=list, description="shell lines run in each job before the worker starts (module load, venv)"
+    )
+    local_directory: str | None = Field(None, description="worker scratch directory on each node; unset = Dask's")
+    connect_timeout: float = Field(
+        10.0, gt=0, le=3600, description="seconds to wait for the scheduler to answer before failing [s]"
+    )
+
+
 # --------------------------------------------------------------------------- output
 class Output(_Section):
     """What `simulate` writes."""
@@ -472,7 +499,7 @@ class Output(_Section):
 
 # --------------------------------------------------------------------------- scene
 class Scene(_Section):
-    """A whole run. Sections: domain, solver, fluid, obstacle, foam, mesh, view, render, output."""
+    """A whole run. Sections: domain, solver, fluid, obstacle, foam, mesh, view, render, cluster, output."""
 
     name: str = Field("scene", description="a label for the run")
     seed: int = Field(0, ge=0, lt=2**32, description="random seed for everything stochastic")
@@ -484,6 +511,7 @@ class Scene(_Section):
     mesh: Mesh = Field(default_factory=Mesh)
     view: View = Field(default_factory=View)
     render: Render = Field(default_factory=Render)
+    cluster: Cluster = Field(default_factory=Cluster)
     output: Output = Field(default_factory=Output)
 
     # Where relative paths in the scene (meshes) are resolved; not part of the TOML.

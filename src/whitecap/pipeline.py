@@ -88,12 +88,14 @@ def run(
     jobs: int | None = None,
     frames: int | None = None,
     show_progress: bool = True,
+    cluster: str | None = None,
 ) -> dict:
     """Scene to movie: simulate (with foam), mesh, render, MP4, in one run directory.
 
     Resumable at every stage: rerunning continues where an interrupted run
     stopped and never redoes finished frames. ``until`` stops after a stage.
     Returns the paths of what was made (``run``, and ``movie``/``blend`` when rendered).
+    ``cluster`` runs mesh and render on Dask (the simulation stays here: it is sequential in time).
     """
     from .errors import InputError
     from .progress import console
@@ -120,9 +122,10 @@ def run(
             else:
                 simulate(sc, out=out, frames=nframes, resume=state == "partial", arch=arch, show_progress=show_progress)
         elif stage == "mesh":
-            mesh(out, jobs=jobs, show_progress=show_progress)
+            mesh(out, jobs=jobs, show_progress=show_progress, cluster=cluster)
         elif stage == "render":
-            r = render(out, quality="preview" if preview else "final", show_progress=show_progress)
+            r = render(out, quality="preview" if preview else "final", show_progress=show_progress, cluster=cluster,
+                       **({"jobs": jobs} if cluster and jobs else {}))
             result.update(r if isinstance(r, dict) else {})
         seconds[stage] = time.perf_counter() - t0
     result["stage_seconds"] = seconds
@@ -160,6 +163,7 @@ def mesh(
     up: str = "z",
     profile: bool = False,
     show_progress: bool = True,
+    cluster: str | None = None,
     **overrides,
 ) -> list[dict]:
     """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
@@ -168,6 +172,8 @@ def mesh(
     ``config`` is a scene TOML whose ``[mesh]`` replaces the run's; ``jobs`` frames
     run in parallel (default: the core count). Returns per-frame stats; meshes of
     a run are recorded in its run.json. ``profile`` prints the time per phase.
+    ``cluster`` (a scheduler address, or local, slurm, pbs) runs the frames on
+    Dask, configured by the ``[cluster]`` section of ``config`` or of the run's scene.
     """
     import os
 
@@ -176,11 +182,20 @@ def mesh(
 
     if jobs is not None and jobs < 1:
         raise InputError(f"mesh: --jobs must be at least 1 (got {jobs})")
-    jobs = jobs or len(os.sched_getaffinity(0))
+    ccfg = None
+    if cluster:
+        from .executor import cluster_settings
+
+        ccfg = cluster_settings(run, config)
+    # splashsurf's own threads: on when one frame has the machine (one job, or a remote worker)
+    frame_jobs = jobs or len(os.sched_getaffinity(0))
+    jobs = jobs or (ccfg.jobs if cluster and cluster != "local" else len(os.sched_getaffinity(0)))
+    if cluster and cluster != "local":
+        frame_jobs = 1
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
-    job = plan(run, out=out, radius=radius, config=cfg, jobs=jobs, up=up, **overrides)
-    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress)
+    job = plan(run, out=out, radius=radius, config=cfg, jobs=frame_jobs, up=up, **overrides)
+    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress, cluster=cluster, cluster_config=ccfg)
     if profile:
         print(timing.report("mesh profile"))
     return stats
@@ -195,13 +210,17 @@ def export(
     out: str | Path | None = None,
     split_types: bool = False,
     show_progress: bool = True,
+    jobs: int = 1,
+    cluster: str | None = None,
 ) -> dict[str, Path | str]:
     """Export a run: ParaView series (``vtk``: .pvd + .vtp, ``ply``: PLY + .series) of its
     particles and meshes, or the whole run as one animated scene (``usd``: a USD stage,
     ``abc``: an Alembic archive) with the fluid, diffuse particles, obstacles and camera.
 
     Returns {series or target: path}; a scene export adds {"note": ...} when it left
-    something out (a run without surfaces exports points only)."""
+    something out (a run without surfaces exports points only). For ``vtk`` and ``ply``,
+    ``jobs`` frames are written in parallel, or on Dask with ``cluster`` (an address, or
+    local, slurm, pbs)."""
     from .errors import InputError
 
     if to in ("usd", "abc"):
@@ -212,7 +231,8 @@ def export(
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
     from .surface.export import export_run
 
-    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress)
+    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress, jobs=jobs,
+                      cluster=cluster)
 
 
 # ============================================================================ render
@@ -225,12 +245,17 @@ def render(
     movie: bool = True,
     show_progress: bool = True,
     device: str | None = None,
+    cluster: str | None = None,
 ) -> dict:
-    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render."""
+    """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render.
+
+    ``cluster`` (a scheduler address, or local, slurm, pbs) renders on Dask, one
+    Blender process per Dask worker; ``jobs`` then sets the local workers or batch jobs.
+    """
     from .render import render_run
 
     return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie,
-                      show_progress=show_progress, device=device)
+                      show_progress=show_progress, device=device, cluster=cluster)
 
 
 def blender_addon(out: str | Path | None = None) -> Path:
@@ -271,6 +296,57 @@ def foam(
     from .diffuse import postprocess
 
     return postprocess(input, out=out, case=case, **kw)
+
+
+# ============================================================================ import a foreign case
+def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | None = None,
+              floating_csv: str | Path | None = None, scene_json: str | Path | None = None,
+              fluid_model: str | None = None):
+    """A DualSPHysics or SPlisHSPlasH output folder as a :class:`whitecap.cases.Case`.
+    ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH ones."""
+    from .cases import dualsphysics
+    from .errors import InputError
+
+    src = Path(case_output)
+    if not src.exists():
+        raise InputError(f"{src}: no such file or directory")
+    if dualsphysics.is_case(src):
+        for opt, val in (("--scene", scene_json), ("--fluid-model", fluid_model)):
+            if val is not None:
+                raise InputError(f"{src}: {opt} is for SPlisHSPlasH cases; this is DualSPHysics output")
+        return dualsphysics.read_case(src, xml=xml, up=up or "z", floating_csv=floating_csv)
+    try:
+        from .cases import splishsplash
+    except ImportError:
+        splishsplash = None
+    if splishsplash is not None and splishsplash.is_case(src):
+        for opt, val in (("--xml", xml), ("--floating-csv", floating_csv)):
+            if val is not None:
+                raise InputError(f"{src}: {opt} is for DualSPHysics cases; this is SPlisHSPlasH output")
+        return splishsplash.read_case(src, up=up or "y", scene_json=scene_json, model=fluid_model)
+    raise InputError(f"{src}: neither a DualSPHysics output folder (PartFluid_*.vtk / PartAll_*.vtk) nor "
+                     "SPlisHSPlasH output")
+
+
+def import_case(
+    case_output: str | Path,
+    out: str | Path,
+    up: str | None = None,
+    xml: str | Path | None = None,
+    floating_csv: str | Path | None = None,
+    scene_json: str | Path | None = None,
+    fluid_model: str | None = None,
+    force: bool = False,
+    show_progress: bool = True,
+) -> RunInfo:
+    """A whole case from another solver (fluid, tank, obstacles, moving bodies) -> a run directory
+    that ``foam``, ``mesh``, ``view`` and ``render`` continue from. Resumable. The case is read and
+    checked in full before anything is written."""
+    from .cases.run_dir import write_case
+
+    case = read_case(case_output, up=up, xml=xml, floating_csv=floating_csv, scene_json=scene_json,
+                     fluid_model=fluid_model)
+    return write_case(case, out, show_progress=show_progress, force=force)
 
 
 # ============================================================================ view

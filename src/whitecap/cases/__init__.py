@@ -41,6 +41,7 @@ class CaseShape:
     role: str = "obstacle"  # one of ROLES; "container" holds the fluid (a tank)
     poses: list[dict] | None = None
     source: str = ""  # where it came from, for messages and run.json (e.g. "mk 10", "rigid body 1")
+    look: dict | None = None  # render look ({"material": ..., "color": [r, g, b]}); None: the role's default
 
 
 @dataclass

@@ -5,8 +5,8 @@ over the moving fluid particles (AUTO_PERCENTILES):
 
 - in post-processing, pooled over frames sampled across the whole run, so a
   gentle start is not the scale for a violent middle;
-- in the simulation, which cannot look ahead, a running maximum over the
-  frames so far: it only rises.
+- in the simulation, which cannot look ahead, from the frames so far (a
+  bounded history, history_add), and never lower than before: it only rises.
 
 The multipliers k_ta, k_wc, k_vo are the preset's times one scale s, chosen so
 that the live diffuse particles peak at ``budget`` per fluid particle with the
@@ -47,8 +47,10 @@ THRESHOLD_FLOOR = 1.0 / 20.0
 AIR_ENTRAINMENT_SPEED = 1.0  # [m/s]
 # Fewer moving particles with a nonzero potential than this give no percentile.
 MIN_SAMPLES = 10
-# Fluid particles per frame whose potentials the simulation's running estimate keeps.
+# The simulation's running estimate keeps the potentials of sampled fluid particles in at most
+# HISTORY_ROWS rows of HISTORY_SAMPLE each (5 MB), whatever the run's length (history_add).
 HISTORY_SAMPLE = 4096
+HISTORY_ROWS = 64
 # Frames post-processing reads ahead, spread evenly over the run, for the thresholds: at
 # most SAMPLE_FRAMES and a quarter of the run (at least MIN_SAMPLE_FRAMES), so looking
 # ahead costs at most a quarter more neighbour searches and potentials.
@@ -180,24 +182,80 @@ def within_budget(scale: float, births: float, alive: float, n_fluid: float, bud
     return scale
 
 
-def running_peak(rates: np.ndarray, p, dt: float, frames: int | None = None) -> float:
+def running_peak(rates: np.ndarray, p, dt: float, frames: int | None = None, counts=None) -> float:
     """The simulation's peak estimate of N_d / N_fluid from the births per frame and fluid
-    particle so far (``rates``, oldest first): max over frames f of the mean rate over the
-    last ∫S/Δt frames up to f, times ∫S/Δt. A single violent frame counts for what it is; a
-    rate that has held since motion began is taken to hold on, but only until the run ends:
-    with ``frames`` from the first of ``rates`` to the last of the run, ∫S is taken over the
-    ages up to there (a run shorter than a particle's life never accumulates a full one)."""
+    particle so far (``rates``, oldest first; ``counts``: how many consecutive frames each rate
+    stands for, 1 each if not given): max over frames f of the mean rate over the last ∫S/Δt
+    frames up to f, times ∫S/Δt. A single violent frame counts for what it is; a rate that
+    has held since motion began is taken to hold on, but only until the run ends: with
+    ``frames`` from the first of ``rates`` to the last of the run, ∫S is taken over the ages up
+    to there (a run shorter than a particle's life never accumulates a full one).
+
+    The births so far, C(x) over the first x frames, are piecewise linear between the bounds
+    b_j of the rates' runs of frames, so the window mean (C(x) − C(x − w)) / w is too, with
+    breaks where x or x − w is a bound, and C(x)/x (x < w) is monotone between bounds: the
+    maximum is at x ∈ {b_j, b_j + w, w}, O(rows) work however many frames the rows stand for."""
+    rates = np.asarray(rates, np.float64)
     if not len(rates):
         return 0.0
+    counts = np.ones(len(rates)) if counts is None else np.asarray(counts, np.float64)
     span = mean_residence(p, dt) / dt
     if frames is not None:
         span = min(span, float(survival(p, dt, np.arange(0, max(frames, 0) + 1) * dt).sum()))
     w = max(int(round(span)), 1)
-    c = np.concatenate([[0.0], np.cumsum(rates)])
-    f = np.arange(1, len(rates) + 1)
-    first = np.maximum(f - w, 0)
-    mean = (c[f] - c[first]) / (f - first)
+    b = np.concatenate([[0.0], np.cumsum(counts)])
+    c = np.concatenate([[0.0], np.cumsum(rates * counts)])
+    x = np.unique(np.clip(np.concatenate([b[1:], b[1:] + w, [w]]), 1, b[-1]))
+    first = np.maximum(x - w, 0)
+    mean = (np.interp(x, b, c) - np.interp(first, b, c)) / (x - first)
     return float(mean.max() * span)
+
+
+# The simulation's history of sampled potentials (rows of HISTORY_SAMPLE samples × (ta, wc, ke,
+# vo, moving)). Each row holds ``stride`` consecutive frames, HISTORY_SAMPLE / stride samples
+# of each, so every sample stands for the same share of a frame's fluid and pooled percentiles
+# need no weights; the last row fills up one frame at a time. When HISTORY_ROWS rows are full,
+# neighbouring rows merge in pairs (every other sample of each: still an even spread over the
+# fluid of each frame) and the stride doubles. Memory and the work per frame stay bounded; the
+# time resolution of old frames coarsens to stride = 2^k ≤ 2 frames / HISTORY_ROWS.
+def history_empty() -> tuple[np.ndarray, np.ndarray, int]:
+    """(rows, frames per row, stride): no frame yet."""
+    return np.zeros((0, HISTORY_SAMPLE, 5), np.float32), np.zeros(0, np.int64), 1
+
+
+def history_add(rows: np.ndarray, frames: np.ndarray, stride: int, frame_sample) -> tuple[np.ndarray, np.ndarray, int]:
+    """The history with one frame more; ``frame_sample(m)``: that frame's (m, 5) samples, evenly spread."""
+    per = max(HISTORY_SAMPLE // stride, 1)
+    if not len(frames) or frames[-1] >= stride:
+        rows = np.concatenate([rows, np.zeros((1, HISTORY_SAMPLE, 5), np.float32)])
+        frames = np.concatenate([frames, [0]]).astype(np.int64)
+    else:
+        rows, frames = rows.copy(), frames.copy()
+    k = int(frames[-1])
+    rows[-1, k * per:(k + 1) * per] = frame_sample(per)
+    frames[-1] += 1
+    if len(frames) == HISTORY_ROWS and frames[-1] == stride:
+        rows = np.concatenate([rows[0::2, 0::2], rows[1::2, 0::2]], axis=1)
+        frames, stride = frames[0::2] + frames[1::2], 2 * stride
+    return rows, frames, stride
+
+
+def history_samples(rows: np.ndarray, frames: np.ndarray, stride: int) -> np.ndarray:
+    """All samples kept, each standing for the same share of a frame: (samples, 5)."""
+    if not len(frames):
+        return np.zeros((0, 5), np.float32)
+    per = max(HISTORY_SAMPLE // stride, 1)
+    return np.concatenate([rows[:-1].reshape(-1, 5), rows[-1, : int(frames[-1]) * per]])
+
+
+def history_rates(rows: np.ndarray, frames: np.ndarray, stride: int, tau: np.ndarray, k: tuple, dt: float) -> np.ndarray:
+    """Each row's births per frame and fluid particle (its frames' mean) with thresholds τ now."""
+    if not len(frames):
+        return np.zeros(0)
+    per = max(HISTORY_SAMPLE // stride, 1)
+    pots = {"ta": rows[:, :, 0], "wc": rows[:, :, 1], "ke": rows[:, :, 2], "vo": rows[:, :, 3]}  # (rows, samples)
+    # the last row's unfilled tail holds zero potentials, which make no births (φ(0, τmin, τmax) = 0 for τ ≥ 0)
+    return births(pots, tau, k, dt).sum(axis=1).astype(np.float64) / (frames * per)
 
 
 # Capacity of the explicit presets, whose count no budget bounds (as before budgets).

@@ -14,8 +14,6 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,7 +23,7 @@ from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
-from ..io.run import RunInfo, frame_name
+from ..io.run import RunInfo, frame_name, source_identity
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
@@ -68,10 +66,11 @@ class FoamStage:
             self.gen.state = self._pending
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
-        for g in self.obstacles or []:  # moving bodies (sim.obstacles.PosedSDF): at this frame's pose
-            if hasattr(g, "time"):
-                g.time = frame.time if frame.time is not None else index * dt
-                g.body = info.body_pose(index, g.index)
+        t = frame.time if frame.time is not None else index * dt
+        for g in self.obstacles or []:  # obstacles (sim.obstacles.PosedSDF): this frame's pose and the last one's
+            first = index == 0
+            g.at_frame(t, info.body_pose(index, g.index), 0.0 if first else dt,
+                       None if first else info.body_pose(index - 1, g.index))
         d = self.gen.step(frame, index, dt)
         rel = frame_name("diffuse", index)
         write(out / rel, d)
@@ -277,8 +276,7 @@ def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radiu
 
 def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
     """Identity of a foreign sequence: its files' names, sizes and modification times."""
-    stats = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for _, path in files]
-    return hashlib.sha256(json.dumps([up, stats]).encode()).hexdigest()[:16]
+    return source_identity([path for _, path in files], up)
 
 
 def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,

@@ -24,6 +24,7 @@ import numpy as np
 import taichi as ti
 
 from ..io import ParticleFrame
+from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
@@ -41,6 +42,17 @@ MAX_FLUID_NEIGHBOURS = 96
 # (the kernels use draws 0-4 of the (seed, frame, id, slot) counter).
 DRAW_LIFE, DRAW_DISSIPATE = 6, 7
 ROUNDING_SLOT = 0xFFFF  # the slot number of kernels.generate's stochastic-rounding draw
+# Diffuse particles and obstacles (static or moving), see FoamGenerator._obstacles:
+# - a foam particle within BODY_CONTACT·r of a moving body at the start of a frame rides on it:
+#   one fluid-particle diameter, the fluid's own contact with a body (its centres keep r from it);
+# - a particle pushed out of an obstacle is put SURFACE_OFFSET·r outside it, where the fluid's
+#   centres rest (sim/obstacles.py projects them to sdf = r);
+# - spray bouncing off keeps SPRAY_RESTITUTION of its normal speed relative to the body: our
+#   choice for the look of droplets glancing off a wet hull, not a measured value (0 makes them
+#   slide along it).
+BODY_CONTACT = 2.0
+SURFACE_OFFSET = 1.0
+SPRAY_RESTITUTION = 0.5
 
 
 @dataclass
@@ -53,10 +65,13 @@ class DiffuseState:
     counts: list = field(default_factory=list)  # rows (frame, time, spray, foam, bubbles)
     tau: np.ndarray | None = None  # thresholds set by 'auto' mode
     scale: float = 1.0  # 'auto': the preset's multipliers are scaled by this for the budget
-    # 'auto' in the simulation: each frame's potentials (ta, wc, ke, vo) and whether it moves, at
-    # HISTORY_SAMPLE fluid particles, for thresholds pooled over the frames so far and so the
-    # rates of past frames can be recomputed whenever the thresholds rise
-    history: np.ndarray = field(default_factory=lambda: np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32))
+    # 'auto' in the simulation: the potentials (ta, wc, ke, vo) and whether it moves of sampled fluid
+    # particles of the frames so far, for thresholds pooled over them and so the rates of past
+    # frames can be recomputed whenever the thresholds rise: at most budget.HISTORY_ROWS rows,
+    # each holding history_frames[j] frames, history_stride per full row (budget.history_add)
+    history: np.ndarray = field(default_factory=lambda: B.history_empty()[0])
+    history_frames: np.ndarray = field(default_factory=lambda: B.history_empty()[1])
+    history_stride: int = 1
     # peak diffuse-to-fluid ratios so far: all types (its frame), then spray, foam, bubbles at their own peaks
     peaks: np.ndarray = field(default_factory=lambda: np.array([0.0, -1.0, 0.0, 0.0, 0.0]))
     # 'auto': spray, foam, bubbles' generation scaled by these on top of ``scale``, so each type
@@ -78,6 +93,7 @@ class DiffuseState:
         if self.tau is not None:
             d["tau"] = self.tau
         d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
+        d["history_frames"], d["history_stride"] = self.history_frames, np.int64(self.history_stride)
         d["type_scale"] = np.asarray(self.type_scale, np.float64)
         d["born"] = np.asarray(self.born, np.float64)
         return d
@@ -89,11 +105,22 @@ class DiffuseState:
             np.asarray(d["lifetime"], np.float32), np.asarray(d["ids"], np.uint32), int(d["next_id"]),
             [tuple(r) for r in np.asarray(d["counts"]).tolist()], np.asarray(d["tau"], np.float32) if "tau" in d else None,
             float(d.get("scale", 1.0)),
-            np.asarray(d["history"], np.float32) if "history" in d else np.zeros((0, B.HISTORY_SAMPLE, 5), np.float32),
+            *_history(d),
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
             np.asarray(d.get("type_scale", np.ones(3)), np.float64),
             np.asarray(d.get("born", np.zeros((0, 7))), np.float64).reshape(-1, 7),
         )
+
+
+def _history(d: dict) -> tuple:
+    """The history from a checkpoint; one from before it was bounded has a row per frame (stride 1)
+    and is bounded from here on."""
+    if "history_frames" in d:
+        return np.asarray(d["history"], np.float32), np.asarray(d["history_frames"], np.int64), int(d["history_stride"])
+    h = B.history_empty()
+    for row in np.asarray(d.get("history", h[0]), np.float32):  # replayed a frame at a time
+        h = B.history_add(*h, lambda m, row=row: row[np.linspace(0, len(row) - 1, m).astype(np.int64)])
+    return h
 
 
 def _nd(a: np.ndarray, dtype, vec: bool = False):
@@ -153,7 +180,7 @@ class FoamGenerator:
         self._sized_for = 0  # fluid particle count the capacity was sized for
         self.last_frame: int | None = None  # the run's last frame index, where known: no peak after it
         self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
-        self.obstacles = obstacles or []  # SDF grids (sim.obstacles.SDFGrid): particles inside are removed
+        self.obstacles = obstacles or []  # sim.obstacles.PosedSDF: see _obstacles, and nothing is born inside
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -264,23 +291,26 @@ class FoamGenerator:
         moving = self._moving(fluid)
         if moving.sum() < B.MIN_SAMPLES:
             return  # nothing moves yet: nothing would be generated
-        pick = np.linspace(0, n - 1, B.HISTORY_SAMPLE).astype(np.int64)
-        sample = np.stack([pots[k][pick] for k in ("ta", "wc", "ke", "vo")] + [moving[pick]], 1).astype(np.float32)
-        st.history = np.concatenate([st.history, sample[None]])
-        # τ from the moving particles of all frames so far, pooled, as post-processing does with its samples.
-        h = st.history.reshape(-1, 5)
+
+        def sample(m: int) -> np.ndarray:  # m fluid particles spread evenly over the frame
+            pick = np.linspace(0, n - 1, m).astype(np.int64)
+            return np.stack([pots[k][pick] for k in ("ta", "wc", "ke", "vo")] + [moving[pick]], 1).astype(np.float32)
+
+        st.history, st.history_frames, st.history_stride = B.history_add(
+            st.history, st.history_frames, st.history_stride, sample)
+        # τ from the moving particles of the frames so far, pooled, as post-processing does with its samples.
+        h = B.history_samples(st.history, st.history_frames, st.history_stride)
         tau = self._auto_tau({k: h[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, h[:, 4] > 0)
         first = st.tau is None
         st.tau = tau if first else np.maximum(st.tau, tau)
         if self._scaled():
             k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
-            h = st.history
-            past = {"ta": h[:, :, 0], "wc": h[:, :, 1], "ke": h[:, :, 2], "vo": h[:, :, 3]}  # (frames, samples)
-            rates = B.births(past, st.tau, k0, dt).sum(axis=1).astype(np.float64) / B.HISTORY_SAMPLE
+            rates = B.history_rates(st.history, st.history_frames, st.history_stride, st.tau, k0, dt)
             alive = float(sum(st.counts[-1][2:])) if st.counts else 0.0
-            # frames from the first moving one to the end of the run, where known (history is one row per frame)
-            left = None if self.last_frame is None else self.last_frame - (index - len(h) + 1)
-            peak = B.running_peak(rates, self.p, dt, left)
+            # frames from the first moving one to the end of the run, where known
+            seen = int(st.history_frames.sum())
+            left = None if self.last_frame is None else self.last_frame - (index - seen + 1)
+            peak = B.running_peak(rates, self.p, dt, left, st.history_frames)
             if peak > 0:
                 st.scale = self.p.budget / peak
                 st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt) * self._boost(), alive, n,
@@ -417,7 +447,61 @@ class FoamGenerator:
             foam = kd == 1
             gone = uniform(self.seed, index, st.ids, 0, DRAW_DISSIPATE) >= math.exp(-p.foam_dissipation * dt)
             k &= ~(foam & gone)
-        return xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
+        x, v, lf, ids, kd = xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
+        if self.obstacles:
+            x, v, alive = self._obstacles(st.positions[k], x, v, kd)
+            x, v, lf, ids, kd = x[alive], v[alive], lf[alive], ids[alive], kd[alive]
+        return x, v, lf, ids, kd
+
+    def _obstacles(self, x0: np.ndarray, x: np.ndarray, v: np.ndarray, kind: np.ndarray):
+        """Diffuse particles against the obstacles (sim.obstacles.PosedSDF, at this frame's pose and
+        the last one's), after advection from x0 to x: foam touching a moving body at the frame's start
+        rides on it, carried rigidly over the frame with the body's velocity there; spray that ends the
+        frame inside bounces (its normal velocity relative to the body reflected, times
+        SPRAY_RESTITUTION) and foam inside moves with the body, both put back outside; a bubble inside,
+        or a particle that cannot be put outside (a crease), is removed. Returns (x, v, alive)."""
+        x, v = x.astype(np.float64), v.astype(np.float64)
+        alive = np.ones(len(x), bool)
+        for g in self.obstacles:
+            if g.moved:
+                ride = (kind == FOAM) & (g.sample(x0, before=True) < BODY_CONTACT * self.r)
+                if ride.any():
+                    x[ride] = g.carry(x0[ride])
+                    v[ride] = g.velocity(x[ride])
+            d = g.sample(x)
+            hit = alive & (d <= 0.0)
+            alive &= ~(hit & (kind == BUBBLE))
+            hit &= kind != BUBBLE
+            if not hit.any():
+                continue
+            xh, n = self._entry(g, x0[hit], x[hit], d[hit])
+            xh = xh + SURFACE_OFFSET * self.r * n
+            u = g.velocity(xh)
+            vr = v[hit] - u
+            vn = np.minimum((vr * n).sum(1), 0.0)
+            spray = kind[hit] == SPRAY
+            vh = np.where(spray[:, None], u + vr - (1.0 + SPRAY_RESTITUTION) * vn[:, None] * n, u)
+            x[hit], v[hit] = xh, vh
+            alive[hit] = g.sample(xh) > 0.0
+        return x.astype(np.float32), v.astype(np.float32), alive
+
+    @staticmethod
+    def _entry(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, steps: int = 16):
+        """Where particles that moved from x0 to x (inside obstacle g) crossed its surface, and the
+        normal there: the crossing on the segment, by bisection on the SDF at this frame's pose, for
+        those that started outside it (so a fast drop bounces off the face it came through, not the
+        nearest one); the nearest surface point for those the body moved onto."""
+        x0 = np.asarray(x0, np.float64)
+        out = g.sample(x0) > 0.0
+        lo, hi = np.zeros(len(x)), np.ones(len(x))
+        for _ in range(steps):
+            mid = 0.5 * (lo + hi)
+            outside = g.sample(x0 + mid[:, None] * (x - x0)) > 0.0
+            lo, hi = np.where(outside, mid, lo), np.where(outside, hi, mid)
+        crossing = x0 + lo[:, None] * (x - x0)  # the last point found outside
+        p = np.where(out[:, None], crossing, x)
+        n = g.normal(p)
+        return np.where(out[:, None], p, x - d[:, None] * n), n
 
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
         """(2) generation, in parallel per fluid particle into its own run of the output; then
@@ -486,8 +570,19 @@ class FoamGenerator:
         keep = kept(want)
         if self._scaled():
             # The type scales can make one frame's births far more than the birth rate foretold
-            # (a burst of the type scaled furthest up): never past the budget in one frame.
-            room = p.budget * n - (sum(self.state.counts[-1][2:]) if self.state.counts else 0)
+            # (a burst of the type scaled furthest up): never past the budget in one frame, and
+            # no type past its share of it (times its own multiplier, which the budget counts at 1),
+            # so a type born early and living long (foam) cannot take the room of one born later
+            # or living briefly (spray).
+            live = np.asarray(self.state.counts[-1][2:] if self.state.counts else (0, 0, 0), np.float64)
+            share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
+            room = np.maximum(p.budget * n * share - live, 0.0)
+            made = np.bincount(kind[keep], minlength=3)[:3].astype(np.float64)
+            cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0)
+            if (cut < 1).any():
+                want = want * cut.astype(np.float32)[None, :]
+                keep = kept(want)
+            room = p.budget * n - live.sum()
             if keep.sum() > max(room, 0):
                 keep = kept(want * np.float32(max(room, 0) / keep.sum()))
         # Spray and bubbles with their own lifetime range draw it here.

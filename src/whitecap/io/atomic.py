@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -48,3 +49,26 @@ def write_bytes(path: str | Path, data: bytes) -> None:
 
 def write_text(path: str | Path, text: str) -> None:
     write_bytes(path, text.encode())
+
+
+#: a temporary file of :func:`atomic_path`: ".STEM.XXXXXXXX.tmpSUFFIX" (mkstemp's 8 random characters)
+_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^.]+)?$")
+
+
+def sweep_temps(directory: str | Path) -> list[Path]:
+    """Remove the temporary files a killed writer left in ``directory``; returns them.
+
+    A process killed inside :func:`atomic_path` (kill -9, a Dask worker that
+    died) cannot remove its temporary file. Call this only while holding the
+    run's writer lock (:mod:`whitecap.io.lock`), when no writer of this stage
+    is still running, so no temporary file in use is removed.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    gone = []
+    for p in directory.iterdir():
+        if _TEMP_NAME.match(p.name) and p.is_file():
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone

@@ -23,7 +23,9 @@ from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, regis
 GZIP_MAGIC = b"\x1f\x8b"
 
 
-def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
+def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True, by_id: bool = False) -> ParticleFrame:
+    """One partio BGEO frame; ``by_id``: rows in increasing id order (the file must hold ids,
+    see :meth:`ParticleFrame.sorted_by_id`)."""
     from pysplashsurf.bgeo import readbgeo_to_meshio
 
     with open(path, "rb") as f:
@@ -41,10 +43,13 @@ def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True) -> Parti
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing attribute 'velocity'; found {sorted(arrays) or 'no attributes'} "
                          "(SPlisHSPlasH: add velocity to particleAttributes)")
+    if by_id and ik is None:
+        raise InputError(f"{path}: missing attribute 'id' (persistent particle ids) to order the particles by; "
+                         f"found {sorted(arrays) or 'no attributes'} (SPlisHSPlasH: add id to particleAttributes)")
     # The file is big-endian; ParticleFrame converts to native float32/uint32.
     vel = arrays[vk].reshape(-1, 3) if vk else None
     pos, vel = to_z_up(np.asarray(m.points).reshape(-1, 3), vel, up)
-    return ParticleFrame(
+    frame = ParticleFrame(
         positions=pos,
         velocities=vel,
         ids=arrays[ik] if ik else None,
@@ -52,6 +57,7 @@ def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True) -> Parti
         arrays={k: v for k, v in arrays.items() if k not in (vk, rk, ik) and v.ndim == 1},
         source=str(path),
     )
+    return frame.sorted_by_id() if by_id else frame
 
 
 register("bgeo", (".bgeo",), read_bgeo, None)

@@ -1,9 +1,20 @@
-"""DualSPHysics case XML: the spacing, mass, output time step and domain of a run."""
+"""DualSPHysics case XML: the spacing, mass, output time step and domain of a run, and its boundary shapes.
+
+GenCase writes, besides the drawing commands, what it made of them:
+
+- ``<execution><particles>``: one ``<fixed>``, ``<moving>`` or ``<floating>``
+  element per boundary Mk (``mk`` = ``mkbound`` + ``mkboundfirst``), which says
+  how that Mk's particles move;
+- ``<execution><vtkout><vtkfile name="CASE_NAME_Dp.vtk" mk="11,20">``: the
+  Mks drawn as one shape (between two ``<shapeout file="NAME"/>`` commands in
+  ``<mainlist>``). When ``vtkout`` is missing the ``shapeout`` commands of the
+  main list are followed instead.
+"""
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
@@ -17,6 +28,10 @@ class CaseInfo:
     gravity: list[float]
     lower: list[float] | None
     upper: list[float] | None
+    #: boundary Mk -> "fixed", "moving" or "floating" (from <execution><particles>)
+    mk_kinds: dict[int, str] = field(default_factory=dict)
+    #: shapes as GenCase drew them: (name, [Mk...]) in drawing order
+    shapes: list[tuple[str, list[int]]] = field(default_factory=list)
 
     @property
     def particle_radius(self) -> float:
@@ -46,7 +61,13 @@ def read_case(path: str | Path) -> CaseInfo:
     for par in root.iter("parameter"):
         if par.get("key", "").lower() == "timeout":
             dt = float(par.get("value"))
+    try:
+        kinds, shapes = _boundary_shapes(root, p.stem)
+    except ValueError as exc:
+        raise InputError(f"{p}: {exc}") from None
     return CaseInfo(
+        mk_kinds=kinds,
+        shapes=shapes,
         dp=float(d.get("dp")),
         rho0=float(rho.get("value")) if rho is not None else 1000.0,
         time_out=dt,
@@ -54,3 +75,57 @@ def read_case(path: str | Path) -> CaseInfo:
         lower=vec(d.find("pointmin")),
         upper=vec(d.find("pointmax")),
     )
+
+
+BOUNDARY_KINDS = ("fixed", "moving", "floating")
+
+
+def _mk_list(text: str) -> list[int]:
+    """'11,20' or '10-12,20' -> [11, 20] / [10, 11, 12, 20]."""
+    out: list[int] = []
+    for part in (text or "").replace(" ", "").split(","):
+        if not part:
+            continue
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b or a) + 1))
+    return out
+
+
+def _boundary_shapes(root, case_stem: str) -> tuple[dict[int, str], list[tuple[str, list[int]]]]:
+    """(Mk -> kind, [(shape name, [Mk...])]) from the XML GenCase wrote (see the module docstring)."""
+    kinds: dict[int, str] = {}
+    parts = root.find(".//execution/particles")
+    first = None
+    if parts is not None:
+        for e in parts:
+            if e.tag in BOUNDARY_KINDS and e.get("mk") is not None:
+                kinds[int(e.get("mk"))] = e.tag
+        if parts.get("mkboundfirst") is not None:
+            first = int(parts.get("mkboundfirst"))
+    shapes: list[tuple[str, list[int]]] = []
+    vtkout = root.find(".//execution/vtkout")
+    if vtkout is not None:
+        first = int(vtkout.get("mkboundfirst", first if first is not None else 0))
+        for f in vtkout.findall("vtkfile"):
+            name = f.get("name", "")
+            for cut in (case_stem + "_",):
+                name = name[len(cut):] if name.startswith(cut) else name
+            name = name.removesuffix(".vtk").removesuffix("_Dp") or f"mk{f.get('mk')}"
+            shapes.append((name, _mk_list(f.get("mk", ""))))
+    if not shapes:  # follow the drawing commands: the bound Mks set between two shapeouts are one shape
+        first = first if first is not None else 0
+        current, group = None, []
+        ml = root.find(".//geometry/commands/mainlist")
+        for e in ml if ml is not None else []:
+            if e.tag == "setmkbound":
+                current = int(e.get("mk")) + first
+            elif e.tag in ("setmkfluid", "setmkvoid"):
+                current = None
+            elif e.tag.startswith("draw") and current is not None and current not in group:
+                group.append(current)
+            elif e.tag == "shapeout" and group:
+                shapes.append((e.get("file") or f"mk{group[0]}", group))
+                group = []
+        if group:
+            shapes.append((f"mk{group[0]}", group))
+    return kinds, shapes

@@ -39,8 +39,8 @@ from .atomic import write_text
 
 FORMAT_VERSION = 1
 RUN_JSON = "run.json"
-#: scene keys that do not change the simulated frames, left out of the identity
-IDENTITY_IGNORES = ("output.frames",)
+#: scene keys (or whole sections) that do not change the simulated frames, left out of the identity
+IDENTITY_IGNORES = ("output.frames", "cluster")
 
 
 def simulation_identity(scene_toml: str) -> str:
@@ -54,6 +54,14 @@ def simulation_identity(scene_toml: str) -> str:
         d.pop(leaf, None)
     text = json.dumps(data, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def source_identity(paths: list[Path], up: str, extra: object = None) -> str:
+    """Identity of a foreign sequence (a run converted from another solver's files): the files'
+    absolute names, sizes and modification times, the up axis, and ``extra`` (JSON) when given."""
+    stats = [(str(Path(p).resolve()), Path(p).stat().st_size, Path(p).stat().st_mtime_ns) for p in paths]
+    key = [up, stats] if extra is None else [up, stats, extra]
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def check_relpath(rel: Any, where: str) -> str:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
+from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
@@ -66,38 +67,82 @@ def parse_range(spec: str | None, available: list[int]) -> list[int]:
         raise InputError(f"--frames: expected a:b, got {spec!r}") from None
 
 
+class SceneRenderer:
+    """One Blender scene of a run, built once, then rendered frame after frame (in this process)."""
+
+    def __init__(self, run_dir: Path, quality: str, threads: int | None, device: str | None = None):
+        require_bpy()
+        import bpy
+
+        from .scene import build_scene
+
+        self.run_dir = run_dir
+        self.info = RunInfo.load(run_dir)
+        cfg = render_settings(run_dir, device)
+        self.mesh_frames = [i for i, _ in self.info.files("mesh")]
+        self.handles = build_scene(self.info, cfg, quality, min(self.mesh_frames), max(self.mesh_frames),
+                                   run_dir=run_dir)
+        self.scene = bpy.context.scene
+        if threads:
+            self.scene.render.threads_mode = "FIXED"
+            self.scene.render.threads = threads
+
+    def render(self, i: int) -> None:
+        """Swap in frame ``i`` and render it to render/frame_NNNNN.png (temporary file, then rename)."""
+        import bpy
+
+        from ..io.atomic import atomic_path
+        from .scene import load_frame
+
+        load_frame(self.handles, self.run_dir, self.info, i)
+        out = frame_path(self.run_dir, i)
+        with atomic_path(out) as tmp:
+            self.scene.render.filepath = str(tmp)
+            self.scene.render.use_file_extension = False
+            bpy.ops.render.render(write_still=True)
+
+    def save_blend(self) -> None:
+        """render/scene.blend, showing the first frame (the add-on or load_frame updates it per frame)."""
+        import bpy
+
+        from ..io.atomic import atomic_path
+        from .scene import load_frame
+
+        load_frame(self.handles, self.run_dir, self.info, min(self.mesh_frames))
+        blend = self.run_dir / "render" / "scene.blend"
+        with atomic_path(blend) as tmp:
+            bpy.ops.wm.save_as_mainfile(filepath=str(tmp), check_existing=False, compress=True)
+
+
 def render_worker(run_dir: Path, quality: str, frames: list[int], threads: int | None, save_blend: bool,
                   device: str | None = None) -> None:
     """Build the scene and render ``frames`` (runs in this process)."""
-    require_bpy()
-    import bpy
-
-    from ..io.atomic import atomic_path
-    from .scene import build_scene, load_frame
-
-    info = RunInfo.load(run_dir)
-    cfg = render_settings(run_dir, device)
-    mesh_frames = [i for i, _ in info.files("mesh")]
-    h = build_scene(info, cfg, quality, min(mesh_frames), max(mesh_frames), run_dir=run_dir)
-    sc = bpy.context.scene
-    if threads:
-        sc.render.threads_mode = "FIXED"
-        sc.render.threads = threads
+    r = SceneRenderer(run_dir, quality, threads, device)
     for i in frames:
-        load_frame(h, run_dir, info, i)
-        out = frame_path(run_dir, i)
-        with atomic_path(out) as tmp:
-            sc.render.filepath = str(tmp)
-            sc.render.use_file_extension = False
-            bpy.ops.render.render(write_still=True)
+        r.render(i)
         print(f"rendered {i}", flush=True)
     if save_blend:
-        # The saved scene shows the first frame; the add-on or a re-run of
-        # load_frame updates it per frame.
-        load_frame(h, run_dir, info, min(mesh_frames))
-        blend = run_dir / "render" / "scene.blend"
-        with atomic_path(blend) as tmp:
-            bpy.ops.wm.save_as_mainfile(filepath=str(tmp), check_existing=False, compress=True)
+        r.save_blend()
+
+
+def serve_worker(run_dir: Path, quality: str, threads: int | None, device: str | None = None, stdin=None) -> None:
+    """Build the scene once, then render the frames named on standard input, one a line, until it closes.
+
+    ``frame N`` renders frame N and answers ``rendered N``; ``blend`` saves
+    render/scene.blend and answers ``saved blend``. The Dask render path
+    (:mod:`whitecap.render.cluster`) keeps one such process per Dask worker.
+    """
+    stdin = stdin or sys.stdin
+    r = SceneRenderer(run_dir, quality, threads, device)
+    print(f"ready {os.getpid()}", flush=True)
+    for line in stdin:
+        words = line.split()
+        if words[:1] == ["frame"]:
+            r.render(int(words[1]))
+            print(f"rendered {int(words[1])}", flush=True)
+        elif words == ["blend"]:
+            r.save_blend()
+            print("saved blend", flush=True)
 
 
 def _done(png: Path, size: tuple[int, int]) -> bool:
@@ -130,20 +175,26 @@ def render_run(
     movie: bool = True,
     show_progress: bool = True,
     device: str | None = None,
+    cluster: str | None = None,
 ) -> dict:
     """Render a run directory. Returns {'frames': [...], 'movie': path, 'blend': path}.
 
-    ``device`` (auto, cpu, gpu) overrides ``[render].device``.
+    ``device`` (auto, cpu, gpu) overrides ``[render].device``. ``cluster`` (a
+    scheduler address, or local, slurm, pbs) renders the frames on Dask, one
+    Blender process per Dask worker (:mod:`whitecap.render.cluster`).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: run directory not found")
     with run_lock(run_dir, "render"):
-        return _render_run(run_dir, quality, frames, jobs, force, movie, show_progress, device)
+        try:
+            return _render_run(run_dir, quality, frames, jobs, force, movie, show_progress, device, cluster)
+        finally:
+            sweep_temps(run_dir / "render")  # a worker killed while writing leaves its temporary file
 
 
 def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, force: bool, movie: bool,
-                show_progress: bool, device: str | None) -> dict:
+                show_progress: bool, device: str | None, cluster: str | None = None) -> dict:
     if quality not in ("preview", "final"):
         raise InputError(f"--quality: expected preview or final, got {quality!r}")
     if device not in (None, "auto", "cpu", "gpu"):
@@ -152,7 +203,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     meshes = [i for i, _ in info.files("mesh")]
     if not meshes:
         raise InputError(f"{run_dir}: no surface meshes yet; run `whitecap mesh {run_dir}` first")
-    require_bpy()
+    if not cluster:  # on a cluster, Blender runs on the workers
+        require_bpy()
     wanted = parse_range(frames, meshes)
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
@@ -163,7 +215,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     environment_path(cfg, info, run_dir)
     for k, entry in enumerate(info.obstacles):
         texture_path(entry, k, info, run_dir)
-    if cfg.device == "gpu":  # fail here, in one line, rather than in every worker
+    if cfg.device == "gpu" and not cluster:  # fail here, in one line, rather than in every worker
         from .scene import cycles_device
 
         cycles_device("gpu")
@@ -178,7 +230,21 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     bar = progress(disable=not show_progress)
     with bar:
         task = bar.add_task("render", total=len(wanted), completed=len(wanted) - len(todo), info=quality)
-        if todo or need_blend:
+        if cluster and (todo or need_blend):
+            from ..executor import cluster_settings, connect
+
+            ex = connect(cluster, run_dir, cfg=cluster_settings(run_dir), jobs=jobs if jobs > 1 else None)
+            try:
+                from .cluster import render_on_cluster
+
+                blender = render_on_cluster(ex, run_dir, quality, cfg.device, todo, need_blend, bar, task,
+                                            lambda i: _record(run_dir, [i]), report=show_progress)
+            finally:
+                bar.stop()
+                ex.close()
+            if need_blend:
+                _record(run_dir, [], blend=True)
+        elif todo or need_blend:
             import tempfile
 
             procs, logs = [], []
@@ -209,6 +275,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
             if need_blend:
                 _record(run_dir, [], blend=True)
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
+    if cluster and (todo or need_blend):
+        result["blender_processes"] = len(blender)  # one per Dask worker that rendered, not one per frame
     if movie:
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
     _record(run_dir, wanted)

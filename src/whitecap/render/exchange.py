@@ -132,7 +132,7 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
 
     obstacles, boxes = [], []
     for k, entry in enumerate(info.obstacles):
-        m = stage.obstacle_render_mesh(entry, info)
+        m = stage.obstacle_render_mesh(entry, info, run_dir)
         if m is None:
             notes.append(f"{run_dir / 'run.json'}: obstacles[{k}]: render mesh not found, left out")
             continue

@@ -159,9 +159,39 @@ def bubble_material():
     return mat
 
 
+#: Fresnel reflectance of the thin-glass obstacle preset: window glass [-]
+THIN_GLASS_IOR = 1.5
+
+
+def thin_glass_material(color) -> "object":
+    """A pane without thickness (an imported tank's wall that encloses the fluid): light passes
+    straight through, tinted by ``color``, and the Fresnel share of glass of THIN_GLASS_IOR is
+    reflected. A refracting glass would need walls with two faces (see stage.glass_material)."""
+    import bpy
+
+    mat = bpy.data.materials.new("whitecap_obstacle_glass")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.remove(nt.nodes.get("Principled BSDF"))
+    through = nt.nodes.new("ShaderNodeBsdfTransparent")
+    through.inputs["Color"].default_value = (*color, 1.0)
+    mirror = nt.nodes.new("ShaderNodeBsdfGlossy")
+    mirror.inputs["Roughness"].default_value = 0.0
+    fresnel = nt.nodes.new("ShaderNodeFresnel")
+    fresnel.inputs["IOR"].default_value = THIN_GLASS_IOR
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    nt.links.new(fresnel.outputs[0], mix.inputs[0])
+    nt.links.new(through.outputs[0], mix.inputs[1])
+    nt.links.new(mirror.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], nt.nodes.get("Material Output").inputs["Surface"])
+    return mat
+
+
 def obstacle_material(entry: dict):
     import bpy
 
+    if entry.get("material") == "glass":
+        return thin_glass_material(entry.get("color", [0.93, 0.97, 0.96]))
     mat = bpy.data.materials.new(f"whitecap_obstacle_{entry.get('material', 'stone')}")
     _, bsdf = _principled(mat)
     bsdf.inputs["Base Color"].default_value = (*entry.get("color", [0.8, 0.78, 0.72]), 1.0)
@@ -382,6 +412,16 @@ def _configure_output(sc, fps: float, first: int, last: int) -> None:
     sc.frame_start, sc.frame_end = first, last
     sc.render.image_settings.file_format = "PNG"
     sc.render.film_transparent = False
+    # No metadata in the PNGs: Blender stamps the date and Cycles' render times into
+    # text chunks, so the same frame rendered twice (or on another worker) would differ
+    # in its bytes. With every stamp field off no text chunk is written at all.
+    for name in _STAMP_FIELDS:
+        setattr(sc.render, f"use_stamp_{name}", False)
+
+
+#: Blender's per-image metadata fields (RenderSettings.use_stamp_*), all turned off
+_STAMP_FIELDS = ("date", "time", "render_time", "frame", "frame_range", "memory", "hostname", "camera", "lens",
+                 "scene", "marker", "filename", "sequencer_strip", "note")
 
 
 def _add_diffuse_objects(sc, cfg: Render, info: RunInfo) -> dict:
@@ -429,7 +469,7 @@ def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None) -> N
     """The high-poly render mesh of an obstacle, with the scene's transform."""
     import bpy
 
-    m = stage.obstacle_render_mesh(entry, info)
+    m = stage.obstacle_render_mesh(entry, info, run_dir)
     if m is None:
         return
     m.apply_transform(obstacle_transform(entry))

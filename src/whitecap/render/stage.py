@@ -92,8 +92,17 @@ def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
     return p
 
 
+def has_own_container(info: RunInfo) -> bool:
+    """Whether the run brings its own tank: an obstacle with role "container" (an imported case)."""
+    return any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles)
+
+
 def container_kind(cfg: Render, info: RunInfo) -> str:
-    """``[render].container``, or its default: glass where the run's walls held the fluid, else none."""
+    """``[render].container``, or its default: glass where the run's walls held the fluid, else none.
+    A run with a container of its own (an imported tank: an obstacle with role "container") gets
+    none: its tank is drawn as that obstacle, and a second glass box around the domain would hide it."""
+    if has_own_container(info):
+        return "none"
     if cfg.container is not None:
         return cfg.container
     return "glass" if info.solid_walls() else "none"
@@ -162,7 +171,12 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
     if cfg.camera_start:
         start = np.array(cfg.camera_start, float)
     else:
-        view = VIEW_DIRECTION_BASIN if container_kind(cfg, info) == "basin" else VIEW_DIRECTION
+        # An opaque tank, drawn (basin) or the case's own (an imported container), is seen from high
+        # enough to look over its front wall; a glass one (a closed tank, cases/splishsplash.py) from the side.
+        opaque = container_kind(cfg, info) == "basin" or any(
+            isinstance(o, dict) and o.get("role") == "container" and o.get("material") != "glass"
+            for o in info.obstacles)
+        view = VIEW_DIRECTION_BASIN if opaque else VIEW_DIRECTION
         dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
         u = np.asarray(view, float) / np.linalg.norm(view)
         start = target + dist * u
@@ -472,17 +486,26 @@ def depth_of_field(cam, cfg: Render, target_obj) -> None:
 
 
 # ============================================================================ obstacles
-def obstacle_render_mesh(entry: dict, info: RunInfo):
+def obstacle_path(src: str, info: RunInfo, run_dir: Path | None) -> Path | None:
+    """Where an obstacle's mesh file is: absolute as given; a relative path in the scene's
+    directory (``extra.scene_dir``, whitecap's own runs), else in the run directory (imported
+    cases: cases/run_dir.py), else the working directory. None when not found."""
+    p = Path(src)
+    if p.is_absolute():
+        return p if p.is_file() else None
+    bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
+    bases += [Path(run_dir)] if run_dir is not None else []
+    return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)
+
+
+def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None):
     """The obstacle's render mesh (``render_mesh``, else its collision ``mesh``) as a trimesh in
-    its own coordinates, resolved against the scene's directory; None when the file is missing."""
+    its own coordinates, found by :func:`obstacle_path`; None when the file is missing."""
     import trimesh
 
-    base = Path(info.extra.get("scene_dir", "."))
     src = entry.get("render_mesh") or entry.get("mesh")
-    if not src:
-        return None
-    path = Path(src) if Path(src).is_absolute() else base / src
-    if not path.is_file():
+    path = obstacle_path(src, info, run_dir) if src else None
+    if path is None:
         return None
     return trimesh.load(str(path), force="mesh")
 

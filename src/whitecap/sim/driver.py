@@ -134,7 +134,7 @@ def _sub(data: dict, prefix: str) -> dict:
 def scene_changes(scene: Scene, out: Path) -> list[str]:
     """Dotted keys whose resolved values differ between ``scene`` and the run's ``scene.toml``.
 
-    ``output.frames`` does not count: a run may be extended.
+    ``output.frames`` does not count (a run may be extended), nor does ``[cluster]`` (where frames run).
     """
     old_file = Path(out) / "scene.toml"
     if not old_file.is_file():
@@ -146,7 +146,8 @@ def scene_changes(scene: Scene, out: Path) -> list[str]:
     a, b = _flatten(tomllib.loads(old)), _flatten(tomllib.loads(scene.to_toml()))
     missing = object()
     return [k for k in sorted(a.keys() | b.keys())
-            if k not in IDENTITY_IGNORES and a.get(k, missing) != b.get(k, missing)]
+            if not any(k == ig or k.startswith(ig + ".") for ig in IDENTITY_IGNORES)
+            and a.get(k, missing) != b.get(k, missing)]
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:

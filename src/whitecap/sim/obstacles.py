@@ -38,6 +38,9 @@ because the SDF is needed for collisions anyway, it costs one lookup per
 particle instead of thousands of extra neighbours, and it does not depend on
 how well a surface is sampled; its error is the planar approximation on
 strongly curved parts, smaller than a particle for shapes larger than h.
+A dynamic body has none: with it a floating body rode a particle radius too
+high (README, Floating bodies); the fluid meets it by contact alone, whose
+momentum (projection, penalty, velocity response) the body takes back.
 """
 
 import hashlib
@@ -149,6 +152,13 @@ class SDFGrid:
         c = ((pts - self.origin) / self.spacing).T
         return map_coordinates(self.values, c, order=1, mode="constant", cval=FAR)
 
+    def normal(self, pts: np.ndarray) -> np.ndarray:
+        """Unit outward normals ∇sdf/|∇sdf| at points (host side; central differences of half a cell)."""
+        pts = np.asarray(pts, np.float64)
+        e = 0.5 * self.spacing
+        g = np.stack([self.sample(pts + e * a) - self.sample(pts - e * a) for a in np.eye(3)], axis=1)
+        return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+
 
 def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     M = obstacle_transform(o)
@@ -181,22 +191,62 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
 
 
 class PosedSDF:
-    """A moving obstacle's SDF for host-side users such as the diffuse particles: ``sample`` reads
-    the field at the body's pose ``body`` (run.json's record for the frame, obstacle ``index``), or
-    else at its motion law's pose at ``time``; set them per frame."""
+    """An obstacle's SDF for host-side users such as the diffuse particles, at the obstacle's pose of
+    a frame and of the frame before (for the body's velocity over the frame). Set them per frame
+    with :meth:`at_frame`: run.json's records of the two poses (obstacle ``index``) where there are
+    some, else its motion law's poses at those times. A static obstacle stays at rest."""
 
     def __init__(self, grid: SDFGrid, law, index: int):
-        self.grid, self.law, self.index, self.time, self.body = grid, law, index, 0.0, None
+        self.grid, self.law, self.index = grid, law, index
+        self.R0 = self.R1 = np.eye(3)
+        self.T0 = self.T1 = np.zeros(3)
+        self.dt = 0.0
 
-    def sample(self, pts: np.ndarray) -> np.ndarray:
-        if self.body is not None:
+    def _pose(self, time: float, body: dict | None) -> tuple[np.ndarray, np.ndarray]:
+        if body is not None:
             from ..config import obstacle_matrix
 
-            M = obstacle_matrix({"mesh": ""}, self.body)
-            R, T = M[:3, :3], M[:3, 3]
+            M = obstacle_matrix({"mesh": ""}, body)
+            return M[:3, :3], M[:3, 3]
+        return self.law.pose(time)
+
+    def at_frame(self, time: float, body: dict | None, dt: float = 0.0, prev: dict | None = None) -> None:
+        """The pose at ``time`` (record ``body``) and at ``time − dt`` (record ``prev``; without one,
+        the pose this was last set to, or with dt = 0 the same pose: at rest over the frame)."""
+        R1, T1 = self._pose(time, body)
+        if dt <= 0:
+            self.R0, self.T0 = R1, T1
+        elif prev is not None or body is None:
+            self.R0, self.T0 = self._pose(time - dt, prev)
         else:
-            R, T = self.law.pose(self.time)
+            self.R0, self.T0 = self.R1, self.T1
+        self.R1, self.T1, self.dt = R1, T1, float(dt)
+
+    @property
+    def moved(self) -> bool:
+        return not (np.array_equal(self.R0, self.R1) and np.array_equal(self.T0, self.T1))
+
+    def sample(self, pts: np.ndarray, before: bool = False) -> np.ndarray:
+        """Signed distance at world points, the body at this frame's pose (or the last frame's)."""
+        R, T = (self.R0, self.T0) if before else (self.R1, self.T1)
         return self.grid.sample((np.asarray(pts, np.float64) - T) @ R)  # x_rest = Rᵀ(x − T)
+
+    def normal(self, pts: np.ndarray) -> np.ndarray:
+        """Unit outward normals at world points, this frame's pose: R·n_rest."""
+        return self.grid.normal((np.asarray(pts, np.float64) - self.T1) @ self.R1) @ self.R1.T
+
+    def carry(self, pts: np.ndarray) -> np.ndarray:
+        """Where the body takes points attached to it over the frame: R1 R0ᵀ (x − T0) + T1."""
+        return ((np.asarray(pts, np.float64) - self.T0) @ self.R0) @ self.R1.T + self.T1
+
+    def velocity(self, pts: np.ndarray) -> np.ndarray:
+        """The body's velocity over the frame at world points (sim.bodies.step_velocity; 0 at rest)."""
+        if self.dt <= 0:
+            return np.zeros((len(pts), 3))
+        from .bodies import step_velocity
+
+        A, b = step_velocity(self.R0, self.T0, self.R1, self.T1, self.dt)
+        return np.asarray(pts, np.float64) @ A.T + b
 
 
 class Obstacles:
@@ -225,9 +275,8 @@ class Obstacles:
         return keep
 
     def posed_grids(self) -> list:
-        """The SDFs for host-side tests: static grids as they are, moving ones as :class:`PosedSDF`."""
-        return [PosedSDF(g, law, k) if law.moving or k in self.bodies else g
-                for k, (g, law) in enumerate(zip(self.grids, self.laws))]
+        """The SDFs for host-side users (the diffuse particles), each as a :class:`PosedSDF`."""
+        return [PosedSDF(g, law, k) for k, (g, law) in enumerate(zip(self.grids, self.laws))]
 
     def collider(self, solver) -> "ObstacleCollider":
         return ObstacleCollider(self, solver)
@@ -314,19 +363,6 @@ def give(imp: ti.template(), mom: ti.template(), body_of: ti.template(), i: ti.i
 
 
 @ti.kernel
-def body_pressure_impulse(n: ti.i32, p: F3, lam: F1, gpsi_b: F3, imp: F3, mom: F3, m_inv_dt: ti.f32):
-    """The dynamic bodies' share of the last Δp_i: λ_i ∇ψ_i,body (momentum m·λ_i∇ψ_i,body/Δt),
-    then ∇ψ_i,body ← 0 for the next iteration."""
-    for i in range(n):
-        gb = gpsi_b[i]
-        if gb.norm_sqr() > 0.0:
-            dmv = m_inv_dt * lam[i] * gb
-            imp[i] += dmv
-            mom[i] += p[i].cross(dmv)
-            gpsi_b[i] = vec3(0.0)
-
-
-@ti.kernel
 def obstacle_penalty(
     n: ti.i32, x: F3, v: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
     rot: M3, trans: F3, stiffness: F1, r: ti.f32, dt: ti.f32,
@@ -350,12 +386,13 @@ def obstacle_penalty(
 def obstacle_project_and_density_map(
     n: ti.i32, p: F3, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, box_lo: F3, box_hi: F3,
     rot: M3, trans: F3, r: ti.f32, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3,
-    dyn: I1, imp: F3, mom: F3, body_of: I1, gpsi_b: F3, m_inv_dt: ti.f32,
+    dyn: I1, imp: F3, mom: F3, body_of: I1, m_inv_dt: ti.f32,
 ):
     """Fused at the start of each constraint iteration (one SDF lookup serves both):
     x* ← x* + (r − sdf)·n where sdf < r (the projection that ends the previous
     iteration, or follows the prediction), then ψ_i += ψ(sdf), ∇ψ_i += ψ'(sdf)·∇sdf,
-    the obstacle's share of ρ_i/ρ0."""
+    the obstacle's share of ρ_i/ρ0 (static and kinematic obstacles only: a dynamic body
+    has no density map, see the module doc)."""
     for i in range(n):
         for o in range(off.shape[0]):
             xl = to_rest(rot, trans, o, p[i])
@@ -368,7 +405,7 @@ def obstacle_project_and_density_map(
                         give(imp, mom, body_of, i, o, p[i], m_inv_dt * dp)
                     xl = to_rest(rot, trans, o, p[i])
                     d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
-                if d < h:
+                if d < h and dyn[o] == 0:
                     gn = rot[o] @ g.normalized() if g.norm() > 1e-9 else vec3(0.0)
                     # pbf.lookup's interpolation, kept inline on purpose: calling lookup (whose
                     # table size is a compile-time constant) rounds differently, and runs with
@@ -380,9 +417,6 @@ def obstacle_project_and_density_map(
                     psi[i] += (1.0 - f) * psi_table[k] + f * psi_table[k + 1]
                     gp = ((1.0 - f) * dpsi_table[k] + f * dpsi_table[k + 1]) * gn
                     grad_psi[i] += gp
-                    if dyn[o] == 1:
-                        gpsi_b[i] += gp
-                        body_of[i] = o
 
 
 @ti.kernel
@@ -462,12 +496,11 @@ class ObstacleCollider:
         self.bodies = obst.bodies  # {obstacle index: RigidBody} of the dynamic ones
         self.moving = any(law.moving for law in self.laws) or bool(self.bodies)
         # Two-way coupling: per particle, the momentum the dynamic bodies gave it this step, its
-        # moment, which body, and the bodies' share of ∇ψ (size 1 when there is no dynamic body).
+        # moment and which body (size 1 when there is no dynamic body).
         nb = solver.n if self.bodies else 1
         self.dyn = arr([1 if j in self.bodies else 0 for j in range(k)], "i")
         self.imp = ti.Vector.ndarray(3, ti.f32, nb)
         self.mom = ti.Vector.ndarray(3, ti.f32, nb)
-        self.gpsi_b = ti.Vector.ndarray(3, ti.f32, nb)
         self.body_of = ti.ndarray(ti.i32, nb)
         self.m = float(solver.mass)
         self.inv_dt = 0.0
@@ -523,7 +556,7 @@ class ObstacleCollider:
             self.set_poses(s.time, s.time + dt, dt)
         if self.bodies:
             self.in_step, self.inv_dt = True, 1.0 / dt
-            for a in (self.imp, self.mom, self.gpsi_b):
+            for a in (self.imp, self.mom):
                 a.fill(0.0)
             self.body_of.fill(-1)
         obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt, *self._coupling(), self.m)
@@ -539,20 +572,14 @@ class ObstacleCollider:
         if self.moving:
             self.set_poses(t, t)
 
-    def _pressure_share(self, s) -> None:
-        if self.bodies and self.in_step:
-            body_pressure_impulse(s.n, s.state.p, s.state.lam, self.gpsi_b, self.imp, self.mom, self.m * self.inv_dt)
-
     def add_density_map(self, s) -> None:
         st = s.state
-        self._pressure_share(s)  # the previous iteration's λ_i ∇ψ_i,body
         obstacle_project_and_density_map(
             s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi,
-            *self._coupling(), self.gpsi_b, self.m * self.inv_dt,
+            *self._coupling(), self.m * self.inv_dt,
         )
 
     def project(self, s) -> None:
-        self._pressure_share(s)
         obstacle_project(s.n, s.state.p, *self._geo(), s.r, *self._coupling(), self.m * self.inv_dt)
 
     def respond(self, s) -> None:

@@ -3,30 +3,30 @@
 The main process lists the frames, skips those already meshed (unless
 ``force``; in a run, a mesh counts as done only when ``run.json`` records it
 as made from the run's current simulation, so meshes left by an earlier
-simulation are made again), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over a
-process pool and records each finished mesh in ``run.json`` (an atomic
+simulation are made again), maps :func:`~whitecap.surface.reconstruct.mesh_frame` over an
+executor (a local process pool, or Dask with ``--cluster``) and records
+each finished mesh in ``run.json`` (an atomic
 write per frame, from the main process).
 """
 
 from __future__ import annotations
 
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
-from ..config import Mesh, load_scene
+from ..config import Cluster, Mesh, load_scene
 from ..errors import InputError
+from ..executor import executor, map_frames
+from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RUN_JSON, RunInfo
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
-from ..workers import die_with_parent
 from .reconstruct import MeshParams, mesh_frame, params_from_config, walls_from_run
 
 
@@ -92,13 +92,18 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
     return MeshJob(frames, params, src if inside else None)
 
 
-def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True) -> list[dict]:
-    """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done)."""
+def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True,
+             cluster: str | None = None, cluster_config: Cluster | None = None) -> list[dict]:
+    """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done).
+
+    ``cluster`` (an address, or local, slurm, pbs) runs the frames on Dask
+    (:mod:`whitecap.executor`); this process keeps the lock and records run.json.
+    """
     jobs = max(1, jobs or len(os.sched_getaffinity(0)))
     if job.run_dir is None:
-        return _run_mesh(job, jobs, force, show_progress)
+        return _run_mesh(job, jobs, force, show_progress, cluster, cluster_config)
     with run_lock(job.run_dir, "mesh"):
-        return _run_mesh(job, jobs, force, show_progress)
+        return _run_mesh(job, jobs, force, show_progress, cluster, cluster_config)
 
 
 def _done(job: MeshJob, frame: tuple) -> bool:
@@ -106,52 +111,48 @@ def _done(job: MeshJob, frame: tuple) -> bool:
     return frame[2].is_file() and (job.run_dir is None or frame[0] in job.recorded)
 
 
-def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool) -> list[dict]:
+def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster: str | None = None,
+              cluster_config: Cluster | None = None) -> list[dict]:
     if job.run_dir is not None:  # read under the lock, so no simulate can change what is current meanwhile
         current = dict(RunInfo.load(job.run_dir).files("mesh"))
         job.recorded = {i for i, _, _, rel in job.frames if current.get(i) == rel}
     todo = [f for f in job.frames if force or not _done(job, f)]
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
+    out_dirs = sorted({f[2].parent for f in job.frames})
     try:
-        _map_frames(job, todo, stats, jobs, show_progress)
+        _map_frames(job, todo, stats, jobs, show_progress, cluster, cluster_config)
     finally:
         # Frames finished before an error or Ctrl-C are kept and recorded.
         job.stats = [stats[i] for i, *_ in job.frames if i in stats]
         if job.run_dir is not None:
             record(job)
+        for d in out_dirs:  # a worker killed while writing leaves its temporary file
+            sweep_temps(d)
     return job.stats
 
 
-def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress: bool) -> None:
-    with progress(disable=None if show_progress else True) as bar, timer("mesh"):
-        task = bar.add_task("mesh", total=len(job.frames), completed=len(stats), info="")
+def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress: bool, cluster: str | None = None,
+                cluster_config: Cluster | None = None) -> None:
+    if not todo:
+        return
+    shared = job.run_dir if job.run_dir is not None else todo[0][2].parent
+    ex = executor(cluster, shared, jobs=min(jobs, len(todo)), cfg=cluster_config)
+    try:
+        with progress(disable=None if show_progress else True) as bar, timer("mesh"):
+            task = bar.add_task("mesh", total=len(job.frames), completed=len(stats), info="")
 
-        def done(index: int, s: dict) -> None:
-            stats[index] = {"index": index, "skipped": False, **s}
-            if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
-                job.stats = [stats[index]]
-                record(job)
-            bar.update(task, advance=1, info=f"{s['particles']} particles -> {s['faces']} triangles")
+            def done(r) -> str:
+                s = r.value
+                stats[r.index] = {"index": r.index, "skipped": False, **s}
+                if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
+                    job.stats = [stats[r.index]]
+                    record(job)
+                return f"{s['particles']} particles -> {s['faces']} triangles"
 
-        if jobs == 1 or len(todo) <= 1:
-            for i, p, o, _ in todo:
-                done(i, mesh_frame(p, o, job.params))
-        else:
-            # spawn, not fork: the parent may already hold splashsurf's thread
-            # pool, which a forked child would inherit in a broken state.
-            ctx = get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=die_with_parent,
-                                     initargs=(os.getpid(),)) as pool:
-                pending = {pool.submit(mesh_frame, p, o, job.params): i for i, p, o, _ in todo}
-                try:
-                    while pending:
-                        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in finished:
-                            done(pending.pop(fut), fut.result())
-                except BaseException:
-                    for fut in pending:
-                        fut.cancel()
-                    raise
+            map_frames(ex, "mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], bar, task, done,
+                       report=show_progress)
+    finally:
+        ex.close()
 
 
 def record(job: MeshJob) -> RunInfo:

@@ -26,7 +26,8 @@ from ..io.diffuse_types import TYPE_NAMES
 from ..io.frame import ParticleFrame
 from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
 from ..io.pvd import write_pvd, write_series
-from ..io.atomic import write_text
+from ..executor import cluster_settings, executor, map_frames
+from ..io.atomic import sweep_temps, write_text
 from ..io.lock import run_lock
 from ..io.run import RunInfo, check_relpath
 from ..io.vtk_xml import write_vtp
@@ -78,11 +79,15 @@ def _write_surface(path: Path, mesh: SurfaceMesh, to: str) -> None:
 
 
 def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, split_types: bool = False,
-               kinds: tuple[str, ...] = ("fluid", "diffuse", "mesh"), show_progress: bool = True) -> dict[str, Path]:
+               kinds: tuple[str, ...] = ("fluid", "diffuse", "mesh"), show_progress: bool = True, jobs: int = 1,
+               cluster: str | None = None) -> dict[str, Path]:
     """Write the series of ``run`` to ``out`` (default ``RUN/export``).
 
     Returns {series name: collection path}. Kinds the run does not have are
-    skipped; a run with none of them is an error.
+    skipped; a run with none of them is an error. The frames are written on
+    an executor (:mod:`whitecap.executor`): here (``jobs`` = 1), in ``jobs``
+    local processes, or on Dask with ``cluster``; the collections are written
+    here, from the frame list, so they do not depend on which frame finished first.
     """
     if to not in TARGETS:
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(TARGETS)})")
@@ -90,11 +95,31 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     if not run.is_dir():
         raise InputError(f"{run}: no such run directory")
     with run_lock(run, "export"):
-        return _export(run, to, out, split_types, kinds, show_progress)
+        return _export(run, to, out, split_types, kinds, show_progress, jobs, cluster)
+
+
+def export_frame(src: Path, kind: str, paths: dict[str, Path], to: str) -> None:
+    """Write one frame of one kind: ``paths`` maps each series name (kind, diffuse_<type>) to its file."""
+    if kind == "mesh":
+        mesh = read_mesh(src)
+        bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
+        if bad:
+            raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
+        _write_surface(paths["mesh"], mesh, to)
+        return
+    frame = wio.read(src)
+    frame.check_finite()
+    _write_points(paths[kind], frame, to)
+    if len(paths) > 1:  # diffuse split by type
+        if "type" not in frame.arrays:
+            raise InputError(f"{src}: missing array 'type' (needed by --split-types)")
+        t = frame.arrays["type"]
+        for code, label in enumerate(TYPE_NAMES):
+            _write_points(paths[f"diffuse_{label}"], _subset(frame, t == code), to)
 
 
 def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds: tuple[str, ...],
-            show_progress: bool) -> dict[str, Path]:
+            show_progress: bool, jobs: int = 1, cluster: str | None = None) -> dict[str, Path]:
     info = RunInfo.load(run)
     out = Path(out) if out is not None else run / "export"
     ext = "vtp" if to == "vtk" else "ply"
@@ -103,33 +128,26 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
     if not work:
         raise InputError(f"{run / 'run.json'}: no {', '.join(kinds)} frames to export")
     series: dict[str, list[tuple[float, str]]] = {}
+    tasks = []
+    for k, (kind, i, rel) in enumerate(work):
+        names = [kind] + ([f"diffuse_{label}" for label in TYPE_NAMES] if kind == "diffuse" and split_types else [])
+        paths = {}
+        for name in names:
+            frel = f"{name}/{name}_{i:05d}.{ext}"
+            series.setdefault(name, []).append((times[i], frel))
+            paths[name] = out / frel
+        tasks.append((k, (run / rel, kind, paths, to)))
 
-    def emit(name: str, index: int) -> Path:
-        rel = f"{name}/{name}_{index:05d}.{ext}"
-        series.setdefault(name, []).append((times[index], rel))
-        return out / rel
-
-    with progress(disable=None if show_progress else True) as bar:
-        task = bar.add_task("export", total=len(work), info="")
-        for kind, i, rel in work:
-            src = run / rel
-            if kind == "mesh":
-                mesh = read_mesh(src)
-                bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
-                if bad:
-                    raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
-                _write_surface(emit("mesh", i), mesh, to)
-            else:
-                frame = wio.read(src)
-                frame.check_finite()
-                _write_points(emit(kind, i), frame, to)
-                if kind == "diffuse" and split_types:
-                    if "type" not in frame.arrays:
-                        raise InputError(f"{src}: missing array 'type' (needed by --split-types)")
-                    t = frame.arrays["type"]
-                    for code, label in enumerate(TYPE_NAMES):
-                        _write_points(emit(f"diffuse_{label}", i), _subset(frame, t == code), to)
-            bar.update(task, advance=1, info=rel)
+    out.mkdir(parents=True, exist_ok=True)
+    ex = executor(cluster, run, jobs=min(max(1, jobs), len(tasks)), cfg=cluster_settings(run) if cluster else None)
+    try:
+        with progress(disable=None if show_progress else True) as bar:
+            task = bar.add_task("export", total=len(work), info="")
+            map_frames(ex, "export", export_frame, tasks, bar, task, lambda r: work[r.index][2], report=show_progress)
+    finally:
+        ex.close()
+        for name in series:
+            sweep_temps(out / name)
 
     written: dict[str, Path] = {}
     for name, entries in series.items():

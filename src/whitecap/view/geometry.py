@@ -18,12 +18,15 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
 
     Relative mesh paths are looked for in ``bases`` in order (the scene
     directory, then the run directory for playback), then the working directory. Missing or unreadable meshes are skipped with a
-    warning: the viewer still shows the fluid.
+    warning: the viewer still shows the fluid. Glass obstacles (a closed tank around the fluid) are
+    not drawn: opaque, they would hide the water; the domain box's edges outline them.
     """
     import trimesh
 
     out = []
     for k, e in enumerate(entries):
+        if e.get("material") == "glass":
+            continue
         path = Path(e.get("render_mesh") or e["mesh"])
         cands = [path] if path.is_absolute() else [b / path for b in bases] + [Path.cwd() / path]
         found = next((c for c in cands if c.is_file()), None)

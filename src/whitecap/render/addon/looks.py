@@ -12,6 +12,7 @@ WATER_COLOR = (0.55, 0.8, 0.9)  # [render] water_color default
 WATER_ABSORPTION = 3.0  # [render] water_absorption default [1/m]
 WATER_ROUGHNESS = 0.02  # [render] water_roughness default
 OBSTACLE_PRESETS = {"stone": (0.8, 0.0), "clay": (0.6, 0.0), "metal": (0.3, 1.0), "plastic": (0.35, 0.0)}
+THIN_GLASS_IOR = 1.5  # the "glass" preset's Fresnel reflectance (render/scene.py THIN_GLASS_IOR)
 
 
 def _principled(mat):
@@ -90,11 +91,33 @@ def material(kind):
     return mat
 
 
+def _thin_glass(mat, color):
+    """A pane without thickness (a closed tank's wall): seen straight through, tinted by
+    ``color``, with glass's Fresnel reflection (as whitecap's renderer draws it)."""
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.remove(nt.nodes.get("Principled BSDF"))
+    through = nt.nodes.new("ShaderNodeBsdfTransparent")
+    through.inputs["Color"].default_value = (*color, 1.0)
+    mirror = nt.nodes.new("ShaderNodeBsdfGlossy")
+    mirror.inputs["Roughness"].default_value = 0.0
+    fresnel = nt.nodes.new("ShaderNodeFresnel")
+    fresnel.inputs["IOR"].default_value = THIN_GLASS_IOR
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    nt.links.new(fresnel.outputs[0], mix.inputs[0])
+    nt.links.new(through.outputs[0], mix.inputs[1])
+    nt.links.new(mirror.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], nt.nodes.get("Material Output").inputs["Surface"])
+
+
 def obstacle_material(entry):
     preset = entry.get("material", "stone")
     color = tuple(entry.get("color", [0.8, 0.78, 0.72]))
     name = f"whitecap_obstacle_{preset}"
     mat = bpy.data.materials.get(name)
+    if mat is None and preset == "glass":
+        mat = bpy.data.materials.new(name)
+        _thin_glass(mat, color)
     if mat is None:
         mat = bpy.data.materials.new(name)
         _, b = _principled(mat)

@@ -1,0 +1,192 @@
+"""One writer for every foreign case: a :class:`~whitecap.cases.Case` -> a whitecap run directory.
+
+    RUN/run.json                 obstacles (one per shape, with its role) and per-frame body poses
+    RUN/fluid/fluid_NNNNN.ply    the fluid frames, converted (z up)
+    RUN/geometry/NAME.ply        one mesh per shape, in its rest placement (first frame)
+
+Obstacle entries have the contract of whitecap's own (``config.Obstacle``
+dumped into ``run.json``): ``mesh`` and ``render_mesh`` are paths relative to
+the run directory (the renderer, the viewer and the Blender add-on look there
+when the run names no ``extra.scene_dir``), so a run directory stays valid when
+moved. Each entry adds ``name``, ``role`` (``container``, ``obstacle`` or
+``body``) and ``source`` (where it came from in the solver's output). Moving
+shapes come first, so that ``frames[i].bodies[k]`` is the pose of obstacle
+``k`` and fixed shapes need no pose.
+
+The run's identity (``simulation``) is :func:`whitecap.io.run.source_identity`
+of the fluid files plus the case's other inputs, so a rerun on the same output
+resumes (frames already converted are skipped) and a run of another case is
+never mixed in.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import read, write, write_mesh
+from ..io.lock import run_lock
+from ..io.mesh import SurfaceMesh
+from ..io.run import RUN_JSON, RunInfo, frame_name, source_identity
+from ..progress import console, progress
+from . import ROLES, Case, CaseShape
+
+GEOMETRY_DIR = "geometry"
+#: Room above the case's shapes in the run's domain, as a fraction of their height: splashes
+#: thrown over a tank's rim stay inside (the diffuse stage removes particles that leave the domain).
+DOMAIN_HEADROOM = 1.0
+#: Render looks of imported shapes: the tank in light grey stone, fixed obstacles in terracotta clay (so a
+#: building stands out against the tank's floor), bodies in orange plastic.
+ROLE_LOOKS = {
+    "container": {"material": "stone", "color": [0.6, 0.62, 0.65]},
+    "obstacle": {"material": "clay", "color": [0.7, 0.36, 0.22]},
+    "body": {"material": "plastic", "color": [0.9, 0.5, 0.08]},
+}
+
+
+def _safe_name(name: str, taken: set[str]) -> str:
+    base = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "shape"
+    out, k = base, 1
+    while out in taken:
+        k += 1
+        out = f"{base}_{k}"
+    taken.add(out)
+    return out
+
+
+def check_case(case: Case) -> None:
+    """What write_case relies on; an InputError names the case and the field."""
+    where = str(case.source)
+    if not case.fluid:
+        raise InputError(f"{where}: no fluid frames found")
+    if not (case.frame_dt > 0):
+        raise InputError(f"{where}: the time between frames is unknown or not positive ({case.frame_dt!r})")
+    if not (case.particle_radius > 0):
+        raise InputError(f"{where}: the particle radius is unknown or not positive ({case.particle_radius!r})")
+    if case.times is not None and len(case.times) != len(case.fluid):
+        raise InputError(f"{where}: {len(case.times)} frame times for {len(case.fluid)} fluid frames")
+    for s in case.shapes:
+        if s.role not in ROLES:
+            raise InputError(f"{where}: shape {s.name!r}: role {s.role!r} is not one of {', '.join(ROLES)}")
+        if len(s.faces) == 0:
+            raise InputError(f"{where}: shape {s.name!r} ({s.source}): empty mesh")
+        if s.poses is not None and len(s.poses) != len(case.fluid):
+            raise InputError(f"{where}: shape {s.name!r} ({s.source}): {len(s.poses)} poses for "
+                             f"{len(case.fluid)} fluid frames")
+
+
+def ordered_shapes(case: Case) -> list[CaseShape]:
+    """Moving shapes first (their index is their index in ``frames[i].bodies``), then the rest."""
+    return [s for s in case.shapes if s.poses is not None] + [s for s in case.shapes if s.poses is None]
+
+
+def case_identity(case: Case) -> str:
+    """The identity of the simulation a case holds: its fluid files, its up axis, and its
+    shapes (names, roles, vertex sums), so a changed boundary reading makes a new run."""
+    shapes = [[s.name, s.role, s.source, float(np.asarray(s.vertices, np.float64).sum()), len(s.faces),
+               None if s.poses is None else len(s.poses)] for s in case.shapes]
+    return source_identity([p for _, p in case.fluid], case.up,
+                           {"solver": case.solver, "shapes": shapes, "options": case.fluid_reader_options})
+
+
+def _domain(case: Case, first_positions: np.ndarray | None) -> dict[str, list[float]]:
+    if case.domain is not None:
+        lo, hi = case.domain
+        return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
+    pts = [np.asarray(s.vertices, np.float64) for s in case.shapes]
+    if first_positions is not None and len(first_positions):
+        pts.append(np.asarray(first_positions, np.float64))
+    if not pts:
+        raise InputError(f"{case.source}: no particles and no shapes: the domain is unknown")
+    allp = np.concatenate(pts)
+    lo, hi = allp.min(0), allp.max(0)
+    if case.shapes:
+        # The shapes' box, its floor where the lowest shape stands (the renderer's ground goes
+        # there), and room above for splashes (diffuse particles leaving the domain are removed).
+        hi[2] += DOMAIN_HEADROOM * (hi[2] - lo[2])
+    else:
+        lo, hi = lo - 2 * case.particle_radius, hi + 2 * case.particle_radius
+    return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
+
+
+def _new_info(case: Case, identity: str, first_positions: np.ndarray | None) -> RunInfo:
+    r = case.particle_radius
+    mass = case.particle_mass if case.particle_mass else case.rest_density * (2 * r) ** 3
+    info = RunInfo(
+        particle_radius=float(r), rest_density=float(case.rest_density), particle_mass=float(mass),
+        gravity=[float(g) for g in case.gravity], domain=_domain(case, first_positions),
+        frame_rate=1.0 / case.frame_dt, extra={"source": str(case.source), "solver": case.solver, "seed": 0},
+    )
+    info.simulation = identity
+    return info
+
+
+def _obstacle_entry(shape: CaseShape, rel: str) -> dict:
+    return {"name": shape.name, "role": shape.role, "source": shape.source, "mesh": rel, "render_mesh": rel,
+            "translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0,
+            **ROLE_LOOKS[shape.role], **(shape.look or {})}  # a shape's own look (e.g. glass) wins
+
+
+def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False) -> RunInfo:
+    """Write ``case`` as a run directory at ``out`` (made if missing); resumable.
+
+    A run directory of another simulation at ``out`` is refused (its frames
+    would be mixed with this case's) unless ``force``, which starts it over.
+    """
+    out = Path(out)
+    check_case(case)
+    identity = case_identity(case)
+    old = None
+    if (out / RUN_JSON).exists():
+        old = RunInfo.load(out)
+        if old.simulation != identity and not force:
+            raise InputError(f"{out}: holds a run of another simulation ({old.extra.get('source', 'whitecap')}); "
+                             "choose another --out, or pass --force to start it over")
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "import"):
+        return _write(case, out, identity, old if old is not None and old.simulation == identity else None,
+                      show_progress)
+
+
+def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progress: bool) -> RunInfo:
+    opts = {"up": case.up, **case.fluid_reader_options}
+    first = None if old is not None else read(case.fluid[0][1], **opts)
+    info = old if old is not None else _new_info(case, identity, first.positions if first is not None else None)
+    # Shapes: built once by the reader, written once here (rewritten, identical, on a resume).
+    shapes = ordered_shapes(case)
+    taken: set[str] = set()
+    info.obstacles = []
+    for s in shapes:
+        rel = f"{GEOMETRY_DIR}/{_safe_name(s.name, taken)}.ply"
+        write_mesh(out / rel, SurfaceMesh(np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int32),
+                                          source=s.source or s.name))
+        info.obstacles.append(_obstacle_entry(s, rel))
+    moving = [s for s in shapes if s.poses is not None]
+    times = case.times if case.times is not None else [i * case.frame_dt for i, _ in case.fluid]
+    done = {i for i, rel in info.files("fluid") if (out / rel).is_file()}
+    todo = [(k, i, p) for k, (i, p) in enumerate(case.fluid) if i not in done]
+    if len(todo) < len(case.fluid):
+        console.print(f"import: {len(case.fluid) - len(todo)} of {len(case.fluid)} frames already in {out}")
+    bar = progress(disable=not show_progress)
+    with bar:
+        task = bar.add_task("import", total=len(case.fluid), completed=len(case.fluid) - len(todo), info="")
+        for k, index, path in todo:
+            fr = first if (k == 0 and first is not None) else read(path, **opts)
+            fr.check_finite()
+            fr.time = float(times[k])
+            rel = frame_name("fluid", index)
+            write(out / rel, fr)
+            info.set_file(index, "fluid", rel, fr.time)
+            if moving:
+                info.set_bodies(index, [s.poses[k] for s in moving])
+            info.save(out)  # after every frame: an interrupted import resumes from here
+            bar.update(task, advance=1, info=f"{len(fr):,} fluid")
+    for k, (index, _) in enumerate(case.fluid):  # poses of frames converted earlier, too
+        info.frame(index)["time"] = float(times[k])
+        if moving:
+            info.set_bodies(index, [s.poses[k] for s in moving])
+    info.save(out)
+    info.extra["out"] = str(out)  # for the caller's message; not saved
+    return info

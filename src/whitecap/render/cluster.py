@@ -1,0 +1,115 @@
+"""The render stage on a Dask cluster: one Blender process per Dask worker, kept between frames.
+
+:class:`BlenderWorkers` is a Dask worker plugin. On each worker it starts,
+at the first frame, one ``python -m whitecap.render.worker RUN ... serve``
+process: it imports ``bpy`` and builds the run's scene once, then renders
+the frames it is sent on its standard input, exactly as the local render
+workers do (the same :class:`~whitecap.render.driver.SceneRenderer`), so the
+frames are the same bytes. The Blender process dies with its Dask worker
+(:func:`whitecap.workers.die_with_parent`); the scheduler then runs the
+worker's frame again elsewhere. Imported only when ``--cluster`` is given.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+from distributed import WorkerPlugin, get_worker
+
+from ..workers import child_env
+
+
+class BlenderWorkers(WorkerPlugin):
+    """Keeps one Blender process with the run's scene built on each Dask worker."""
+
+    def __init__(self, run_dir: str, quality: str, device: str, threads: int = 0):
+        self.run_dir, self.quality, self.device, self.threads = str(run_dir), quality, device, int(threads)
+        self.proc: subprocess.Popen | None = None
+
+    def setup(self, worker=None) -> None:
+        self.proc, self.log, self.lock = None, None, threading.Lock()
+
+    def teardown(self, worker=None) -> None:
+        proc = getattr(self, "proc", None)
+        if proc is not None and proc.poll() is None:
+            proc.stdin.close()  # the server ends at the end of its input
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        self.proc = None
+
+    def _start(self) -> subprocess.Popen:
+        self.log = tempfile.TemporaryFile(mode="w+")
+        cmd = [sys.executable, "-m", "whitecap.render.worker", self.run_dir, self.quality, "serve",
+               str(self.threads), "0", self.device]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log, text=True,
+                                     bufsize=1, env=child_env())
+        self._expect("ready")
+        return self.proc
+
+    def _expect(self, word: str) -> str:
+        for line in self.proc.stdout:
+            if line.startswith(word):
+                return line.strip()
+        self.proc.wait()
+        self.log.seek(0)
+        last = (self.log.read().strip().splitlines() or [f"exit status {self.proc.returncode}"])[-1]
+        self.proc = None
+        raise RuntimeError(f"Blender render failed: {last}")
+
+    def ask(self, request: str, answer: str) -> int:
+        """Send one request to this worker's Blender process (started at the first); returns its pid."""
+        with self.lock:
+            proc = self.proc if self.proc is not None and self.proc.poll() is None else self._start()
+            proc.stdin.write(request + "\n")
+            proc.stdin.flush()
+            self._expect(answer)
+            return proc.pid
+
+
+def render_frame(plugin: str, index: int) -> dict:
+    """A Dask task: render frame ``index`` with this worker's Blender process."""
+    pid = get_worker().plugins[plugin].ask(f"frame {index}", f"rendered {index}")
+    return {"blender_pid": pid}
+
+
+def save_blend(plugin: str) -> dict:
+    """A Dask task: save render/scene.blend with this worker's Blender process."""
+    return {"blender_pid": get_worker().plugins[plugin].ask("blend", "saved blend")}
+
+
+def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[int], need_blend: bool,
+                      bar, task, on_frame, report: bool = True) -> set[int]:
+    """Render ``todo`` (and scene.blend when ``need_blend``) on the Dask executor ``ex``.
+
+    ``on_frame(index)`` records a finished frame (in this process). Cycles in
+    each Blender process uses the worker's cores, split between the workers
+    when a local cluster puts several on this machine. Returns the process ids
+    of the Blender processes that rendered (one per worker that took frames).
+    """
+    import uuid
+
+    from ..executor import map_frames
+
+    name = f"whitecap-blender-{uuid.uuid4().hex[:8]}"
+    ex.register(BlenderWorkers(str(Path(run_dir).resolve()), quality, device, ex.frame_threads), name)
+    pids: set[int] = set()
+
+    def done(r) -> None:
+        pids.add(r.value["blender_pid"])
+        on_frame(r.index)
+
+    try:
+        if todo:
+            map_frames(ex, "render", render_frame, [(i, (name, i)) for i in todo], bar, task, done, report=report)
+        if need_blend:
+            ex.client.submit(save_blend, name, pure=False).result()
+    finally:
+        ex.unregister(name)
+    return pids

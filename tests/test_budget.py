@@ -1,0 +1,130 @@
+"""'auto' in the simulation: the bounded history of sampled potentials (diffuse.budget), driven directly."""
+
+from __future__ import annotations
+
+import io as pyio
+
+import numpy as np
+import pytest
+
+from whitecap.diffuse import budget as B
+from whitecap.diffuse.params import resolve
+
+FRAMES = 500
+
+
+def _frames(frames: int = FRAMES, seed: int = 3):
+    """Synthetic per-frame samples (ta, wc, ke, vo, moving), HISTORY_SAMPLE particles each, their
+    scale growing over the run (a gentle start, a violent end) and 70 % of them moving."""
+    rng = np.random.default_rng(seed)
+    n = B.HISTORY_SAMPLE
+    for f in range(frames):
+        s = 1 + 4 * (f / frames) ** 2
+        yield np.stack([rng.lognormal(0, 1, n) * s, rng.lognormal(0, 0.5, n), rng.lognormal(-1, 1, n) * s * s,
+                        rng.lognormal(0, 1, n), rng.random(n) < 0.7], 1).astype(np.float32)
+
+
+def _add(h, frame):
+    return B.history_add(*h, lambda m: frame[np.linspace(0, len(frame) - 1, m).astype(np.int64)])
+
+
+def _auto():
+    from whitecap.config import Foam
+
+    return resolve(Foam(preset="auto"))
+
+
+def test_the_history_is_bounded_and_its_thresholds_are_the_pooled_percentiles():
+    """500 frames: the history holds at most HISTORY_ROWS rows (5 MB) standing for all 500
+    frames, and the thresholds from it rank within 0.1 percentage point (τmin, the 95th
+    percentile) and 0.05 point (τmax, the 99.9th) of where they fall in the pool of every
+    frame's samples, the unbounded history's."""
+    h = B.history_empty()
+    pool = []
+    for frame in _frames():
+        pool.append(frame)
+        h = _add(h, frame)
+        assert len(h[1]) <= B.HISTORY_ROWS and h[0].nbytes <= B.HISTORY_ROWS * B.HISTORY_SAMPLE * 5 * 4
+    rows, frames, stride = h
+    assert frames.sum() == FRAMES and stride > 1 and (frames[:-1] == stride).all()
+    pool = np.concatenate(pool)
+    kept = B.history_samples(*h)
+    assert len(kept) < len(pool) / 4
+    base = np.full(8, 1e-6, np.float32)
+    exact = B.percentile_thresholds({k: pool[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, pool[:, 4] > 0, base)
+    got = B.percentile_thresholds({k: kept[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, kept[:, 4] > 0, base)
+    for c, name in enumerate(("ta", "wc", "ke", "vo")):
+        vals = pool[:, c][(pool[:, 4] > 0) & (pool[:, c] > 0)]
+        for j, (q, tol) in enumerate(zip(B.AUTO_PERCENTILES, (0.1, 0.05))):
+            rank = 100.0 * (vals < got[2 * c + j]).mean()
+            assert abs(rank - q) <= tol, (name, q, rank, got[2 * c + j], exact[2 * c + j])
+
+
+def test_a_row_rate_is_the_mean_of_its_frames_and_the_peak_is_the_frame_by_frame_one():
+    """Each row's birth rate is the mean of its frames' own rates, the last, part-filled row's
+    too, and the running peak over the rows equals the frame-by-frame running peak of those
+    row rates repeated per frame. (Every particle of a frame has the same potentials here, so
+    that sampling loses nothing and the bookkeeping is checked exactly.)"""
+    p = _auto()
+    tau = np.array([3, 20, 1.5, 4, 1, 6, 3, 20], np.float32)
+    k, dt = (p.k_ta, p.k_wc, p.k_vo), 1 / 30
+    h = B.history_empty()
+    own = []
+    for frame in _frames(300):
+        frame = np.repeat(frame[:1] * [2, 3, 1.5, 3, 1], len(frame), axis=0).astype(np.float32)
+        pots = {n: frame[:, c] for c, n in enumerate(("ta", "wc", "ke", "vo"))}
+        own.append(B.birth_rate(pots, tau, k, dt) / len(frame))
+        h = _add(h, frame)
+    rows, frames, stride = h
+    rates = B.history_rates(*h, tau, k, dt)
+    bounds = np.concatenate([[0], np.cumsum(frames)])
+    mean_own = np.array([np.mean(own[a:b]) for a, b in zip(bounds[:-1], bounds[1:])])
+    assert stride > 1 and frames[-1] < stride and np.allclose(rates, mean_own, rtol=1e-5), np.abs(rates / mean_own - 1).max()
+    for frames_left in (None, 40, 1000):
+        want = B.running_peak(np.repeat(rates, frames), p, dt, frames_left)
+        assert B.running_peak(rates, p, dt, frames_left, frames) == pytest.approx(want, rel=1e-12)
+    # a short burst among rows of many frames: its window is found wherever it falls
+    burst = np.array([0.0, 0.0, 5.0, 0.0, 0.0, 0.0])
+    counts = np.array([37, 3, 2, 50, 1, 64])
+    assert B.running_peak(burst, p, dt, None, counts) == pytest.approx(
+        B.running_peak(np.repeat(burst, counts), p, dt), rel=1e-12)
+
+
+def test_a_resumed_history_is_byte_identical():
+    """Saved in the checkpoint half way (through npz) and resumed: the same history as uninterrupted."""
+    from whitecap.diffuse.generator import DiffuseState
+
+    frames = list(_frames(200))
+    full = B.history_empty()
+    for f in frames:
+        full = _add(full, f)
+    st = DiffuseState.empty()
+    h = B.history_empty()
+    for f in frames[:130]:
+        h = _add(h, f)
+    st.history, st.history_frames, st.history_stride = h
+    buf = pyio.BytesIO()
+    np.savez(buf, **st.to_arrays())
+    buf.seek(0)
+    z = np.load(buf)
+    st = DiffuseState.from_arrays({k: z[k] for k in z.files})
+    h = (st.history, st.history_frames, st.history_stride)
+    for f in frames[130:]:
+        h = _add(h, f)
+    assert h[2] == full[2] and np.array_equal(h[1], full[1]) and h[0].tobytes() == full[0].tobytes()
+
+
+def test_a_checkpoint_from_before_the_bound_is_bounded_on_resume():
+    """An old checkpoint's history, a row per frame: replayed into the bounded history."""
+    from whitecap.diffuse.generator import DiffuseState
+
+    frames = list(_frames(100))
+    d = DiffuseState.empty().to_arrays()
+    del d["history_frames"], d["history_stride"]
+    d["history"] = np.stack(frames)
+    st = DiffuseState.from_arrays(d)
+    want = B.history_empty()
+    for f in frames:
+        want = _add(want, f)
+    assert st.history_stride == want[2] and np.array_equal(st.history_frames, want[1])
+    assert np.array_equal(st.history, want[0])
