@@ -118,14 +118,16 @@ def compute_lambda(
         w_sum = poly6(0.0, h2, w_poly6)
         grad_i = vec3(0.0)
         sum_grad2 = 0.0
-        for k in range(nb_count[i]):
+        for k in range(nb_count[i]):  # sums of ∇W; the factor m/ρ0 is applied once after the loop
             r = pi - p[nb[i, k]]
             w_sum += poly6(r.norm_sqr(), h2, w_poly6)
-            g = (mass / rho0) * spiky_grad(r, h, w_spiky)
+            g = spiky_grad(r, h, w_spiky)
             grad_i += g
             sum_grad2 += g.norm_sqr()
         rho_i = mass * w_sum + rho0 * psi[i]
-        grad_i += grad_psi[i]
+        vr = mass / rho0
+        grad_i = vr * grad_i + grad_psi[i]
+        sum_grad2 *= vr * vr
         c = ti.max(rho_i / rho0 - 1.0, 0.0)
         rho[i] = rho_i
         lam[i] = -c / (grad_i.norm_sqr() + sum_grad2 + eps)
