@@ -38,7 +38,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
-from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
+from .smoothing import SPHKernel, poly6, poly6_and_spiky_factor, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
@@ -175,11 +175,12 @@ def correct_positions(
         for k in range(nb_count[i]):
             j = nb[i, k]
             r = pi - p[j]
-            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq
+            w, f = poly6_and_spiky_factor(r.norm_sqr(), h, h2, w_poly6, w_spiky)
+            q = w * scorr_inv_w_dq
             qn = 1.0
             for _ in ti.static(range(scorr_n)):
                 qn *= q
-            acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
+            acc += ((li + lam[j] - scorr_k * qn) * f) * r
         dp = (mass / rho0) * acc + li * grad_psi[i]
         pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
         p_out[i] = pn
