@@ -5,7 +5,8 @@ PYTHON ?= python3.11
 VENV   ?= .venv
 PY      = $(VENV)/bin/python
 DEMO_OUT ?= out/bunny
-DEB_PACKAGES = mesa-vulkan-drivers libvulkan1 libgl1 libegl1 libxrender1 libxi6 libxkbcommon0 libsm6 libxxf86vm1 libxfixes3
+# Vulkan (lavapipe) and X libraries for GGUI; chromium for the browser viewer's tests (Playwright drives the system browser)
+DEB_PACKAGES = mesa-vulkan-drivers libvulkan1 libgl1 libegl1 libxrender1 libxi6 libxkbcommon0 libsm6 libxxf86vm1 libxfixes3 chromium
 
 .PHONY: install deps demo test bench clean
 
@@ -14,7 +15,7 @@ $(VENV)/.installed: pyproject.toml
 	@$(MAKE) --no-print-directory deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[render,usd,cluster,test]"
+	$(PY) -m pip install --quiet -e ".[render,usd,cluster,web,test]"
 	@touch $@
 
 deps:

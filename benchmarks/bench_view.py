@@ -9,6 +9,15 @@
 
     python benchmarks/bench_view.py [--n 100000] [--live 20000] [--arch cpu|cuda|auto] [--size 1280 720]
 
+3. ``--web``: the browser viewer instead (view/web.py), in headless Chromium over
+   localhost: time from serving to the first picture with the fluid in it, and
+   playback frames/s for a sequence of N particles read from disk frame by frame
+   (unpaced, so the figure is what the server, the socket and the browser sustain).
+   A frame counts when the page shows its number; the points arrive in the same
+   message. Prints /proc/loadavg before and after (the machine may be shared).
+
+    python benchmarks/bench_view.py --web [--n 100000] [--web-frames 24] [--seconds 10]
+
 Each part runs in its own process (one GGUI window and Taichi runtime per process).
 Reference: the verified recipe measured about 0.3 s per 640×480 frame of 100k
 particles on lavapipe (2 cores); the issue's GPU target is 200k live at ≥ 30 fps.
@@ -26,6 +35,85 @@ from pathlib import Path
 
 REFERENCE_100K_S = 0.3  # s per 640x480 headless frame of 100k particles on lavapipe (recipe)
 TARGET_LIVE_FPS = 30.0  # live viewing target on a GPU, 200k particles
+TARGET_WEB_FPS = 10.0  # browser playback target for 100k particles on this machine (issue 18)
+WEB_VIEWPORT = (640, 480)  # browser page size [px], as the headless GGUI figure
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "n/a"
+
+
+def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle") -> dict:
+    """Browser playback: a dam-break-like block of n particles moving frame by frame."""
+    import io
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+    from playwright.sync_api import sync_playwright
+
+    from whitecap.io import ParticleFrame, write
+    from whitecap.view.colors import colormap
+    from whitecap.view.web import WebViewer
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        sys.exit("bench_view --web: no chromium found (Debian: apt-get install chromium)")
+    rng = np.random.default_rng(0)
+    seq = Path(tempfile.mkdtemp()) / "seq"
+    seq.mkdir()
+    base = (rng.random((n, 3)) * [0.5, 0.5, 0.4]).astype(np.float32)
+    for k in range(frames):  # a block sliding and spreading: every frame differs
+        vel = rng.normal(scale=0.5, size=(n, 3)).astype(np.float32)
+        write(seq / f"fluid_{k:05d}.ply", ParticleFrame(base + 0.01 * k * np.array([1.0, 0.0, -0.2], np.float32), vel,
+                                                        density=np.full(n, 1000.0, np.float32), time=k / 30))
+    ramp = colormap(np.linspace(0, 1, 64), 0, 1) * 255.0
+
+    def fluid_pixels(png: bytes) -> int:
+        img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float32)[:, : size[0] // 2]
+        cand = np.ptp(img, axis=-1) > 25
+        px = img[cand]
+        return int((np.min(((px[:, None] - ramp[None]) ** 2).sum(-1), axis=1) < 900).sum()) if len(px) else 0
+
+    load0 = _loadavg()
+    t_serve = time.perf_counter()
+    v = WebViewer(seq, port=0, paced=False, point_shape=shape)
+    v.start()
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=chromium, args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader"])
+        page = b.new_page(viewport={"width": size[0], "height": size[1]})
+        t_goto = time.perf_counter()
+        page.goto(v.url)
+        while fluid_pixels(page.screenshot()) < 2000:
+            if time.perf_counter() - t_goto > 300:
+                sys.exit("bench_view --web: no picture after 300 s")
+        t_first = time.perf_counter()
+        # the page notes each frame number it shows, with the browser's clock
+        page.evaluate("""() => { window.__seen = []; window.__ticks = 0; let last = null;
+            const tick = (t) => { window.__ticks++; const m = document.body.innerText.match(/frame (\\d+) \\(/);
+              if (m && m[1] !== last) { last = m[1]; window.__seen.push([t, +m[1]]); }
+              requestAnimationFrame(tick); };
+            requestAnimationFrame(tick); }""")
+        sent0 = v.frames_sent
+        t0 = time.perf_counter()
+        v.play()
+        time.sleep(seconds)
+        v.play(False)
+        sent = v.frames_sent - sent0
+        wall = time.perf_counter() - t0
+        seen = page.evaluate("() => window.__seen")
+        ticks = page.evaluate("() => window.__ticks")
+        b.close()
+    v.stop()
+    shutil.rmtree(seq.parent, ignore_errors=True)
+    shown = max(len(seen) - 1, 0)
+    span = (seen[-1][0] - seen[0][0]) / 1000.0 if len(seen) > 1 else float("nan")
+    return {"n": n, "frames_on_disk": frames, "first_picture_s": t_first - t_goto, "serve_to_picture_s": t_first - t_serve,
+            "browser_fps": shown / span if shown else 0.0, "raf_per_s": ticks / wall, "shown": shown, "sent_fps": sent / wall,
+            "precision": v.precision, "size": list(size), "shape": shape, "load_before": load0, "load_after": _loadavg()}
 
 
 def _headless(n: int, size, repeats: int) -> dict:
@@ -110,8 +198,20 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--steps-per-draw", type=int, help="live: solver steps per redraw ([view] steps_per_draw)")
+    ap.add_argument("--web", action="store_true", help="benchmark the browser viewer instead (headless Chromium)")
+    ap.add_argument("--web-frames", type=int, default=24, help="--web: frames in the sequence on disk")
+    ap.add_argument("--seconds", type=float, default=10.0, help="--web: playback time measured")
+    ap.add_argument("--shape", default="circle", choices=["circle", "square"], help="--web: point shape")
     ap.add_argument("--part", choices=["headless", "live"], help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.web:
+        w = _web(a.n, a.web_frames, a.seconds, tuple(a.size), a.shape)
+        print(json.dumps(w))
+        print(f"web {w['n']:,} particles ({w['shape']}s) at {w['size'][0]}x{w['size'][1]} over localhost in headless Chromium: "
+              f"first picture {w['first_picture_s']:.2f} s after loading the page ({w['serve_to_picture_s']:.2f} s after serving); "
+              f"playback {w['browser_fps']:.1f} frames/s shown in the browser ({w['sent_fps']:.1f} sent by the server); "
+              f"target {TARGET_WEB_FPS:.0f} frames/s; load {w['load_before']} before, {w['load_after']} after")
+        return
     if a.part == "headless":
         print(json.dumps(_headless(a.n, tuple(a.size), a.repeats)))
         return

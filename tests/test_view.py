@@ -452,8 +452,8 @@ def test_live_buffers_filled_on_the_device_match_the_host_colour_map():
 def test_saved_frames_colour_each_particle_by_its_speed(tiny_run, tmp_path):
     """Three blocks at rest, at half and at the full default speed range sqrt(2|g|H) are drawn in
     the colour map's colours at 0, 1/2 and 1 (compared by chromaticity: lighting scales brightness)."""
-    from whitecap.view.colors import colormap
-    from whitecap.view.draw import GRAVITY, project
+    from whitecap.view.colors import GRAVITY, colormap
+    from whitecap.view.draw import project
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)

@@ -217,9 +217,10 @@ def _cmd_export(a) -> int:
 # ============================================================================ view
 def _add_view(sub) -> None:
     p = sub.add_parser(
-        "view", help="real-time GGUI viewer, live or playback, or headless PNGs",
+        "view", help="real-time viewer (GGUI window or --web browser), live or playback, or headless PNGs",
         description="Show a scene while it simulates (TARGET is a scene .toml), or play back a run "
-        "directory or a numbered particle sequence. --headless writes OUT/view_NNNNN.png without a display.",
+        "directory or a numbered particle sequence. --headless writes OUT/view_NNNNN.png without a display; "
+        "--web serves the viewer to a browser (prints the URL).",
     )
     p.add_argument("target", help="scene .toml (live), run directory, or particle sequence (dir, file or glob)")
     p.add_argument("--headless", action="store_true", help="render offscreen to PNGs instead of opening a window")
@@ -232,6 +233,10 @@ def _add_view(sub) -> None:
     p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a sequence's files (default z)")
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for live simulation")
+    p.add_argument("--web", action="store_true", help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
+    p.add_argument("--port", type=int, default=8080, help="with --web, the port to serve on (default 8080)")
+    p.add_argument("--host", default="localhost", help="with --web, the address to serve on (default localhost; 0.0.0.0 for all)")
+    p.add_argument("--max-points", type=int, default=300_000, help="with --web, particles drawn at most per kind; more are subsampled")
     p.set_defaults(func=_cmd_view)
 
 
@@ -239,6 +244,12 @@ def _cmd_view(a) -> int:
     from . import pipeline
 
     size = tuple(a.size) if a.size else None
+    if a.web:
+        if a.headless:
+            raise WhitecapError("view: --web and --headless exclude each other")
+        pipeline.view(a.target, web=True, arch=a.arch, up=a.up, color_mode=a.color, host=a.host, port=a.port,
+                      max_points=a.max_points)
+        return 0
     if a.headless:
         if not a.out:
             raise WhitecapError("view --headless: --out DIR is required")

@@ -351,13 +351,18 @@ def import_case(
 
 # ============================================================================ view
 def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
-         mp4: bool = False, arch: str = "cpu", **opts):
+         mp4: bool = False, arch: str = "cpu", web: bool = False, **opts):
     """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
 
     ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
     returns the PNG paths. ``opts``: size, color_mode, up, panel, legend, show_progress.
-    See :mod:`whitecap.view`.
+    ``web=True`` serves the viewer to a browser until interrupted, after printing its URL
+    (``opts``: host, port, max_points, color_mode, up). See :mod:`whitecap.view`.
     """
+    if web:
+        from .view.web import serve
+
+        return serve(target, arch=arch, **opts)
     from .view import view as _view
 
     return _view(target, headless=headless, out=out, frames=frames, mp4=mp4, arch=arch, **opts)

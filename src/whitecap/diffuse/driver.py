@@ -247,16 +247,33 @@ def _case_values(case: str | Path) -> dict:
                 lower=c.lower, upper=c.upper, case=str(case))
 
 
+def run_obstacles(src: Path, info: RunInfo) -> list:
+    """The SDFs of the obstacles run.json lists (an imported case's tank, obstacles and moving
+    bodies), posed per frame from its ``bodies``; the first fluid frame tells a wall around the
+    fluid from a solid (sim.obstacles.run_obstacle_grids)."""
+    if not info.obstacles:
+        return []
+    from ..sim.obstacles import run_obstacle_grids
+
+    fluid = info.files("fluid")
+    first = read(src / fluid[0][1]).positions if fluid else None
+    return run_obstacle_grids(info, src, first)
+
+
 def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list, Path]:
-    """A whitecap run's own [foam] section, seed and obstacles; where the results go."""
+    """A whitecap run's own [foam] section, seed and obstacles (its scene's, else those run.json
+    lists, as an imported case's); where the results go."""
     foam_cfg, run_seed, grids = Foam(), 0, []
     if info is not None:
         scene_file = src / "scene.toml"
+        run_scene = None
         if scene_file.is_file():
             run_scene = load_scene(scene_file)
             run_scene.base_dir = info.extra.get("scene_dir", run_scene.base_dir)
             foam_cfg = run_scene.foam
             grids = obstacle_grids(run_scene)
+        if run_scene is None or not run_scene.obstacle:
+            grids = run_obstacles(src, info)
         run_seed = int(info.extra.get("seed", 0))
         out = Path(out) if out is not None else src
     elif out is None:

@@ -53,6 +53,11 @@ ROUNDING_SLOT = 0xFFFF  # the slot number of kernels.generate's stochastic-round
 BODY_CONTACT = 2.0
 SURFACE_OFFSET = 1.0
 SPRAY_RESTITUTION = 0.5
+# - a particle that moved farther than half an obstacle's SDF cell over the frame is also tested
+#   along its path, at most PATH_SAMPLES points (half a cell apart up to 32 cells): a spray drop
+#   must not pass through a wall thinner than its flight (an imported tank's walls are one
+#   particle spacing thick, a frame's flight is often ten).
+PATH_SAMPLES = 64
 
 
 @dataclass
@@ -463,12 +468,14 @@ class FoamGenerator:
         x, v = x.astype(np.float64), v.astype(np.float64)
         alive = np.ones(len(x), bool)
         for g in self.obstacles:
+            ride = np.zeros(len(x), bool)
             if g.moved:
                 ride = (kind == FOAM) & (g.sample(x0, before=True) < BODY_CONTACT * self.r)
                 if ride.any():
                     x[ride] = g.carry(x0[ride])
                     v[ride] = g.velocity(x[ride])
             d = g.sample(x)
+            self._through(g, x0, x, d, alive & ~ride)  # riders went with the body, not through it
             hit = alive & (d <= 0.0)
             alive &= ~(hit & (kind == BUBBLE))
             hit &= kind != BUBBLE
@@ -484,6 +491,29 @@ class FoamGenerator:
             x[hit], v[hit] = xh, vh
             alive[hit] = g.sample(xh) > 0.0
         return x.astype(np.float32), v.astype(np.float32), alive
+
+    @staticmethod
+    def _through(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, alive: np.ndarray) -> None:
+        """Particles whose path x0 → x passes through obstacle g but ends outside it: their end
+        point ``x`` (and ``d``) is moved, in place, to the first point of the path found inside,
+        so that they hit the face they met first (see PATH_SAMPLES)."""
+        step = 0.5 * g.grid.spacing
+        seg = x - x0
+        length = np.linalg.norm(seg, axis=1)
+        far = np.flatnonzero(alive & (d > 0.0) & (length > step))
+        if not len(far):
+            return
+        n = int(min(PATH_SAMPLES, np.ceil(length[far].max() / step)))
+        first = np.full(len(far), np.inf)
+        for j in range(n - 1, 0, -1):  # backwards: the last found is the first along the path
+            t = j / n
+            inside = g.sample(x0[far] + t * seg[far]) <= 0.0
+            first[inside] = t
+        hit = np.isfinite(first)
+        if hit.any():
+            k = far[hit]
+            x[k] = x0[k] + first[hit, None] * seg[k]
+            d[k] = g.sample(x[k])
 
     @staticmethod
     def _entry(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, steps: int = 16):

@@ -251,3 +251,16 @@ class RunInfo:
     def truncate(self, last_index: int) -> None:
         """Forget frames after ``last_index`` (used when resuming)."""
         self.frames = [f for f in self.frames if f["index"] <= last_index]
+
+
+def obstacle_path(src: str, info: "RunInfo", run_dir: str | Path | None) -> Path | None:
+    """Where an obstacle's mesh file (a ``mesh`` or ``render_mesh`` of run.json's ``obstacles``)
+    is: absolute as given; a relative path in the scene's directory (``extra.scene_dir``,
+    whitecap's own runs), else in the run directory (imported cases: cases/run_dir.py), else the
+    working directory. None when not found. The one resolver the renderer and the diffuse stage use."""
+    p = Path(src)
+    if p.is_absolute():
+        return p if p.is_file() else None
+    bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
+    bases += [Path(run_dir)] if run_dir is not None else []
+    return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)

@@ -267,9 +267,11 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
             errors = []
             for p, log in zip(procs, logs):
                 p.wait()
+                p.stdout.close()
                 if p.returncode:
                     log.seek(0)
                     errors.append((log.read().strip().splitlines() or ["unknown error"])[-1])
+                log.close()
             if errors:
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
             if need_blend:

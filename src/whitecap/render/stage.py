@@ -28,7 +28,7 @@ import numpy as np
 
 from ..config import Render
 from ..errors import InputError
-from ..io.run import RunInfo
+from ..io.run import RunInfo, obstacle_path
 
 #: The glass's inner faces sit this many particle radii inside the domain box, under the water's edge.
 GLASS_OVERLAP = 0.1
@@ -486,18 +486,6 @@ def depth_of_field(cam, cfg: Render, target_obj) -> None:
 
 
 # ============================================================================ obstacles
-def obstacle_path(src: str, info: RunInfo, run_dir: Path | None) -> Path | None:
-    """Where an obstacle's mesh file is: absolute as given; a relative path in the scene's
-    directory (``extra.scene_dir``, whitecap's own runs), else in the run directory (imported
-    cases: cases/run_dir.py), else the working directory. None when not found."""
-    p = Path(src)
-    if p.is_absolute():
-        return p if p.is_file() else None
-    bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
-    bases += [Path(run_dir)] if run_dir is not None else []
-    return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)
-
-
 def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None):
     """The obstacle's render mesh (``render_mesh``, else its collision ``mesh``) as a trimesh in
     its own coordinates, found by :func:`obstacle_path`; None when the file is missing."""

@@ -144,13 +144,20 @@ class SDFGrid:
     values: np.ndarray  # (nx, ny, nz) float32 [m]
     aabb_lo: np.ndarray  # mesh bounds [m]
     aabb_hi: np.ndarray
+    beyond: float = FAR  # value outside the grid: FAR (free space); −FAR for an inverted wall
 
     def sample(self, pts: np.ndarray) -> np.ndarray:
-        """Trilinear SDF at points (host side; FAR outside the grid)."""
+        """Trilinear SDF at points (host side; ``beyond`` outside the grid)."""
         from scipy.ndimage import map_coordinates
 
         c = ((pts - self.origin) / self.spacing).T
-        return map_coordinates(self.values, c, order=1, mode="constant", cval=FAR)
+        return map_coordinates(self.values, c, order=1, mode="constant", cval=self.beyond)
+
+    def inverted(self) -> "SDFGrid":
+        """The same surface with inside and outside swapped: a closed wall that holds the fluid
+        inside it (the space within is free, everything beyond the surface, the grid's far
+        field included, is wall). Host side only (the kernels read ``values`` with FAR outside)."""
+        return SDFGrid(self.origin, self.spacing, -self.values, self.aabb_lo, self.aabb_hi, -self.beyond)
 
     def normal(self, pts: np.ndarray) -> np.ndarray:
         """Unit outward normals ∇sdf/|∇sdf| at points (host side; central differences of half a cell)."""
@@ -304,6 +311,59 @@ def load_obstacles(scene: Scene) -> Obstacles | None:
             m.apply_transform(obstacle_transform(o))
             bodies[k] = RigidBody(m, o, scene.domain.gravity, lo, hi)
     return Obstacles(scene, grids, bodies)
+
+
+# ============================================================================ obstacles of run.json
+#: A container whose closed mesh holds more than this fraction of the first frame's fluid is a
+#: wall around the fluid (SPlisHSPlasH's isWall box), not a solid: its SDF is inverted.
+FLUID_INSIDE_FRACTION = 0.5
+
+
+def run_obstacle_grids(info, run_dir: Path, fluid: np.ndarray | None = None) -> list:
+    """SDFs of the obstacles listed in run.json (``info.obstacles``: an imported case's tank,
+    obstacles and bodies, cases/run_dir.py) for host-side users, each as a :class:`PosedSDF`
+    whose pose comes per frame from run.json's ``bodies``. Meshes are found by
+    ``io.run.obstacle_path`` and placed by ``config.obstacle_transform``; the grid spacing is the
+    entry's ``sdf_resolution`` × r (default 1).
+
+    A ``container`` that holds most of ``fluid`` (the first frame's positions) inside its closed
+    mesh is a wall around the fluid: its SDF is inverted, so the particles stay inside it. A mesh
+    that is not closed cannot bound a volume: it is left out, with a warning."""
+    from pydantic import ValidationError
+
+    from ..config import Solver
+    from ..io.run import obstacle_path
+    from ..progress import console
+    from .bodies import MotionLaw
+
+    r = float(info.particle_radius)
+    h = float(info.extra.get("kernel_support") or Solver.model_fields["kernel_support"].default * r)
+    where = Path(run_dir) / "run.json"
+    out = []
+    for k, e in enumerate(info.obstacles):
+        if not isinstance(e, dict) or not isinstance(e.get("mesh"), str):
+            raise InputError(f"{where}: field 'obstacles[{k}].mesh': expected a mesh file path")
+        path = obstacle_path(e["mesh"], info, run_dir)
+        if path is None:
+            raise InputError(f"{where}: field 'obstacles[{k}].mesh': {e['mesh']} not found")
+        keys = ("translate", "rotate", "scale", "sdf_resolution", "repair")
+        try:
+            o = Obstacle(mesh=str(path), **{key: e[key] for key in keys if key in e})
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            field = ".".join(str(x) for x in err["loc"])
+            raise InputError(f"{where}: field 'obstacles[{k}].{field}': {err['msg']}") from None
+        try:
+            g = build_sdf(o, path, r, pad=h + 2 * o.sdf_resolution * r)
+        except InputError as exc:  # an open wall (or one wound both ways): no volume to keep particles out of
+            console.print(f"[yellow]warning:[/] {exc}: obstacle[{k}] ({e.get('name', path.name)}) is left out of "
+                          "the diffuse particles' collisions", soft_wrap=True)
+            continue
+        if e.get("role") == "container" and fluid is not None and len(fluid):
+            if float((g.sample(np.asarray(fluid, np.float64)) < 0).mean()) > FLUID_INSIDE_FRACTION:
+                g = g.inverted()
+        out.append(PosedSDF(g, MotionLaw(o, run_dir, k), k))
+    return out
 
 
 # ============================================================================ kernels

@@ -1,9 +1,11 @@
 """Real-time viewer (Taichi GGUI): live simulation, playback of runs and
-particle sequences, and headless PNG/MP4 output.
+particle sequences, and headless PNG/MP4 output; and the same in a web browser
+or a Jupyter notebook (viser, :mod:`.web`).
 
-    from whitecap.view import view
+    from whitecap.view import view, web
     view("scenes/dam_break.toml")                       # live window
     view("out/dam_break", headless=True, out="frames")  # PNGs, no display needed
+    web("out/dam_break")                                # in a notebook: shown inline
 """
 
 from __future__ import annotations
@@ -28,4 +30,9 @@ def view(target, headless: bool = False, out=None, frames=None, mp4: bool = Fals
                            size=opts.get("size"), color_mode=opts.get("color_mode"))
 
 
-__all__ = ["view"]
+# The browser viewer's entry point. Imported here, after the submodule of the same name,
+# so that ``whitecap.view.web`` is this function (``from whitecap.view.web import
+# WebViewer`` still reaches the module through the import system).
+from .web import web  # noqa: E402
+
+__all__ = ["view", "web"]

@@ -31,3 +31,24 @@ def fluid_scalar(positions_velocities_density: dict, mode: str) -> np.ndarray:
         return np.asarray(d["density"], np.float32)
     v = d.get("velocities")
     return np.linalg.norm(v, axis=1).astype(np.float32) if v is not None else np.zeros(n, np.float32)
+
+
+GRAVITY = 9.81  # |g| for the default speed range [m/s²]
+
+
+def free_fall_speed(bounds) -> float:
+    """v = sqrt(2 |g| H) over the box height H: the speed scale of a dam break [m/s]."""
+    height = float(np.asarray(bounds.upper)[2] - np.asarray(bounds.lower)[2])
+    return float(np.sqrt(2.0 * GRAVITY * max(height, 0.0)))
+
+
+def fitted_range(values: np.ndarray, mode: str, speed_scale: float) -> tuple[float, float]:
+    """The colour range fitted to a frame: density from its 2nd to 98th percentile;
+    speed from 0 to the larger of ``speed_scale`` (:func:`free_fall_speed`, so that a
+    resting first frame does not fix a range of zero) and the 99th percentile."""
+    s = np.asarray(values)
+    if mode == "density":
+        lo, hi = (float(np.percentile(s, 2)), float(np.percentile(s, 98))) if len(s) else (0.0, 1.0)
+    else:
+        lo, hi = 0.0, max(speed_scale, float(np.percentile(s, 99)) if len(s) else 0.0)
+    return lo, (hi if hi > lo else lo + 1.0)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from .colors import DIFFUSE_COLORS, colormap, fluid_scalar
+from .colors import DIFFUSE_COLORS, colormap, fitted_range, fluid_scalar, free_fall_speed
 from .geometry import box_lines
 from .kernels import fill_fluid_buffer
 from .sources import Frame
@@ -19,7 +19,6 @@ Z_FAR = 1000.0  # camera far plane [m]
 LEGEND_BAR = (0.02, 0.06, 0.22, 0.09)  # colour bar x0, y0, x1, y1 in canvas fractions (y down)
 LEGEND_STEPS = 32  # quads in the colour bar
 LEGEND_BOX_PX = (250, 60)  # range text box width, height [px]
-GRAVITY = 9.81  # |g| for the default speed range [m/s²]
 BOX_LINE_WIDTH = 2.0  # domain box outline width [px]
 
 HELP = [
@@ -93,8 +92,7 @@ class Renderer:
         self.legend_c = ti.Vector.field(3, ti.f32, 6 * LEGEND_STEPS)
         self._legend_geometry()
         self.extent = float(np.linalg.norm(np.asarray(bounds.upper) - np.asarray(bounds.lower)))
-        height = float(bounds.upper[2] - bounds.lower[2])
-        self.speed_scale = float(np.sqrt(2.0 * GRAVITY * max(height, 0.0)))
+        self.speed_scale = free_fall_speed(bounds)
 
     def _legend_geometry(self) -> None:
         x0, y0, x1, y1 = LEGEND_BAR
@@ -120,14 +118,7 @@ class Renderer:
     # --------------------------------------------------------------- drawing
     def color_range(self, state: ViewerState, frame: Frame) -> tuple[float, float]:
         if state.color_range is None:
-            s = fluid_scalar(frame.as_dict(), state.color_mode)
-            if state.color_mode == "density":
-                lo, hi = (float(np.percentile(s, 2)), float(np.percentile(s, 98))) if len(s) else (0.0, 1.0)
-            else:
-                # Free-fall speed over the box height, v = sqrt(2 |g| H): the scale of a dam break,
-                # so that the first (resting) frame does not fix a range of zero.
-                lo, hi = 0.0, max(self.speed_scale, float(np.percentile(s, 99)) if len(s) else 0.0)
-            state.color_range = (lo, hi if hi > lo else lo + 1.0)
+            state.color_range = fitted_range(fluid_scalar(frame.as_dict(), state.color_mode), state.color_mode, self.speed_scale)
         return state.color_range
 
     def draw_scene(self, state: ViewerState, frame: Frame) -> None:

@@ -9,17 +9,22 @@ import taichi as ti
 from ..sim.grid import F1, F3
 from .colors import COLORMAP_STOPS
 
+# The stops as plain Python constants, so the kernel sees compile-time values
+# (calling len() or .tolist() inside a kernel makes Taichi print a warning).
+_N_STOPS = len(COLORMAP_STOPS)
+_STOPS = tuple(tuple(float(c) for c in s) for s in COLORMAP_STOPS)
+
 
 @ti.func
 def _colormap(s, lo, hi):
     """The colour map of :func:`colors.colormap`, for one value inside a kernel."""
-    t = ti.math.clamp((s - lo) / ti.max(hi - lo, 1e-12), 0.0, 1.0) * (len(COLORMAP_STOPS) - 1)
-    k = ti.min(ti.cast(t, ti.i32), len(COLORMAP_STOPS) - 2)
+    t = ti.math.clamp((s - lo) / ti.max(hi - lo, 1e-12), 0.0, 1.0) * (_N_STOPS - 1)
+    k = ti.min(ti.cast(t, ti.i32), _N_STOPS - 2)
     w = t - k
     c = ti.Vector([0.0, 0.0, 0.0])
-    for j in ti.static(range(len(COLORMAP_STOPS) - 1)):
+    for j in ti.static(range(_N_STOPS - 1)):
         if k == j:
-            c = (1.0 - w) * ti.Vector(COLORMAP_STOPS[j].tolist()) + w * ti.Vector(COLORMAP_STOPS[j + 1].tolist())
+            c = (1.0 - w) * ti.Vector(_STOPS[j]) + w * ti.Vector(_STOPS[j + 1])
     return c
 
 

@@ -1,0 +1,479 @@
+"""The browser viewer: the GGUI viewer's scene served to a web page (viser).
+
+For machines without Vulkan or a display (a remote GPU box, an HPC login node,
+WSL2) and for Jupyter. It reads the same sources as GGUI (:mod:`.sources`:
+a written run or particle sequence played back from disk, or a scene simulated
+live), steps them with the same playback logic (:func:`.app._advance`) and
+colours them with the same map (:mod:`.colors`). The page is viser's own client,
+served from the installed package; nothing is fetched from the network.
+
+    whitecap view out/dam_break --web            # prints http://localhost:8080
+    whitecap view scenes/dam_break.toml --web    # live simulation
+
+    import whitecap.view
+    whitecap.view.web("out/dam_break")           # inline in a Jupyter notebook
+
+One loop thread owns the source: it advances frames (paced at the run's frame
+rate, as GGUI) and sends each one it draws. Browser events (sliders, buttons)
+only change the viewer's state and wake the loop. viser keeps only the newest
+update of each scene object for a client that falls behind, so a slow browser
+skips frames instead of queueing them, and the server holds one frame at a time
+(plus the source's small cache): memory stays bounded whatever the run's length.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import logging
+import socket
+import threading
+import time
+
+import numpy as np
+
+from ..config import obstacle_matrix
+from ..errors import InputError, WhitecapError
+from ..io.diffuse_types import TYPE_NAMES
+from .app import FOAM_SLIDERS, _advance, _current, _new_state, open_source
+from .colors import DIFFUSE_COLORS, colormap, fitted_range, fluid_scalar, free_fall_speed
+from .geometry import box_lines, load_obstacle_meshes
+
+log = logging.getLogger("whitecap.view")
+
+DEFAULT_HOST = "localhost"  # serve on this machine only; --host 0.0.0.0 opens it up
+DEFAULT_PORT = 8080
+MAX_POINTS = 300_000  # fluid (and per-type diffuse) points drawn at most; more are subsampled
+SUBSAMPLE_SEED = 0  # the subsample is the same particles every frame
+IDLE_WAIT_S = 0.25  # how long the loop sleeps when nothing plays (a browser event wakes it at once)
+PLAY_WAIT_S = 0.004  # loop period while playing: the pacing in app._advance decides when a frame is due
+DOMAIN_COLOR = (191, 191, 204)  # domain box outline, as GGUI's (0.75, 0.75, 0.8)
+DOMAIN_LINE_PX = 2.0  # domain box outline width [px]
+SURFACE_COLOR = (90, 150, 220)  # reconstructed fluid surface
+SURFACE_OPACITY = 0.7
+COLORBAR_PX = (16, 256)  # colour bar image height, width [px]
+# Point shapes offered. Discs look like GGUI's spheres; squares skip a per-pixel test and draw
+# faster where WebGL runs in software (headless Chromium's SwiftShader).
+POINT_SHAPES = ("circle", "square")
+INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
+
+
+def _u8(rgb) -> np.ndarray:
+    return np.clip(np.round(np.asarray(rgb, np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def check_port_free(host: str, port: int) -> None:
+    """A one-line error naming the port when something already listens on it (viser
+    itself would quietly move to the next free port, away from an SSH forward)."""
+    if not port:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise WhitecapError(f"view --web: cannot resolve host '{host}' ({exc.strerror})") from None
+    for family, kind, proto, _, addr in infos:
+        with socket.socket(family, kind, proto) as s:
+            # as the server binds: a port left in TIME_WAIT is free, one with a listener is not
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(addr)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise WhitecapError(f"view --web: port {port} is already in use on {host}; choose another with --port") from None
+                if exc.errno == errno.EADDRNOTAVAIL:  # e.g. no IPv6 on this machine
+                    continue
+                raise WhitecapError(f"view --web: cannot serve on {host}:{port} ({exc.strerror})") from None
+
+
+def subsample(n: int, max_points: int) -> np.ndarray | None:
+    """Indices of ``max_points`` of ``n`` particles (sorted, the same ones for the same n),
+    or None when all are drawn."""
+    if n <= max_points:
+        return None
+    rng = np.random.default_rng(SUBSAMPLE_SEED)
+    return np.sort(rng.choice(n, max_points, replace=False))
+
+
+class WebViewer:
+    """A viser server showing TARGET (scene TOML: live; run directory or sequence: playback).
+
+    ``start()`` runs the loop in a background thread (notebooks, tests), ``serve()``
+    runs it in the calling thread until interrupted (the CLI). ``port=0`` picks a free port.
+    ``paced=False`` plays as fast as frames can be read (the benchmark).
+    """
+
+    def __init__(self, target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
+                 color_mode: str | None = None, max_points: int = MAX_POINTS, paced: bool = True,
+                 point_shape: str = "circle"):
+        try:
+            import viser
+        except ImportError:
+            raise WhitecapError(INSTALL_HINT) from None
+        if point_shape not in POINT_SHAPES:
+            raise InputError(f"view --web: point shape must be one of {', '.join(POINT_SHAPES)}, got '{point_shape}'")
+        if max_points < 1:
+            raise InputError(f"view --max-points: expected at least 1, got {max_points}")
+        self.source, self.cfg = open_source(target, arch, up)  # a missing run stops here, before any server
+        if color_mode:
+            self.cfg = self.cfg.model_copy(update={"color_mode": color_mode})
+        self.live = bool(self.source.live)
+        self.scene = self.source.scene if self.live else None
+        self.max_points = int(max_points)
+        self.paced = paced
+        self.state = _new_state(self.cfg, self.source)
+        self.state.paused = not self.live  # playback waits for play; live simulates at once
+        self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True, "surface": False}
+        self.point_scale = float(self.cfg.point_scale)
+        self.point_shape = point_shape
+        self.speed_scale = free_fall_speed(self.source.bounds)
+        self.drawn_frame: int | None = None  # source frame index of the picture last sent
+        self.frames_sent = 0
+        self.note = ""
+        self.error: str | None = None  # the last frame that could not be shown, and why
+        self._pending: dict = {}  # live parameter changes, applied by the loop between steps
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._drawn_key = None
+        self._version = 0  # counts browser changes to what is shown
+        self._surface_index = None
+        self._sub_cache: dict[int, np.ndarray | None] = {}
+
+        check_port_free(host, port)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; the CLI prints the URL
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.host, self.port = host, self.server.get_port()
+        if port and self.port != port:  # lost a race for the port after the check
+            self.server.stop()
+            raise WhitecapError(f"view --web: port {port} is already in use on {host}; choose another with --port")
+        self._build_scene(viser)
+        self._build_gui()
+
+    # ------------------------------------------------------------------ setup
+    @property
+    def url(self) -> str:
+        host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
+        return f"http://{'[' + host + ']' if ':' in host else host}:{self.port}"
+
+    def _build_scene(self, viser) -> None:
+        sc, cam = self.server.scene, self.state.camera
+        sc.set_up_direction("+z")
+        ic = self.server.initial_camera
+        ic.position, ic.look_at, ic.up, ic.fov = tuple(cam.eye), tuple(cam.target), (0.0, 0.0, 1.0), float(np.radians(cam.fov))
+        self.server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False)  # no share tunnel: nothing leaves the machine
+        b = self.source.bounds
+        self.h_domain = sc.add_line_segments("/domain", box_lines(b.lower, b.upper).reshape(-1, 2, 3), DOMAIN_COLOR,
+                                             thickness=DOMAIN_LINE_PX, thickness_units="screen")
+        # Points go to the browser in single precision, relative to the domain's centre. (Half
+        # precision would halve the bytes but costs more to draw than it saves where WebGL runs
+        # in software: Chromium's SwiftShader converts half-float vertices on the CPU.)
+        self.origin = 0.5 * (np.asarray(b.lower, float) + np.asarray(b.upper, float))
+        self.precision = "float32"
+        empty = np.zeros((1, 3), np.float32)
+        opts = dict(point_size=self._size(), point_shape=self.point_shape, point_shading="flat", visible=False,
+                    precision=self.precision, position=tuple(self.origin))
+        self.h_fluid = sc.add_point_cloud("/fluid", empty, (0, 0, 0), **opts)
+        self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])), **opts)
+                          for t, name in enumerate(TYPE_NAMES)]
+        self.h_obstacles = []
+        for v, f, _, color, k in load_obstacle_meshes(self.source.obstacles(), self.source.obstacle_base()):
+            h = sc.add_mesh_simple(f"/obstacles/{k}", v, f, color=tuple(int(c) for c in _u8(color)), side="double")
+            self.h_obstacles.append((k, h))
+        self.h_surface = None
+        info = getattr(self.source, "info", None)
+        self.surfaces = {i: self.source.path / rel for i, rel in info.files("mesh")} if info is not None else {}
+        self._so3 = viser.transforms.SO3
+
+    def _size(self) -> float:
+        # viser draws a point of size s as a disc of s / tan(fov/2) · H / z pixels across: s is its radius [m]
+        return float(self.source.radius) * self.point_scale
+
+    def _build_gui(self) -> None:
+        g = self.server.gui
+        self.g_info = g.add_markdown(self._info_text(None))
+        if self.live:
+            with g.add_folder("simulation"):
+                self.g_play = g.add_button("play / pause")
+                self.g_step = g.add_button("step")
+                self.g_reset = g.add_button("reset")
+                s = self.scene.solver
+                self.g_solver = {
+                    "iterations": g.add_slider("iterations", 1, 20, 1, int(s.iterations)),
+                    "xsph_c": g.add_slider("XSPH c", 0.0, 0.5, 0.005, float(s.xsph_c)),
+                    "vorticity_epsilon": g.add_slider("vorticity eps", 0.0, 0.5, 0.005, float(s.vorticity_epsilon)),
+                }
+                for name, h in self.g_solver.items():
+                    h.on_update(lambda e, name=name, h=h: self._set_pending(("solver", name), h.value))
+                fp = self.source.foam_params
+                self.g_foam = {}
+                if fp is not None:
+                    for name in FOAM_SLIDERS:
+                        v = float(getattr(fp, name))
+                        h = g.add_slider(name, 0.0, max(4.0 * v, 1.0), max(4.0 * v, 1.0) / 200, v)
+                        h.on_update(lambda e, name=name, h=h: self._set_pending(("foam", name), h.value))
+                        self.g_foam[name] = h
+            self.g_reset.on_click(lambda e: self._poke(reset=True))
+        else:
+            with g.add_folder("playback"):
+                n = len(self.source)
+                self.g_frame = g.add_slider("frame", 0, max(n - 1, 1), 1, 0, disabled=n < 2)
+                self.g_play = g.add_button("play / pause")
+                self.g_step = g.add_button("step")
+                self.g_loop = g.add_checkbox("loop", self.state.loop)
+            self.g_frame.on_update(self._on_frame_slider)
+            self.g_loop.on_update(lambda e: self._poke(loop=self.g_loop.value))
+        self.g_play.on_click(lambda e: self._poke(paused=not self.state.paused))
+        self.g_step.on_click(lambda e: self._poke(step_once=True, paused=True))
+        with g.add_folder("display"):
+            self.g_color = g.add_dropdown("colour by", ("speed", "density"), initial_value=self.state.color_mode)
+            self.g_colorbar = g.add_image(_u8(colormap(np.repeat(np.linspace(0, 1, COLORBAR_PX[1])[None], COLORBAR_PX[0], 0).ravel(), 0, 1))
+                                          .reshape(*COLORBAR_PX, 3), format="png")
+            self.g_range = g.add_markdown("")
+            self.g_size = g.add_slider("point size", 0.1, 4.0, 0.05, self.point_scale)
+            self.g_shape = g.add_dropdown("point shape", POINT_SHAPES, initial_value=self.point_shape)
+            self.g_show = {}
+            kinds = ["fluid", *TYPE_NAMES, "obstacles", "domain"] + (["surface"] if self.surfaces else [])
+            for kind in kinds:
+                h = g.add_checkbox("surface mesh" if kind == "surface" else kind, self.show[kind])
+                h.on_update(lambda e, kind=kind, h=h: self._toggle(kind, h.value))
+                self.g_show[kind] = h
+        self.g_color.on_update(lambda e: self._poke(color_mode=self.g_color.value, color_range=None))
+        self.g_size.on_update(lambda e: self._set_size(self.g_size.value))
+        self.g_shape.on_update(lambda e: self._set_shape(self.g_shape.value))
+
+    # ------------------------------------------------------------------ events (viser's threads)
+    def _poke(self, **changes) -> None:
+        for k, v in changes.items():
+            setattr(self.state, k, v)
+        self._changed()
+
+    def _changed(self) -> None:
+        self._version += 1
+        self._wake.set()
+
+    def _on_frame_slider(self, event) -> None:
+        if event.client is None:  # the loop moved the slider to the frame it drew
+            return
+        self._poke(frame=int(self.g_frame.value), paused=True)
+
+    def _toggle(self, kind: str, on: bool) -> None:
+        self.show[kind] = bool(on)
+        self._changed()
+
+    def _set_size(self, scale: float) -> None:
+        self.point_scale = float(scale)
+        self._changed()
+
+    def _set_shape(self, shape: str) -> None:
+        self.point_shape = shape
+        self._changed()
+
+    def _set_pending(self, key, value) -> None:
+        self._pending[key] = value
+        self._wake.set()
+
+    # ------------------------------------------------------------------ control from Python
+    def seek(self, k: int) -> None:
+        """Show frame ``k`` (an index into the played sequence), paused."""
+        self._poke(frame=int(np.clip(k, 0, len(self.source) - 1)), paused=True)
+
+    def play(self, on: bool = True) -> None:
+        self._poke(paused=not on)
+
+    # ------------------------------------------------------------------ loop
+    def start(self) -> "WebViewer":
+        """Run the loop in a background thread and return at once."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name="whitecap-web", daemon=True)
+            self._thread.start()
+        return self
+
+    def serve(self) -> None:
+        """Run the loop in this thread until stopped (Ctrl-C)."""
+        try:
+            self._loop()
+        finally:
+            self.stop()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=10)
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+    def __enter__(self) -> "WebViewer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def wait_drawn(self, k: int, timeout: float = 60.0) -> bool:
+        """Poll until the picture of played frame ``k`` has been sent (tests, notebooks)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self.state.frame == k and self.drawn_frame == self._index(k):
+                return True
+            time.sleep(0.01)
+        return False
+
+    def _index(self, k: int) -> int:
+        return k if self.live else self.source.indices[k]
+
+    def _apply_pending(self) -> None:
+        while self._pending:
+            (group, name), value = self._pending.popitem()
+            if group == "solver":
+                setattr(self.scene.solver, name, int(value) if name == "iterations" else float(value))
+            elif self.source.foam_params is not None:
+                self.source.set_foam_params(**{name: float(value)})
+                setattr(self.scene.foam, name, float(value))
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._step()
+            except WhitecapError as exc:  # a bad frame: say so in the panel and wait for the user
+                self.error = str(exc)
+                self.state.paused = True
+                self.g_info.content = f"**error:** {self.error}"
+                log.warning("%s", self.error)
+                self._drawn_key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
+            self._wake.wait(PLAY_WAIT_S if not self.state.paused else IDLE_WAIT_S)
+            self._wake.clear()
+
+    def _step(self) -> None:
+        """Apply pending live settings, advance when playing, and draw when anything changed."""
+        if self.live:
+            self._apply_pending()
+        if not self.paced and not self.live:
+            self.state.last_advance = None  # every pass advances a frame
+        _advance(self.state, self.source)
+        key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
+        if key != self._drawn_key:
+            self._drawn_key = key  # taken before drawing: an event during the draw draws again
+            self._draw(_current(self.source, self.state))
+
+    # ------------------------------------------------------------------ drawing
+    def _sub(self, n: int) -> np.ndarray | None:
+        if n not in self._sub_cache:
+            if len(self._sub_cache) > 4:
+                self._sub_cache.clear()
+            self._sub_cache[n] = subsample(n, self.max_points)
+        return self._sub_cache[n]
+
+    def _draw(self, fr) -> None:
+        st, size = self.state, self._size()
+        d = fr.as_dict()
+        pos = d["positions"]
+        n = len(pos)
+        notes = []
+        with self.server.atomic():
+            if n and self.show["fluid"]:
+                values = fluid_scalar(d, st.color_mode)
+                if st.color_range is None:
+                    st.color_range = fitted_range(values, st.color_mode, self.speed_scale)
+                idx = self._sub(n)
+                if idx is not None:
+                    pos, values = pos[idx], values[idx]
+                    notes.append(f"fluid: drawing {len(idx):,} of {n:,} particles (subsample)")
+                self.h_fluid.points = np.asarray(pos - self.origin, np.float32)
+                self.h_fluid.colors = _u8(colormap(values, *st.color_range))
+                self.h_fluid.point_size = size
+                self.h_fluid.point_shape = self.point_shape
+                self.h_fluid.visible = True
+            else:
+                self.h_fluid.visible = False
+            for t, h in enumerate(self.h_diffuse):
+                sel = None
+                if fr.diffuse_positions is not None and self.show[TYPE_NAMES[t]]:
+                    sel = np.flatnonzero(fr.diffuse_type == t)
+                if sel is None or not len(sel):
+                    h.visible = False
+                    continue
+                idx = self._sub(len(sel))
+                if idx is not None:
+                    notes.append(f"{TYPE_NAMES[t]}: drawing {len(idx):,} of {len(sel):,} particles (subsample)")
+                    sel = sel[idx]
+                h.points = np.asarray(fr.diffuse_positions[sel] - self.origin, np.float32)
+                h.point_size = float(np.median(fr.diffuse_radius[sel])) * self.point_scale
+                h.point_shape = self.point_shape
+                h.visible = True
+            for k, h in self.h_obstacles:
+                h.visible = self.show["obstacles"]
+                body = fr.bodies[k] if fr.bodies and k < len(fr.bodies) else None
+                M = obstacle_matrix({"mesh": ""}, body) if body else np.eye(4)
+                h.wxyz = self._so3.from_matrix(M[:3, :3]).wxyz
+                h.position = M[:3, 3]
+            self.h_domain.visible = self.show["domain"]
+            self._draw_surface(fr.index)
+            self.note = "; ".join(notes)
+            self.g_info.content = self._info_text(fr)
+            if st.color_range is not None:
+                unit = "m/s" if st.color_mode == "speed" else "kg/m³"
+                lo, hi = st.color_range
+                self.g_range.content = f"{st.color_mode} [{unit}]: {lo:.3g} .. {hi:.3g}"
+            if not self.live and int(self.g_frame.value) != st.frame:
+                self.g_frame.value = st.frame
+        self.drawn_frame = fr.index
+        self.frames_sent += 1
+
+    def _draw_surface(self, index: int) -> None:
+        path = self.surfaces.get(index) if self.show["surface"] else None
+        if path is None:
+            if self.h_surface is not None:
+                self.h_surface.visible = False
+            return
+        if self._surface_index != index:
+            from ..io import read_mesh
+
+            m = read_mesh(path)
+            if len(m.faces):
+                self.h_surface = self.server.scene.add_mesh_simple(
+                    "/surface", m.vertices, m.faces, color=SURFACE_COLOR, opacity=SURFACE_OPACITY, side="double")
+            self._surface_index = index
+        if self.h_surface is not None:
+            self.h_surface.visible = True
+
+    def _info_text(self, fr) -> str:
+        if fr is None:
+            return "loading…"
+        st = self.state
+        head = (f"frame {fr.index}" if self.live else f"frame {fr.index} ({st.frame + 1} of {len(self.source)})")
+        lines = [f"**{head}** · t = {fr.time:.3f} s · {'paused' if st.paused else 'playing'}"]
+        if self.live:
+            lines.append(f"{self.source.steps} solver steps")
+        lines.append(" · ".join(f"{name}: {c:,}" for name, c in fr.counts().items()))
+        if self.note:
+            lines.append(f"*{self.note}*")
+        return "\n\n".join(lines)
+
+    # ------------------------------------------------------------------ notebook
+    def _repr_html_(self) -> str:
+        return (f'<iframe src="{self.url}" width="100%" height="{NOTEBOOK_HEIGHT_PX}" '
+                f'style="border:1px solid #ccc"></iframe><div>whitecap viewer at <a href="{self.url}">{self.url}</a></div>')
+
+
+NOTEBOOK_HEIGHT_PX = 560
+
+
+def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
+          color_mode: str | None = None, max_points: int = MAX_POINTS, announce=print) -> None:
+    """The CLI's ``view --web``: serve until Ctrl-C, after printing the URL."""
+    v = WebViewer(target, host=host, port=port, arch=arch, up=up, color_mode=color_mode, max_points=max_points)
+    announce(f"whitecap view: open {v.url} in a browser (Ctrl-C stops)")
+    if v.host in ("localhost", "127.0.0.1", "::1"):
+        announce(f"  from another machine: ssh -L {v.port}:localhost:{v.port} THIS_HOST, then open http://localhost:{v.port}")
+    try:
+        v.serve()
+    except KeyboardInterrupt:
+        pass
+
+
+def web(target, host: str = DEFAULT_HOST, port: int = 0, **opts) -> WebViewer:
+    """Start the browser viewer in the background and return it; in Jupyter, the returned
+    object shows the viewer inline (an iframe of its page). ``port=0`` picks a free port.
+    ``viewer.stop()`` ends it."""
+    return WebViewer(target, host=host, port=port, **opts).start()

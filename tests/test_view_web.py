@@ -1,0 +1,315 @@
+"""The browser viewer (view/web.py) in a real browser: headless Chromium through Playwright.
+
+Skipped with a message where viser, Playwright or a Chromium binary is missing
+(``pip install 'whitecap[web]'`` and Debian's ``chromium``; ``make`` installs both).
+Waits poll for a condition with a generous limit; nothing here measures time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+VIEWPORT = {"width": 1280, "height": 720}
+WAIT_S = 120.0  # upper limit of every poll: a loaded 2-core machine can be slow to start a browser
+BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+# Chromium's software WebGL (SwiftShader): no GPU on the test machines
+CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--ignore-gpu-blocklist"]
+
+viser = pytest.importorskip("viser", reason="the browser viewer needs viser: pip install 'whitecap[web]'")
+
+
+def _chromium() -> str | None:
+    return next((p for p in map(shutil.which, BROWSERS) if p), None)
+
+
+def _poll(cond, what: str, timeout: float = WAIT_S, period: float = 0.05):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = cond()
+        if v:
+            return v
+        time.sleep(period)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api", reason="browser tests need playwright: pip install 'whitecap[web]'")
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no Chromium found (Debian: apt-get install chromium); browser tests skipped")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser):
+    """A page that may load only from this machine: any other request is refused and recorded."""
+    pg = browser.new_page(viewport=VIEWPORT)
+    pg.foreign = []
+
+    def route(r):
+        host = r.request.url.split("/")[2].split(":")[0] if "://" in r.request.url else ""
+        if r.request.url.startswith(("data:", "blob:")) or host in ("localhost", "127.0.0.1", "[::1]"):
+            r.continue_()
+        else:
+            pg.foreign.append(r.request.url)
+            r.abort()
+
+    pg.route("**/*", route)
+    yield pg
+    pg.close()
+
+
+def _open(viewer, page) -> None:
+    """Load the viewer's page and wait until the browser has connected and the first frame is sent."""
+    page.goto(viewer.url)
+    _poll(lambda: viewer.server.get_clients(), "the page to connect")
+    _poll(lambda: viewer.drawn_frame is not None, "the first frame")
+
+
+def _shot(page) -> np.ndarray:
+    import io
+
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB")).astype(float)
+
+
+def _camera(viewer):
+    """The camera the browser reports: pixel coordinates of world points, and the image size."""
+    cam = next(iter(viewer.server.get_clients().values())).camera
+    R = viser.transforms.SO3(np.asarray(cam.wxyz)).as_matrix()  # columns: right, down, forward (OpenCV)
+    eye, W, H = np.asarray(cam.position), cam.image_width, cam.image_height
+    focal = 0.5 * H / math.tan(0.5 * cam.fov)  # fov is vertical [rad]
+
+    def project(points):
+        p = (np.asarray(points, float) - eye) @ R
+        return np.c_[W / 2 + focal * p[:, 0] / p[:, 2], H / 2 + focal * p[:, 1] / p[:, 2]], p[:, 2]
+
+    return project, focal, (W, H)
+
+
+FLUID_TOL = 30.0  # RGB distance within which a pixel counts as fluid-coloured
+GREY_CHROMA = 25.0  # max - min channel below which a pixel is grey (background, panel, box); the map's colours are all above
+
+
+def _fluid_coloured(img: np.ndarray) -> np.ndarray:
+    """Pixels within FLUID_TOL of a colour of the fluid colour map."""
+    from whitecap.view.colors import colormap
+
+    ramp = colormap(np.linspace(0.0, 1.0, 64), 0.0, 1.0) * 255.0
+    out = np.zeros(img.shape[:2], bool)
+    cand = np.ptp(img, axis=-1) > GREY_CHROMA
+    px = img[cand].astype(np.float32)
+    out[cand] = np.min(((px[:, None, :] - ramp[None]) ** 2).sum(-1), axis=1) < FLUID_TOL ** 2
+    return out
+
+
+def _fluid_mask_checks(viewer, page, positions):
+    """Fluid-coloured pixels left of the control panel, and where the particles project."""
+    project, focal, (W, H) = _camera(viewer)
+    img = _shot(page)
+    assert img.shape[:2] == (H, W)
+    # the control panel (its colour bar is fluid-coloured) sits at the right: judge the canvas left of it
+    panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
+    xy, depth = project(positions)
+    assert (xy[:, 0] < panel_x).all() and (xy[:, 0] > 0).all() and (xy[:, 1] > 0).all() and (xy[:, 1] < H).all()
+    fluid = _fluid_coloured(img[:, :panel_x])
+    # where the fluid projects: a disc of the particle radius (plus a pixel) around each particle
+    rad = float(viewer.source.radius) * viewer.point_scale * focal / depth + 1.5
+    where = np.zeros_like(fluid)
+    rows, cols = np.mgrid[0:H, 0:panel_x]
+    for (x, y), r in zip(xy, rad):
+        r0, r1, c0, c1 = int(y - r), int(y + r) + 1, int(x - r), int(x + r) + 1
+        sub = (rows[r0:r1, c0:c1] - y) ** 2 + (cols[r0:r1, c0:c1] - x) ** 2 <= r * r
+        where[r0:r1, c0:c1] |= sub
+    return fluid, where, xy
+
+
+def test_page_draws_the_fluid_where_it_projects(tiny_run, page):
+    """Frame 0 of the tiny dam break, loaded in headless Chromium: the fluid-coloured pixels
+    fall where the particles project through the browser's own camera, and cover most of that
+    region; the page loads nothing from outside this machine."""
+    from whitecap.view.web import WebViewer
+
+    with WebViewer(tiny_run, port=0) as v:
+        _open(v, page)
+        pos = v.source.frame(0).positions
+
+        def drawn():
+            fluid, where, _ = _fluid_mask_checks(v, page, pos)
+            return (fluid, where) if fluid.sum() > 0.5 * where.sum() else None
+
+        fluid, where = _poll(drawn, "the fluid to appear in the page")
+        assert fluid.sum() > 2000
+        assert (fluid & where).sum() / fluid.sum() > 0.97  # fluid colour only where fluid projects
+        assert (fluid & where).sum() / where.sum() > 0.6  # and most of the projected region is fluid
+        # the colour range is shown
+        assert page.get_by_text("speed [m/s]: 0 ..").count() == 1
+    assert page.foreign == []
+
+
+def _drawn(handle) -> np.ndarray:
+    """World positions of the points a point cloud handle last sent."""
+    return np.asarray(handle.points, float) + np.asarray(handle.position, float)
+
+
+def _move_slider_to_end(page) -> None:
+    thumb = page.get_by_role("slider").first
+    thumb.focus()
+    thumb.press("End")
+
+
+def test_timeline_moves_the_drawn_particles(tiny_run, page):
+    """Moving the page's timeline slider to the last frame makes the viewer send that frame's
+    positions (the dam has started to break: they differ from frame 0's), and the page then
+    shows the fluid where frame 3's particles project."""
+    from whitecap.view.web import WebViewer
+
+    with WebViewer(tiny_run, port=0) as v:
+        _open(v, page)
+        first = _drawn(v.h_fluid)
+        last_k = len(v.source) - 1
+        _move_slider_to_end(page)
+        _poll(lambda: v.state.frame == last_k and v.drawn_frame == v.source.indices[last_k], "the last frame to be drawn")
+        p3 = v.source.frame(last_k).positions
+        drawn = _drawn(v.h_fluid)
+        assert np.abs(drawn - p3).max() < 1e-6
+        assert np.abs(drawn - first).max() > 0.01  # the column moved by more than a centimetre
+        _poll(lambda: page.get_by_text(f"frame {v.source.indices[last_k]} ({last_k + 1} of").count(), "the page to show the frame")
+
+        def shows_frame3():
+            fluid, where, _ = _fluid_mask_checks(v, page, p3)
+            return fluid.sum() > 1000 and (fluid & where).sum() / fluid.sum() > 0.97
+
+        _poll(shows_frame3, "the page to draw frame 3")
+
+
+def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
+    """Without a browser: a moving obstacle is placed at each frame's pose from run.json
+    (config.obstacle_matrix); a run over the point limit draws a stable subsample and says so;
+    the notebook view is an iframe of the viewer's page."""
+    import trimesh
+
+    from whitecap.config import obstacle_matrix
+    from whitecap.view.web import WebViewer
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    trimesh.creation.box(extents=(0.08, 0.08, 0.08)).export(run / "block.obj")
+    meta = json.loads((run / "run.json").read_text())
+    meta["obstacles"] = [{"mesh": "block.obj", "translate": [0.45, 0.1, 0.06]}]
+    s = math.sin(math.radians(22.5))
+    for f in meta["frames"]:
+        f["bodies"] = [{"position": [0.0, 0.0, 0.1 * f["index"]], "quaternion": [math.sqrt(1 - s * s), 0.0, 0.0, s]}]
+    (run / "run.json").write_text(json.dumps(meta))
+    with WebViewer(run, port=0, max_points=500) as v:
+        for k in (0, 2):
+            v.seek(k)
+            assert v.wait_drawn(k)
+            (_, h), = v.h_obstacles
+            M = viser.transforms.SE3.from_rotation_and_translation(viser.transforms.SO3(np.asarray(h.wxyz)), np.asarray(h.position)).as_matrix()
+            want = obstacle_matrix({"mesh": ""}, meta["frames"][k]["bodies"][0])
+            assert np.allclose(M, want, atol=1e-6)
+            assert len(v.h_fluid.points) == 500
+            assert "drawing 500 of 1,500 particles (subsample)" in v.g_info.content
+        idx = v._sub(1500)
+        assert np.abs(_drawn(v.h_fluid) - v.source.frame(2).positions[idx]).max() < 1e-6
+        html = v._repr_html_()
+        assert f'<iframe src="{v.url}"' in html
+
+
+def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
+    """A scene TOML is simulated while shown: the drawn frame advances, and the panel's
+    iterations slider reaches the solver's settings."""
+    import tomli_w
+
+    from .conftest import tiny_scene_dict
+
+    from whitecap.view.web import WebViewer
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(tomli_w.dumps(tiny_scene_dict(foam={"enabled": False}, view={"steps_per_draw": 2})))
+    with WebViewer(scene, port=0) as v:
+        _poll(lambda: v.source.steps >= 4 and v.frames_sent >= 2, "the live simulation to advance")
+        v.g_solver["iterations"].value = 7
+        _poll(lambda: v.scene.solver.iterations == 7, "the iterations slider to reach the solver")
+        steps = v.source.steps
+        _poll(lambda: v.source.steps > steps, "more steps")
+
+
+def _cli(*args, **kw):
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src") + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-m", "whitecap.cli", "view", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=WAIT_S, **kw)
+
+
+def test_missing_run_is_a_one_line_error(tmp_path):
+    r = _cli(tmp_path / "nothing", "--web", "--port", "0")
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "nothing" in lines[0], r.stderr
+
+
+def test_port_in_use_is_a_one_line_error_naming_the_port(tiny_run):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = _cli(tiny_run, "--web", "--port", port)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and f"port {port}" in lines[0], r.stderr
+
+
+def test_cli_prints_the_url_and_serves_the_page(tiny_run):
+    """`whitecap view RUN --web` prints the URL; the URL serves viser's page from this machine."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src") + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.Popen([sys.executable, "-m", "whitecap.cli", "view", str(tiny_run), "--web", "--port", "0"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = p.stdout.readline()
+        assert "http://localhost:" in line, line + p.stderr.read() if p.poll() is not None else line
+        url = line.split("open ")[1].split()[0]
+        html = urllib.request.urlopen(url, timeout=WAIT_S).read().decode()
+        assert "<title>Viser</title>" in html and "<div id=\"root\">" in html
+    finally:
+        p.terminate()
+        p.wait(timeout=WAIT_S)
+
+
+def test_a_bad_frame_is_reported_in_the_panel_and_the_viewer_goes_on(tiny_run, tmp_path):
+    """A frame with NaN positions is not drawn: the panel names the file, playback pauses,
+    and the other frames still show."""
+    from whitecap.io import ParticleFrame, read, write
+    from whitecap.view.web import WebViewer
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    bad = run / "fluid" / "fluid_00002.ply"
+    pf = read(bad)
+    pf.positions[5] = np.nan
+    write(bad, ParticleFrame(pf.positions, pf.velocities, pf.ids, pf.density, time=pf.time))
+    with WebViewer(run, port=0) as v:
+        assert v.wait_drawn(0)
+        v.seek(2)
+        _poll(lambda: v.error and "fluid_00002.ply" in v.error, "the error to be reported")
+        assert "fluid_00002.ply" in v.g_info.content and v.state.paused
+        v.seek(1)
+        assert v.wait_drawn(1)
