@@ -128,3 +128,21 @@ def test_a_checkpoint_from_before_the_bound_is_bounded_on_resume():
         want = _add(want, f)
     assert st.history_stride == want[2] and np.array_equal(st.history_frames, want[1])
     assert np.array_equal(st.history, want[0])
+
+
+def test_foam_aging_holds_foam_fed_at_a_steady_rate_at_its_share():
+    """Foam alive = inflow × lifetime / λ: iterating budget.foam_aging on that population brings
+    it to share × budget × fluid particles, and λ never leaves [1, FOAM_AGING_LIMIT]: foam short
+    of its share lives its full lifetime, foam fed past any bound ages at most the limit faster."""
+    share, budget, n = 1 / 3, 3.0, 1000.0
+    target = share * budget * n
+    for inflow_life in (2.6 * target, 0.4 * target):
+        lam = 1.0
+        for _ in range(40):
+            lam = B.foam_aging(lam, inflow_life / lam, n, share, budget)
+        assert lam >= 1.0
+        assert abs(inflow_life / lam - min(inflow_life, target)) < 0.01 * target, (inflow_life, lam)
+    lam = 1.0
+    for _ in range(40):
+        lam = B.foam_aging(lam, 1e3 * target / lam, n, share, budget)
+    assert lam == pytest.approx(B.FOAM_AGING_LIMIT)

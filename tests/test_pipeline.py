@@ -60,9 +60,15 @@ def test_run_all_stages_with_interrupt_and_resume(tmp_path, monkeypatch, capsys)
     # 2. Stop after meshing, then 3. finish: every stage resumes where it was.
     assert main(["run", str(scene), "--out", str(out), "--preview", "--until", "mesh"]) == 0
     assert not (out / "render").exists()
+    # The time of each stage run is printed and recorded (profile.json holds the last run's stages).
+    assert "time per stage: simulate" in capsys.readouterr().out
+    assert list(json.loads((out / "profile.json").read_text())["stage_seconds"]) == ["simulate", "mesh"]
     assert main(["run", str(scene), "--out", str(out), "--preview"]) == 0
     printed = capsys.readouterr().out
     assert "movie:" in printed and "blend:" in printed
+    prof = json.loads((out / "profile.json").read_text())
+    assert list(prof["stage_seconds"]) == ["simulate", "mesh", "render"]
+    assert prof["total_seconds"] == pytest.approx(sum(prof["stage_seconds"].values()), abs=0.01)
     assert (out / "fluid" / "fluid_00002.ply").read_bytes() == frame2  # finished frames are not redone
 
     # The output contract, stage by stage.

@@ -335,6 +335,9 @@ def _cmd_run(a) -> int:
 
     r = pipeline.run(a.scene, out=a.out, until=a.until, preview=a.preview, arch=a.arch, jobs=a.jobs, frames=a.frames,
                      cluster=a.cluster)
+    sec = r["stage_seconds"]
+    print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in sec.items())
+          + f"; total {sum(sec.values()):.1f} s (in {r['profile']})")
     print(f"run directory: {r['run']}")
     for key in ("movie", "blend"):
         if r.get(key):

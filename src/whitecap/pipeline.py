@@ -7,6 +7,7 @@ whole scene-to-movie run); stages themselves never import it.
 from __future__ import annotations
 
 import importlib
+import time
 from pathlib import Path
 
 from . import timing
@@ -106,8 +107,10 @@ def run(
     nframes = sc.output.frames if frames is None else int(frames)
     stages = RUN_STAGES[: RUN_STAGES.index(until) + 1]
     result: dict = {"run": out}
+    seconds: dict[str, float] = {}
     for k, stage in enumerate(stages, 1):
         console.rule(f"[bold]stage {k}/{len(stages)}: {stage}")
+        t0 = time.perf_counter()
         if stage == "simulate":
             state = _simulation_state(out, nframes)
             if state != "new":  # continuing a run of another scene would mix two simulations
@@ -124,7 +127,29 @@ def run(
             r = render(out, quality="preview" if preview else "final", show_progress=show_progress, cluster=cluster,
                        **({"jobs": jobs} if cluster and jobs else {}))
             result.update(r if isinstance(r, dict) else {})
+        seconds[stage] = time.perf_counter() - t0
+    result["stage_seconds"] = seconds
+    result["profile"] = record_stage_times(out, seconds)
     return result
+
+
+STAGE_PROFILE = "profile.json"  # wall time per stage of the last `whitecap run` in this directory
+
+
+def record_stage_times(out: Path, seconds: dict[str, float]) -> Path:
+    """Write the wall time per stage to ``out/profile.json`` (atomically); the CLI prints it.
+
+    A stage that found its frames already made counts only the time it took to
+    see so; the file is rewritten by every run, so it holds the last one."""
+    import json
+
+    from .io.atomic import write_text
+
+    total = sum(seconds.values())
+    path = out / STAGE_PROFILE
+    write_text(path, json.dumps({"stage_seconds": {k: round(v, 3) for k, v in seconds.items()},
+                                 "total_seconds": round(total, 3)}, indent=2) + "\n")
+    return path
 
 
 # ============================================================================ mesh, export

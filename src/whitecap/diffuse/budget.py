@@ -327,3 +327,23 @@ def birth_boost(born, scales, mult) -> float:
     if unit.sum() <= 0:
         return 1.0
     return float((np.asarray(scales, np.float64) * unit).sum() / unit.sum())
+
+
+# Foam is fed by the other types (spray that lands, bubbles that surface turn into foam and keep
+# the lifetime they were born with), so where foam holds more than its share with its own births
+# already scaled down, fewer births cannot bring it back: its particles' lifetimes count down
+# faster instead, by a factor λ ≥ 1 (foam_aging). Foam's population is its inflow times how long
+# it lives, so λ = live / target holds it at its share in steady flow; λ moves there halfway
+# (geometrically) each frame, as the type scales do, never below 1 (the preset's lifetimes are
+# the longest foam lives) nor above FOAM_AGING_LIMIT (lifetimes of 2-5 s no shorter than 0.2-0.5 s).
+FOAM_AGING_LIMIT = 10.0
+
+
+def foam_aging(aging: float, live_foam: float, n_fluid: float, share: float, budget: float) -> float:
+    """λ, how many times faster foam's lifetime counts down than the clock, so that the live foam
+    heads for ``share`` × ``budget`` × ``n_fluid`` (its part of the budget)."""
+    target = share * budget * n_fluid
+    if target <= 0 or live_foam <= 0:
+        return max(1.0, aging ** (1 - TYPE_SCALE_STEP))
+    new = aging ** (1 - TYPE_SCALE_STEP) * (live_foam / target * aging) ** TYPE_SCALE_STEP
+    return float(np.clip(new, 1.0, FOAM_AGING_LIMIT))

@@ -84,6 +84,9 @@ class DiffuseState:
     type_scale: np.ndarray = field(default_factory=lambda: np.ones(3))
     # 'auto': per frame, its time, the new spray, foam, bubbles and the type scales they were made with
     born: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    # 'auto': how many times faster foam's lifetime counts down, so that foam fed by landing spray
+    # and surfacing bubbles keeps to its share (budget.foam_aging)
+    foam_aging: float = 1.0
 
     @classmethod
     def empty(cls) -> "DiffuseState":
@@ -101,6 +104,7 @@ class DiffuseState:
         d["history_frames"], d["history_stride"] = self.history_frames, np.int64(self.history_stride)
         d["type_scale"] = np.asarray(self.type_scale, np.float64)
         d["born"] = np.asarray(self.born, np.float64)
+        d["foam_aging"] = np.float64(self.foam_aging)
         return d
 
     @classmethod
@@ -114,6 +118,7 @@ class DiffuseState:
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
             np.asarray(d.get("type_scale", np.ones(3)), np.float64),
             np.asarray(d.get("born", np.zeros((0, 7))), np.float64).reshape(-1, 7),
+            float(d.get("foam_aging", 1.0)),
         )
 
 
@@ -214,6 +219,13 @@ class FoamGenerator:
         if self._scaled() and st.counts and len(st.born):
             st.type_scale = B.type_scales(st.born, st.counts[-1][1], st.counts[-1][2:], st.type_scale,
                                           self.p.type_multipliers, self.p.shares, self.p, self._dt)
+
+    def _age(self, n: int) -> None:
+        """'auto': foam's aging rate, from the foam alive after the last frame over its share (budget.foam_aging)."""
+        st = self.state
+        if self._scaled() and st.counts:
+            share = self.p.shares[1] * self.p.type_multipliers[1]
+            st.foam_aging = B.foam_aging(st.foam_aging, st.counts[-1][3], n, share, self.p.budget)
 
     def _boost(self) -> float:
         """How many more particles the type scales make than the common scale alone (budget.birth_boost)."""
@@ -385,6 +397,7 @@ class FoamGenerator:
         with timer("foam.potentials"):
             args, fx, fv, fid, pots = self._potential_arrays(fluid, n)
         with timer("foam.advect"):
+            self._age(n)
             old = self._advect(fx, fv, args, dt, index)
         with timer("foam.generate"):
             new = self._generate(fluid, fx, fv, fid, args, pots, n, index, dt)
@@ -447,6 +460,11 @@ class FoamGenerator:
                 sel = kd == t
                 lf[sel] -= dt
                 k &= ~(sel & (lf <= 0.0))
+        # Foam beyond its share under 'auto' ages faster (budget.foam_aging).
+        if st.foam_aging > 1.0:
+            sel = kd == 1
+            lf[sel] -= (st.foam_aging - 1.0) * dt
+            k &= ~(sel & (lf <= 0.0))
         # Foam dissipation: each foam particle survives a frame with probability exp(−λ Δt).
         if p.foam_dissipation > 0:
             foam = kd == 1

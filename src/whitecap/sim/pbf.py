@@ -7,8 +7,8 @@ One step, following Algorithm 1 of the paper:
     neighbours of x*                       grid.NeighborGrid.build (once per step)
     repeat `iterations` times:
         λ_i  = −C_i / (Σ_k |∇_k C_i|² + ε)  compute_lambda,  C_i = ρ_i/ρ0 − 1
-        Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   compute_delta_p
-        x*  ← x* + Δp, then collisions     apply_delta_p
+        Δp_i = 1/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x*_i − x*_j)   correct_positions
+        x*  ← x* + Δp, then collisions     (same kernel, with the next walls' ψ)
     v ← (x* − x)/Δt                        update_velocity
     XSPH viscosity and vorticity ω         compute_vorticity_and_xsph (one neighbour pass)
     vorticity confinement                  apply_vorticity_confinement
@@ -38,7 +38,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
-from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
+from .smoothing import SPHKernel, poly6, poly6_and_spiky_factor, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
@@ -62,6 +62,23 @@ def lookup(table: ti.template(), d: ti.f32, h: ti.f32) -> ti.f32:
     return (1.0 - f) * table[k] + f * table[k + 1]
 
 
+@ti.func
+def wall_share(pi: vec3, lo: vec3, hi: vec3, h: ti.f32, psi_table: ti.template(), dpsi_table: ti.template()):
+    """(ψ, ∇ψ) = (Σ_walls ψ(d), Σ_walls ψ'(d) n_wall) of a point, for the six domain walls."""
+    s = 0.0
+    g = vec3(0.0)
+    for a in ti.static(range(3)):
+        d_lo = pi[a] - lo[a]
+        if d_lo < h:
+            s += lookup(psi_table, d_lo, h)
+            g[a] += lookup(dpsi_table, d_lo, h)  # dψ/dd · ∂d/∂x_a (= +1)
+        d_hi = hi[a] - pi[a]
+        if d_hi < h:
+            s += lookup(psi_table, d_hi, h)
+            g[a] -= lookup(dpsi_table, d_hi, h)
+    return s, g
+
+
 @ti.kernel
 def wall_density_map(
     n: ti.i32, p: F3, lo: vec3, hi: vec3, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3
@@ -71,17 +88,7 @@ def wall_density_map(
     ψ is the boundary's share of ρ_i/ρ0; its gradient enters ∇_i C_i.
     """
     for i in range(n):
-        s = 0.0
-        g = vec3(0.0)
-        for a in ti.static(range(3)):
-            d_lo = p[i][a] - lo[a]
-            if d_lo < h:
-                s += lookup(psi_table, d_lo, h)
-                g[a] += lookup(dpsi_table, d_lo, h)  # dψ/dd · ∂d/∂x_a (= +1)
-            d_hi = hi[a] - p[i][a]
-            if d_hi < h:
-                s += lookup(psi_table, d_hi, h)
-                g[a] -= lookup(dpsi_table, d_hi, h)
+        s, g = wall_share(p[i], lo, hi, h, psi_table, dpsi_table)
         psi[i] = s
         grad_psi[i] = g
 
@@ -111,27 +118,28 @@ def compute_lambda(
         w_sum = poly6(0.0, h2, w_poly6)
         grad_i = vec3(0.0)
         sum_grad2 = 0.0
-        for k in range(nb_count[i]):
+        for k in range(nb_count[i]):  # sums of ∇W; the factor m/ρ0 is applied once after the loop
             r = pi - p[nb[i, k]]
             w_sum += poly6(r.norm_sqr(), h2, w_poly6)
-            g = (mass / rho0) * spiky_grad(r, h, w_spiky)
+            g = spiky_grad(r, h, w_spiky)
             grad_i += g
             sum_grad2 += g.norm_sqr()
         rho_i = mass * w_sum + rho0 * psi[i]
-        grad_i += grad_psi[i]
+        vr = mass / rho0
+        grad_i = vr * grad_i + grad_psi[i]
+        sum_grad2 *= vr * vr
         c = ti.max(rho_i / rho0 - 1.0, 0.0)
         rho[i] = rho_i
         lam[i] = -c / (grad_i.norm_sqr() + sum_grad2 + eps)
 
 
 @ti.kernel
-def compute_delta_p(
+def correct_positions(
     n: ti.i32,
     p: F3,
     nb_count: I1,
     nb: I2,
     lam: F1,
-    grad_psi: F3,
     mass: ti.f32,
     rho0: ti.f32,
     h: ti.f32,
@@ -140,10 +148,25 @@ def compute_delta_p(
     scorr_k: ti.f32,
     scorr_inv_w_dq: ti.f32,
     scorr_n: ti.template(),
-    dp: F3,
+    clamp_lo: vec3,
+    clamp_hi: vec3,
+    next_walls: ti.i32,
+    wall_lo: vec3,
+    wall_hi: vec3,
+    psi_table: F1,
+    dpsi_table: F1,
+    psi: F1,
+    grad_psi: F3,
+    p_out: F3,
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
-    s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction)."""
+    s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction);
+    x*_i ← x*_i + Δp_i kept inside the walls (clamp_lo/hi: the walls shrunk by r),
+    written to ``p_out`` (Jacobi: every Δp reads the old x*).
+
+    With ``next_walls`` set, the same pass also evaluates the walls' density
+    map ψ_i, ∇ψ_i at the new x*_i for the next iteration (:func:`wall_share`),
+    which saves two passes over the particles per iteration."""
     for i in range(n):
         pi = p[i]
         li = lam[i]
@@ -152,19 +175,19 @@ def compute_delta_p(
         for k in range(nb_count[i]):
             j = nb[i, k]
             r = pi - p[j]
-            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq
+            w, f = poly6_and_spiky_factor(r.norm_sqr(), h, h2, w_poly6, w_spiky)
+            q = w * scorr_inv_w_dq
             qn = 1.0
             for _ in ti.static(range(scorr_n)):
                 qn *= q
-            acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
-        dp[i] = (mass / rho0) * acc + li * grad_psi[i]
-
-
-@ti.kernel
-def apply_delta_p(n: ti.i32, p: F3, dp: F3, lo: vec3, hi: vec3):
-    """x* ← x* + Δp, then keep x* inside the walls (lo/hi already shrunk by r)."""
-    for i in range(n):
-        p[i] = ti.math.clamp(p[i] + dp[i], lo, hi)
+            acc += ((li + lam[j] - scorr_k * qn) * f) * r
+        dp = (mass / rho0) * acc + li * grad_psi[i]
+        pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
+        p_out[i] = pn
+        if next_walls:
+            s, g = wall_share(pn, wall_lo, wall_hi, h, psi_table, dpsi_table)
+            psi[i] = s
+            grad_psi[i] = g
 
 
 @ti.kernel
@@ -304,9 +327,12 @@ def estimate_particle_count(scene: Scene) -> int:
 
 
 def bytes_per_particle(max_neighbors: int) -> int:
-    """Device memory per particle: state (x, x*, v, v_tmp, Δp, ω, ∇ψ: 7 vec3; ρ, λ, ψ, id, tmp id: 5
+    """Device memory per particle: state (x, x*, v, v_tmp, ∇ψ or ω: 5 vec3; ρ, λ, ψ, id: 4
     scalars) plus grid (cell, rank, order, sorted copy of x*, count, neighbours)."""
-    return 4 * (7 * 3 + 5) + 4 * (7 + max_neighbors)
+    return 4 * (STATE_WORDS + 7 + max_neighbors)
+
+
+STATE_WORDS = 5 * 3 + 4  # 4-byte words of FluidState per particle
 
 
 # A run may plan to use at most this share of the memory that is free when it starts:
@@ -375,22 +401,19 @@ class FluidState:
     x: object  # positions                         vec3 [m]
     p: object  # predicted positions x*            vec3 [m]
     v: object  # velocities                        vec3 [m/s]
-    v_tmp: object  # scratch (XSPH output, reorder) vec3
-    dp: object  # position corrections Δp          vec3 [m]
-    omega: object  # vorticity ω                  vec3 [1/s]
-    grad_psi: object  # ∇ of boundary density share vec3 [1/m]
+    v_tmp: object  # scratch (XSPH output, corrected x*, reorder) vec3
+    grad_psi: object  # ∇ of boundary density share vec3 [1/m]; after the constraints: vorticity ω [1/s]
     rho: object  # density ρ                        f32 [kg/m³]
     lam: object  # Lagrange multipliers λ           f32 [m²]
     psi: object  # boundary density share ψ         f32 [-]
     ids: object  # persistent particle ids          i32
-    ids_tmp: object
 
     @classmethod
     def allocate(cls, n: int) -> "FluidState":
         v3 = lambda: ti.Vector.ndarray(3, ti.f32, n)  # noqa: E731
         f1 = lambda: ti.ndarray(ti.f32, n)  # noqa: E731
         i1 = lambda: ti.ndarray(ti.i32, n)  # noqa: E731
-        return cls(n, v3(), v3(), v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1(), i1())
+        return cls(n, v3(), v3(), v3(), v3(), v3(), f1(), f1(), f1(), i1())
 
 
 @dataclass
@@ -464,7 +487,7 @@ class PBFSolver:
         return self.scene.solver
 
     def memory_bytes(self) -> int:
-        return self.n * (4 * (7 * 3 + 5)) + self.grid.nbytes()
+        return self.n * 4 * STATE_WORDS + self.grid.nbytes()
 
     # ---------------------------------------------------------------- one step
     def reorder(self) -> None:
@@ -476,8 +499,9 @@ class PBFSolver:
         st.x, st.v_tmp = st.v_tmp, st.x
         gather_vec3(n, order, st.v, st.v_tmp)
         st.v, st.v_tmp = st.v_tmp, st.v
-        gather_i32(n, order, st.ids, st.ids_tmp)
-        st.ids, st.ids_tmp = st.ids_tmp, st.ids
+        # The grid's rank array (scratch of the sort, free until the next one) takes the gathered ids.
+        gather_i32(n, order, st.ids, self.grid.rank)
+        st.ids, self.grid.rank = self.grid.rank, st.ids
 
     def boundary_density(self) -> None:
         st = self.state
@@ -507,14 +531,19 @@ class PBFSolver:
             if overflow:
                 self.stats.neighbor_overflow += overflow
         with timer("pbf.constraints"):
-            for _ in range(s.iterations):
-                self.boundary_density()
+            self.boundary_density()
+            for it in range(s.iterations):
+                if it > 0:  # the walls' share came with the previous correction
+                    for c in self.colliders:
+                        c.add_density_map(self)
                 self.compute_lambda()
-                compute_delta_p(
-                    n, st.p, g.nb_count, g.nb, st.lam, st.grad_psi, self.mass, self.rho0, self.h, self.kernel.poly6,
-                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, st.dp,
+                correct_positions(
+                    n, st.p, g.nb_count, g.nb, st.lam, self.mass, self.rho0, self.h, self.kernel.poly6,
+                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.wall_lo, self.wall_hi,
+                    int(it + 1 < s.iterations), self.domain_lo, self.domain_hi, self.psi_table, self.dpsi_table,
+                    st.psi, st.grad_psi, st.v_tmp,
                 )
-                apply_delta_p(n, st.p, st.dp, self.wall_lo, self.wall_hi)
+                st.p, st.v_tmp = st.v_tmp, st.p
             # Colliders project at the start of each iteration (fused with their
             # density map, see boundary_density) and once more here: the last
             # Δp pushes particles back inside the contact distance r, and
@@ -529,16 +558,18 @@ class PBFSolver:
             # ω and XSPH share one neighbour pass (both read the velocities
             # after the position update); confinement then uses ω of the
             # neighbours and is added on top of the XSPH-smoothed velocity.
+            # ω is kept in ∇ψ's array: ∇ψ is dead once the constraints are done
+            # (recomputed before the next step's first λ), which saves 12 B a particle.
             k = self.kernel
             with timer("pbf.vorticity_xsph"):
                 compute_vorticity_and_xsph(
                     n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.poly6, k.spiky, s.xsph_c,
-                    st.omega, st.v_tmp,
+                    st.grad_psi, st.v_tmp,
                 )
                 st.v, st.v_tmp = st.v_tmp, st.v
                 if s.vorticity_epsilon > 0:
                     apply_vorticity_confinement(
-                        n, st.p, g.nb_count, g.nb, st.rho, st.omega, self.mass, self.h, k.spiky,
+                        n, st.p, g.nb_count, g.nb, st.rho, st.grad_psi, self.mass, self.h, k.spiky,
                         s.vorticity_epsilon, dt, st.v,
                     )
         st.x, st.p = st.p, st.x  # x ← x*
