@@ -43,7 +43,9 @@ def report(name: str, ours: np.ndarray, theirs: np.ndarray, floor: int = 100) ->
     print(f"\n{name}")
     for k, t in enumerate(TYPES):
         print(f"  {t:8s} peak: FoamGenerator {theirs[:, k].max():8,d}  whitecap {int(ours[:, k].max()):8,d}  "
-              f"ratio {ours[:, k].max() / max(theirs[:, k].max(), 1):.2f}")
+              f"ratio {ours[:, k].max() / max(theirs[:, k].max(), 1):.2f};  whole run (sum over frames): "
+              f"FoamGenerator {theirs[:, k].sum():10,d}  whitecap {int(ours[:, k].sum()):10,d}  "
+              f"ratio {ours[:, k].sum() / max(theirs[:, k].sum(), 1):.2f}")
     for shift in (0, 1):
         a, b = ours[: len(ours) - shift], theirs[shift: shift + len(ours)]
         n = min(len(a), len(b))
@@ -58,15 +60,24 @@ def report(name: str, ours: np.ndarray, theirs: np.ndarray, floor: int = 100) ->
         print(f"  per frame (FoamGenerator >= {floor}; whitecap {shift} frame(s) ahead): " + "; ".join(parts))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--foamgenerator", required=True, help="the FoamGenerator executable")
-    ap.add_argument("--input", default=str(ROOT.parent / "shared/data/dualsphysics_dambreak"))
-    a = ap.parse_args()
-    os.environ.setdefault("WHITECAP_PROGRESS", "0")
-    sys.path.insert(0, str(ROOT))
-    from tests.conftest import write_partio_bgeo  # whitecap itself never writes BGEO
+def fg_runs(fg: str, bgeo: Path, out: Path, radius: float, dt: float, n: int, box) -> dict[str, str]:
+    """FoamGenerator's --splittypes logs with its defaults, without and with ``box`` (y up) as a kill box."""
+    cmd = [fg, "-i", str(bgeo / "ParticleData_Fluid_#.bgeo"), "-o", str(out / "foam_#.bgeo"),
+           "-r", str(radius), "-t", str(dt), "-s", "1", "-e", str(n), "--splittypes"]
+    runs = {
+        "FoamGenerator defaults (no bounding box)": cmd,
+        "FoamGenerator defaults, --bbsize = the case domain --bbtype kill": cmd + [
+            "--bbsize=" + ",".join(f"{v:g}" for v in box), "--bbtype=kill"],
+    }
+    return {k: subprocess.run(c, capture_output=True, text=True, check=True).stdout for k, c in runs.items()}
 
+
+def counts(run: Path) -> np.ndarray:
+    return np.loadtxt(run / "diffuse" / "counts.csv", delimiter=",", skiprows=1)[:, 2:]
+
+
+def dualsphysics(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
+    """The DualSPHysics PartFluid sequence: converted to y-up BGEO; whitecap reads it as it is."""
     from whitecap import io
     from whitecap.diffuse import postprocess
     from whitecap.io.dualsphysics import read_case
@@ -75,33 +86,80 @@ def main() -> None:
     src = Path(a.input)
     case = read_case(sorted(src.glob("*.xml"))[0])
     files = find_sequence(src / "PartFluid_*.vtk")
+    for k, (_, p) in enumerate(files, 1):  # FoamGenerator counts frames from 1, y up
+        f = io.read(p)
+
+        def y_up(v):
+            return np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+
+        write_partio_bgeo(tmp / "bgeo" / f"ParticleData_Fluid_{k}.bgeo", y_up(f.positions),
+                          {"velocity": y_up(f.velocities)})
+    lo, hi = np.asarray(case.lower), np.asarray(case.upper)
+    box = [lo[0], lo[2], -hi[1], hi[0], hi[2], -lo[1]]  # the domain, y up
+    logs = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.time_out, len(files), box)
+    postprocess(str(src / "PartFluid_*.vtk"), out=tmp / "wc", preset="splishsplash", show_progress=False)
+    head = (f"{src}: {len(files)} frames, {len(f):,} fluid particles, r = {case.particle_radius} m, "
+            f"frame time {case.time_out} s")
+    return head, logs, {"whitecap --preset splishsplash": counts(tmp / "wc")}
+
+
+def splishsplash(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
+    """A SPlisHSPlasH output folder: FoamGenerator gets its fluid frames as SPlisHSPlasH's partio
+    exporter writes them (y up, the solver's row order, velocity, density and id); whitecap imports
+    the case (`whitecap import`) and runs on its fluid without obstacles, the tank's inside as the
+    domain (FoamGenerator knows no obstacles), and, for reference, with the tank and bodies."""
+    from whitecap import io
+    from whitecap.cases.splishsplash import _axes, read_case
+    from whitecap.diffuse import postprocess
+    from whitecap.io.run import RunInfo
+    from whitecap.pipeline import import_case
+
+    src = Path(a.input)
+    case = read_case(src)
+    to_y = _axes(case.up)  # rows: z-up vectors -> the solver's y-up ones (v_z @ M)
+    for k, p in case.fluid:  # SPlisHSPlasH numbers frames from 1, as FoamGenerator reads them
+        f = io.read(p, up=case.up)  # the file's own row order (SPlisHSPlasH z-sorts its particles)
+        write_partio_bgeo(tmp / "bgeo" / f"ParticleData_Fluid_{k}.bgeo", f.positions @ to_y,
+                          {"velocity": f.velocities @ to_y, "density": f.density, "id": f.ids.astype(np.int32)})
+    tank = next(s for s in case.shapes if s.role == "container")
+    lo, hi = tank.vertices.min(axis=0), tank.vertices.max(axis=0)  # z up
+    box = np.concatenate([(lo @ to_y), (hi @ to_y)])
+    box = [*np.minimum(box[:3], box[3:]), *np.maximum(box[:3], box[3:])]
+    logs = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.frame_dt,
+                   case.fluid[-1][0], box)
+    run = tmp / "run"
+    import_case(src, run, show_progress=False)
+    fluid = [(i, run / rel) for i, rel in RunInfo.load(run).files("fluid")]
+    postprocess(run / "fluid", frames=fluid, out=tmp / "wc", preset="splishsplash", dt=case.frame_dt,
+                radius=case.particle_radius, domain=(lo, hi), show_progress=False)
+    postprocess(run, out=tmp / "wc_obstacles", preset="splishsplash", show_progress=False)
+    head = (f"{src}: {len(case.fluid)} frames, {len(f):,} fluid particles, r = {case.particle_radius} m, "
+            f"frame time {case.frame_dt} s")
+    return head, logs, {"whitecap --preset splishsplash (no obstacles, the tank's inside as domain)": counts(tmp / "wc"),
+                        "whitecap --preset splishsplash with the tank and the sphere": counts(tmp / "wc_obstacles")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--foamgenerator", required=True, help="the FoamGenerator executable")
+    ap.add_argument("--input", default=str(ROOT.parent / "shared/data/dualsphysics_dambreak"),
+                    help="a DualSPHysics case folder (PartFluid_*.vtk and the case XML) or a SPlisHSPlasH output folder")
+    a = ap.parse_args()
+    os.environ.setdefault("WHITECAP_PROGRESS", "0")
+    sys.path.insert(0, str(ROOT))
+    from tests.conftest import write_partio_bgeo  # whitecap itself never writes BGEO
+
+    from whitecap.cases.splishsplash import is_case
+
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         (tmp / "bgeo").mkdir()
-        for k, (_, p) in enumerate(files, 1):  # FoamGenerator counts frames from 1, y up
-            f = io.read(p)
-
-            def y_up(v):
-                return np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
-
-            write_partio_bgeo(tmp / "bgeo" / f"ParticleData_Fluid_{k}.bgeo", y_up(f.positions),
-                              {"velocity": y_up(f.velocities)})
-        lo, hi = np.asarray(case.lower), np.asarray(case.upper)
-        box = [lo[0], lo[2], -hi[1], hi[0], hi[2], -lo[1]]  # the domain, y up
-        cmd = [a.foamgenerator, "-i", str(tmp / "bgeo" / "ParticleData_Fluid_#.bgeo"), "-o", str(tmp / "fg" / "foam_#.bgeo"),
-               "-r", str(case.particle_radius), "-t", str(case.time_out), "-s", "1", "-e", str(len(files)), "--splittypes"]
-        runs = {
-            "FoamGenerator defaults (no bounding box)": cmd,
-            "FoamGenerator defaults, --bbsize = the case domain --bbtype kill": cmd + [
-                "--bbsize=" + ",".join(f"{v:g}" for v in box), "--bbtype=kill"],
-        }
-        logs = {k: subprocess.run(c, capture_output=True, text=True, check=True).stdout for k, c in runs.items()}
-        postprocess(str(src / "PartFluid_*.vtk"), out=tmp / "wc", preset="splishsplash", show_progress=False)
-        ours = np.loadtxt(tmp / "wc" / "diffuse" / "counts.csv", delimiter=",", skiprows=1)[:, 2:]
-    print(f"{src}: {len(files)} frames, {len(f):,} fluid particles, r = {case.particle_radius} m, "
-          f"frame time {case.time_out} s")
+        build = splishsplash if is_case(a.input) else dualsphysics
+        head, logs, ours = build(a, tmp, write_partio_bgeo)
+    print(head)
     for name, log in logs.items():
-        report(f"whitecap --preset splishsplash vs {name}", ours, foamgenerator_counts(log))
+        for label, c in ours.items():
+            report(f"{label} vs {name}", c, foamgenerator_counts(log))
 
 
 if __name__ == "__main__":

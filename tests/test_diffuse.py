@@ -950,3 +950,35 @@ def test_foam_aging_survives_a_checkpoint():
     st = DiffuseState.empty()
     st.foam_aging = 3.5
     assert DiffuseState.from_arrays(st.to_arrays()).foam_aging == 3.5
+
+
+@pytest.mark.parametrize("preset", ["splishsplash", "splishsplash-manual", "ihmsen2012"])
+def test_foam_thins_out_only_in_whitecaps_own_presets_not_in_foamgenerators(preset):
+    # 400 foam particles with 10 s to live on a resting block, for 1 s: FoamGenerator removes foam
+    # only when its lifetime ends, so its presets keep every one; whitecap's own presets also
+    # dissipate foam at FOAM_DISSIPATION = 0.5 /s, keeping about exp(-0.5) = 61 %.
+    from dataclasses import replace
+
+    from whitecap.diffuse.generator import DiffuseState, FoamGenerator
+    from whitecap.diffuse.params import FOAM_DISSIPATION
+
+    dt, r, frames = 0.04, 0.01, 25
+    x = _lattice(10, r)
+    fr = io.ParticleFrame(positions=x, velocities=np.zeros_like(x), ids=np.arange(len(x), dtype=np.uint32))
+    p = replace(resolve(preset=preset), ta_min=1e3, ta_max=2e3, wc_min=1e3, wc_max=2e3)  # no generation
+    gen = FoamGenerator(p, r, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=1)
+    gen.state = DiffuseState.empty()
+    gen.state.tau = np.array([1e3, 2e3, 1e3, 2e3, 1e3, 2e3, 1e3, 2e3], np.float32) if p.model == "foamgenerator" else None
+    n = 400
+    rng = np.random.default_rng(0)
+    x0 = np.column_stack([rng.uniform(0.17, 0.21, n), rng.uniform(0.17, 0.21, n), np.full(n, x[:, 2].max() + r)])
+    gen.state.positions, gen.state.velocities = x0.astype(np.float32), np.zeros((n, 3), np.float32)
+    gen.state.lifetime, gen.state.ids = np.full(n, 10.0, np.float32), np.arange(n, dtype=np.uint32)
+    for k in range(1, frames + 1):
+        out = gen.step(fr, k, dt)
+    assert (out.arrays["type"] == 1).all()  # foam throughout
+    if preset.startswith("splishsplash"):
+        assert p.foam_dissipation == 0.0 and len(out) == n
+    else:
+        expected = n * np.exp(-FOAM_DISSIPATION * frames * dt)
+        assert abs(len(out) - expected) < 0.15 * n

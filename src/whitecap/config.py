@@ -310,9 +310,10 @@ class Foam(_Section):
         None, min_length=2, max_length=2,
         description="bubble lifetime range [min, max], counting down while a bubble; unset = until it surfaces [s]",
     )
-    foam_dissipation: float = Field(
-        0.5, ge=0, le=100,
-        description="foam thins out: each foam particle vanishes at this rate besides its lifetime [1/s]",
+    foam_dissipation: float | None = Field(
+        None, ge=0, le=100,
+        description="foam thins out: each foam particle vanishes at this rate besides its lifetime; "
+        "unset = the preset's (0.5, none for the FoamGenerator presets) [1/s]",
     )
     slots_per_particle: int | None = Field(
         None, ge=1, le=64,

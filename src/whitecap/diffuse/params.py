@@ -17,6 +17,10 @@ from ..progress import console
 # SPlisHSPlasH FoamGenerator's --foamscale default (Tools/FoamGenerator/main.cpp): the global
 # multiplier of the generated count; its automatic mode sets k_ta = k_wc = 1 times this.
 FOAMSCALE = 1000.0
+# whitecap's own foam thinning [1/s] (its presets and 'auto'; [foam] foam_dissipation): each foam
+# particle also vanishes at this rate, so long-lived foam does not pile up. FoamGenerator has no
+# such term, so its presets set 0.
+FOAM_DISSIPATION = 0.5
 
 
 @dataclass(frozen=True)
@@ -64,12 +68,14 @@ PRESETS: dict[str, dict] = {
         ta_min=5, ta_max=20, wc_min=2, wc_max=8, ke_min=5, ke_max=50, vo_min=5, vo_max=20,
         k_ta=4000, k_wc=50000, k_vo=0, spray_below=6, bubble_above=20,
         lifetime_min=2, lifetime_max=5, lifetime_multiplier=0, buoyancy=2.0, drag=0.8,
+        foam_dissipation=FOAM_DISSIPATION,
     ),
     # DualSPHysics DiffuseCalculator defaults.
     "dualsphysics": dict(
         ta_min=5, ta_max=20, wc_min=2, wc_max=8, ke_min=5, ke_max=50, vo_min=5, vo_max=20,
         k_ta=40, k_wc=40, k_vo=0, spray_below=6, bubble_above=9,
         lifetime_min=0, lifetime_max=0, lifetime_multiplier=10, buoyancy=0.8, drag=0.5,
+        foam_dissipation=FOAM_DISSIPATION,
     ),
     # SPlisHSPlasH FoamGenerator's manual-mode numbers (its --no-auto defaults for --limits,
     # --ta, --wc, --vo, --lifetime, --buoyancy, --drag), applied to whitecap's potentials
@@ -78,6 +84,7 @@ PRESETS: dict[str, dict] = {
         ta_min=5, ta_max=20, wc_min=2, wc_max=8, ke_min=5, ke_max=50, vo_min=5, vo_max=20,
         k_ta=4000, k_wc=50000, k_vo=4000, spray_below=6, bubble_above=20,
         lifetime_min=2, lifetime_max=5, lifetime_multiplier=0, buoyancy=2.0, drag=0.8,
+        foam_dissipation=0.0,  # FoamGenerator's foam goes only when its lifetime ends
     ),
     # SPlisHSPlasH FoamGenerator's default, automatic mode: limits from the whole sequence
     # (τmin, τmax = 0.1, 1 × the mean per-frame maximum; the values below are placeholders),
@@ -86,6 +93,7 @@ PRESETS: dict[str, dict] = {
         ta_min=0, ta_max=1, wc_min=0, wc_max=1, ke_min=0, ke_max=1, vo_min=0, vo_max=1,
         k_ta=FOAMSCALE, k_wc=FOAMSCALE, k_vo=0, spray_below=6, bubble_above=20,
         lifetime_min=2, lifetime_max=5, lifetime_multiplier=0, buoyancy=2.0, drag=0.8, model="foamgenerator",
+        foam_dissipation=0.0,  # FoamGenerator's foam goes only when its lifetime ends
     ),
 }
 PRESETS["auto"] = dict(PRESETS["ihmsen2012"])
