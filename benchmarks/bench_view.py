@@ -57,7 +57,7 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
 
     from whitecap.io import ParticleFrame, write
     from whitecap.view.colors import colormap
-    from whitecap.view.web import WebViewer
+    from whitecap.view.web import HEADLESS_CHROMIUM_ARGS, WebViewer
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
@@ -83,7 +83,7 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
     v = WebViewer(seq, port=0, paced=False, point_shape=shape)
     v.start()
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=chromium, args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader"])
+        b = p.chromium.launch(executable_path=chromium, args=list(HEADLESS_CHROMIUM_ARGS))
         page = b.new_page(viewport={"width": size[0], "height": size[1]})
         t_goto = time.perf_counter()
         page.goto(v.url)

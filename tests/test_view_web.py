@@ -25,8 +25,6 @@ ROOT = Path(__file__).resolve().parents[1]
 VIEWPORT = {"width": 1280, "height": 720}
 WAIT_S = 120.0  # upper limit of every poll: a loaded 2-core machine can be slow to start a browser
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
-# Chromium's software WebGL (SwiftShader): no GPU on the test machines
-CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--ignore-gpu-blocklist"]
 
 viser = pytest.importorskip("viser", reason="the browser viewer needs viser: pip install 'whitecap[web]'")
 
@@ -52,7 +50,9 @@ def browser():
     if exe is None:
         pytest.skip("no Chromium found (Debian: apt-get install chromium); browser tests skipped")
     with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
+        from whitecap.view.web import HEADLESS_CHROMIUM_ARGS
+
+        b = p.chromium.launch(executable_path=exe, args=list(HEADLESS_CHROMIUM_ARGS))
         yield b
         b.close()
 

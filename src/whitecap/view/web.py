@@ -53,9 +53,14 @@ DOMAIN_LINE_PX = 2.0  # domain box outline width [px]
 SURFACE_COLOR = (90, 150, 220)  # reconstructed fluid surface
 SURFACE_OPACITY = 0.7
 COLORBAR_PX = (16, 256)  # colour bar image height, width [px]
-# Point shapes offered. Discs look like GGUI's spheres; squares skip a per-pixel test and draw
-# faster where WebGL runs in software (headless Chromium's SwiftShader).
+# Point shapes offered. Discs look like GGUI's spheres; squares skip a per-pixel test (in headless
+# Chromium's software WebGL without multisampling, no measurable gain: 2.7 frames/s for both).
 POINT_SHAPES = ("circle", "square")
+# Headless Chromium's flags for the tests and the benchmark (one place): software WebGL through
+# ANGLE on SwiftShader, the only WebGL this GPU-less machine's Chromium offers (ANGLE on Vulkan
+# through Mesa's lavapipe gives no WebGL context at all in Chromium 156 here).
+HEADLESS_CHROMIUM_ARGS = ("--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--ignore-gpu-blocklist",
+                          "--webgl-antialiasing-mode=none", "--webgl-msaa-sample-count=0")
 INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
 
 
