@@ -38,7 +38,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
-from .smoothing import SPHKernel, poly6, poly6_and_spiky_factor, poly6_np, spiky_grad, spiky_grad_np
+from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
@@ -164,6 +164,13 @@ def correct_positions(
     x*_i ← x*_i + Δp_i kept inside the walls (clamp_lo/hi: the walls shrunk by r),
     written to ``p_out`` (Jacobi: every Δp reads the old x*).
 
+    The sum is taken in two loops over the neighbours, λ_i Σ∇W + Σ λ_j ∇W and
+    then −k Σ (W/W(Δq))ⁿ ∇W: each loop is small enough that LLVM vectorises it
+    8 neighbours at a time, while the one-loop form was vectorised 32 at a time
+    (8 lanes × 4 interleaved), so that particles with fewer than 32 neighbours
+    (most of them: about 27 on average) ran it scalar. Two loops: 1.2× faster
+    (measured with Taichi 1.7.4 / LLVM 15 on x86-64).
+
     With ``next_walls`` set, the same pass also evaluates the walls' density
     map ψ_i, ∇ψ_i at the new x*_i for the next iteration (:func:`wall_share`),
     which saves two passes over the particles per iteration."""
@@ -171,16 +178,27 @@ def correct_positions(
         pi = p[i]
         li = lam[i]
         h2 = h * h
-        acc = vec3(0.0)
+        grad_sum = vec3(0.0)  # Σ_j ∇W(x_ij)
+        lx = 0.0  # Σ_j λ_j ∇W(x_ij), by component: as scalars the loop stays vectorised
+        ly = 0.0
+        lz = 0.0
         for k in range(nb_count[i]):
             j = nb[i, k]
-            r = pi - p[j]
-            w, f = poly6_and_spiky_factor(r.norm_sqr(), h, h2, w_poly6, w_spiky)
-            q = w * scorr_inv_w_dq
+            g = spiky_grad(pi - p[j], h, w_spiky)
+            grad_sum += g
+            lj = lam[j]
+            lx += lj * g.x
+            ly += lj * g.y
+            lz += lj * g.z
+        corr = vec3(0.0)  # Σ_j (W(x_ij)/W(Δq))ⁿ ∇W(x_ij)
+        for k in range(nb_count[i]):
+            r = pi - p[nb[i, k]]
+            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq
             qn = 1.0
             for _ in ti.static(range(scorr_n)):
                 qn *= q
-            acc += ((li + lam[j] - scorr_k * qn) * f) * r
+            corr += qn * spiky_grad(r, h, w_spiky)
+        acc = li * grad_sum + vec3(lx, ly, lz) - scorr_k * corr
         dp = (mass / rho0) * acc + li * grad_psi[i]
         pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
         p_out[i] = pn

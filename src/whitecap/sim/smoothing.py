@@ -44,23 +44,6 @@ def spiky_grad(r: ti.math.vec3, h: ti.f32, coef: ti.f32) -> ti.math.vec3:
     return g
 
 
-@ti.func
-def poly6_and_spiky_factor(r2: ti.f32, h: ti.f32, h2: ti.f32, c_poly6: ti.f32, c_spiky: ti.f32):
-    """(W_poly6, f) for a pair at squared distance r², where ∇W_spiky(r) = f r: both kernels behind
-    one test of r² (the same values as :func:`poly6` and :func:`spiky_grad`; (0, 0) beyond h)."""
-    w = 0.0
-    f = 0.0
-    if 0.0 < r2 < h2:
-        d = h2 - r2
-        w = c_poly6 * d * d * d
-        inv = ti.rsqrt(r2)
-        e = h - r2 * inv
-        f = c_spiky * e * e * inv
-    elif r2 == 0.0:
-        w = c_poly6 * h2 * h2 * h2
-    return w, f
-
-
 def poly6_np(r2, h):
     """NumPy twin of :func:`poly6`, for setup-time calibration."""
     import numpy as np
