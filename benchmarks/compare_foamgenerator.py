@@ -1,15 +1,21 @@
 """Per-type diffuse counts of `--preset splishsplash` beside SPlisHSPlasH's FoamGenerator.
 
     python benchmarks/compare_foamgenerator.py --foamgenerator PATH/TO/FoamGenerator \
-        [--input ../shared/data/dualsphysics_dambreak]
+        [--input ../shared/data/dualsphysics_dambreak | ../shared/data/splishsplash_rigid]
 
-Converts the DualSPHysics PartFluid sequence (with its case XML) to y-up BGEO
+A SPlisHSPlasH output folder (`whitecap import` reads it) gives FoamGenerator
+its fluid frames as SPlisHSPlasH's partio export would (y up, the solver's row
+order, velocity, density, id); whitecap runs on the imported fluid without
+obstacles (FoamGenerator has none), the tank's inside as the domain, and again
+with the case's tank and bodies. Otherwise the input is a DualSPHysics case:
+converts the DualSPHysics PartFluid sequence (with its case XML) to y-up BGEO
 frames 1, 2, ... as SPlisHSPlasH writes them, runs FoamGenerator with its
 defaults (automatic mode; radius and time step from the case) twice, without a
 bounding box (its default: spray falls for ever) and with the case's domain as
 a killing box (as whitecap removes what leaves the domain), runs
 `whitecap foam --preset splishsplash` on the same frames, and prints per type
-the peak counts and the per-frame ratio whitecap / FoamGenerator.
+the peak counts, the sums over all frames and the per-frame ratio whitecap /
+FoamGenerator (the share of frames within 2x).
 
 FoamGenerator is not shipped: build it from SPlisHSPlasH (Tools/FoamGenerator).
 Its --splittypes log gives the counts of each frame's particles before that
