@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..sim.bodies import quaternion
+
 #: the pose of a body at rest
 IDENTITY_POSE = {"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]}
 
@@ -37,21 +39,11 @@ def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return R, q_bar - R @ p_bar
 
 
-def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix, w ≥ 0 (trimesh's conversion)."""
-    import trimesh.transformations as T
-
-    M = np.eye(4)
-    M[:3, :3] = R
-    q = T.quaternion_from_matrix(M)
-    return q if q[0] >= 0 else -q
-
-
 def pose(R: np.ndarray, t: np.ndarray, previous: dict | None = None) -> dict:
     """A run.json pose from a rotation and translation. With ``previous``, the quaternion's sign
     is the one nearer the previous pose's, so that keys interpolated per component (Blender)
     take the short way between frames."""
-    q = quaternion_from_rotation(R)
+    q = np.asarray(quaternion(R))  # w ≥ 0; the one conversion, shared with the rigid-body solver
     q = q / np.linalg.norm(q)
     if previous is not None and float(np.dot(q, previous["quaternion"])) < 0:
         q = -q
