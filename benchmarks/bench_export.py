@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_mesh import R, synthetic_frame  # noqa: E402
+from bench_mesh import R, loadavg, synthetic_frame  # noqa: E402
 
 from whitecap import io as wio  # noqa: E402
 from whitecap.io.frame import ParticleFrame  # noqa: E402
@@ -37,13 +37,6 @@ from whitecap.io.run import RunInfo, frame_name  # noqa: E402
 from whitecap.pipeline import export, mesh  # noqa: E402
 
 FPS = 30.0
-
-
-def loadavg() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "n/a"
 
 
 def make_run(run: Path, particles: int, frames: int, diffuse: int) -> None:

@@ -146,3 +146,25 @@ def test_foam_aging_holds_foam_fed_at_a_steady_rate_at_its_share():
     for _ in range(40):
         lam = B.foam_aging(lam, 1e3 * target / lam, n, share, budget)
     assert lam == pytest.approx(B.FOAM_AGING_LIMIT)
+
+
+def test_the_births_kept_are_bounded_and_give_the_type_scales_and_boost_of_all_frames():
+    """2000 frames of births at 60 fps (33 s, lifetimes up to a few seconds): budget.born_add keeps
+    only the frames younger than the longest lifetime (and the last BOOST_FRAMES), and
+    type_scales and birth_boost from them are those from every frame's births."""
+    p, dt = _auto(), 1 / 60
+    rng = np.random.default_rng(5)
+    full, kept = np.zeros((0, 7)), np.zeros((0, 7))
+    live, scales = np.array([900.0, 2500.0, 600.0]), np.ones(3)
+    horizon = B.longest_life(p, dt)
+    for f in range(2000):
+        row = [f * dt, *rng.integers(0, 200, 3), *rng.uniform(0.5, 2.0, 3)]
+        full = np.concatenate([full, [row]])
+        kept = B.born_add(kept, row, p, dt)
+        assert len(kept) <= horizon / dt + 2
+        if f % 97 == 0 or f == 1999:
+            args = (f * dt, live, scales, p.type_multipliers, p.shares, p, dt)
+            np.testing.assert_allclose(B.type_scales(kept, *args), B.type_scales(full, *args), rtol=1e-12)
+            assert B.birth_boost(kept, scales * [1, 2, 3], p.type_multipliers) == pytest.approx(
+                B.birth_boost(full, scales * [1, 2, 3], p.type_multipliers), rel=1e-12)
+    assert len(kept) < len(full) / 5

@@ -196,3 +196,16 @@ def test_find_array_matches_aliases_case_insensitively_in_order():
     assert io.find_array({"VELOCITY": 1, "V": 2}, VELOCITY_NAMES) == "VELOCITY"
     assert io.find_array({"Rho": 1, "Rhop": 2}, DENSITY_NAMES) == "Rhop"
     assert io.find_array({"speed": 1}, VELOCITY_NAMES) is None
+
+
+def test_mesh_check_finite_names_the_file_and_the_bad_vertex_count(tmp_path):
+    from whitecap.io.mesh import SurfaceMesh
+
+    verts = np.eye(3)
+    io.write_mesh(tmp_path / "m.ply", SurfaceMesh(verts, [[0, 1, 2]]))
+    io.read_mesh(tmp_path / "m.ply").check_finite()  # finite: no error
+    verts[1, 2] = np.nan
+    io.write_mesh(tmp_path / "m.ply", SurfaceMesh(verts, [[0, 1, 2]]))
+    with pytest.raises(InputError) as e:
+        io.read_mesh(tmp_path / "m.ply").check_finite()
+    assert str(e.value) == f"{tmp_path / 'm.ply'}: vertices: 1 are NaN or infinite"

@@ -36,8 +36,6 @@ from .errors import MissingDependency, WhitecapError
 from .workers import die_with_parent
 
 CLUSTER_HINT = "install it with: pip install 'whitecap[cluster]' (dask, distributed, dask-jobqueue)"
-#: seconds to wait for a Dask scheduler to answer before giving up (``[cluster] connect_timeout``)
-CONNECT_TIMEOUT = 10.0
 #: the command each batch system submits jobs with (dask-jobqueue calls it)
 SUBMIT_COMMAND = {"slurm": "sbatch", "pbs": "qsub"}
 #: file name prefix of the probe written into the shared directory to check that workers see it

@@ -117,9 +117,14 @@ def survival(p, dt: float, ages: np.ndarray) -> np.ndarray:
     return alive * np.exp(-p.foam_dissipation * ages)
 
 
+def longest_life(p, dt: float) -> float:
+    """The age [s] from which S is 0: the longest foam lifetime."""
+    return p.lifetime_multiplier * dt if p.lifetime_multiplier > 0 else p.lifetime_max
+
+
 def mean_residence(p, dt: float) -> float:
     """∫S: how long a new particle lives on average [s]."""
-    hi = p.lifetime_multiplier * dt if p.lifetime_multiplier > 0 else p.lifetime_max
+    hi = longest_life(p, dt)
     ages = np.arange(0.0, hi + dt, dt)
     return float(survival(p, dt, ages).sum() * dt)
 
@@ -313,6 +318,16 @@ def type_scales(born, t_now: float, live, scales, mult, shares, p, dt: float) ->
 
 # Frames whose births give the split of the births now (birth_boost).
 BOOST_FRAMES = 10
+
+
+def born_add(born, row, p, dt: float) -> np.ndarray:
+    """``born`` (as in type_scales) with this frame's ``row``, less the frames no longer needed:
+    those at least the longest lifetime old, whose S is 0 now and stays 0 as ages only grow,
+    beyond the last BOOST_FRAMES (birth_boost). Memory and the work per frame stay bounded."""
+    born = np.concatenate([np.asarray(born, np.float64).reshape(-1, 7), [row]])
+    keep = born[-1, 0] - born[:, 0] < longest_life(p, dt)
+    keep[-BOOST_FRAMES:] = True
+    return born[keep]
 
 
 def birth_boost(born, scales, mult) -> float:

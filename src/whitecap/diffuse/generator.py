@@ -83,6 +83,7 @@ class DiffuseState:
     # takes its share of the budget (budget.type_scales)
     type_scale: np.ndarray = field(default_factory=lambda: np.ones(3))
     # 'auto': per frame, its time, the new spray, foam, bubbles and the type scales they were made with
+    # (the frames that still count: budget.born_add)
     born: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
     # 'auto': how many times faster foam's lifetime counts down, so that foam fed by landing spray
     # and surfacing bubbles keeps to its share (budget.foam_aging)
@@ -407,7 +408,7 @@ class FoamGenerator:
         c = [int((kind == t).sum()) for t in range(3)]
         time_ = fluid.time if fluid.time is not None else index * dt
         if self._scaled():
-            st.born = np.concatenate([st.born, [[time_, *np.bincount(new[3], minlength=3)[:3], *st.type_scale]]])
+            st.born = B.born_add(st.born, [time_, *np.bincount(new[3], minlength=3)[:3], *st.type_scale], self.p, dt)
         st.counts.append((index, time_, *c))
         self._track_peak(c, n, index)
         return ParticleFrame(

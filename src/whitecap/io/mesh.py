@@ -49,6 +49,12 @@ class SurfaceMesh:
     def __len__(self) -> int:
         return len(self.vertices)
 
+    def check_finite(self) -> None:
+        """Raise InputError naming the file if any vertex is NaN/inf."""
+        bad = int((~np.isfinite(self.vertices).all(axis=1)).sum())
+        if bad:
+            raise InputError(f"{self.source}: vertices: {bad} are NaN or infinite")
+
 
 # Meshes are read and written through the one format registry (kind "mesh").
 from .registry import read_mesh, write_mesh  # noqa: E402,F401

@@ -71,11 +71,8 @@ def frame_geometry(run_dir: Path, files: dict, index: int, has_mesh: bool, point
     """The fluid surface and point sets of one frame, from the files ``files`` (kind -> path in the run)."""
     mesh = None
     if has_mesh and "mesh" in files:
-        src = run_dir / files["mesh"]
-        mesh = read_mesh(src)
-        bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
-        if bad:
-            raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
+        mesh = read_mesh(run_dir / files["mesh"])
+        mesh.check_finite()
     points: dict[str, PointSet] = {}
     if "fluid" in point_sets and "fluid" in files:
         f = read(run_dir / files["fluid"])

@@ -102,9 +102,7 @@ def export_frame(src: Path, kind: str, paths: dict[str, Path], to: str) -> None:
     """Write one frame of one kind: ``paths`` maps each series name (kind, diffuse_<type>) to its file."""
     if kind == "mesh":
         mesh = read_mesh(src)
-        bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
-        if bad:
-            raise InputError(f"{src}: vertices: {bad} are NaN or infinite")
+        mesh.check_finite()
         _write_surface(paths["mesh"], mesh, to)
         return
     frame = wio.read(src)

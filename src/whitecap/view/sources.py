@@ -89,6 +89,7 @@ class PlaybackSource:
             self.files = [self.path / rel for _, rel in fl]
             self.diffuse = {i: self.path / rel for i, rel in self.info.files("diffuse")}
             self.times = {f["index"]: f.get("time", f["index"] / self.info.frame_rate) for f in self.info.frames}
+            self.bodies = {f["index"]: f["bodies"] for f in self.info.frames if f.get("bodies")}
             self.radius = float(self.info.particle_radius)
             d = self.info.domain or {}
             self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float)) if "lower" in d else None
@@ -99,6 +100,7 @@ class PlaybackSource:
             self.indices = [i for i, _ in seq]
             self.files = [q for _, q in seq]
             self.times = {}
+            self.bodies = {}
             self.bounds = None
             self.radius = None
         self._cache: dict[int, Frame] = {}
@@ -131,8 +133,7 @@ class PlaybackSource:
         idx = self.indices[k]
         t = pf.time if pf.time is not None else self.times.get(idx, float(idx))
         fr = Frame(idx, float(t), pf.positions, pf.velocities, pf.density)
-        if self.info is not None:
-            fr.bodies = next((f.get("bodies") for f in self.info.frames if f["index"] == idx), None)
+        fr.bodies = self.bodies.get(idx)
         dpath = self.diffuse.get(idx)
         if dpath is not None and dpath.is_file():
             dfr = read(dpath)

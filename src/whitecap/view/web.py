@@ -144,6 +144,7 @@ class WebViewer:
         self._version = 0  # counts browser changes to what is shown
         self._surface_index = None
         self._sub_cache: dict[int, np.ndarray | None] = {}
+        self._poses: dict[int, dict | None] = {}  # per obstacle, the body pose last sent (absent: at rest)
 
         check_port_free(host, port)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; the CLI prints the URL
@@ -409,6 +410,9 @@ class WebViewer:
             for k, h in self.h_obstacles:
                 h.visible = self.show["obstacles"]
                 body = fr.bodies[k] if fr.bodies and k < len(fr.bodies) else None
+                if body == self._poses.get(k):  # at the pose already sent (static obstacles: always)
+                    continue
+                self._poses[k] = body
                 M = obstacle_matrix({"mesh": ""}, body) if body else np.eye(4)
                 h.wxyz = self._so3.from_matrix(M[:3, :3]).wxyz
                 h.position = M[:3, 3]
