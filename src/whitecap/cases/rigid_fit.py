@@ -19,10 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 
-#: the pose of a body at rest
-IDENTITY_POSE = {"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]}
-
-
 def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R (3, 3), t (3,)) minimising Σ |R rest_i + t − moved_i|² (row i of both is one particle)."""
     P = np.asarray(rest, np.float64).reshape(-1, 3)
