@@ -158,7 +158,7 @@ def read_case(folder: str | Path, xml: str | Path | None = None, up: str = "z",
             moving.append((shape, members, sel))
     _pick_container(case, [s for s in case.shapes if s.role == "obstacle"])
     if floating_csv is not None:
-        _poses_from_csv(case, moving, Path(floating_csv), first_index * frame_dt, b0)
+        _poses_from_csv(case, moving, Path(floating_csv), first_index * frame_dt)
     for shape, members, sel in moving:
         if shape.poses is None:
             shape.poses = _fitted_poses(case, bound, first_index, b0, members, sel, shape)
@@ -262,7 +262,7 @@ def read_floating_csv(path: str | Path) -> dict[str, np.ndarray]:
     return {name: data[:, k] for k, name in enumerate(names)}
 
 
-def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float, b0: dict) -> None:
+def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float) -> None:
     """Poses of the floating body the CSV describes, at every fluid frame's time."""
     cols = read_floating_csv(path)
     m = re.search(r"mk(\d+)", path.name, re.IGNORECASE)
