@@ -37,13 +37,13 @@ from ..errors import InputError
 from ..io.dualsphysics import CaseInfo, read_case as read_case_xml
 from ..io.registry import find_array
 from ..io.sequence import find_sequence
+from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
 from . import Case, CaseShape
 from .particle_surface import cell_surface
 from .rigid_fit import fit_pose, pose
 
 #: PartVTK's particle Type codes
 TYPE_NAMES = {0: "fixed", 1: "moving", 2: "floating", 3: "fluid"}
-FLUID_TYPE = 3
 MOVING_TYPES = (1, 2)
 #: a rigid fit needs this many particles (3 non-collinear fix a rotation; one more to be over-determined)
 MIN_SHAPE_PARTICLES = 4
