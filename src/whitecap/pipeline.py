@@ -187,11 +187,11 @@ def mesh(
         from .executor import cluster_settings
 
         ccfg = cluster_settings(run, config)
+    cores = len(os.sched_getaffinity(0))
+    remote = bool(cluster) and cluster != "local"
     # splashsurf's own threads: on when one frame has the machine (one job, or a remote worker)
-    frame_jobs = jobs or len(os.sched_getaffinity(0))
-    jobs = jobs or (ccfg.jobs if cluster and cluster != "local" else len(os.sched_getaffinity(0)))
-    if cluster and cluster != "local":
-        frame_jobs = 1
+    frame_jobs = 1 if remote else (jobs or cores)
+    jobs = jobs or (ccfg.jobs if remote else cores)
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
     job = plan(run, out=out, radius=radius, config=cfg, jobs=frame_jobs, up=up, **overrides)
