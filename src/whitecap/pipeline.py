@@ -304,7 +304,7 @@ def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | 
               fluid_model: str | None = None):
     """A DualSPHysics or SPlisHSPlasH output folder as a :class:`whitecap.cases.Case`.
     ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH ones."""
-    from .cases import dualsphysics
+    from .cases import dualsphysics, splishsplash
     from .errors import InputError
 
     src = Path(case_output)
@@ -315,11 +315,7 @@ def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | 
             if val is not None:
                 raise InputError(f"{src}: {opt} is for SPlisHSPlasH cases; this is DualSPHysics output")
         return dualsphysics.read_case(src, xml=xml, up=up or "z", floating_csv=floating_csv)
-    try:
-        from .cases import splishsplash
-    except ImportError:
-        splishsplash = None
-    if splishsplash is not None and splishsplash.is_case(src):
+    if splishsplash.is_case(src):
         for opt, val in (("--xml", xml), ("--floating-csv", floating_csv)):
             if val is not None:
                 raise InputError(f"{src}: {opt} is for DualSPHysics cases; this is SPlisHSPlasH output")
