@@ -62,17 +62,23 @@ def rotation(angles_deg) -> np.ndarray:
     return Rotation.from_euler("xyz", angles_deg, degrees=True).as_matrix()
 
 
-XML = """<?xml version="1.0" encoding="UTF-8" ?>
+def case_xml(blocks: str) -> str:
+    """A DualSPHysics case XML of spacing DP whose <particles> lists ``blocks`` (one line per mk block)."""
+    return f"""<?xml version="1.0" encoding="UTF-8" ?>
 <case><casedef><constantsdef><rhop0 value="1000"/><gravity x="0" y="0" z="-9.81"/></constantsdef>
-<geometry><definition dp="{dp}"><pointmin x="-0.1" y="-0.1" z="-0.1"/><pointmax x="1" y="1" z="1"/></definition>
+<geometry><definition dp="{DP}"><pointmin x="-0.1" y="-0.1" z="-0.1"/><pointmax x="1" y="1" z="1"/></definition>
 </geometry></casedef>
 <execution><parameters><parameter key="TimeOut" value="0.05"/></parameters>
 <particles mkboundfirst="10" mkfluidfirst="1">
+{blocks.strip()}</particles></execution></case>
+"""
+
+
+XML = case_xml("""
 <fixed mkbound="0" mk="10" begin="0" count="1"/>
 <floating mkbound="40" mk="50" begin="1" count="1"/>
 <moving mkbound="50" mk="60" begin="2" count="1"/>
-<fluid mkfluid="0" mk="1" begin="3" count="1"/></particles></execution></case>
-"""
+<fluid mkfluid="0" mk="1" begin="3" count="1"/>""")
 N_FRAMES = 5
 
 
@@ -87,7 +93,7 @@ def synthetic_case(folder: Path, noise: float = 0.01 * DP, frames: int = N_FRAME
     ``noise`` per particle and frame, a still moving-type cube (mk 60) and a fluid block.
     Returns the cube's rest particles and per-frame particles."""
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "Case.xml").write_text(XML.format(dp=DP))
+    (folder / "Case.xml").write_text(XML)
     rng = np.random.default_rng(1)
     g = np.stack(np.meshgrid(np.arange(30), np.arange(20), [0], indexing="ij"), -1).reshape(-1, 3)
     floor = (g + 0.5) * DP  # 0.6 × 0.4 m, one particle thick

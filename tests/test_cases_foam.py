@@ -21,7 +21,7 @@ from whitecap.io import read, read_mesh
 from whitecap.io.run import RunInfo
 from whitecap.sim.obstacles import compute_sdf
 
-from .test_cases_dualsphysics import DP, motion, write_part_vtk
+from .test_cases_dualsphysics import DP, case_xml, motion, write_part_vtk
 
 TINY_SPLISHSPLASH = Path(__file__).resolve().parent / "data" / "splishsplash_rigid"
 R = DP / 2
@@ -30,17 +30,11 @@ R = DP / 2
 # ones by a fraction of a cell (r) at edges and corners, where particles pushed out are put.
 INSIDE_DEPTH = 0.3 * R
 
-XML = """<?xml version="1.0" encoding="UTF-8" ?>
-<case><casedef><constantsdef><rhop0 value="1000"/><gravity x="0" y="0" z="-9.81"/></constantsdef>
-<geometry><definition dp="{dp}"><pointmin x="-0.1" y="-0.1" z="-0.1"/><pointmax x="1" y="1" z="1"/></definition>
-</geometry></casedef>
-<execution><parameters><parameter key="TimeOut" value="0.05"/></parameters>
-<particles mkboundfirst="10" mkfluidfirst="1">
+XML = case_xml("""
 <fixed mkbound="0" mk="10" begin="0" count="1"/>
 <fixed mkbound="1" mk="11" begin="1" count="1"/>
 <floating mkbound="40" mk="50" begin="2" count="1"/>
-<fluid mkfluid="0" mk="1" begin="3" count="1"/></particles></execution></case>
-"""
+<fluid mkfluid="0" mk="1" begin="3" count="1"/>""")
 FRAMES = 4
 
 
@@ -54,7 +48,7 @@ def churning_case(folder: Path) -> None:
     """A floor (mk 10), a solid building (mk 11, 0.1 × 0.1 × 0.2 m), a solid floating cube (mk 50)
     moved by ``motion`` and a fluid cloud through all of them, at 2 m/s with 1.5 m/s of churn."""
     folder.mkdir(parents=True)
-    (folder / "Case.xml").write_text(XML.format(dp=DP))
+    (folder / "Case.xml").write_text(XML)
     rng = np.random.default_rng(5)
     floor = block((40, 20, 1), [0.0, 0.0, 0.0])
     building = block((5, 5, 10), [0.4, 0.15, 0.02])

@@ -22,6 +22,12 @@ CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), 
                 "pip install 'whitecap[cluster]'")
 
 
+def _add_cluster_option(p, scope: str = "") -> None:
+    """The --cluster option shared by the per-frame commands (mesh, export, render, run);
+    ``scope`` prefixes the help when the option applies to only some of a command's modes."""
+    p.add_argument("--cluster", metavar="WHERE", help=scope + CLUSTER_HELP)
+
+
 # ============================================================================ simulate
 def _add_simulate(sub) -> None:
     p = sub.add_parser(
@@ -158,7 +164,7 @@ def _add_mesh(sub) -> None:
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
-    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
+    _add_cluster_option(p)
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_mesh)
 
@@ -201,7 +207,7 @@ def _add_export(sub) -> None:
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series (usd and abc always split them)")
     p.add_argument("--jobs", "-j", type=int, default=1, help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
-    p.add_argument("--cluster", metavar="WHERE", help="vtk, ply: " + CLUSTER_HELP)
+    _add_cluster_option(p, "vtk, ply: ")
     p.set_defaults(func=_cmd_export)
 
 
@@ -278,7 +284,7 @@ def _add_render(sub) -> None:
     p.add_argument("--force", action="store_true", help="render frames again even if they exist")
     p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
     p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
-    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
+    _add_cluster_option(p)
     p.set_defaults(func=_cmd_render)
 
 
@@ -325,7 +331,7 @@ def _add_run(sub) -> None:
     p.add_argument("--preview", action="store_true", help="preview quality throughout (small, few samples)")
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
-    p.add_argument("--cluster", metavar="WHERE", help=CLUSTER_HELP)
+    _add_cluster_option(p)
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
     p.set_defaults(func=_cmd_run)
 

@@ -187,11 +187,11 @@ def mesh(
         from .executor import cluster_settings
 
         ccfg = cluster_settings(run, config)
+    cores = len(os.sched_getaffinity(0))
+    remote = bool(cluster) and cluster != "local"
     # splashsurf's own threads: on when one frame has the machine (one job, or a remote worker)
-    frame_jobs = jobs or len(os.sched_getaffinity(0))
-    jobs = jobs or (ccfg.jobs if cluster and cluster != "local" else len(os.sched_getaffinity(0)))
-    if cluster and cluster != "local":
-        frame_jobs = 1
+    frame_jobs = 1 if remote else (jobs or cores)
+    jobs = jobs or (ccfg.jobs if remote else cores)
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
     job = plan(run, out=out, radius=radius, config=cfg, jobs=frame_jobs, up=up, **overrides)
@@ -304,7 +304,7 @@ def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | 
               fluid_model: str | None = None):
     """A DualSPHysics or SPlisHSPlasH output folder as a :class:`whitecap.cases.Case`.
     ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH ones."""
-    from .cases import dualsphysics
+    from .cases import dualsphysics, splishsplash
     from .errors import InputError
 
     src = Path(case_output)
@@ -315,11 +315,7 @@ def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | 
             if val is not None:
                 raise InputError(f"{src}: {opt} is for SPlisHSPlasH cases; this is DualSPHysics output")
         return dualsphysics.read_case(src, xml=xml, up=up or "z", floating_csv=floating_csv)
-    try:
-        from .cases import splishsplash
-    except ImportError:
-        splishsplash = None
-    if splishsplash is not None and splishsplash.is_case(src):
+    if splishsplash.is_case(src):
         for opt, val in (("--xml", xml), ("--floating-csv", floating_csv)):
             if val is not None:
                 raise InputError(f"{src}: {opt} is for DualSPHysics cases; this is SPlisHSPlasH output")

@@ -37,13 +37,13 @@ from ..errors import InputError
 from ..io.dualsphysics import CaseInfo, read_case as read_case_xml
 from ..io.registry import find_array
 from ..io.sequence import find_sequence
+from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
 from . import Case, CaseShape
 from .particle_surface import cell_surface
 from .rigid_fit import fit_pose, pose
 
 #: PartVTK's particle Type codes
 TYPE_NAMES = {0: "fixed", 1: "moving", 2: "floating", 3: "fluid"}
-FLUID_TYPE = 3
 MOVING_TYPES = (1, 2)
 #: a rigid fit needs this many particles (3 non-collinear fix a rotation; one more to be over-determined)
 MIN_SHAPE_PARTICLES = 4
@@ -158,7 +158,7 @@ def read_case(folder: str | Path, xml: str | Path | None = None, up: str = "z",
             moving.append((shape, members, sel))
     _pick_container(case, [s for s in case.shapes if s.role == "obstacle"])
     if floating_csv is not None:
-        _poses_from_csv(case, moving, Path(floating_csv), first_index * frame_dt, b0)
+        _poses_from_csv(case, moving, Path(floating_csv), first_index * frame_dt)
     for shape, members, sel in moving:
         if shape.poses is None:
             shape.poses = _fitted_poses(case, bound, first_index, b0, members, sel, shape)
@@ -262,7 +262,7 @@ def read_floating_csv(path: str | Path) -> dict[str, np.ndarray]:
     return {name: data[:, k] for k, name in enumerate(names)}
 
 
-def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float, b0: dict) -> None:
+def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float) -> None:
     """Poses of the floating body the CSV describes, at every fluid frame's time."""
     cols = read_floating_csv(path)
     m = re.search(r"mk(\d+)", path.name, re.IGNORECASE)

@@ -21,9 +21,6 @@ import numpy as np
 
 from ..sim.bodies import quaternion
 
-#: the pose of a body at rest
-IDENTITY_POSE = {"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]}
-
 
 def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R (3, 3), t (3,)) minimising Σ |R rest_i + t − moved_i|² (row i of both is one particle)."""

@@ -50,7 +50,7 @@ from ..errors import InputError
 from ..io import read_mesh
 from ..io.axes import to_z_up
 from . import Case, CaseShape
-from .rigid_fit import kabsch, pose
+from .rigid_fit import fit_poses, pose
 
 SOLVER = "splishsplash"
 
@@ -530,10 +530,7 @@ def _from_meshes(d: Path, files: dict[int, dict[int, Path]], scene: _Scene, fram
                     raise InputError(f"{per_frame[k]}: {len(mk.vertices)} vertices, but the first frame's mesh "
                                      f"has {len(rest_v)}: vertex correspondence is needed to fit the pose")
                 moved.append(np.asarray(mk.vertices, np.float64) @ M.T)
-            poses = []
-            for q in moved:
-                R, t = kabsch(rest_v, q)
-                poses.append(pose(R, t, poses[-1] if poses else None))
+            poses = fit_poses(rest_v, moved)
             moves = any(np.abs(q - rest_v).max() > _MOVING_TOL for q in moved)
             if not (moves or dynamic):
                 poses = None

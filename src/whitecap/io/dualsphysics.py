@@ -107,10 +107,8 @@ def _boundary_shapes(root, case_stem: str) -> tuple[dict[int, str], list[tuple[s
     if vtkout is not None:
         first = int(vtkout.get("mkboundfirst", first if first is not None else 0))
         for f in vtkout.findall("vtkfile"):
-            name = f.get("name", "")
-            for cut in (case_stem + "_",):
-                name = name[len(cut):] if name.startswith(cut) else name
-            name = name.removesuffix(".vtk").removesuffix("_Dp") or f"mk{f.get('mk')}"
+            name = f.get("name", "").removeprefix(case_stem + "_").removesuffix(".vtk").removesuffix("_Dp")
+            name = name or f"mk{f.get('mk')}"
             shapes.append((name, _mk_list(f.get("mk", ""))))
     if not shapes:  # follow the drawing commands: the bound Mks set between two shapeouts are one shape
         first = first if first is not None else 0
