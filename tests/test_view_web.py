@@ -313,3 +313,44 @@ def test_a_bad_frame_is_reported_in_the_panel_and_the_viewer_goes_on(tiny_run, t
         assert "fluid_00002.ply" in v.g_info.content and v.state.paused
         v.seek(1)
         assert v.wait_drawn(1)
+
+
+def test_a_frame_with_an_empty_surface_hides_the_previous_surface(tiny_run, tmp_path):
+    """Without a browser: with the surface shown, a frame whose surface mesh is empty (all
+    fluid left the domain, or splashsurf found no surface) shows no surface, not the previous
+    frame's; a later frame with a surface shows that frame's mesh."""
+    import trimesh
+
+    from whitecap.io import write_mesh
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.view.web import WebViewer
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    (run / "mesh").mkdir()
+    meta = json.loads((run / "run.json").read_text())
+    boxes = {}
+    for f in meta["frames"]:
+        k = f["index"]
+        if k == 1:
+            mesh = SurfaceMesh.empty()
+        else:
+            b = trimesh.creation.box(extents=(0.1, 0.1, 0.1 + 0.05 * k))
+            mesh = SurfaceMesh(b.vertices, b.faces)
+        boxes[k] = mesh
+        write_mesh(run / "mesh" / f"surface_{k:05d}.ply", mesh)
+        f["files"]["mesh"] = f"mesh/surface_{k:05d}.ply"
+        f["made_from"]["mesh"] = f["made_from"]["fluid"]  # made from these fluid frames: not stale
+    (run / "run.json").write_text(json.dumps(meta))
+    with WebViewer(run, port=0) as v:
+        v._toggle("surface", True)
+        shown = lambda: v.h_surface is not None and v.h_surface.visible  # noqa: E731
+        for k in (0, 1, 2):
+            v.seek(k)
+            assert v.wait_drawn(k)
+            idx = v.source.indices[k]
+            if len(boxes[idx].faces):  # (frame 0 may have been drawn before the surface was switched on)
+                _poll(lambda: shown() and np.allclose(np.asarray(v.h_surface.vertices), boxes[idx].vertices, atol=1e-6),
+                      f"frame {idx}'s surface to be shown")
+            else:
+                assert not shown()

@@ -442,6 +442,9 @@ class WebViewer:
             if len(m.faces):
                 self.h_surface = self.server.scene.add_mesh_simple(
                     "/surface", m.vertices, m.faces, color=SURFACE_COLOR, opacity=SURFACE_OPACITY, side="double")
+            elif self.h_surface is not None:  # an empty surface: the previous frame's must not stay
+                self.h_surface.remove()
+                self.h_surface = None
             self._surface_index = index
         if self.h_surface is not None:
             self.h_surface.visible = True
