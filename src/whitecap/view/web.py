@@ -184,6 +184,18 @@ class WebViewer:
         self.h_fluid = sc.add_point_cloud("/fluid", empty, (0, 0, 0), **opts)
         self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])), **opts)
                           for t, name in enumerate(TYPE_NAMES)]
+        # viser's client builds a new point material whenever a cloud's colours change (every frame
+        # for the fluid) and disposes the old one; three.js then deletes the shader program, which was
+        # the only user, and compiles and links it again for the next frame. A second cloud with
+        # per-point colours that never change holds the same program, so each new material reuses
+        # it: 30 ms less browser main-thread CPU per frame shown in software WebGL (bench_view --web).
+        # Its two points sit on a corner of the domain box, in the box's colour (a point of size 0
+        # still covers one pixel), and hide with the box.
+        corner = np.asarray(b.lower, np.float32)[None] - self.origin.astype(np.float32)
+        self.h_program_keeper = sc.add_point_cloud(
+            "/program_keeper", np.repeat(corner, 2, 0), np.repeat(np.asarray([DOMAIN_COLOR], np.uint8), 2, 0),
+            point_size=0.0, point_shape=self.point_shape, point_shading="flat", precision=self.precision,
+            position=tuple(self.origin))
         self.h_obstacles = []
         for v, f, _, color, k in load_obstacle_meshes(self.source.obstacles(), self.source.obstacle_base()):
             h = sc.add_mesh_simple(f"/obstacles/{k}", v, f, color=tuple(int(c) for c in _u8(color)), side="double")
@@ -418,7 +430,7 @@ class WebViewer:
                 M = obstacle_matrix({"mesh": ""}, body) if body else np.eye(4)
                 h.wxyz = self._so3.from_matrix(M[:3, :3]).wxyz
                 h.position = M[:3, 3]
-            self.h_domain.visible = self.show["domain"]
+            self.h_domain.visible = self.h_program_keeper.visible = self.show["domain"]
             self._draw_surface(fr.index)
             self.note = "; ".join(notes)
             self.g_info.content = self._info_text(fr)
