@@ -18,6 +18,12 @@
 
     python benchmarks/bench_view.py --web [--n 100000] [--web-frames 24] [--seconds 10]
 
+   Measured on this 2-core machine without a GPU (Chromium flags: HEADLESS_CHROMIUM_ARGS,
+   SwiftShader for WebGL only, no multisampling), load 1.9-4.1 from another benchmark:
+   100k particles 3.8-4.0 frames/s shown (39-40 sent), first picture 2.3-2.7 s; 20k particles
+   13.7-14.1 frames/s, first picture 2.0 s. Bounded by CPU: about 0.32 s of Chromium CPU per
+   shown frame (0.19 s of it SwiftShader drawing the points) plus the server's 0.12-0.15 s.
+
 Each part runs in its own process (one GGUI window and Taichi runtime per process).
 Reference: the verified recipe measured about 0.3 s per 640×480 frame of 100k
 particles on lavapipe (2 cores); the issue's GPU target is 200k live at ≥ 30 fps.
