@@ -354,3 +354,34 @@ def test_a_frame_with_an_empty_surface_hides_the_previous_surface(tiny_run, tmp_
                       f"frame {idx}'s surface to be shown")
             else:
                 assert not shown()
+
+
+def test_stepping_through_frames_does_not_recompile_the_point_shader(tiny_run, page):
+    """Each frame's new colours make viser's client build a new point material; the page must
+    reuse the compiled shader program (view/web.py's program keeper) rather than link it again
+    for every frame, which in software WebGL costs a large part of a frame."""
+    from whitecap.view.web import WebViewer
+
+    page.add_init_script("""
+        window.__links = 0;
+        for (const C of [WebGLRenderingContext, WebGL2RenderingContext]) {
+          const link = C.prototype.linkProgram;
+          C.prototype.linkProgram = function (...a) { window.__links++; return link.apply(this, a); };
+        }""")
+
+    def show(v, k):
+        v.seek(k)
+        assert v.wait_drawn(k)
+        _poll(lambda: page.get_by_text(f"frame {v.source.indices[k]} ({k + 1} of").count(), f"the page to show frame {k}")
+        page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")  # drawn
+
+    with WebViewer(tiny_run, port=0) as v:
+        _open(v, page)
+        n = len(v.source)
+        for k in range(n):  # first pass: every kind of object has been drawn once
+            show(v, k)
+        links = page.evaluate("() => window.__links")
+        assert links > 0  # the counter sees the page's programs
+        for k in (*range(n - 2, -1, -1), *range(1, n)):  # new colours every frame
+            show(v, k)
+        assert page.evaluate("() => window.__links") == links
