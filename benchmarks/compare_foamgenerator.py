@@ -36,6 +36,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 TYPES = ("spray", "foam", "bubbles")
+# whitecap's FoamGenerator presets: its defaults, and its defaults with the domain as a kill box
+PRESETS = ("splishsplash", "splishsplash-box")
 
 
 def foamgenerator_counts(log: str) -> np.ndarray:
@@ -66,16 +68,35 @@ def report(name: str, ours: np.ndarray, theirs: np.ndarray, floor: int = 100) ->
         print(f"  per frame (FoamGenerator >= {floor}; whitecap {shift} frame(s) ahead): " + "; ".join(parts))
 
 
-def fg_runs(fg: str, bgeo: Path, out: Path, radius: float, dt: float, n: int, box) -> dict[str, str]:
-    """FoamGenerator's --splittypes logs with its defaults, without and with ``box`` (y up) as a kill box."""
-    cmd = [fg, "-i", str(bgeo / "ParticleData_Fluid_#.bgeo"), "-o", str(out / "foam_#.bgeo"),
-           "-r", str(radius), "-t", str(dt), "-s", "1", "-e", str(n), "--splittypes"]
-    runs = {
-        "FoamGenerator defaults (no bounding box)": cmd,
-        "FoamGenerator defaults, --bbsize = the case domain --bbtype kill": cmd + [
-            "--bbsize=" + ",".join(f"{v:g}" for v in box), "--bbtype=kill"],
-    }
-    return {k: subprocess.run(c, capture_output=True, text=True, check=True).stdout for k, c in runs.items()}
+FG_DEFAULT = "FoamGenerator defaults (no bounding box)"
+FG_BOX = "FoamGenerator defaults, --bbsize = the domain --bbtype kill"
+
+
+def fg_runs(fg: str, bgeo: Path, out: Path, radius: float, dt: float, n: int, box) -> dict[str, np.ndarray]:
+    """Per-frame counts (frames × 3) of FoamGenerator with its defaults, without a box, the same
+    run's particles inside the domain only, and with ``box`` (the domain, y up) as a kill box."""
+    from whitecap.io.bgeo import read_bgeo
+
+    lo, hi = np.array([box[0], -box[5], box[1]]), np.array([box[3], -box[2], box[4]])  # the box, z up
+    cmd = [fg, "-i", str(bgeo / "ParticleData_Fluid_#.bgeo"), "", "-r", str(radius), "-t", str(dt), "-s", "1",
+           "-e", str(n), "--splittypes"]
+    runs = {FG_DEFAULT: [], FG_BOX: ["--bbsize=" + ",".join(f"{v:g}" for v in box), "--bbtype=kill"]}
+    counts = {}
+    for name, extra in runs.items():
+        d = out / str(len(counts))
+        d.mkdir(parents=True)
+        cmd[3] = "-o" + str(d / "foam_#.bgeo")
+        counts[name] = foamgenerator_counts(subprocess.run(cmd + extra, capture_output=True, text=True, check=True).stdout)
+        if name == FG_DEFAULT:  # its spray falls through the walls it does not know, for ever
+            inside = np.zeros((n, 3), np.int64)
+            for k in range(1, n + 1):
+                for t, name_ in enumerate(TYPES):
+                    f = d / f"foam_{k}_{name_}.bgeo"
+                    if f.exists():
+                        x = read_bgeo(f, up="y", require_velocity=False).positions
+                        inside[k - 1, t] = int(np.all((x >= lo) & (x <= hi), axis=1).sum())
+            counts[name + ", its particles inside the domain"] = inside
+    return counts
 
 
 def counts(run: Path) -> np.ndarray:
@@ -102,11 +123,12 @@ def dualsphysics(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
                           {"velocity": y_up(f.velocities)})
     lo, hi = np.asarray(case.lower), np.asarray(case.upper)
     box = [lo[0], lo[2], -hi[1], hi[0], hi[2], -lo[1]]  # the domain, y up
-    logs = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.time_out, len(files), box)
-    postprocess(str(src / "PartFluid_*.vtk"), out=tmp / "wc", preset="splishsplash", show_progress=False)
+    fg = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.time_out, len(files), box)
+    for preset in PRESETS:
+        postprocess(str(src / "PartFluid_*.vtk"), out=tmp / preset, preset=preset, show_progress=False)
     head = (f"{src}: {len(files)} frames, {len(f):,} fluid particles, r = {case.particle_radius} m, "
             f"frame time {case.time_out} s")
-    return head, logs, {"whitecap --preset splishsplash": counts(tmp / "wc")}
+    return head, fg, {p: counts(tmp / p) for p in PRESETS}
 
 
 def splishsplash(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
@@ -131,18 +153,21 @@ def splishsplash(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
     lo, hi = tank.vertices.min(axis=0), tank.vertices.max(axis=0)  # z up
     box = np.concatenate([(lo @ to_y), (hi @ to_y)])
     box = [*np.minimum(box[:3], box[3:]), *np.maximum(box[:3], box[3:])]
-    logs = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.frame_dt,
-                   case.fluid[-1][0], box)
+    fg = fg_runs(a.foamgenerator, tmp / "bgeo", tmp / "fg", case.particle_radius, case.frame_dt,
+                 case.fluid[-1][0], box)
     run = tmp / "run"
     import_case(src, run, show_progress=False)
     fluid = [(i, run / rel) for i, rel in RunInfo.load(run).files("fluid")]
-    postprocess(run / "fluid", frames=fluid, out=tmp / "wc", preset="splishsplash", dt=case.frame_dt,
-                radius=case.particle_radius, domain=(lo, hi), show_progress=False)
+    for preset in PRESETS:
+        postprocess(run / "fluid", frames=fluid, out=tmp / preset, preset=preset, dt=case.frame_dt,
+                    radius=case.particle_radius, domain=(lo, hi), show_progress=False)
     postprocess(run, out=tmp / "wc_obstacles", preset="splishsplash", show_progress=False)
     head = (f"{src}: {len(case.fluid)} frames, {len(f):,} fluid particles, r = {case.particle_radius} m, "
-            f"frame time {case.frame_dt} s")
-    return head, logs, {"whitecap --preset splishsplash (no obstacles, the tank's inside as domain)": counts(tmp / "wc"),
-                        "whitecap --preset splishsplash with the tank and the sphere": counts(tmp / "wc_obstacles")}
+            f"frame time {case.frame_dt} s; whitecap runs on the imported fluid without obstacles, the tank's "
+            "inside as the domain")
+    ours = {p: counts(tmp / p) for p in PRESETS}
+    ours["splishsplash with the tank and the sphere"] = counts(tmp / "wc_obstacles")
+    return head, fg, ours
 
 
 def main() -> None:
@@ -161,11 +186,12 @@ def main() -> None:
         tmp = Path(tmp)
         (tmp / "bgeo").mkdir()
         build = splishsplash if is_case(a.input) else dualsphysics
-        head, logs, ours = build(a, tmp, write_partio_bgeo)
+        head, fg, ours = build(a, tmp, write_partio_bgeo)
     print(head)
-    for name, log in logs.items():
-        for label, c in ours.items():
-            report(f"{label} vs {name}", c, foamgenerator_counts(log))
+    for label, c in ours.items():
+        for name, theirs in fg.items():
+            if (name == FG_BOX) == label.startswith("splishsplash-box"):  # each preset beside its FoamGenerator run
+                report(f"whitecap --preset {label} vs {name}", c, theirs)
 
 
 if __name__ == "__main__":

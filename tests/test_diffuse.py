@@ -518,7 +518,9 @@ def _block_frame(scale: float, r: float = 0.01, n: int = 8):
 
 def _fg_reference(gen, frame):
     """FoamGenerator's formulas in NumPy, on whitecap's neighbour lists (main.cpp: computeDensities,
-    computeNormals, determineValues): cubic spline of support h, m = 0.8 (2r)³ 1000."""
+    computeNormals, determineValues): cubic spline of support h, m = 0.8 (2r)³ 1000; the k-th
+    neighbour term of the trapped-air and crest sums weighted by m/ρ of row k of the frame,
+    which over the arbitrary order of a neighbour list is the mean over the first N rows."""
     from whitecap.diffuse import splishsplash as SP
 
     n = len(frame)
@@ -548,7 +550,7 @@ def _fg_reference(gen, frame):
     vd, kap = np.zeros(n), np.zeros(n)
     for i in range(n):
         j = nb[i, : cnt[i]]
-        vol = m / rho[j]
+        vol = (m / rho[: cnt[i]]).mean()  # FoamGenerator's loop weights its k-th term by row k's volume
         xij = x[i] - x[j]
         xh = xij / np.linalg.norm(xij, axis=1, keepdims=True)
         vij = v[i] - v[j]
@@ -585,6 +587,64 @@ def test_foamgenerator_potentials_follow_its_formulas():
     assert (kap > 0).sum() > 10 and (cnt > 20).sum() > 10  # crests exist and interior particles have no normal
     for ours, ref in zip(got, (vd, kap, e)):
         np.testing.assert_allclose(ours, ref, rtol=2e-4, atol=1e-6 * ref.max())
+
+
+def test_splishsplash_box_counts_foam_near_the_domain_faces_up_as_foamgenerator_does():
+    # FoamGenerator given a box (--bbsize) raises a foam particle's fluid-neighbour count N by
+    # ceil(N pi a^2 (3 - a) / 3), a = 1 - d/h, per box face within h (faces x, y, z; lower, then upper;
+    # stopping above 20) and calls it a bubble above 20. 'splishsplash-box' does; 'splishsplash'
+    # (FoamGenerator's default, no box) does not, and neither changes anything far from the faces.
+    import math
+
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import FoamGenerator, _nd
+
+    r = 0.01
+    fr = _block_frame(1.0, r)
+    x = fr.positions.astype(np.float64)
+    lo = x.min(0) - [0.5 * r, 1.0, 1.0]  # only the lower x face is near the block
+    hi = x.max(0) + 1.0
+    top = x[:, 2].max()
+    g1 = np.linspace(x[:, 0].min(), x[:, 0].max(), 12)
+    px, py, pz = np.meshgrid(g1, g1[:6], top + r * np.array([0.8, 1.2, 1.6, 2.0]), indexing="ij")
+    pts = np.stack([px.ravel(), py.ravel(), pz.ravel()], 1).astype(np.float32)
+    kinds = {}
+    for preset in ("splishsplash", "splishsplash-box"):
+        p = resolve(preset=preset)
+        gen = FoamGenerator(p, r, (lo, hi), (0, 0, -9.81), seed=3)
+        *_, args = gen._prepare(fr, len(fr))
+        kd = ti.ndarray(ti.i32, len(pts))
+        K.classify(len(pts), _nd(pts, ti.f32, True), *args, p.spray_below, p.bubble_above, ti.math.vec3(*lo),
+                   ti.math.vec3(*hi), int(p.wall_correction), kd)
+        kinds[preset] = kd.to_numpy()
+    h = 4 * r
+    n = (np.linalg.norm(pts[:, None, :] - x[None], axis=2) < h).sum(1)
+
+    def fg_type(q, c):  # main.cpp, advectFoamParticles: the correction for particles typed as foam
+        if c < 6:
+            return 0
+        if c > 20:
+            return 2
+        for j in range(3):
+            for face in (lo[j], hi[j]):
+                d = abs(q[j] - face)
+                if d < h:
+                    a = 1 - d / h
+                    c += math.ceil(c * a * a * math.pi / 3 * (3 - a))
+            if c > 20:
+                return 2
+        return 1
+
+    want_box = np.array([fg_type(q, c) for q, c in zip(pts.astype(np.float64), n)])
+    want_plain = np.where(n < 6, 0, np.where(n > 20, 2, 1))
+    assert (kinds["splishsplash"] == want_plain).mean() > 0.97  # float32 distances at the support's edge
+    assert (kinds["splishsplash-box"] == want_box).mean() > 0.97
+    near = pts[:, 0] - lo[0] < h
+    turned = (kinds["splishsplash"] == 1) & (kinds["splishsplash-box"] == 2)
+    assert turned[near].sum() >= 5 and not turned[~near].any()
+    assert (kinds["splishsplash"][~near] == kinds["splishsplash-box"][~near]).all()
 
 
 def test_foamgenerator_limits_are_the_mean_of_per_frame_maxima_over_the_whole_sequence(tmp_path):

@@ -356,3 +356,24 @@ def test_recording_a_path_outside_the_run_is_refused(tmp_path):
             info.set_file(0, "mesh", bad)
     info.set_file(0, "mesh", "mesh/fluid_00000.ply")
     assert info.files("mesh") == [(0, "mesh/fluid_00000.ply")]
+
+
+def test_frame_entries_are_found_by_index_with_gaps_and_out_of_order_files(tmp_path):
+    # run.json's frames looked up by index (a body's pose, a frame's time) whether the indices are
+    # contiguous, have gaps, or were written out of order; a new frame goes in index order.
+    from whitecap.io.run import RunInfo
+
+    info = RunInfo(particle_radius=0.01, rest_density=1000.0, particle_mass=0.008, frame_rate=10.0,
+                   gravity=[0, 0, -9.81], domain={"lower": [0, 0, 0], "upper": [1, 1, 1]})
+    for i in (7, 2, 5, 0):
+        info.frame(i)["bodies"] = [{"position": [i, 0, 0], "quaternion": [1, 0, 0, 0]}]
+    assert [f["index"] for f in info.frames] == [0, 2, 5, 7]
+    assert [info.body_pose(i, 0)["position"][0] for i in (0, 2, 5, 7)] == [0, 2, 5, 7]
+    assert info.body_pose(3, 0) is None and info.body_pose(8, 0) is None and info.body_pose(5, 1) is None
+    assert info.frame(3)["time"] == pytest.approx(0.3) and [f["index"] for f in info.frames] == [0, 2, 3, 5, 7]
+    info.save(tmp_path)
+    data = json.loads((tmp_path / "run.json").read_text())
+    data["frames"].reverse()  # another writer's order
+    (tmp_path / "run.json").write_text(json.dumps(data))
+    back = RunInfo.load(tmp_path)
+    assert [info.body_pose(i, 0) for i in range(9)] == [back.body_pose(i, 0) for i in range(9)]

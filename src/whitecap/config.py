@@ -262,7 +262,7 @@ class Foam(_Section):
     """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
-    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-manual", "auto"] = Field(
+    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-box", "splishsplash-manual", "auto"] = Field(
         "auto",
         description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
         "thresholds from percentiles of each potential over frames sampled across the run (in the "
@@ -314,6 +314,11 @@ class Foam(_Section):
         None, ge=0, le=100,
         description="foam thins out: each foam particle vanishes at this rate besides its lifetime; "
         "unset = the preset's (0.5, none for the FoamGenerator presets) [1/s]",
+    )
+    wall_correction: bool | None = Field(
+        None,
+        description="'splishsplash' preset: FoamGenerator's count correction for foam near the domain's faces "
+        "(what its --bbsize turns on; foam there becomes bubbles); unset = off, as FoamGenerator without a box",
     )
     slots_per_particle: int | None = Field(
         None, ge=1, le=64,

@@ -451,6 +451,7 @@ class FoamGenerator:
         K.advect_diffuse(
             nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
             int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
+            int(p.model == "foamgenerator" and p.wall_correction),  # foam near the box's faces counted up
         )
         k = keep.to_numpy()[:nd].astype(bool)
         kd = kind.to_numpy()[:nd]
@@ -603,7 +604,8 @@ class FoamGenerator:
         # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
         # particles of a type whose multiplier is unchanged stay exactly the same.
         kd = ti.ndarray(ti.i32, len(x))
-        K.classify(len(x), _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above, kd)
+        K.classify(len(x), _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above,
+                   ti.math.vec3(*self.lo), ti.math.vec3(*self.hi), int(p.model == "foamgenerator" and p.wall_correction), kd)
         kind = kd.to_numpy()[: len(x)].astype(np.uint8)
         nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
         u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)

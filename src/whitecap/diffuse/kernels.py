@@ -16,6 +16,7 @@ import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
+from . import splishsplash as SP
 
 vec3 = ti.math.vec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
@@ -271,6 +272,18 @@ def diffuse_type(cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32) -> ti.i
     return t
 
 
+@ti.func
+def diffuse_type_in_box(
+    p: vec3, cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32, lo: vec3, hi: vec3, h: ti.f32, wall_correction: ti.i32,
+) -> ti.i32:
+    """:func:`diffuse_type`, with FoamGenerator's count correction near the box's faces for
+    foam when ``wall_correction`` (the ``splishsplash`` preset; see .splishsplash)."""
+    t = diffuse_type(cnt, spray_below, bubble_above)
+    if wall_correction and t == FOAM:
+        t = diffuse_type(SP.wall_corrected_count(p, cnt, lo, hi, h, bubble_above), spray_below, bubble_above)
+    return t
+
+
 @ti.kernel
 def advect_diffuse(
     nd: ti.i32,
@@ -297,6 +310,7 @@ def advect_diffuse(
     keep: I1,
     kind: I1,
     foam_keeps_velocity: ti.i32,
+    wall_correction: ti.i32,
 ):
     """Classify by fluid-neighbour count and advect each type its own way:
     spray ballistic (v += Δt g); foam carried by the kernel-averaged fluid
@@ -304,14 +318,15 @@ def advect_diffuse(
     ``foam_keeps_velocity``, as SPlisHSPlasH's FoamGenerator does, so foam that
     turns into spray leaves with its earlier velocity), its lifetime counting down; bubbles
     v += Δt(−k_b g + k_d (ṽ_f − v)/Δt). Removes expired foam and particles
-    that leave the domain. ``kind`` is the type each particle moved as."""
+    that leave the domain. ``kind`` is the type each particle moved as. ``wall_correction``:
+    FoamGenerator's foam-count correction near the domain's faces (see diffuse_type_in_box)."""
     for p in range(nd):
         cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
         alive = 1
-        t = diffuse_type(cnt, spray_below, bubble_above)
+        t = diffuse_type_in_box(xd[p], cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
         if t == SPRAY:
             vd[p] += dt * g
             xd[p] += dt * vd[p]
@@ -347,9 +362,12 @@ def classify(
     fv: F3,
     spray_below: ti.i32,
     bubble_above: ti.i32,
+    lo: vec3,
+    hi: vec3,
+    wall_correction: ti.i32,
     kind: I1,
 ):
-    """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type)."""
+    """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type_in_box)."""
     for p in range(nd):
         cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
-        kind[p] = diffuse_type(cnt, spray_below, bubble_above)
+        kind[p] = diffuse_type_in_box(xd[p], cnt, spray_below, bubble_above, lo, hi, h, wall_correction)

@@ -56,6 +56,7 @@ class FoamParams:
     spray_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while spray
     bubble_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while a bubble
     foam_dissipation: float = 0.0  # [1/s]: foam vanishes at this rate besides its lifetime
+    wall_correction: bool = False  # 'foamgenerator' model: FoamGenerator's --bbsize count correction (.splishsplash)
     explicit: frozenset = frozenset()  # names set in [foam] or the .ini: 'auto' leaves them alone
     # 'ihmsen2012': whitecap's potentials (kernel W̃ = 1 − r/h, E_k per unit mass [J/kg]);
     # 'foamgenerator': SPlisHSPlasH FoamGenerator's automatic mode (see .splishsplash).
@@ -96,6 +97,9 @@ PRESETS: dict[str, dict] = {
         foam_dissipation=0.0,  # FoamGenerator's foam goes only when its lifetime ends
     ),
 }
+# FoamGenerator's default run with --bbsize = the domain and --bbtype kill: its count correction
+# for foam near the box's faces as well (see .splishsplash).
+PRESETS["splishsplash-box"] = dict(PRESETS["splishsplash"], wall_correction=True)
 PRESETS["auto"] = dict(PRESETS["ihmsen2012"])
 
 # DiffuseCalculator-style keys -> our names (case-insensitive, in any section but the job

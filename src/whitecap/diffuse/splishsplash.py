@@ -17,10 +17,32 @@ from the colour-field gradient exist only for particles with at most 20
 neighbours; the kinetic energy is ½ m |v|² in joules; and a new particle
 lives τ = l_min + (I_k / τmax_k) X (l_max − l_min) seconds, X uniform in [0, 1).
 
+Two of its rules are reproduced as FoamGenerator has them, because they set its
+counts (measured on ../shared/data/splishsplash_rigid, see the README):
+
+- *Row volumes.* The trapped-air and wave-crest sums weight their k-th
+  neighbour term by m/ρ of row k of the frame (its loop reads ``densities[j]``
+  with j counting the neighbours), not by the neighbour's own volume. The
+  weights are thus the volumes of the frame's first N rows (N the particle's
+  neighbour count), and the counts depend on the row order of the input; on the
+  shared case this doubles them against the neighbours' own volumes. Which
+  term gets which of those weights follows the order of its neighbour search's
+  lists, which is arbitrary; we give every term their mean,
+  V̄_N = (1/N) Σ_{k<N} m/ρ_k (its expected value over list orders), so the
+  result does not depend on how our own grid orders a neighbour list.
+- *Wall correction.* A diffuse particle classified as foam within the support
+  radius h of a face of the bounding box has its fluid-neighbour count raised
+  by ⌈N · V_cap(1 − d/h)⌉ per face, V_cap(a) = π a² (3 − a) / 3 (a unit-sphere
+  cap of height a), and becomes a bubble once it exceeds 20. FoamGenerator
+  applies it against ``--bbsize``; whitecap always has a domain, which plays
+  ``--bbsize … --bbtype kill`` (what leaves it is removed).
+
 The vorticity generator needs the fluid's angular velocity (micropolar
 solvers); without it FoamGenerator leaves it off, and so does this preset.
 """
 
+
+import math
 
 import numpy as np
 import taichi as ti
@@ -46,6 +68,27 @@ CREST_MOTION_COS = 0.6  # δ_vn: v̂·n̂ ≥ 0.6 (Ihmsen et al. 2012, Eq. 7)
 # sequence whose mean per-frame top speed stays below u is affected.
 ENTRAINMENT_SPEED = 1.0  # [m/s]
 TINY = 1e-20  # keeps τmax > τmin when a potential is zero in every frame (then I = 0)
+
+
+@ti.func
+def wall_corrected_count(p: vec3, cnt: ti.i32, lo: vec3, hi: vec3, h: ti.f32, bubble_above: ti.i32) -> ti.i32:
+    """FoamGenerator's correction of a foam particle's fluid-neighbour count N near the
+    bounding box: per face within h (distance d), N += ⌈N V_cap(1 − d/h)⌉ with
+    V_cap(a) = π a² (3 − a) / 3, the faces taken x, y, z (lower, then upper), stopping
+    once N > bubble_above. FoamGenerator adds the unit-sphere cap's volume, not its
+    fraction of the sphere (4π/3), and so do we."""
+    c = cnt
+    done = 0
+    for j in ti.static(range(3)):
+        if not done:
+            for side in ti.static(range(2)):
+                d = ti.abs(p[j] - (lo[j] if side == 0 else hi[j]))
+                if d < h:
+                    a = 1.0 - d / h
+                    c += ti.cast(ti.ceil(c * (a * a * (math.pi / 3.0) * (3.0 - a))), ti.i32)
+            if c > bubble_above:
+                done = 1
+    return c
 
 
 def particle_mass(radius: float) -> float:
@@ -79,14 +122,14 @@ def surface_normals(n: ti.i32, x: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32
 
 @ti.kernel
 def potentials(
-    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32, rho: F1, normal: F3,
+    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32, row_volume: F1, normal: F3,
     v_diff: F1, crest: F1, energy: F1,
 ):
     """FoamGenerator's potentials: v_diff = Σ_k V_k |v_ij| (1 − v̂_ij·x̂_ij) W,
     κ = δ_vn Σ_k V_k (1 − n̂_i·n̂_j) W over neighbours behind the surface (x̂_ij·n̂_i > 0),
-    E = ½ m |v_i|², with the neighbour's volume V_j = m/ρ_j. (FoamGenerator's loop reads the
-    density of particle number k of the frame, k counting the neighbours, which ties its
-    weights to the order of the file and of the neighbour list; we use V_j, as the formula means.)"""
+    E = ½ m |v_i|², every term weighted by FoamGenerator's row volume V̄_N = ``row_volume[N]``,
+    the mean of m/ρ_k over the frame's first N rows, N = the neighbour count of i (see the
+    module docstring: its loop indexes the densities by the neighbour counter)."""
     for i in range(n):
         vd = 0.0
         kappa = 0.0
@@ -96,7 +139,7 @@ def potentials(
             xij = x[i] - x[j]
             r = xij.norm()
             w = cubic_spline(r, h)
-            vol = m / rho[j]
+            vol = row_volume[nb_count[i]]  # FoamGenerator's rows, not the neighbour's own m/ρ_j
             xh = xij / r if r > 0.0 else vec3(0.0)
             vij = v[i] - v[j]
             vl = vij.norm()
@@ -113,6 +156,16 @@ def potentials(
         energy[i] = 0.5 * m * vi.norm_sqr()
 
 
+def row_volumes(rho: np.ndarray, m: float) -> ti.ndarray:
+    """V̄_N = (1/N) Σ_{k<N} m/ρ_k for N = 0 … n (0 for N = 0): the mean volume of the frame's
+    first N rows, FoamGenerator's weight for a particle with N neighbours."""
+    cum = np.concatenate([[0.0], np.cumsum(m / rho.astype(np.float64))])
+    vbar = cum / np.maximum(np.arange(len(cum)), 1)
+    out = ti.ndarray(ti.f32, len(vbar))
+    out.from_numpy(vbar.astype(np.float32))
+    return out
+
+
 def frame_potentials(gen, fx, fv, n: int):
     """(v_diff, κ, E) ndarrays of a prepared frame (``gen._prepare`` built the neighbour lists)."""
     g = gen.grid
@@ -122,7 +175,7 @@ def frame_potentials(gen, fx, fv, n: int):
     normal = ti.Vector.ndarray(3, ti.f32, mm)
     sph_density(n, fx, g.nb_count, g.nb, gen.h, m, rho)
     surface_normals(n, fx, g.nb_count, g.nb, gen.h, m, rho, normal)
-    potentials(n, fx, fv, g.nb_count, g.nb, gen.h, m, rho, normal, v_diff, crest, energy)
+    potentials(n, fx, fv, g.nb_count, g.nb, gen.h, m, row_volumes(rho.to_numpy()[:n], m), normal, v_diff, crest, energy)
     return v_diff, crest, energy
 
 

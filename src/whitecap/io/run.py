@@ -26,6 +26,7 @@ must be relative paths inside the run.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import json
 import math
@@ -189,6 +190,7 @@ class RunInfo:
         if data.get("version", 0) > FORMAT_VERSION:
             raise InputError(f"{p}: version {data['version']} is newer than this whitecap ({FORMAT_VERSION})")
         info = cls(**{k: v for k, v in data.items() if k in known})
+        info.frames.sort(key=lambda e: e["index"])  # kept in index order (see _entry)
         for f in info.frames:  # entries made from another simulation are stale: forget them
             made = f.setdefault("made_from", {})
             for kind in [k for k in f["files"] if made.get(k, "") != info.simulation]:
@@ -214,10 +216,23 @@ class RunInfo:
         return [w for w in WALLS if w in walls]
 
     # ------------------------------------------------------------------ frames
+    def _entry(self, index: int) -> dict[str, Any] | None:
+        """The frame entry with this index, or None. The entries are kept sorted by index and are
+        usually contiguous, so this is a direct look-up, else a binary search: stages ask for a
+        frame's entry (its time, a body's pose) once per frame, and a scan made that O(frames²)."""
+        fr = self.frames
+        if not fr:
+            return None
+        k = index - fr[0]["index"]
+        if 0 <= k < len(fr) and fr[k]["index"] == index:
+            return fr[k]
+        k = bisect.bisect_left(fr, index, key=lambda e: e["index"])
+        return fr[k] if k < len(fr) and fr[k]["index"] == index else None
+
     def frame(self, index: int) -> dict[str, Any]:
-        for f in self.frames:
-            if f["index"] == index:
-                return f
+        f = self._entry(index)
+        if f is not None:
+            return f
         f = {"index": index, "time": index / self.frame_rate, "files": {}, "made_from": {}}
         self.frames.append(f)
         self.frames.sort(key=lambda e: e["index"])
@@ -238,11 +253,9 @@ class RunInfo:
 
     def body_pose(self, index: int, k: int) -> dict | None:
         """Obstacle ``k``'s pose at frame ``index`` (None: static, or not recorded: at rest)."""
-        for f in self.frames:
-            if f["index"] == index:
-                b = f.get("bodies") or []
-                return b[k] if k < len(b) else None
-        return None
+        f = self._entry(index)
+        b = (f.get("bodies") or []) if f is not None else []
+        return b[k] if k < len(b) else None
 
     def files(self, kind: str) -> list[tuple[int, str]]:
         """(index, relative path) of every frame that has a file of this kind."""

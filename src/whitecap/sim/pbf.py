@@ -93,6 +93,19 @@ def wall_density_map(
         grad_psi[i] = g
 
 
+@ti.func
+def capped_count(nb_count: ti.template(), i, list_capacity: ti.template()):
+    """min(nb_count[i], list_capacity), the capacity a compile-time constant.
+
+    The count never exceeds the capacity, so the min changes nothing but what
+    LLVM knows: a loop with a known maximum trip count under 128 is vectorised
+    without interleaving (8 neighbours a step instead of 8 × 4 = 32), and then
+    runs vectorised for the usual 20–40 neighbours instead of falling back to
+    its scalar remainder loop. Measured on the position correction at 115k
+    particles (Taichi 1.7.4 / LLVM 15, x86-64): 8.0 → 4.4 ms a call."""
+    return ti.min(nb_count[i], list_capacity)
+
+
 @ti.kernel
 def compute_lambda(
     n: ti.i32,
@@ -158,18 +171,15 @@ def correct_positions(
     psi: F1,
     grad_psi: F3,
     p_out: F3,
+    list_capacity: ti.template(),
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
     s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction);
     x*_i ← x*_i + Δp_i kept inside the walls (clamp_lo/hi: the walls shrunk by r),
     written to ``p_out`` (Jacobi: every Δp reads the old x*).
 
-    The sum is taken in two loops over the neighbours, λ_i Σ∇W + Σ λ_j ∇W and
-    then −k Σ (W/W(Δq))ⁿ ∇W: each loop is small enough that LLVM vectorises it
-    8 neighbours at a time, while the one-loop form was vectorised 32 at a time
-    (8 lanes × 4 interleaved), so that particles with fewer than 32 neighbours
-    (most of them: about 27 on average) ran it scalar. Two loops: 1.2× faster
-    (measured with Taichi 1.7.4 / LLVM 15 on x86-64).
+    The neighbour loop runs to min(count, ``list_capacity``), the lists' capacity
+    as a compile-time constant (see :func:`capped_count`).
 
     With ``next_walls`` set, the same pass also evaluates the walls' density
     map ψ_i, ∇ψ_i at the new x*_i for the next iteration (:func:`wall_share`),
@@ -178,27 +188,15 @@ def correct_positions(
         pi = p[i]
         li = lam[i]
         h2 = h * h
-        grad_sum = vec3(0.0)  # Σ_j ∇W(x_ij)
-        lx = 0.0  # Σ_j λ_j ∇W(x_ij), by component: as scalars the loop stays vectorised
-        ly = 0.0
-        lz = 0.0
-        for k in range(nb_count[i]):
+        acc = vec3(0.0)  # Σ_j (λ_i + λ_j − k (W(x_ij)/W(Δq))ⁿ) ∇W(x_ij)
+        for k in range(capped_count(nb_count, i, list_capacity)):
             j = nb[i, k]
-            g = spiky_grad(pi - p[j], h, w_spiky)
-            grad_sum += g
-            lj = lam[j]
-            lx += lj * g.x
-            ly += lj * g.y
-            lz += lj * g.z
-        corr = vec3(0.0)  # Σ_j (W(x_ij)/W(Δq))ⁿ ∇W(x_ij)
-        for k in range(nb_count[i]):
-            r = pi - p[nb[i, k]]
-            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq
+            r = pi - p[j]
+            q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq  # W(x_ij)/W(Δq)
             qn = 1.0
             for _ in ti.static(range(scorr_n)):
                 qn *= q
-            corr += qn * spiky_grad(r, h, w_spiky)
-        acc = li * grad_sum + vec3(lx, ly, lz) - scorr_k * corr
+            acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
         dp = (mass / rho0) * acc + li * grad_psi[i]
         pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
         p_out[i] = pn
@@ -559,7 +557,7 @@ class PBFSolver:
                     n, st.p, g.nb_count, g.nb, st.lam, self.mass, self.rho0, self.h, self.kernel.poly6,
                     self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.wall_lo, self.wall_hi,
                     int(it + 1 < s.iterations), self.domain_lo, self.domain_hi, self.psi_table, self.dpsi_table,
-                    st.psi, st.grad_psi, st.v_tmp,
+                    st.psi, st.grad_psi, st.v_tmp, g.max_neighbors,
                 )
                 st.p, st.v_tmp = st.v_tmp, st.p
             # Colliders project at the start of each iteration (fused with their
