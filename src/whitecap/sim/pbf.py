@@ -43,14 +43,24 @@ from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
 
+# Rows of the solver's ``box`` array, the scene's constant vectors. They reach the
+# kernels as one ndarray set once, not as vec3 arguments: Taichi 1.7 marshals each
+# vec3 argument in Python at every launch (~25-40 µs each, measured), and the
+# step launched 17 of them.
+CLAMP_LO, CLAMP_HI = 0, 1  # the walls shrunk by r: where particle centres may go [m]
+DOMAIN_LO, DOMAIN_HI = 2, 3  # the walls themselves (density map) [m]
+GRAVITY = 4  # g [m/s²]
+BOX_ROWS = 5
+
 
 # ============================================================================ kernels
 @ti.kernel
-def apply_external_forces(n: ti.i32, x: F3, v: F3, p: F3, g: vec3, dt: ti.f32):
-    """v ← v + Δt g;  x* ← x + Δt v."""
+def apply_external_forces(n: ti.i32, x: F3, v: F3, p: F3, box: F3, dt: ti.f32):
+    """v ← v + Δt g;  x* ← x + Δt v, kept inside the walls."""
+    g = box[GRAVITY]
     for i in range(n):
         v[i] += dt * g
-        p[i] = x[i] + dt * v[i]
+        p[i] = ti.math.clamp(x[i] + dt * v[i], box[CLAMP_LO], box[CLAMP_HI])
 
 
 @ti.func
@@ -80,15 +90,13 @@ def wall_share(pi: vec3, lo: vec3, hi: vec3, h: ti.f32, psi_table: ti.template()
 
 
 @ti.kernel
-def wall_density_map(
-    n: ti.i32, p: F3, lo: vec3, hi: vec3, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3
-):
+def wall_density_map(n: ti.i32, p: F3, box: F3, h: ti.f32, psi_table: F1, dpsi_table: F1, psi: F1, grad_psi: F3):
     """ψ_i = Σ_walls ψ(d), ∇ψ_i = Σ_walls ψ'(d) n_wall, for the six domain walls.
 
     ψ is the boundary's share of ρ_i/ρ0; its gradient enters ∇_i C_i.
     """
     for i in range(n):
-        s, g = wall_share(p[i], lo, hi, h, psi_table, dpsi_table)
+        s, g = wall_share(p[i], box[DOMAIN_LO], box[DOMAIN_HI], h, psi_table, dpsi_table)
         psi[i] = s
         grad_psi[i] = g
 
@@ -161,11 +169,8 @@ def correct_positions(
     scorr_k: ti.f32,
     scorr_inv_w_dq: ti.f32,
     scorr_n: ti.template(),
-    clamp_lo: vec3,
-    clamp_hi: vec3,
+    box: F3,
     next_walls: ti.i32,
-    wall_lo: vec3,
-    wall_hi: vec3,
     psi_table: F1,
     dpsi_table: F1,
     psi: F1,
@@ -175,7 +180,7 @@ def correct_positions(
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
     s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction);
-    x*_i ← x*_i + Δp_i kept inside the walls (clamp_lo/hi: the walls shrunk by r),
+    x*_i ← x*_i + Δp_i kept inside the walls (``box`` rows CLAMP_LO/HI: the walls shrunk by r),
     written to ``p_out`` (Jacobi: every Δp reads the old x*).
 
     The neighbour loop runs to min(count, ``list_capacity``), the lists' capacity
@@ -198,10 +203,10 @@ def correct_positions(
                 qn *= q
             acc += (li + lam[j] - scorr_k * qn) * spiky_grad(r, h, w_spiky)
         dp = (mass / rho0) * acc + li * grad_psi[i]
-        pn = ti.math.clamp(pi + dp, clamp_lo, clamp_hi)
+        pn = ti.math.clamp(pi + dp, box[CLAMP_LO], box[CLAMP_HI])
         p_out[i] = pn
         if next_walls:
-            s, g = wall_share(pn, wall_lo, wall_hi, h, psi_table, dpsi_table)
+            s, g = wall_share(pn, box[DOMAIN_LO], box[DOMAIN_HI], h, psi_table, dpsi_table)
             psi[i] = s
             grad_psi[i] = g
 
@@ -213,8 +218,9 @@ def confine_to_domain(n: ti.i32, p: F3, lo: vec3, hi: vec3):
 
 
 @ti.kernel
-def update_velocity(n: ti.i32, x: F3, p: F3, v: F3, inv_dt: ti.f32, lo: vec3, hi: vec3, wall_friction: ti.f32):
+def update_velocity(n: ti.i32, x: F3, p: F3, v: F3, inv_dt: ti.f32, box: F3, wall_friction: ti.f32):
     """v ← (x* − x)/Δt; tangential damping for particles touching a wall."""
+    lo, hi = box[CLAMP_LO], box[CLAMP_HI]
     for i in range(n):
         vi = (p[i] - x[i]) * inv_dt
         touching = 0
@@ -479,6 +485,11 @@ class PBFSolver:
         self.domain_lo = vec3(*lo)
         self.domain_hi = vec3(*hi)
         self.gravity = vec3(*scene.domain.gravity)
+        self.box = ti.Vector.ndarray(3, ti.f32, BOX_ROWS)
+        box = np.zeros((BOX_ROWS, 3), np.float32)
+        box[CLAMP_LO], box[CLAMP_HI] = lo + self.r, hi - self.r
+        box[DOMAIN_LO], box[DOMAIN_HI], box[GRAVITY] = lo, hi, scene.domain.gravity
+        self.box.from_numpy(box)
         psi, dpsi = half_space_tables(self.h)
         self.psi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
         self.dpsi_table = ti.ndarray(ti.f32, PSI_SAMPLES)
@@ -521,7 +532,7 @@ class PBFSolver:
 
     def boundary_density(self) -> None:
         st = self.state
-        wall_density_map(self.n, st.p, self.domain_lo, self.domain_hi, self.h, self.psi_table, self.dpsi_table, st.psi, st.grad_psi)
+        wall_density_map(self.n, st.p, self.box, self.h, self.psi_table, self.dpsi_table, st.psi, st.grad_psi)
         for c in self.colliders:
             c.add_density_map(self)
 
@@ -540,8 +551,7 @@ class PBFSolver:
         with timer("pbf.predict"):
             for c in self.colliders:
                 c.apply_forces(self, dt)
-            apply_external_forces(n, st.x, st.v, st.p, self.gravity, dt)
-            confine_to_domain(n, st.p, self.wall_lo, self.wall_hi)
+            apply_external_forces(n, st.x, st.v, st.p, self.box, dt)
         with timer("pbf.neighbours"):
             overflow = g.build(st.p, n)
             if overflow:
@@ -555,8 +565,8 @@ class PBFSolver:
                 self.compute_lambda()
                 correct_positions(
                     n, st.p, g.nb_count, g.nb, st.lam, self.mass, self.rho0, self.h, self.kernel.poly6,
-                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.wall_lo, self.wall_hi,
-                    int(it + 1 < s.iterations), self.domain_lo, self.domain_hi, self.psi_table, self.dpsi_table,
+                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.box,
+                    int(it + 1 < s.iterations), self.psi_table, self.dpsi_table,
                     st.psi, st.grad_psi, st.v_tmp, g.max_neighbors,
                 )
                 st.p, st.v_tmp = st.v_tmp, st.p
@@ -567,7 +577,7 @@ class PBFSolver:
             for c in self.colliders:
                 c.project(self)
         with timer("pbf.velocity"):
-            update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.wall_lo, self.wall_hi, s.wall_friction)
+            update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.box, s.wall_friction)
             for c in self.colliders:
                 c.respond(self)
         if s.vorticity_epsilon > 0 or s.xsph_c > 0:
