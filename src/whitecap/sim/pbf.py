@@ -46,7 +46,7 @@ PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
 # Rows of the solver's ``box`` array, the scene's constant vectors. They reach the
 # kernels as one ndarray set once, not as vec3 arguments: Taichi 1.7 marshals each
 # vec3 argument in Python at every launch (~25-40 µs each, measured), and the
-# step launched 17 of them.
+# step launched 23 of them.
 CLAMP_LO, CLAMP_HI = 0, 1  # the walls shrunk by r: where particle centres may go [m]
 DOMAIN_LO, DOMAIN_HI = 2, 3  # the walls themselves (density map) [m]
 GRAVITY = 4  # g [m/s²]
@@ -212,9 +212,10 @@ def correct_positions(
 
 
 @ti.kernel
-def confine_to_domain(n: ti.i32, p: F3, lo: vec3, hi: vec3):
+def confine_to_domain(n: ti.i32, p: F3, box: F3):
+    """p ← p kept inside the walls (the starting positions; the step clamps x* as it predicts it)."""
     for i in range(n):
-        p[i] = ti.math.clamp(p[i], lo, hi)
+        p[i] = ti.math.clamp(p[i], box[CLAMP_LO], box[CLAMP_HI])
 
 
 @ti.kernel
@@ -480,11 +481,6 @@ class PBFSolver:
         self.scorr_inv_w_dq = 1.0 / float(poly6_np((s.scorr_dq * self.h) ** 2, self.h))
         self.kernel = SPHKernel(self.h)
         lo, hi = np.asarray(scene.domain.lower), np.asarray(scene.domain.upper)
-        self.wall_lo = vec3(*(lo + self.r))
-        self.wall_hi = vec3(*(hi - self.r))
-        self.domain_lo = vec3(*lo)
-        self.domain_hi = vec3(*hi)
-        self.gravity = vec3(*scene.domain.gravity)
         self.box = ti.Vector.ndarray(3, ti.f32, BOX_ROWS)
         box = np.zeros((BOX_ROWS, 3), np.float32)
         box[CLAMP_LO], box[CLAMP_HI] = lo + self.r, hi - self.r
@@ -501,7 +497,7 @@ class PBFSolver:
         st.x.from_numpy(np.ascontiguousarray(positions, np.float32))
         st.v.from_numpy(np.ascontiguousarray(velocities, np.float32))
         st.ids.from_numpy(np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32))
-        confine_to_domain(n, st.x, self.wall_lo, self.wall_hi)
+        confine_to_domain(n, st.x, self.box)
         self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), n, s.max_neighbors, self.h)
         self.colliders: list = []
         self.step_count = 0
