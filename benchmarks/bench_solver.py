@@ -9,7 +9,7 @@ process) and the machine's load average before and after each size, since
 figures taken beside other jobs are low. Runs on the CPU, and on CUDA when
 present.
 
-    python benchmarks/bench_solver.py [--arch cpu|cuda|auto] [--sizes 30000,120000] [--steps 30]
+    python benchmarks/bench_solver.py [--arch cpu|cuda|auto] [--sizes 30000,120000] [--steps 30] [--moving]
     WHITECAP_BENCH_1M=1 python benchmarks/bench_solver.py   # adds a 1 M-particle size (minutes on 2 cores)
 
 Each size runs in its own process (one Taichi runtime per process).
@@ -31,6 +31,8 @@ import time
 REFERENCE_PITS = 1.7e6  # SPlisHSPlasH PBF, particle-iterations per second
 TARGET_PITS = 6.0e6  # issue 20: whole step, 4 iterations, 2 CPU cores
 BIG_SIZE = 1_000_000  # added when WHITECAP_BENCH_1M is set
+JITTER = 0.3  # --moving: lattice jitter [spacings]
+COLUMN_HEIGHT = 0.8  # [m], 2a in scene_for: the column falls at up to sqrt(2 g H) (--moving's CFL dt)
 
 
 def scene_for(n_target: int, iterations: int = 4, reorder_interval: int | None = None):
@@ -50,7 +52,7 @@ def scene_for(n_target: int, iterations: int = 4, reorder_interval: int | None =
     )
 
 
-def run_one(n_target: int, arch: str, steps: int, reorder_interval: int | None = None) -> dict:
+def run_one(n_target: int, arch: str, steps: int, reorder_interval: int | None = None, moving: bool = False) -> dict:
     from whitecap import timing
     from whitecap.sim.driver import build_solver
 
@@ -59,6 +61,21 @@ def run_one(n_target: int, arch: str, steps: int, reorder_interval: int | None =
     res0 = resident_bytes()
     s = build_solver(sc, arch)
     dt = 1.0 / sc.solver.frame_rate / sc.solver.substeps
+    if moving:
+        # A fluid in motion: the lattice jittered by up to JITTER spacings (about the neighbour count of
+        # a disordered fluid at rest density), and dt at the CFL limit for the fastest the falling
+        # column gets, so that the fluid is not compressed as it moves (the fixed dt above is beyond
+        # that limit at r = 4 mm and finer).
+        import numpy as np
+
+        r = sc.solver.particle_radius
+        ck = s.checkpoint()
+        jit = np.random.default_rng(0).uniform(-JITTER, JITTER, ck["x"].shape) * 2 * r
+        lo, hi = np.asarray(sc.domain.lower) + r, np.asarray(sc.domain.upper) - r
+        ck["x"] = np.clip(ck["x"] + jit, lo, hi).astype(np.float32)
+        s.restore(ck)
+        del ck, jit  # not counted as the solver's memory
+        dt = sc.solver.cfl * 2 * r / math.sqrt(2 * 9.81 * COLUMN_HEIGHT)
     for _ in range(5):  # warm-up: compile kernels, settle the first contacts
         s.step(dt)
     import taichi as ti
@@ -97,10 +114,12 @@ def main() -> None:
     ap.add_argument("--sizes", default="30000,120000")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--reorder-interval", type=int, help="solver.reorder_interval (default: the scene default)")
+    ap.add_argument("--moving", action="store_true",
+                    help="a fluid in motion: jittered start, CFL-limited dt (default: the lattice and a fixed dt)")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one:
-        print(json.dumps(run_one(a.one, a.arch, a.steps, a.reorder_interval)))
+        print(json.dumps(run_one(a.one, a.arch, a.steps, a.reorder_interval, a.moving)))
         return
     archs = [a.arch]
     if a.arch == "cpu":
@@ -117,14 +136,16 @@ def main() -> None:
             load0 = load_average()
             out = subprocess.run(
                 [sys.executable, __file__, "--one", str(n), "--arch", arch, "--steps", str(a.steps)]
-                + ([] if a.reorder_interval is None else ["--reorder-interval", str(a.reorder_interval)]),
+                + ([] if a.reorder_interval is None else ["--reorder-interval", str(a.reorder_interval)])
+                + (["--moving"] if a.moving else []),
                 capture_output=True, text=True, env={**os.environ, "WHITECAP_PROGRESS": "0"},
             )
             if out.returncode:
                 print(out.stderr[-2000:], file=sys.stderr)
                 raise SystemExit(out.returncode)
             results.append({**json.loads(out.stdout.strip().splitlines()[-1]), "load": (load0, load_average())})
-    print(f"PBF dam break, 4 iterations, fixed dt, {os.cpu_count()} cores")
+    how = "jittered start, CFL-limited dt" if a.moving else "fixed dt"
+    print(f"PBF dam break, 4 iterations, {how}, {os.cpu_count()} cores")
     print(f"{'arch':5s} {'particles':>10s} {'ms/step':>9s} {'CPU ms':>8s} {'M p-it/s':>9s} {'vs SPH-PBF':>10s} {'vs target':>9s} {'B/particle':>10s} {'peak B/p':>8s} {'res B/p':>7s} {'load':>10s}")
     for r in results:
         print(
