@@ -69,3 +69,16 @@ def write_partio_bgeo(path, positions, attributes: dict, compress: bool = True) 
         cols.append(col)
     body = head + np.hstack(cols).astype(">f4").tobytes() + b"\x00\xff"
     Path(path).write_bytes(gzip.compress(body) if compress else body)
+
+
+# The head of a Blender script (run with `python -c`) that loads the add-on from argv[1] (its
+# __init__.py), registers it and loads the run or sequence argv[2]; `addon` and `sc` are then set.
+ADDON_LOAD_SCRIPT = r"""
+import sys, json, importlib.util, bpy
+spec = importlib.util.spec_from_file_location("whitecap_sequences", sys.argv[1])
+addon = importlib.util.module_from_spec(spec); sys.modules["whitecap_sequences"] = addon; spec.loader.exec_module(addon)
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon.register()
+bpy.ops.whitecap.load(filepath=sys.argv[2])
+sc = bpy.context.scene
+"""

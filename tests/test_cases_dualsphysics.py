@@ -22,6 +22,7 @@ from whitecap.cases.rigid_fit import apply_pose, fit_pose, fit_poses
 from whitecap.cli import main
 from whitecap.errors import InputError
 from whitecap.io.run import RunInfo
+from .conftest import ADDON_LOAD_SCRIPT
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dualsphysics_dambreak"
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -475,14 +476,7 @@ def test_preview_shows_the_building_where_it_projects(dambreak_run, tmp_path):
     assert red_with >= 15 and red_without == 0, (red_with, red_without)
 
 
-ADDON = r"""
-import sys, json, importlib.util, bpy
-spec = importlib.util.spec_from_file_location("whitecap_sequences", sys.argv[1])
-addon = importlib.util.module_from_spec(spec); sys.modules["whitecap_sequences"] = addon; spec.loader.exec_module(addon)
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon.register()
-bpy.ops.whitecap.load(filepath=sys.argv[2])
-sc = bpy.context.scene
+ADDON = ADDON_LOAD_SCRIPT + r"""
 res = {}
 for o in sc.objects:
     if o.name.startswith("obstacle_"):

@@ -478,18 +478,6 @@ def test_blender_addon_draws_the_closed_tank_as_glass(tmp_path):
     assert "ShaderNodeBsdfTransparent" in tank and "ShaderNodeBsdfTransparent" not in sphere, res
 
 
-def test_addon_copy_of_the_thin_glass_reflectance_matches_the_renderer():
-    # The add-on ships alone (no whitecap inside Blender), so it carries a copy.
-    import ast
-
-    src = (Path(__file__).parents[1] / "src/whitecap/render/addon/looks.py").read_text()
-    copies = [ast.literal_eval(n.value) for n in ast.parse(src).body
-              if isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "THIN_GLASS_IOR" for t in n.targets)]
-    from whitecap.render.scene import THIN_GLASS_IOR
-
-    assert copies == [THIN_GLASS_IOR]
-
-
 def test_partio_export_alone_is_read_in_id_order_too(tmp_path):
     """With only the partio export (enablePartioExport), the fluid comes from partio/*.bgeo,
     followed by id in the same way."""

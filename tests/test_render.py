@@ -22,6 +22,7 @@ from whitecap import io
 from whitecap.cli import main
 from whitecap.errors import InputError, MissingDependency
 from whitecap.io.run import RunInfo
+from .conftest import ADDON_LOAD_SCRIPT
 
 pytest.importorskip("bpy")
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -165,14 +166,7 @@ def test_no_meshes_says_run_mesh_first(tiny_run, capsys):
     assert "whitecap mesh" in err and str(tiny_run) in err and len(err.strip().splitlines()) == 1
 
 
-TRUNCATED = r"""
-import sys, json, importlib.util, bpy
-spec = importlib.util.spec_from_file_location("whitecap_sequences", sys.argv[1])
-addon = importlib.util.module_from_spec(spec); sys.modules["whitecap_sequences"] = addon; spec.loader.exec_module(addon)
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon.register()
-bpy.ops.whitecap.load(filepath=sys.argv[2])
-sc = bpy.context.scene
+TRUNCATED = ADDON_LOAD_SCRIPT + r"""
 obj = [o for o in sc.objects if o.whitecap_seq.enabled][-1]
 sc.frame_set(sc.frame_start)
 n0 = len(obj.data.vertices)

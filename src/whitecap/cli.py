@@ -80,7 +80,8 @@ def _add_foam(sub) -> None:
                    "may be left out when --params names it ([PATHS] InputDataPath)")
     p.add_argument("--out", "-o", help="output run directory (default: the input run itself)")
     p.add_argument("--preset", choices=choices(Foam, "preset"),
-                   help="parameter preset (splishsplash: FoamGenerator's default, automatic mode)")
+                   help="parameter preset (splishsplash: FoamGenerator's default, automatic mode; "
+                   "splishsplash-box: the same run with the domain as its --bbsize box)")
     p.add_argument("--params", help="parameter .ini: the VisualSPHysics foam simulator's file DualSPHysics users have "
                    "(its [PATHS], [TIMESTEPS] and [DOMAIN] give the job: `whitecap foam --params FILE` runs it), "
                    "or DiffuseCalculator-style keys (TaMin, KTa...)")

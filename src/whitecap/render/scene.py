@@ -159,31 +159,18 @@ def bubble_material():
     return mat
 
 
-#: Fresnel reflectance of the thin-glass obstacle preset: window glass [-]
-THIN_GLASS_IOR = 1.5
-
-
 def thin_glass_material(color) -> "object":
     """A pane without thickness (an imported tank's wall that encloses the fluid): light passes
-    straight through, tinted by ``color``, and the Fresnel share of glass of THIN_GLASS_IOR is
-    reflected. A refracting glass would need walls with two faces (see stage.glass_material)."""
+    straight through, tinted by ``color``, and glass's Fresnel share is reflected. A refracting
+    glass would need walls with two faces (see stage.glass_material). The node graph is the
+    add-on's (addon/looks.thin_glass), so a run looks the same in both; the add-on ships alone
+    inside Blender, so it is the one that holds it."""
     import bpy
 
+    from .addon import looks
+
     mat = bpy.data.materials.new("whitecap_obstacle_glass")
-    mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.remove(nt.nodes.get("Principled BSDF"))
-    through = nt.nodes.new("ShaderNodeBsdfTransparent")
-    through.inputs["Color"].default_value = (*color, 1.0)
-    mirror = nt.nodes.new("ShaderNodeBsdfGlossy")
-    mirror.inputs["Roughness"].default_value = 0.0
-    fresnel = nt.nodes.new("ShaderNodeFresnel")
-    fresnel.inputs["IOR"].default_value = THIN_GLASS_IOR
-    mix = nt.nodes.new("ShaderNodeMixShader")
-    nt.links.new(fresnel.outputs[0], mix.inputs[0])
-    nt.links.new(through.outputs[0], mix.inputs[1])
-    nt.links.new(mirror.outputs[0], mix.inputs[2])
-    nt.links.new(mix.outputs[0], nt.nodes.get("Material Output").inputs["Surface"])
+    looks.thin_glass(mat, color)
     return mat
 
 

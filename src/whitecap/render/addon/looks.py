@@ -12,7 +12,7 @@ WATER_COLOR = (0.55, 0.8, 0.9)  # [render] water_color default
 WATER_ABSORPTION = 3.0  # [render] water_absorption default [1/m]
 WATER_ROUGHNESS = 0.02  # [render] water_roughness default
 OBSTACLE_PRESETS = {"stone": (0.8, 0.0), "clay": (0.6, 0.0), "metal": (0.3, 1.0), "plastic": (0.35, 0.0)}
-THIN_GLASS_IOR = 1.5  # the "glass" preset's Fresnel reflectance (render/scene.py THIN_GLASS_IOR)
+THIN_GLASS_IOR = 1.5  # the "glass" preset's Fresnel reflectance: window glass [-]
 
 
 def _principled(mat):
@@ -91,9 +91,9 @@ def material(kind):
     return mat
 
 
-def _thin_glass(mat, color):
+def thin_glass(mat, color):
     """A pane without thickness (a closed tank's wall): seen straight through, tinted by
-    ``color``, with glass's Fresnel reflection (as whitecap's renderer draws it)."""
+    ``color``, with glass's Fresnel reflection (whitecap's renderer uses this one too)."""
     mat.use_nodes = True
     nt = mat.node_tree
     nt.nodes.remove(nt.nodes.get("Principled BSDF"))
@@ -117,7 +117,7 @@ def obstacle_material(entry):
     mat = bpy.data.materials.get(name)
     if mat is None and preset == "glass":
         mat = bpy.data.materials.new(name)
-        _thin_glass(mat, color)
+        thin_glass(mat, color)
     if mat is None:
         mat = bpy.data.materials.new(name)
         _, b = _principled(mat)
