@@ -317,7 +317,7 @@ class Foam(_Section):
     )
     wall_correction: bool | None = Field(
         None,
-        description="'splishsplash' preset: FoamGenerator's count correction for foam near the domain's faces "
+        description="FoamGenerator presets: its count correction for foam near the domain's faces "
         "(what its --bbsize turns on; foam there becomes bubbles); unset = off, as FoamGenerator without a box",
     )
     slots_per_particle: int | None = Field(

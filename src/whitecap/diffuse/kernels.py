@@ -277,7 +277,7 @@ def diffuse_type_in_box(
     p: vec3, cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32, lo: vec3, hi: vec3, h: ti.f32, wall_correction: ti.i32,
 ) -> ti.i32:
     """:func:`diffuse_type`, with FoamGenerator's count correction near the box's faces for
-    foam when ``wall_correction`` (the ``splishsplash`` preset; see .splishsplash)."""
+    foam when ``wall_correction`` (the ``splishsplash-box`` preset; see .splishsplash)."""
     t = diffuse_type(cnt, spray_below, bubble_above)
     if wall_correction and t == FOAM:
         t = diffuse_type(SP.wall_corrected_count(p, cnt, lo, hi, h, bubble_above), spray_below, bubble_above)
