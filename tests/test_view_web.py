@@ -438,6 +438,24 @@ def test_splat_puts_a_particle_on_the_pixel_the_camera_projects_it_to_at_its_dep
         assert abs(depth[int(v), int(u)] - (pn[2] - r)) < 0.02 * r
 
 
+def test_depth_png_reads_back_as_viser_reads_it():
+    """The depth PNG sent with a server picture decodes, by the formula of viser's page
+    (red·167.1168 + green·0.6528 + blue·0.00255 over channel values in [0, 1], i.e. 24-bit
+    fixed point in 1e-5 m with red the high byte), to the depth within half a step."""
+    import io
+
+    from PIL import Image
+
+    from whitecap.view.splat import DEPTH_STEP_UNITS, VISER_DEPTH_UNIT_M, encode_depth_png
+
+    depth = np.array([[0.0, 0.0123, 1.5], [2.71828, 40.0, 1.0e4]], np.float32)
+    a = np.asarray(Image.open(io.BytesIO(encode_depth_png(depth)))).astype(float) / 255.0
+    read = a[..., 2] * 0.00255 + a[..., 1] * 0.6528 + a[..., 0] * 167.1168
+    half_step = 0.5 * DEPTH_STEP_UNITS * VISER_DEPTH_UNIT_M
+    assert np.all(np.abs(read.ravel()[:-1] - depth.ravel()[:-1]) <= half_step + 1e-6)
+    assert read[-1, -1] > 167.0  # beyond viser's range: its largest depth
+
+
 def _shaded_fluid(img: np.ndarray) -> np.ndarray:
     """Pixels that are a shade s·c of a colour c of the fluid map, s between the server
     picture's ambient and ambient + diffuse light (view/splat.py), within FLUID_TOL."""

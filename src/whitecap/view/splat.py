@@ -29,6 +29,7 @@ simulation), in the project's style; NumPy cannot scatter a per-pixel minimum wi
 ``np.minimum.at``, which is about 50× slower than these kernels for 100k points.
 """
 
+import io
 import math
 
 import numpy as np
@@ -44,6 +45,16 @@ MIN_PIXEL_RADIUS = 0.75  # a particle smaller than this on screen still covers t
 NEAR = 1e-3  # particles nearer the eye than this along the view axis are not drawn [m]
 EMPTY_KEY = np.iinfo(np.int64).max
 FAR_DEPTH = 1.0e4  # depth written where no particle is [m] (viser clips it to its largest, 167.8 m)
+
+# viser's depth image (its client's background shader): 24-bit fixed point in units of 1e-5 m in
+# a PNG's red (high byte), green and blue (low byte) channels, up to 167.77 m.
+VISER_DEPTH_UNIT_M = 1e-5
+VISER_DEPTH_MAX = 2**24 - 1
+# Depth sent in steps of 256 units (2.56 mm): the low byte is then always zero, which halves
+# the PNG (80 kB instead of 190 kB for 100k particles at 640x480) and its encoding time. Half a
+# step (1.3 mm) is well under a particle radius, the scale at which fluid meets an obstacle.
+DEPTH_STEP_UNITS = 256
+PNG_COMPRESS_LEVEL = 1  # zlib level of the depth PNG: 1 is 2.5x faster than 6 for 15 % more bytes
 
 _L = np.asarray(LIGHT_DIR, np.float64) / np.linalg.norm(LIGHT_DIR)
 _LIGHT = tuple(float(c) for c in _L)
@@ -167,3 +178,30 @@ class Splatter:
             pos, rad, col = np.zeros((1, 3), np.float32), np.zeros(1, np.float32), np.zeros((1, 3), np.float32)
         shade_sphere_pixels(pos, rad, col, cam, f, self._key, ti.Vector([float(c) for c in background]), rgb, depth)
         return rgb, depth
+
+
+def encode_depth_png(depth: np.ndarray) -> bytes:
+    """The (H, W) depth [m along the view axis] as the PNG viser's page reads (module
+    constants): an RGB PNG, red the high byte. (viser's own ``set_background_image(depth=)``
+    writes the same numbers as a 4-channel PNG at zlib's default level: 57 ms and 190 kB
+    per 640x480 picture of 100k particles here, against 9 ms and 80 kB for this.)"""
+    from PIL import Image
+
+    steps = np.minimum(np.asarray(depth, np.float32) * (1.0 / (VISER_DEPTH_UNIT_M * DEPTH_STEP_UNITS)) + 0.5,
+                       VISER_DEPTH_MAX // DEPTH_STEP_UNITS).astype(np.uint32)
+    units = steps * DEPTH_STEP_UNITS
+    a = np.empty((*units.shape, 3), np.uint8)
+    a[..., 0] = units >> 16
+    a[..., 1] = (units >> 8) & 0xFF
+    a[..., 2] = units & 0xFF
+    buf = io.BytesIO()
+    Image.fromarray(a).save(buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+    return buf.getvalue()
+
+
+def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=int(quality))
+    return buf.getvalue()

@@ -36,6 +36,7 @@ small request before drawing again, so no more pictures are made than the page t
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import io
@@ -85,6 +86,7 @@ POINTS_MODES = ("auto", "browser", "server")
 SERVER_POINTS_ABOVE = 30_000  # auto: particles (fluid + diffuse) in a frame above which the server draws them
 JPEG_QUALITY = 85  # server pictures [-]: ~40-50 kB at 640x480
 ACK_KEY = "whitecap-picture-ack"  # localStorage key the page is asked for after each picture (the pacing round trip)
+SENT_FRAMES_KEPT = 100_000  # pictures whose frame a page remembers (the benchmark maps the page's pictures to frames)
 ACK_TIMEOUT_S = 10.0  # a page that answers nothing this long gets the next picture anyway
 CANVAS_RGB = (20 / 255, 20 / 255, 20 / 255)  # viser's dark-mode canvas: server pictures fill it where no particle is
 INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
@@ -633,6 +635,7 @@ class _PagePictures:
         self.seq: int | None = None  # WebViewer.spheres sequence number of the last picture
         self.frame: int | None = None  # source frame index of the last picture
         self.render_s = 0.0  # time spent drawing and encoding pictures [s]
+        self.sent_frames = collections.deque(maxlen=SENT_FRAMES_KEPT)  # source frame of each picture sent (benchmark)
         self._key = None
         self._closed = threading.Event()
         self._splatter = Splatter()
@@ -651,6 +654,17 @@ class _PagePictures:
             self._thread.join(timeout=ACK_TIMEOUT_S + 1)
         with self.viewer._pictures_lock:
             self.viewer._pictures_closed += self.sent
+
+    def _send(self, rgb: np.ndarray, depth: np.ndarray) -> None:
+        """What ``client.scene.set_background_image(rgb, "jpeg", depth=depth)`` sends, with the
+        depth PNG encoded by :func:`.splat.encode_depth_png` (viser's own encoding of it took
+        most of the server's time per picture)."""
+        from viser import _messages
+
+        from .splat import encode_depth_png, encode_jpeg
+
+        self.client._websock_connection.queue_message(_messages.BackgroundImageMessage(
+            format="jpeg", rgb_data=encode_jpeg(rgb, JPEG_QUALITY), depth_data=encode_depth_png(depth)))
 
     def _run(self) -> None:
         while not self._closed.is_set():
@@ -681,12 +695,13 @@ class _PagePictures:
                 self.client.scene.set_background_image(None)
         else:
             rgb, depth = self._splatter.render(sph[2], sph[3], sph[4], view[1], view[0], view[2], (W, H), CANVAS_RGB)
-            self.client.scene.set_background_image(rgb, format="jpeg", jpeg_quality=JPEG_QUALITY, depth=depth)
+            self._send(rgb, depth)
         self.render_s += time.perf_counter() - t0
         self._key = key
         if sph is not None:
             self.seq, self.frame = sph[0], sph[1]
             self.sent += 1
+            self.sent_frames.append(sph[1])
         self.viewer._wake.set()  # an unpaced loop waits for the pages to take each frame
         try:
             self.client.local_storage.get_item(ACK_KEY, timeout=ACK_TIMEOUT_S)
