@@ -13,10 +13,15 @@
    localhost: time from serving to the first picture with the fluid in it, and
    playback frames/s for a sequence of N particles read from disk frame by frame
    (unpaced, so the figure is what the server, the socket and the browser sustain).
-   A frame counts when the page shows its number; the points arrive in the same
-   message. Prints /proc/loadavg before and after (the machine may be shared).
+   ``--points browser`` (default): a frame counts when the page shows its number; the
+   points arrive in the same message. ``--points server``: the frame label comes in a
+   message of its own, so a frame counts when the page uploads a picture of a new frame
+   to WebGL (three.js does so in the render that first draws it); pictures the page
+   drops unseen (a newer one decoded first) do not count. Also printed: frames sent,
+   the server's CPU time per shown frame (this process: reading, colouring, drawing,
+   encoding, sending), /proc/loadavg before and after (the machine may be shared).
 
-    python benchmarks/bench_view.py --web [--n 100000] [--web-frames 24] [--seconds 10]
+    python benchmarks/bench_view.py --web [--points browser|server|auto] [--n 100000] [--web-frames 24] [--seconds 10]
 
    Measured on this 2-core machine without a GPU (Chromium flags: HEADLESS_CHROMIUM_ARGS,
    SwiftShader for WebGL only, no multisampling), load 1.9-4.1 from another benchmark:
@@ -84,6 +89,23 @@ for (const C of [WebGLRenderingContext, WebGL2RenderingContext]) {
 """
 
 
+def _browser_cpu_s() -> float:
+    """CPU time [s] used so far by this machine's Chromium processes (/proc; headless
+    Chromium started by this benchmark is the only one expected)."""
+    import os
+
+    tick, total = os.sysconf("SC_CLK_TCK"), 0
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        comm, rest = stat[stat.index("(") + 1: stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+        if "chrom" in comm:
+            total += int(rest[11]) + int(rest[12])  # utime, stime (fields 14, 15)
+    return total / tick
+
+
 def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle", points: str = "browser") -> dict:
     """Browser playback: a dam-break-like block of n particles moving frame by frame."""
     import io
@@ -145,12 +167,14 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
         count = (lambda: page_pictures.sent) if server else (lambda: v.frames_sent)
         sent0, n_pics0 = count(), page.evaluate("() => window.__pictures.length")
         cpu0 = time.process_time()  # this process is the server (loop, page render thread, websocket)
+        bcpu0 = _browser_cpu_s()
         t0 = time.perf_counter()
         v.play()
         time.sleep(seconds)
         v.play(False)
         sent = count() - sent0
         cpu = time.process_time() - cpu0
+        bcpu = _browser_cpu_s() - bcpu0
         wall = time.perf_counter() - t0
         seen = page.evaluate("() => window.__seen")
         ticks = page.evaluate("() => window.__ticks")
@@ -169,7 +193,7 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
     return {"n": n, "points": "server" if server else "browser", "frames_on_disk": frames,
             "first_picture_s": t_first - t_goto, "serve_to_picture_s": t_first - t_serve,
             "browser_fps": shown / span if shown else 0.0, "raf_per_s": ticks / wall, "shown": shown, "sent": sent,
-            "sent_fps": sent / wall, "server_cpu_per_shown_s": cpu / max(shown, 1),
+            "sent_fps": sent / wall, "server_cpu_per_shown_s": cpu / max(shown, 1), "browser_cpu_per_shown_s": bcpu / max(shown, 1),
             "precision": v.precision, "size": list(size), "shape": shape, "load_before": load0, "load_after": _loadavg()}
 
 
@@ -270,7 +294,8 @@ def main() -> None:
         print(f"web {w['n']:,} particles ({drawn}) at {w['size'][0]}x{w['size'][1]} over localhost in headless Chromium: "
               f"first picture {w['first_picture_s']:.2f} s after loading the page ({w['serve_to_picture_s']:.2f} s after serving); "
               f"playback {w['browser_fps']:.1f} frames/s shown in the browser ({w['sent']} frames sent, {w['sent_fps']:.1f}/s); "
-              f"server CPU {w['server_cpu_per_shown_s'] * 1e3:.0f} ms per shown frame; "
+              f"CPU per shown frame: server {w['server_cpu_per_shown_s'] * 1e3:.0f} ms, "
+              f"browser {w['browser_cpu_per_shown_s'] * 1e3:.0f} ms; "
               f"target {TARGET_WEB_FPS:.0f} frames/s; load {w['load_before']} before, {w['load_after']} after")
         return
     if a.part == "headless":
