@@ -252,6 +252,14 @@ def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
         _poll(lambda: v.scene.solver.iterations == 7, "the iterations slider to reach the solver")
         steps = v.source.steps
         _poll(lambda: v.source.steps > steps, "more steps")
+    # drawn on the server, a live frame hands the solver's particles to the pages' pictures
+    with WebViewer(scene, port=0, points="server") as v:
+        _poll(lambda: v.frames_sent >= 2 and v.spheres is not None, "the live simulation to reach the server's drawing")
+        assert v.drawn_on_server and not v.h_fluid.visible
+        P = v.spheres[2]
+        assert len(P) == v.source.solver.n and np.isfinite(P).all()
+        lo, hi = v.source.bounds.lower, v.source.bounds.upper
+        assert (P >= lo - 1e-6).all() and (P <= hi + 1e-6).all()
 
 
 def _cli(*args, **kw):

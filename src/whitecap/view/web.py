@@ -542,7 +542,7 @@ class WebViewer:
         """Whether this frame's particles are drawn here (``points``, module docstring)."""
         if self.points != "auto":
             return self.points == "server"
-        n = len(fr.positions) + (len(fr.diffuse_positions) if fr.diffuse_positions is not None else 0)
+        n = fr.n_fluid + (len(fr.diffuse_positions) if fr.diffuse_positions is not None else 0)  # a live frame: no copy
         return n > SERVER_POINTS_ABOVE
 
     def _draw(self, fr) -> None:
