@@ -13,10 +13,15 @@
    localhost: time from serving to the first picture with the fluid in it, and
    playback frames/s for a sequence of N particles read from disk frame by frame
    (unpaced, so the figure is what the server, the socket and the browser sustain).
-   A frame counts when the page shows its number; the points arrive in the same
-   message. Prints /proc/loadavg before and after (the machine may be shared).
+   ``--points browser`` (default): a frame counts when the page shows its number; the
+   points arrive in the same message. ``--points server``: the frame label comes in a
+   message of its own, so a frame counts when the page uploads a picture of a new frame
+   to WebGL (three.js does so in the render that first draws it); pictures the page
+   drops unseen (a newer one decoded first) do not count. Also printed: frames sent,
+   the server's CPU time per shown frame (this process: reading, colouring, drawing,
+   encoding, sending), /proc/loadavg before and after (the machine may be shared).
 
-    python benchmarks/bench_view.py --web [--n 100000] [--web-frames 24] [--seconds 10]
+    python benchmarks/bench_view.py --web [--points browser|server|auto] [--n 100000] [--web-frames 24] [--seconds 10]
 
    Measured on this 2-core machine without a GPU (Chromium flags: HEADLESS_CHROMIUM_ARGS,
    SwiftShader for WebGL only, no multisampling), load 1.9-4.1 from another benchmark:
@@ -52,7 +57,56 @@ def _loadavg() -> str:
         return "n/a"
 
 
-def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle") -> dict:
+# The page notes every background picture it draws (server mode): each picture's JPEG arrives
+# as a blob (its depth, a PNG, as another); the first bytes tell which, and the picture's number
+# is its place among the JPEGs. three.js uploads a texture in the render that first draws it,
+# so an upload of a picture's image is that picture drawn.
+_COUNT_PICTURES_JS = """
+window.__pictures = []; window.__jpegs = new Map(); let nJpeg = 0;
+const mk = URL.createObjectURL;
+URL.createObjectURL = function (obj) {
+  const url = mk.call(URL, obj);
+  if (obj instanceof Blob && obj.type.startsWith('image/')) {
+    const slot = {n: -1};
+    window.__jpegs.set(url, slot);
+    obj.slice(0, 2).arrayBuffer().then(b => { const u = new Uint8Array(b);
+      if (u[0] === 0xFF && u[1] === 0xD8) slot.n = nJpeg++; else window.__jpegs.delete(url); });
+  }
+  return url;
+};
+for (const C of [WebGLRenderingContext, WebGL2RenderingContext]) {
+  for (const name of ['texImage2D', 'texSubImage2D']) {
+    const f = C.prototype[name];
+    C.prototype[name] = function (...a) {
+      const src = a[a.length - 1];
+      if (src instanceof HTMLImageElement && window.__jpegs.has(src.src)) {
+        window.__pictures.push([performance.now(), window.__jpegs.get(src.src).n]); window.__jpegs.delete(src.src);
+      }
+      return f.apply(this, a);
+    };
+  }
+}
+"""
+
+
+def _browser_cpu_s() -> float:
+    """CPU time [s] used so far by this machine's Chromium processes (/proc; headless
+    Chromium started by this benchmark is the only one expected)."""
+    import os
+
+    tick, total = os.sysconf("SC_CLK_TCK"), 0
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        comm, rest = stat[stat.index("(") + 1: stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+        if "chrom" in comm:
+            total += int(rest[11]) + int(rest[12])  # utime, stime (fields 14, 15)
+    return total / tick
+
+
+def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle", points: str = "browser") -> dict:
     """Browser playback: a dam-break-like block of n particles moving frame by frame."""
     import io
     import shutil
@@ -79,18 +133,23 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
     ramp = colormap(np.linspace(0, 1, 64), 0, 1) * 255.0
 
     def fluid_pixels(png: bytes) -> int:
+        """Pixels of a shade (server pictures light their spheres) of a colour of the map."""
         img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float32)[:, : size[0] // 2]
         cand = np.ptp(img, axis=-1) > 25
         px = img[cand]
-        return int((np.min(((px[:, None] - ramp[None]) ** 2).sum(-1), axis=1) < 900).sum()) if len(px) else 0
+        if not len(px):
+            return 0
+        shade = np.clip((px @ ramp.T) / (ramp ** 2).sum(-1)[None], 0.4, 1.2)
+        return int((np.min(((px[:, None] - shade[..., None] * ramp[None]) ** 2).sum(-1), axis=1) < 900).sum())
 
     load0 = _loadavg()
     t_serve = time.perf_counter()
-    v = WebViewer(seq, port=0, paced=False, point_shape=shape)
+    v = WebViewer(seq, port=0, paced=False, point_shape=shape, points=points)
     v.start()
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=chromium, args=list(HEADLESS_CHROMIUM_ARGS))
         page = b.new_page(viewport={"width": size[0], "height": size[1]})
+        page.add_init_script(_COUNT_PICTURES_JS)
         t_goto = time.perf_counter()
         page.goto(v.url)
         while fluid_pixels(page.screenshot()) < 2000:
@@ -103,22 +162,38 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
               if (m && m[1] !== last) { last = m[1]; window.__seen.push([t, +m[1]]); }
               requestAnimationFrame(tick); };
             requestAnimationFrame(tick); }""")
-        sent0 = v.frames_sent
+        server = v.drawn_on_server
+        page_pictures = v.pages()[0] if server else None
+        count = (lambda: page_pictures.sent) if server else (lambda: v.frames_sent)
+        sent0, n_pics0 = count(), page.evaluate("() => window.__pictures.length")
+        cpu0 = time.process_time()  # this process is the server (loop, page render thread, websocket)
+        bcpu0 = _browser_cpu_s()
         t0 = time.perf_counter()
         v.play()
         time.sleep(seconds)
         v.play(False)
-        sent = v.frames_sent - sent0
+        sent = count() - sent0
+        cpu = time.process_time() - cpu0
+        bcpu = _browser_cpu_s() - bcpu0
         wall = time.perf_counter() - t0
         seen = page.evaluate("() => window.__seen")
         ticks = page.evaluate("() => window.__ticks")
+        pictures = page.evaluate("() => window.__pictures")[n_pics0:]
         b.close()
+        frames_of = list(page_pictures.sent_frames) if server else []
     v.stop()
     shutil.rmtree(seq.parent, ignore_errors=True)
+    if server:
+        # shown: distinct source frames among the pictures the page drew (each picture's frame as
+        # the server sent it); the frame label is a separate message and does not count here
+        seen = [(t, frames_of[k]) for t, k in pictures if 0 <= k < len(frames_of)]
+        seen = [x for i, x in enumerate(seen) if i == 0 or x[1] != seen[i - 1][1]]
     shown = max(len(seen) - 1, 0)
     span = (seen[-1][0] - seen[0][0]) / 1000.0 if len(seen) > 1 else float("nan")
-    return {"n": n, "frames_on_disk": frames, "first_picture_s": t_first - t_goto, "serve_to_picture_s": t_first - t_serve,
-            "browser_fps": shown / span if shown else 0.0, "raf_per_s": ticks / wall, "shown": shown, "sent_fps": sent / wall,
+    return {"n": n, "points": "server" if server else "browser", "frames_on_disk": frames,
+            "first_picture_s": t_first - t_goto, "serve_to_picture_s": t_first - t_serve,
+            "browser_fps": shown / span if shown else 0.0, "raf_per_s": ticks / wall, "shown": shown, "sent": sent,
+            "sent_fps": sent / wall, "server_cpu_per_shown_s": cpu / max(shown, 1), "browser_cpu_per_shown_s": bcpu / max(shown, 1),
             "precision": v.precision, "size": list(size), "shape": shape, "load_before": load0, "load_after": _loadavg()}
 
 
@@ -208,14 +283,19 @@ def main() -> None:
     ap.add_argument("--web-frames", type=int, default=24, help="--web: frames in the sequence on disk")
     ap.add_argument("--seconds", type=float, default=10.0, help="--web: playback time measured")
     ap.add_argument("--shape", default="circle", choices=["circle", "square"], help="--web: point shape")
+    ap.add_argument("--points", default="browser", choices=["auto", "browser", "server"],
+                    help="--web: where the particles are drawn (view --web --points)")
     ap.add_argument("--part", choices=["headless", "live"], help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.web:
-        w = _web(a.n, a.web_frames, a.seconds, tuple(a.size), a.shape)
+        w = _web(a.n, a.web_frames, a.seconds, tuple(a.size), a.shape, a.points)
         print(json.dumps(w))
-        print(f"web {w['n']:,} particles ({w['shape']}s) at {w['size'][0]}x{w['size'][1]} over localhost in headless Chromium: "
+        drawn = "drawn on the server" if w["points"] == "server" else f"{w['shape']}s drawn by the browser"
+        print(f"web {w['n']:,} particles ({drawn}) at {w['size'][0]}x{w['size'][1]} over localhost in headless Chromium: "
               f"first picture {w['first_picture_s']:.2f} s after loading the page ({w['serve_to_picture_s']:.2f} s after serving); "
-              f"playback {w['browser_fps']:.1f} frames/s shown in the browser ({w['sent_fps']:.1f} sent by the server); "
+              f"playback {w['browser_fps']:.1f} frames/s shown in the browser ({w['sent']} frames sent, {w['sent_fps']:.1f}/s); "
+              f"CPU per shown frame: server {w['server_cpu_per_shown_s'] * 1e3:.0f} ms, "
+              f"browser {w['browser_cpu_per_shown_s'] * 1e3:.0f} ms; "
               f"target {TARGET_WEB_FPS:.0f} frames/s; load {w['load_before']} before, {w['load_after']} after")
         return
     if a.part == "headless":

@@ -252,6 +252,14 @@ def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
         _poll(lambda: v.scene.solver.iterations == 7, "the iterations slider to reach the solver")
         steps = v.source.steps
         _poll(lambda: v.source.steps > steps, "more steps")
+    # drawn on the server, a live frame hands the solver's particles to the pages' pictures
+    with WebViewer(scene, port=0, points="server") as v:
+        _poll(lambda: v.frames_sent >= 2 and v.spheres is not None, "the live simulation to reach the server's drawing")
+        assert v.drawn_on_server and not v.h_fluid.visible
+        P = v.spheres[2]
+        assert len(P) == v.source.solver.n and np.isfinite(P).all()
+        lo, hi = v.source.bounds.lower, v.source.bounds.upper
+        assert (P >= lo - 1e-6).all() and (P <= hi + 1e-6).all()
 
 
 def _cli(*args, **kw):
@@ -385,3 +393,184 @@ def test_stepping_through_frames_does_not_recompile_the_point_shader(tiny_run, p
         for k in (*range(n - 2, -1, -1), *range(1, n)):  # new colours every frame
             show(v, k)
         assert page.evaluate("() => window.__links") == links
+
+
+# ---------------------------------------------------------------------- pictures drawn on the server
+
+
+def _look_at_wxyz(eye, target):
+    """viser's camera quaternion for an eye looking at target, z up: the camera's axes are
+    right, down, forward (OpenCV), built here from viser's own SO3, not from view/splat.py."""
+    fwd = np.asarray(target, float) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    return viser.transforms.SO3.from_matrix(np.c_[right, np.cross(fwd, right), fwd]).wxyz
+
+
+def test_splat_puts_a_particle_on_the_pixel_the_camera_projects_it_to_at_its_depth():
+    """A sphere at a known world point, drawn by view/splat.py for a camera given as viser
+    gives it (wxyz, position, vertical fov): its disc is centred on the pixel that viser's
+    convention projects the centre to (u = W/2 + f x/z, v = H/2 + f y/z in camera axes right,
+    down, forward), its radius is f r / z, and the depth at the centre is the distance along
+    the view axis to the sphere's front (z - r) [m]; elsewhere the depth is far and the
+    colour the background. Of two overlapping spheres the nearer one wins, whichever is
+    listed first."""
+    from whitecap.view.splat import FAR_DEPTH, Splatter
+
+    W, H, fov = 320, 240, math.radians(50.0)
+    eye, target = np.array([0.3, -1.0, 0.6]), np.array([0.1, 0.2, 0.1])
+    wxyz = _look_at_wxyz(eye, target)
+    R = viser.transforms.SO3(np.asarray(wxyz)).as_matrix()
+    f = 0.5 * H / math.tan(0.5 * fov)
+    x = np.array([0.18, 0.25, 0.05])  # off the image centre on both axes
+    p = (x - eye) @ R
+    u, v = W / 2 + f * p[0] / p[2], H / 2 + f * p[1] / p[2]
+    r = 0.02
+    rgb, depth = Splatter().render(x[None], [r], [[1.0, 0.0, 0.0]], wxyz, eye, fov, (W, H), background=(0.0, 0.0, 0.0))
+    covered = depth < FAR_DEPTH
+    rows, cols = np.nonzero(covered)
+    assert abs(cols.mean() + 0.5 - u) < 0.3 and abs(rows.mean() + 0.5 - v) < 0.3  # pixel centres at +0.5
+    rho = f * r / p[2]
+    assert abs(math.sqrt(covered.sum() / math.pi) - rho) < 0.05 * rho + 0.5
+    assert abs(depth[int(v), int(u)] - (p[2] - r)) < 0.02 * r
+    assert (rgb[~covered] == 0).all() and (rgb[covered, 0] > 0).all() and (rgb[covered, 1:] == 0).all()
+    # two overlapping spheres: the one 5 cm nearer the eye along the line of sight covers the centre
+    near = x + 0.05 * (eye - x) / np.linalg.norm(eye - x)
+    for order in ((x, near), (near, x)):
+        cols_ = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] if order[0] is x else [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]
+        rgb, depth = Splatter().render(np.array(order), [r, r], cols_, wxyz, eye, fov, (W, H))
+        c = rgb[int(v), int(u)]
+        assert c[1] > 0 and c[0] == 0  # green: the nearer one
+        pn = (near - eye) @ R
+        assert abs(depth[int(v), int(u)] - (pn[2] - r)) < 0.02 * r
+
+
+def test_depth_png_reads_back_as_viser_reads_it():
+    """The depth PNG sent with a server picture decodes, by the formula of viser's page
+    (red·167.1168 + green·0.6528 + blue·0.00255 over channel values in [0, 1], i.e. 24-bit
+    fixed point in 1e-5 m with red the high byte), to the depth within half a step."""
+    import io
+
+    from PIL import Image
+
+    from whitecap.view.splat import DEPTH_STEP_UNITS, VISER_DEPTH_UNIT_M, encode_depth_png
+
+    depth = np.array([[0.0, 0.0123, 1.5], [2.71828, 40.0, 1.0e4]], np.float32)
+    a = np.asarray(Image.open(io.BytesIO(encode_depth_png(depth)))).astype(float) / 255.0
+    read = a[..., 2] * 0.00255 + a[..., 1] * 0.6528 + a[..., 0] * 167.1168
+    half_step = 0.5 * DEPTH_STEP_UNITS * VISER_DEPTH_UNIT_M
+    assert np.all(np.abs(read.ravel()[:-1] - depth.ravel()[:-1]) <= half_step + 1e-6)
+    assert read[-1, -1] > 167.0  # beyond viser's range: its largest depth
+
+
+def _shaded_fluid(img: np.ndarray) -> np.ndarray:
+    """Pixels that are a shade s·c of a colour c of the fluid map, s between the server
+    picture's ambient and ambient + diffuse light (view/splat.py), within FLUID_TOL."""
+    from whitecap.view.colors import colormap
+    from whitecap.view.splat import AMBIENT, DIFFUSE
+
+    ramp = colormap(np.linspace(0.0, 1.0, 64), 0.0, 1.0) * 255.0
+    out = np.zeros(img.shape[:2], bool)
+    cand = np.ptp(img, axis=-1) > GREY_CHROMA
+    px = img[cand].astype(np.float32)
+    s = np.clip((px @ ramp.T) / (ramp ** 2).sum(-1)[None], AMBIENT - 0.05, AMBIENT + DIFFUSE + 0.05)
+    err = ((px[:, None, :] - s[..., None] * ramp[None]) ** 2).sum(-1)
+    out[cand] = err.min(axis=1) < FLUID_TOL ** 2
+    return out
+
+
+def _server_picture_checks(viewer, page, positions):
+    project, focal, (W, H) = _camera(viewer)
+    img = _shot(page)
+    panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
+    xy, depth = project(positions)
+    fluid = _shaded_fluid(img[:, :panel_x])
+    rad = float(viewer.source.radius) * viewer.point_scale * focal / depth + 1.5
+    where = np.zeros_like(fluid)
+    rows, cols = np.mgrid[0:H, 0:panel_x]
+    for (x, y), r in zip(xy, rad):
+        r0, r1, c0, c1 = int(y - r), int(y + r) + 1, int(x - r), int(x + r) + 1
+        where[r0:r1, c0:c1] |= (rows[r0:r1, c0:c1] - y) ** 2 + (cols[r0:r1, c0:c1] - x) ** 2 <= r * r
+    return fluid, where, img
+
+
+def _picture_of(viewer, index):
+    pages = viewer.pages()
+    return bool(pages) and pages[0].frame == index and pages[0].sent > 0
+
+
+def test_server_pictures_show_the_fluid_where_it_projects_and_follow_the_timeline(tiny_run, page):
+    """With --points server the page gets pictures, not points: the fluid-coloured (shaded)
+    pixels fall where the particles project through the browser's camera and cover most of
+    that region; moving the timeline to the last frame makes the page show that frame's
+    particles, and the picture changes."""
+    from whitecap.view.web import WebViewer
+
+    with WebViewer(tiny_run, port=0, points="server") as v:
+        _open(v, page)
+        _poll(lambda: _picture_of(v, v.source.indices[0]), "the first server picture")
+        assert not v.h_fluid.visible  # the points themselves are not sent
+        p0 = v.source.frame(0).positions
+
+        def shows(pos):
+            def check():
+                fluid, where, img = _server_picture_checks(v, page, pos)
+                ok = fluid.sum() > 2000 and (fluid & where).sum() / fluid.sum() > 0.97 and (fluid & where).sum() / where.sum() > 0.6
+                return [img] if ok else None
+            return check
+
+        img0, = _poll(shows(p0), "the fluid to appear in the page")
+        last_k = len(v.source) - 1
+        _move_slider_to_end(page)
+        _poll(lambda: _picture_of(v, v.source.indices[last_k]), "the picture of the last frame")
+        p3 = v.source.frame(last_k).positions
+        img3, = _poll(shows(p3), "the page to show the last frame")
+        assert (np.abs(img3 - img0).max(axis=-1) > 60).sum() > 500  # a different picture
+        assert "particles drawn on the server" in v.g_info.content
+
+
+def test_server_pictures_are_depth_composited_with_obstacles(tiny_run, tmp_path, page):
+    """The server picture carries depth: an obstacle between the camera and the fluid hides
+    the fluid behind it, and the fluid hides an obstacle behind it (viser's page composites
+    the picture with the meshes it draws itself by that depth)."""
+    import trimesh
+
+    from whitecap.config import View
+    from whitecap.view.app import initial_camera
+    from whitecap.view.web import WebViewer
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    from whitecap.view.app import open_source
+
+    src, _ = open_source(run, "cpu", "z")
+    cam = initial_camera(View(), src.bounds)
+    eye = np.asarray(cam.eye, float)
+    centre = src.frame(0).positions.mean(axis=0)
+    low, high = centre - [0.0, 0.0, 0.07], centre + [0.0, 0.0, 0.07]  # two points inside the column
+    front = eye + 0.6 * (low - eye)  # well in front of the fluid, on the line of sight to `low`
+    behind = high + 0.3 * (high - eye) / np.linalg.norm(high - eye)  # beyond the far side of the 0.2 m column
+    trimesh.creation.box(extents=(0.03, 0.03, 0.03)).export(run / "front.obj")
+    trimesh.creation.box(extents=(0.05, 0.05, 0.05)).export(run / "behind.obj")
+    meta = json.loads((run / "run.json").read_text())
+    meta["obstacles"] = [{"mesh": "front.obj", "translate": front.tolist()}, {"mesh": "behind.obj", "translate": behind.tolist()}]
+    (run / "run.json").write_text(json.dumps(meta))
+    with WebViewer(run, port=0, points="server") as v:
+        _open(v, page)
+        _poll(lambda: _picture_of(v, v.source.indices[0]), "the first server picture")
+
+        def composited():
+            project, focal, _ = _camera(v)  # (the page may report its camera again while it starts)
+
+            def square(point, half_m):
+                (x, y), z = (a[0] for a in project(np.asarray(point)[None]))
+                h = max(int(0.6 * half_m * focal / z), 2)  # inside the cube's projection
+                return slice(int(y) - h, int(y) + h), slice(int(x) - h, int(x) + h)
+
+            fs, bs = square(front, 0.015), square(behind, 0.025)
+            fluid, where, _ = _server_picture_checks(v, page, v.source.frame(0).positions)
+            # both cubes lie inside the fluid's projection; in front, no fluid shows; behind, only fluid
+            return (where[fs].all() and where[bs].all() and fluid[fs].mean() < 0.05 and fluid[bs].mean() > 0.9) or None
+
+        _poll(composited, "the front cube to hide the fluid and the fluid to hide the back cube")

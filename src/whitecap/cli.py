@@ -243,7 +243,11 @@ def _add_view(sub) -> None:
     p.add_argument("--web", action="store_true", help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
     p.add_argument("--port", type=int, default=8080, help="with --web, the port to serve on (default 8080)")
     p.add_argument("--host", default="localhost", help="with --web, the address to serve on (default localhost; 0.0.0.0 for all)")
-    p.add_argument("--max-points", type=int, default=300_000, help="with --web, particles drawn at most per kind; more are subsampled")
+    p.add_argument("--max-points", type=int, default=300_000,
+                   help="with --web --points browser, particles drawn at most per kind; more are subsampled")
+    p.add_argument("--points", choices=choices(View, "web_points"),
+                   help="with --web, where particles are drawn: browser (WebGL points), server (pictures drawn here, "
+                   "for large runs and slow browsers), auto (server above 30,000 particles; default: [view] web_points)")
     p.set_defaults(func=_cmd_view)
 
 
@@ -255,7 +259,7 @@ def _cmd_view(a) -> int:
         if a.headless:
             raise WhitecapError("view: --web and --headless exclude each other")
         pipeline.view(a.target, web=True, arch=a.arch, up=a.up, color_mode=a.color, host=a.host, port=a.port,
-                      max_points=a.max_points)
+                      max_points=a.max_points, points=a.points)
         return 0
     if a.headless:
         if not a.out:

@@ -395,6 +395,10 @@ class View(_Section):
         None, ge=1, le=10000,
         description="live mode: solver steps between redraws; unset = a whole output frame per redraw [-]",
     )
+    web_points: Literal["auto", "browser", "server"] = Field(
+        "auto", description="browser viewer (--web): where particles are drawn: the page's WebGL, pictures drawn "
+        "on the server, or auto = on the server above 30,000 particles (view/web.py SERVER_POINTS_ABOVE)",
+    )
 
 
 # --------------------------------------------------------------------------- render

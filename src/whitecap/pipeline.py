@@ -353,7 +353,7 @@ def view(target: Scene | str | Path, headless: bool = False, out: str | Path | N
     ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
     returns the PNG paths. ``opts``: size, color_mode, up, panel, legend, show_progress.
     ``web=True`` serves the viewer to a browser until interrupted, after printing its URL
-    (``opts``: host, port, max_points, color_mode, up). See :mod:`whitecap.view`.
+    (``opts``: host, port, max_points, points, color_mode, up). See :mod:`whitecap.view`.
     """
     if web:
         from .view.web import serve

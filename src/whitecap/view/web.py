@@ -19,10 +19,24 @@ only change the viewer's state and wake the loop. viser keeps only the newest
 update of each scene object for a client that falls behind, so a slow browser
 skips frames instead of queueing them, and the server holds one frame at a time
 (plus the source's small cache): memory stays bounded whatever the run's length.
+
+Where the particles are drawn (``points``): ``browser`` sends the points and the page
+draws them with WebGL; ``server`` draws them here (:mod:`.splat`, shaded spheres as
+GGUI's) for each connected page's own camera and sends a JPEG picture with a depth
+image, which viser's page composites with what it still draws itself (domain box,
+obstacles, moving bodies, surface mesh). ``auto`` picks ``server`` above
+SERVER_POINTS_ABOVE particles, as ParaView's remote render threshold and trame's
+remote/local switch move rendering to the server when the geometry is large: where
+WebGL runs in software (a machine without a GPU) 100k points cost the browser about
+0.3 s of CPU a frame, and through an SSH tunnel a 640×480 picture (~50 kB) is far
+less to send than 100k points (~1.5 MB). Each page has a render thread that draws the
+newest frame for the newest camera, sends it, and waits for the page to answer a
+small request before drawing again, so no more pictures are made than the page takes.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import io
@@ -63,6 +77,18 @@ POINT_SHAPES = ("circle", "square")
 # for 100k points (bench_view --web, 3 interleaved pairs), same picture.
 HEADLESS_CHROMIUM_ARGS = ("--enable-unsafe-swiftshader", "--use-gl=angle", "--use-angle=swiftshader-webgl",
                           "--ignore-gpu-blocklist", "--webgl-antialiasing-mode=none", "--webgl-msaa-sample-count=0")
+# Where the particles are drawn (module docstring). The threshold: on this project's 2-core
+# machine without a GPU, headless Chromium's software WebGL shows 20k points at about 14
+# frames/s and 100k at 4 (README, bench_view.py --web); it falls under the 10 frames/s target
+# near 30k, above which drawing on the server is faster. Browsers with a GPU draw far more;
+# choose --points browser there.
+POINTS_MODES = ("auto", "browser", "server")
+SERVER_POINTS_ABOVE = 30_000  # auto: particles (fluid + diffuse) in a frame above which the server draws them
+JPEG_QUALITY = 85  # server pictures [-]: ~40-50 kB at 640x480
+ACK_KEY = "whitecap-picture-ack"  # localStorage key the page is asked for after each picture (the pacing round trip)
+SENT_FRAMES_KEPT = 100_000  # pictures whose frame a page remembers (the benchmark maps the page's pictures to frames)
+ACK_TIMEOUT_S = 10.0  # a page that answers nothing this long gets the next picture anyway
+CANVAS_RGB = (20 / 255, 20 / 255, 20 / 255)  # viser's dark-mode canvas: server pictures fill it where no particle is
 INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
 
 
@@ -112,7 +138,7 @@ class WebViewer:
 
     def __init__(self, target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
                  color_mode: str | None = None, max_points: int = MAX_POINTS, paced: bool = True,
-                 point_shape: str = "circle"):
+                 point_shape: str = "circle", points: str | None = None):
         try:
             import viser
         except ImportError:
@@ -122,6 +148,10 @@ class WebViewer:
         if max_points < 1:
             raise InputError(f"view --max-points: expected at least 1, got {max_points}")
         self.source, self.cfg = open_source(target, arch, up)  # a missing run stops here, before any server
+        points = points or self.cfg.web_points
+        if points not in POINTS_MODES:
+            raise InputError(f"view --points: expected one of {', '.join(POINTS_MODES)}, got '{points}'")
+        self.points = points
         if color_mode:
             self.cfg = self.cfg.model_copy(update={"color_mode": color_mode})
         self.live = bool(self.source.live)
@@ -147,6 +177,12 @@ class WebViewer:
         self._surface_index = None
         self._sub_cache: dict[int, np.ndarray | None] = {}
         self._poses: dict[int, dict | None] = {}  # per obstacle, the body pose last sent (absent: at rest)
+        self.drawn_on_server: bool | None = None  # where the last frame's particles were drawn
+        self.spheres = None  # server drawing: (seq, frame index, positions, radii, colours) of the frame shown
+        self._spheres_seq = 0
+        self._pictures: dict[int, "_PagePictures"] = {}  # server drawing: one render thread per connected page
+        self._pictures_lock = threading.Lock()
+        self._pictures_closed = 0  # pictures sent to pages that have gone
 
         check_port_free(host, port)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; the CLI prints the URL
@@ -157,6 +193,8 @@ class WebViewer:
             raise WhitecapError(f"view --web: port {port} is already in use on {host}; choose another with --port")
         self._build_scene(viser)
         self._build_gui()
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
 
     # ------------------------------------------------------------------ setup
     @property
@@ -321,6 +359,10 @@ class WebViewer:
         self._wake.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=10)
+        with self._pictures_lock:
+            pages, self._pictures = list(self._pictures.values()), {}
+        for pp in pages:
+            pp.close()
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
 
@@ -369,6 +411,8 @@ class WebViewer:
         if self.live:
             self._apply_pending()
         if not self.paced and not self.live:
+            if self.drawn_on_server and self._pages_behind():
+                return  # unpaced and drawn here: each page pictures each frame (no frame is read for nothing)
             self.state.last_advance = None  # every pass advances a frame
         _advance(self.state, self.source)
         key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
@@ -384,43 +428,131 @@ class WebViewer:
             self._sub_cache[n] = subsample(n, self.max_points)
         return self._sub_cache[n]
 
-    def _draw(self, fr) -> None:
-        st, size = self.state, self._size()
+    def _fluid_values(self, d) -> np.ndarray:
+        st = self.state
+        values = fluid_scalar(d, st.color_mode)
+        if st.color_range is None:
+            st.color_range = fitted_range(values, st.color_mode, self.speed_scale)
+        return values
+
+    def _draw_in_browser(self, fr) -> list[str]:
+        """Send the frame's points; the page draws them with WebGL. Returns notes for the panel."""
+        st, size, notes = self.state, self._size(), []
         d = fr.as_dict()
         pos = d["positions"]
         n = len(pos)
-        notes = []
+        if self.drawn_on_server is not False:
+            self.spheres = None  # the pages' render threads take the server picture down
+            self._wake_pages()
+        self.drawn_on_server = False
+        if n and self.show["fluid"]:
+            values = self._fluid_values(d)
+            idx = self._sub(n)
+            if idx is not None:
+                pos, values = pos[idx], values[idx]
+                notes.append(f"fluid: drawing {len(idx):,} of {n:,} particles (subsample)")
+            self.h_fluid.points = np.asarray(pos - self.origin, np.float32)
+            self.h_fluid.colors = _u8(colormap(values, *st.color_range))
+            self.h_fluid.point_size = size
+            self.h_fluid.point_shape = self.point_shape
+            self.h_fluid.visible = True
+        else:
+            self.h_fluid.visible = False
+        for t, h in enumerate(self.h_diffuse):
+            sel = None
+            if fr.diffuse_positions is not None and self.show[TYPE_NAMES[t]]:
+                sel = np.flatnonzero(fr.diffuse_type == t)
+            if sel is None or not len(sel):
+                h.visible = False
+                continue
+            idx = self._sub(len(sel))
+            if idx is not None:
+                notes.append(f"{TYPE_NAMES[t]}: drawing {len(idx):,} of {len(sel):,} particles (subsample)")
+                sel = sel[idx]
+            h.points = np.asarray(fr.diffuse_positions[sel] - self.origin, np.float32)
+            h.point_size = float(np.median(fr.diffuse_radius[sel])) * self.point_scale
+            h.point_shape = self.point_shape
+            h.visible = True
+        return notes
+
+    def _draw_on_server(self, fr) -> list[str]:
+        """Hand the frame's spheres (every particle, no subsample: the cost of a picture grows
+        with the count, not the bytes sent) to the pages' render threads. Returns notes."""
+        st, d = self.state, fr.as_dict()
+        pos, rad, col = [], [], []
+        if len(d["positions"]) and self.show["fluid"]:
+            pos.append(np.asarray(d["positions"], np.float32))
+            rad.append(np.full(len(pos[-1]), self._size(), np.float32))
+            col.append(colormap(self._fluid_values(d), *st.color_range))
+        if fr.diffuse_positions is not None:
+            for t, name in enumerate(TYPE_NAMES):
+                sel = np.flatnonzero(fr.diffuse_type == t) if self.show[name] else ()
+                if len(sel):
+                    pos.append(np.asarray(fr.diffuse_positions[sel], np.float32))
+                    rad.append(np.asarray(fr.diffuse_radius[sel], np.float32) * self.point_scale)
+                    col.append(np.repeat(DIFFUSE_COLORS[t][None], len(sel), 0))
+        if self.drawn_on_server is not True:
+            self.h_fluid.visible = False
+            for h in self.h_diffuse:
+                h.visible = False
+        self.drawn_on_server = True
+        self._spheres_seq += 1
+        if pos:
+            P, R, C = np.concatenate(pos), np.concatenate(rad), np.concatenate(col).astype(np.float32)
+        else:
+            P, R, C = np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+        self.spheres = (self._spheres_seq, fr.index, P, R, C)
+        self._wake_pages()
+        why = f" (more than {SERVER_POINTS_ABOVE:,}: --points auto)" if self.points == "auto" else ""
+        return [f"{len(P):,} particles drawn on the server{why}"]
+
+    # ------------------------------------------------------------------ server pictures, per page
+    def _connect(self, client) -> None:
+        with self._pictures_lock:
+            if not self._stop.is_set():
+                self._pictures[client.client_id] = _PagePictures(self, client)
+
+    def _disconnect(self, client) -> None:
+        with self._pictures_lock:
+            pp = self._pictures.pop(client.client_id, None)
+        if pp is not None:
+            pp.close()
+
+    def _wake_pages(self) -> None:
+        with self._pictures_lock:
+            for pp in self._pictures.values():
+                pp.wake.set()
+
+    @property
+    def pictures_sent(self) -> int:
+        """Server pictures sent to all pages so far."""
+        with self._pictures_lock:
+            return self._pictures_closed + sum(pp.sent for pp in self._pictures.values())
+
+    def pages(self) -> list["_PagePictures"]:
+        with self._pictures_lock:
+            return list(self._pictures.values())
+
+    def _pages_behind(self) -> bool:
+        """Whether a connected page has not had a picture of the newest spheres yet."""
+        sph = self.spheres
+        return sph is not None and any(pp.ready() and pp.seq != sph[0] for pp in self.pages())
+
+    def _on_server(self, fr) -> bool:
+        """Whether this frame's particles are drawn here (``points``, module docstring)."""
+        if self.points != "auto":
+            return self.points == "server"
+        n = fr.n_fluid + (len(fr.diffuse_positions) if fr.diffuse_positions is not None else 0)  # a live frame: no copy
+        return n > SERVER_POINTS_ABOVE
+
+    def _draw(self, fr) -> None:
+        st = self.state
+        on_server = self._on_server(fr)
         with self.server.atomic():
-            if n and self.show["fluid"]:
-                values = fluid_scalar(d, st.color_mode)
-                if st.color_range is None:
-                    st.color_range = fitted_range(values, st.color_mode, self.speed_scale)
-                idx = self._sub(n)
-                if idx is not None:
-                    pos, values = pos[idx], values[idx]
-                    notes.append(f"fluid: drawing {len(idx):,} of {n:,} particles (subsample)")
-                self.h_fluid.points = np.asarray(pos - self.origin, np.float32)
-                self.h_fluid.colors = _u8(colormap(values, *st.color_range))
-                self.h_fluid.point_size = size
-                self.h_fluid.point_shape = self.point_shape
-                self.h_fluid.visible = True
+            if on_server:
+                notes = self._draw_on_server(fr)
             else:
-                self.h_fluid.visible = False
-            for t, h in enumerate(self.h_diffuse):
-                sel = None
-                if fr.diffuse_positions is not None and self.show[TYPE_NAMES[t]]:
-                    sel = np.flatnonzero(fr.diffuse_type == t)
-                if sel is None or not len(sel):
-                    h.visible = False
-                    continue
-                idx = self._sub(len(sel))
-                if idx is not None:
-                    notes.append(f"{TYPE_NAMES[t]}: drawing {len(idx):,} of {len(sel):,} particles (subsample)")
-                    sel = sel[idx]
-                h.points = np.asarray(fr.diffuse_positions[sel] - self.origin, np.float32)
-                h.point_size = float(np.median(fr.diffuse_radius[sel])) * self.point_scale
-                h.point_shape = self.point_shape
-                h.visible = True
+                notes = self._draw_in_browser(fr)
             for k, h in self.h_obstacles:
                 h.visible = self.show["obstacles"]
                 body = fr.bodies[k] if fr.bodies and k < len(fr.bodies) else None
@@ -485,10 +617,104 @@ class WebViewer:
 NOTEBOOK_HEIGHT_PX = 560
 
 
+class _PagePictures:
+    """Server pictures for one connected page: a thread that draws the viewer's newest
+    spheres (:attr:`WebViewer.spheres`) for the page's newest camera, sends the picture
+    with its depth (viser composites it with the page's own objects), then asks the page
+    for a localStorage value (:data:`ACK_KEY`) and waits for the answer: the page handles
+    messages in order, so the answer means the picture has arrived and the next one may
+    be drawn. Camera moves and new frames arriving meanwhile are coalesced into one picture.
+    """
+
+    def __init__(self, viewer: WebViewer, client):
+        from .splat import Splatter
+
+        self.viewer, self.client = viewer, client
+        self.wake = threading.Event()
+        self.sent = 0  # pictures sent
+        self.seq: int | None = None  # WebViewer.spheres sequence number of the last picture
+        self.frame: int | None = None  # source frame index of the last picture
+        self.render_s = 0.0  # time spent drawing and encoding pictures [s]
+        self.sent_frames = collections.deque(maxlen=SENT_FRAMES_KEPT)  # source frame of each picture sent (benchmark)
+        self._key = None
+        self._closed = threading.Event()
+        self._splatter = Splatter()
+        client.camera.on_update(lambda cam: self.wake.set())
+        self._thread = threading.Thread(target=self._run, name=f"whitecap-page-{client.client_id}", daemon=True)
+        self._thread.start()
+
+    def ready(self) -> bool:
+        """Whether the page has told its camera (pictures can be drawn for it)."""
+        return self.client.camera.update_timestamp != 0.0
+
+    def close(self) -> None:
+        self._closed.set()
+        self.wake.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=ACK_TIMEOUT_S + 1)
+        with self.viewer._pictures_lock:
+            self.viewer._pictures_closed += self.sent
+
+    def _send(self, rgb: np.ndarray, depth: np.ndarray) -> None:
+        """What ``client.scene.set_background_image(rgb, "jpeg", depth=depth)`` sends, with the
+        depth PNG encoded by :func:`.splat.encode_depth_png` (viser's own encoding of it took
+        most of the server's time per picture)."""
+        from viser import _messages
+
+        from .splat import encode_depth_png, encode_jpeg
+
+        self.client._websock_connection.queue_message(_messages.BackgroundImageMessage(
+            format="jpeg", rgb_data=encode_jpeg(rgb, JPEG_QUALITY), depth_data=encode_depth_png(depth)))
+
+    def _run(self) -> None:
+        while not self._closed.is_set():
+            self.wake.wait(IDLE_WAIT_S)
+            self.wake.clear()
+            if self._closed.is_set():
+                return
+            try:
+                self._picture()
+            except RuntimeError:  # the page went away during the round trip
+                return
+            except Exception as exc:  # noqa: BLE001 -- a thread must not die silently
+                log.warning("server picture for page %s: %s", self.client.client_id, exc)
+
+    def _picture(self) -> None:
+        if not self.ready():
+            return
+        cam = self.client.camera
+        W, H = int(cam.image_width), int(cam.image_height)
+        sph = self.viewer.spheres
+        view = (tuple(cam.position), tuple(cam.wxyz), float(cam.fov), W, H)
+        key = (sph[0] if sph is not None else None, view)
+        if key == self._key or W <= 0 or H <= 0:
+            return
+        t0 = time.perf_counter()
+        if sph is None or not len(sph[2]):
+            if self._key is not None and self._key[0] is not None:
+                self.client.scene.set_background_image(None)
+        else:
+            rgb, depth = self._splatter.render(sph[2], sph[3], sph[4], view[1], view[0], view[2], (W, H), CANVAS_RGB)
+            self._send(rgb, depth)
+        self.render_s += time.perf_counter() - t0
+        self._key = key
+        if sph is not None:
+            self.seq, self.frame = sph[0], sph[1]
+            self.sent += 1
+            self.sent_frames.append(sph[1])
+        self.viewer._wake.set()  # an unpaced loop waits for the pages to take each frame
+        try:
+            self.client.local_storage.get_item(ACK_KEY, timeout=ACK_TIMEOUT_S)
+        except TimeoutError:
+            pass
+        self.wake.set()  # a newer frame or camera may have come meanwhile
+
+
 def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
-          color_mode: str | None = None, max_points: int = MAX_POINTS, announce=print) -> None:
+          color_mode: str | None = None, max_points: int = MAX_POINTS, points: str | None = None, announce=print) -> None:
     """The CLI's ``view --web``: serve until Ctrl-C, after printing the URL."""
-    v = WebViewer(target, host=host, port=port, arch=arch, up=up, color_mode=color_mode, max_points=max_points)
+    v = WebViewer(target, host=host, port=port, arch=arch, up=up, color_mode=color_mode, max_points=max_points,
+                  points=points)
     announce(f"whitecap view: open {v.url} in a browser (Ctrl-C stops)")
     if v.host in ("localhost", "127.0.0.1", "::1"):
         announce(f"  from another machine: ssh -L {v.port}:localhost:{v.port} THIS_HOST, then open http://localhost:{v.port}")
