@@ -246,3 +246,77 @@ def test_vorticity_confinement_feeds_rotation_back():
     none, some, more = angular_momentum(0.0), angular_momentum(0.05), angular_momentum(0.2)
     assert 0.95 < none <= 1.0
     assert some > none + 0.05 and more > some + 0.1, (none, some, more)
+
+
+def _by_id(s):
+    ck = s.checkpoint()
+    o = np.argsort(ck["ids"])
+    return ck["x"][o], ck["v"][o]
+
+
+def test_16_bit_neighbour_lists_and_their_32_bit_fallback_step_alike():
+    """The solver's lists hold j − i in 16 bits; when an offset does not fit, the same lists in 32
+    bits are used instead. Forced here by lowering the limit, with reorders off so that both runs
+    keep the same particle order: the two runs are bit for bit the same."""
+    sc = scene_from_dict(tiny_scene_dict(solver={"particle_radius": 0.01, "reorder_interval": 0}))
+    a, b = build_solver(sc), build_solver(sc)
+    b.grid.offset_limit = 0  # no offset fits
+    dt = 1.0 / 300
+    for _ in range(12):
+        a.step(dt)
+        b.step(dt)
+    assert a.grid.compact and not a.grid.wide and a.grid.far == 0
+    assert b.grid.wide and b.grid.far > 0 and b.grid.nb.dtype != a.grid.nb.dtype
+    xa, va = _by_id(a)
+    xb, vb = _by_id(b)
+    assert np.array_equal(xa, xb) and np.array_equal(va, vb)
+    assert np.abs(xa - a.scene.fluid[0].lower).max() > 0.01  # the fluid moved
+
+
+def test_offsets_outgrowing_16_bits_force_a_reorder_and_a_resume_keeps_it():
+    """After a step whose offsets did not fit in 16 bits the next step reorders the particles (once:
+    if that does not help, the 32-bit lists stay until the next scheduled reorder); a run resumed
+    between the two steps reorders too, and steps as the uninterrupted run does."""
+    sc = scene_from_dict(tiny_scene_dict())
+    interval = sc.solver.reorder_interval
+    dt = 1.0 / 300
+
+    def run(limit, steps):
+        s = build_solver(sc)
+        s.grid.offset_limit = limit
+        when = []
+        reorder = s.reorder
+        s.reorder = lambda: (when.append(s.step_count), reorder())
+        for _ in range(steps):
+            s.step(dt)
+        return s, when
+
+    assert run(2**15 - 1, interval + 2)[1] == [0, interval]
+    assert run(0, interval + 2)[1] == [0, 1, interval, interval + 1]
+    first, _ = run(2**15 - 1, 20)  # 20 steps since the last reorder: the particles are out of order
+    first.grid.offset_limit = 0
+    first.step(dt)  # its offsets do not fit: a reorder is due
+    ck = first.checkpoint()
+    resumed = build_solver(sc)
+    resumed.grid.offset_limit = 0
+    resumed.restore(ck)
+    first.step(dt)
+    resumed.step(dt)
+    assert not np.array_equal(first.checkpoint()["ids"], ck["ids"])  # the step reordered
+    assert np.array_equal(first.checkpoint()["ids"], resumed.checkpoint()["ids"])
+    x1, v1 = _by_id(first)
+    x2, v2 = _by_id(resumed)
+    assert np.array_equal(x1, x2) and np.array_equal(v1, v2)
+
+
+def test_solver_keeps_32_bit_lists_when_a_sort_cannot_bring_the_offsets_within_16_bits(monkeypatch):
+    """16-bit lists only when, right after a sort, the offsets take at most half their range."""
+    from whitecap.sim import pbf
+
+    sc = scene_from_dict(tiny_scene_dict())
+    assert build_solver(sc).grid.compact
+    monkeypatch.setattr(pbf, "NARROW_LIMIT", 100)  # the tiny dam break's slices hold more than 50
+    s = build_solver(sc)
+    assert not s.grid.compact and s.grid.nb_narrow is None
+    s.step(1.0 / 300)
+    assert s.grid.wide and s.grid.far == 0
