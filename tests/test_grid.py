@@ -35,7 +35,7 @@ def grid_and_points():
 
     runtime.init("cpu")
     x = _points(3000, seed=5)
-    g = NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 512, H, compact=True)
+    g = NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 512, H)
     xs = ti.Vector.ndarray(3, ti.f32, len(x))
     xs.from_numpy(x)
     g.build(xs, len(x))
@@ -43,13 +43,11 @@ def grid_and_points():
 
 
 def test_neighbor_lists_are_exactly_the_pairs_within_h(grid_and_points):
-    import taichi as ti
-
     g, _, x = grid_and_points
     near, edge = _within(x, x)
     np.fill_diagonal(near, False)
-    counts, nb = g.lists(len(x))
-    assert g.overflow == 0 and not g.wide and g.nb.dtype == ti.i16  # the offsets fit in 16 bits
+    counts, nb = g.nb_count.to_numpy(), g.nb.to_numpy()
+    assert g.overflow == 0
     assert near.sum(1).max() > 50  # the blobs really fill many cells
     for i in range(len(x)):
         found = np.zeros(len(x), bool)
@@ -74,76 +72,12 @@ def test_full_lists_count_the_overflow_and_keep_true_neighbours():
     near, edge = _within(x, x)
     np.fill_diagonal(near, False)
     true = near.sum(1)
-    counts, nb = g.lists(len(x))
+    counts, nb = g.nb_count.to_numpy(), g.nb.to_numpy()
     sure = ~edge.any(1)
     assert (counts[sure] == np.minimum(true[sure], cap)).all()
     assert overflow == (np.maximum(true - cap, 0)).sum() and overflow > 0
     for i in np.flatnonzero(sure)[:300]:
         assert near[i, nb[i, : counts[i]]].all()
-
-
-def test_offsets_too_large_for_16_bits_fall_back_to_the_same_lists_in_32_bits():
-    """The lists hold j − i in 16 bits; a build with any offset over the limit fills 32-bit lists
-    instead, with the same neighbours in the same order, and says how many did not fit. The next
-    build goes straight to 32 bits, and back to 16 once the offsets fit. The limit is lowered here
-    (the points are in no order: their offsets run to ~3000) so that some do not fit."""
-    import taichi as ti
-
-    from whitecap.sim import runtime
-    from whitecap.sim.grid import NeighborGrid, grid_spec
-
-    runtime.init("cpu")
-    x = _points(3000, seed=5)
-    xs = ti.Vector.ndarray(3, ti.f32, len(x))
-    xs.from_numpy(x)
-    ref = NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 512, H)  # 32-bit from the start
-    ref.build(xs, len(x))
-    c0, nb0 = ref.lists(len(x))
-    off = np.abs(nb0 - np.arange(len(x))[:, None])[np.arange(512)[None, :] < c0[:, None]]
-    assert ref.wide and ref.far == 0 and ref.nb_narrow is None and off.max() > 1000
-    limit = 1000
-    g = NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 512, H, compact=True)
-    g.offset_limit = limit
-    for _ in range(2):  # the 16-bit attempt, then straight to 32 bits
-        g.build(xs, len(x))
-        assert g.wide and g.nb.dtype == ti.i32 and not g.try_narrow
-        assert g.far == (off > limit).sum()
-        c, nb = g.lists(len(x))
-        assert (c == c0).all()
-        for i in range(len(x)):
-            assert (nb[i, : c[i]] == nb0[i, : c0[i]]).all(), i
-    g.offset_limit = 2**15 - 1
-    g.build(xs, len(x))  # the offsets fit: this build is still 32-bit, the next one 16-bit
-    assert g.wide and g.far == 0 and g.try_narrow
-    g.build(xs, len(x))
-    assert not g.wide and g.nb.dtype == ti.i16
-    c, nb = g.lists(len(x))
-    assert all((nb[i, : c[i]] == nb0[i, : c0[i]]).all() for i in range(len(x)))
-
-
-def test_slice_span_bounds_the_offsets_right_after_a_sort():
-    """slice_span (how the solver decides on 16-bit lists) is an upper bound on |j − i| for
-    particles numbered in cell order, and not a loose one."""
-    import taichi as ti
-
-    from whitecap.sim import runtime
-    from whitecap.sim.grid import NeighborGrid, grid_spec, slice_span
-
-    runtime.init("cpu")
-    spec = grid_spec((0, 0, 0), (1, 1, 1), H / 2)
-    g0 = NeighborGrid(spec, 3000, 512, H)
-    x = _points(3000, seed=7)
-    xs = ti.Vector.ndarray(3, ti.f32, len(x))
-    xs.from_numpy(x)
-    g0.sort(xs, len(x))
-    x = x[g0.order.to_numpy()[: len(x)]]  # renumbered in cell order
-    xs.from_numpy(x)
-    g = NeighborGrid(spec, len(x), 512, H, compact=True)
-    g.build(xs, len(x))
-    c, nb = g.lists(len(x))
-    off = np.abs(nb - np.arange(len(x))[:, None])[np.arange(512)[None, :] < c[:, None]]
-    span = slice_span(x, spec, g.reach)
-    assert off.max() <= span < 2 * off.max()
 
 
 def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):

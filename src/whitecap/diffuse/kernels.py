@@ -15,7 +15,7 @@ import math
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, NB, for_each_neighbor, neighbor
+from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
 from . import splishsplash as SP
 
 vec3 = ti.math.vec3
@@ -59,7 +59,7 @@ def fluid_potentials(
     x: F3,
     v: F3,
     nb_count: I1,
-    nb: NB,
+    nb: I2,
     h: ti.f32,
     surface_fraction: ti.f32,
     normal: F3,
@@ -77,7 +77,7 @@ def fluid_potentials(
         vd = 0.0
         w = vec3(0.0)
         for k in range(nb_count[i]):
-            j = neighbor(nb, i, k)
+            j = nb[i, k]
             xij = x[i] - x[j]
             r = xij.norm()
             if 0.0 < r < h:
@@ -100,7 +100,7 @@ def fluid_potentials(
 
 
 @ti.kernel
-def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: NB, normal: F3, surface: I1, h: ti.f32, crest: F1):
+def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surface: I1, h: ti.f32, crest: F1):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
     δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface."""
     for i in range(n):
@@ -108,7 +108,7 @@ def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: NB, normal: F3, surfac
         if surface[i] == 1:
             ni = normal[i]
             for k in range(nb_count[i]):
-                j = neighbor(nb, i, k)
+                j = nb[i, k]
                 xji = x[j] - x[i]
                 r = xji.norm()
                 if 0.0 < r < h and xji.dot(ni) < 0.0:

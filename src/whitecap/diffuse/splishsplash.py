@@ -47,7 +47,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from ..sim.grid import F1, F3, I1, NB, neighbor
+from ..sim.grid import F1, F3, I1, I2
 from ..sim.smoothing import cubic_spline, cubic_spline_grad
 from .params import FOAMSCALE  # noqa: F401  (re-exported: the mode's numbers in one place)
 
@@ -97,24 +97,24 @@ def particle_mass(radius: float) -> float:
 
 
 @ti.kernel
-def sph_density(n: ti.i32, x: F3, nb_count: I1, nb: NB, h: ti.f32, m: ti.f32, rho: F1):
+def sph_density(n: ti.i32, x: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32, rho: F1):
     """ρ_i = m W(0) + Σ_j m W(|x_ij|), cubic spline of support h."""
     for i in range(n):
         d = m * cubic_spline(0.0, h)
         for k in range(nb_count[i]):
-            d += m * cubic_spline((x[i] - x[neighbor(nb, i, k)]).norm(), h)
+            d += m * cubic_spline((x[i] - x[nb[i, k]]).norm(), h)
         rho[i] = d
 
 
 @ti.kernel
-def surface_normals(n: ti.i32, x: F3, nb_count: I1, nb: NB, h: ti.f32, m: ti.f32, rho: F1, normal: F3):
+def surface_normals(n: ti.i32, x: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32, rho: F1, normal: F3):
     """n̂_i = −Σ_j (m/ρ_j) ∇W(x_ij), normalised, for particles with at most
     NORMAL_MAX_NEIGHBOURS neighbours; zero for the others."""
     for i in range(n):
         g = vec3(0.0)
         if nb_count[i] <= NORMAL_MAX_NEIGHBOURS:
             for k in range(nb_count[i]):
-                j = neighbor(nb, i, k)
+                j = nb[i, k]
                 g -= m / rho[j] * cubic_spline_grad(x[i] - x[j], h)
         gl = g.norm()
         normal[i] = g / gl if gl > 0.0 else vec3(0.0)
@@ -122,7 +122,7 @@ def surface_normals(n: ti.i32, x: F3, nb_count: I1, nb: NB, h: ti.f32, m: ti.f32
 
 @ti.kernel
 def potentials(
-    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: NB, h: ti.f32, m: ti.f32, row_volume: F1, normal: F3,
+    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, h: ti.f32, m: ti.f32, row_volume: F1, normal: F3,
     v_diff: F1, crest: F1, energy: F1,
 ):
     """FoamGenerator's potentials: v_diff = Σ_k V_k |v_ij| (1 − v̂_ij·x̂_ij) W,
@@ -135,7 +135,7 @@ def potentials(
         kappa = 0.0
         ni = normal[i]
         for k in range(nb_count[i]):
-            j = neighbor(nb, i, k)
+            j = nb[i, k]
             xij = x[i] - x[j]
             r = xij.norm()
             w = cubic_spline(r, h)

@@ -11,23 +11,6 @@ Counting sort by cell (Green 2008, "Particle Simulation using CUDA"):
    surrounding cells. Capacity is fixed, so memory never grows; overflow is
    counted and reported, never silently dropped.
 
-The lists hold offsets j − i, not indices: neighbour k of particle i is
-``neighbor(nb, i, k)`` = i + nb[i, k]. A grid made ``compact`` stores them in
-16 bits: the solver keeps its particles in cell order (it reorders them every
-few steps), so the offsets are small, and the lists take 2 bytes an entry
-instead of 4 (128 B a particle at the default capacity of 64, not 256); a
-particle's ~30 neighbours then lie in one cache line instead of two, and the
-neighbour loops run 3–13 % faster (measured at 115k particles). Right after a
-sort an offset is at most the number of particles in the 2·reach + 1 slices
-of cells (along x, the outermost axis of the cell numbering) around a
-particle's own (:func:`slice_span`); the solver makes its grid compact only
-when that is at most half the 16-bit range, leaving the other half for the
-particles' drift between reorders. An offset that does not fit anyway is never
-truncated: the build counts such pairs and, when there are any, fills a
-second set of lists with 32-bit offsets instead (allocated the first time it
-is needed), which the kernels then read (:attr:`NeighborGrid.nb`; each
-kernel compiles once per width).
-
 The scan of the surrounding cells is written once, :func:`for_each_neighbor`:
 the solver fills its lists with it and the diffuse stage asks it about points
 that are not fluid particles.
@@ -40,7 +23,6 @@ whatever the particle count.
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import taichi as ti
 
 from ..errors import WhitecapError
@@ -50,12 +32,7 @@ ivec3 = ti.math.ivec3
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 F3 = ti.types.ndarray(dtype=vec3, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
-# Neighbour lists: offsets j − i, 16-bit (or 32-bit when some do not fit; see the module docstring).
-NB = ti.types.ndarray(ndim=2)
-NARROW = ti.i16
-NARROW_LIMIT = 2**15 - 1  # the largest |j − i| a 16-bit list holds
-WIDE = ti.i32
-WIDE_LIMIT = 2**31 - 1
+I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
 CORNER_SLACK = 0.01  # margin, in cells, of the corner-column test in for_each_neighbor
 
@@ -230,23 +207,13 @@ def _append_slot(s, r2, si, h2, buf: ti.template(), cap: ti.template(), k: ti.te
     k += ti.select((r2 < h2) & (s != si), 1, 0)
 
 
-@ti.func
-def neighbor(nb: ti.template(), i, k):
-    """Index j of the ``k``-th neighbour of particle ``i``: the lists hold j − i."""
-    return i + ti.cast(nb[i, k], ti.i32)
-
-
 @ti.kernel
 def _build_lists(
     n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, reach: ti.template(), h: ti.f32,
-    order: I1, nb_count: I1, nb: NB, cap: ti.template(), dt: ti.template(), limit: ti.i32,
-) -> ivec3:
-    """Fills the lists of every particle i with the offsets j − i of its
-    neighbours j (nb[i, :nb_count[i]], element type ``dt``), in the order
-    :func:`for_each_neighbor` meets them. Returns (how many neighbours did not
-    fit in the capacity, how many offsets exceed ``limit`` in size, 0); when
-    the second is not zero the lists are unusable and the caller builds them
-    again wider.
+    order: I1, nb_count: I1, nb: I2, cap: ti.template(),
+) -> ti.i32:
+    """Fills nb[i, :nb_count[i]] with the neighbours of every particle i, in the
+    order :func:`for_each_neighbor` meets them; returns how many did not fit.
 
     Every candidate is handled without a branch on its distance
     (:func:`_append_slot`), into a list local to the thread (``cap`` + 1 slots
@@ -258,7 +225,6 @@ def _build_lists(
     local list, unlike stores into ``nb``, cannot alias the grid arrays, so
     their loads stay hoisted out of the candidate loop."""
     overflow = 0
-    far = 0
     for si in range(n):
         # Walk particles in cell order: consecutive iterations share their
         # candidate cells, which then stay in cache.
@@ -271,12 +237,10 @@ def _build_lists(
         )
         m = ti.min(k, cap)
         for q in range(m):
-            d = order[buf[q]] - i
-            far += ti.select(ti.abs(d) > limit, 1, 0)
-            nb[i, q] = ti.cast(d, dt)
+            nb[i, q] = order[buf[q]]
         nb_count[i] = m
         overflow += k - m
-    return ivec3(overflow, far, 0)
+    return overflow
 
 
 @dataclass
@@ -304,27 +268,16 @@ class NeighborGrid:
     """Cell-sorted particle order plus fixed-capacity neighbour lists.
 
     After :meth:`build`, ``order[start[c]:start[c+1]]`` are the particles in
-    cell ``c`` and ``i + nb[i, :nb_count[i]]`` the neighbours of particle ``i``
-    within ``h`` (excluding ``i`` itself; kernels read them with
-    :func:`neighbor`, Python with :meth:`lists`). Kernels query the grid around
-    any point with :func:`for_each_neighbor` and :meth:`query_args`.
-
-    With ``compact`` unset the lists are 32-bit from the start. With it set,
-    ``nb`` is the 16-bit set of lists, or the 32-bit one (``wide`` True) when
-    some offset did not fit: ``far`` counts those offsets in the last build,
-    whichever set it filled, so it depends only on the positions and the
-    particle order. A build after one with ``far`` > 0 goes straight to 32 bits
-    (no wasted 16-bit attempt while the particles stay out of order); once the
-    offsets fit again, the next build is 16-bit. ``offset_limit`` is the
-    largest offset the 16-bit lists may take (lowered by tests to force the
-    32-bit path).
+    cell ``c`` and ``nb[i, :nb_count[i]]`` the neighbours of particle ``i``
+    within ``h`` (excluding ``i`` itself). Kernels query the grid around any
+    point with :func:`for_each_neighbor` and :meth:`query_args`.
     """
 
-    def __init__(self, spec: GridSpec, capacity: int, max_neighbors: int, h: float, compact: bool = False):
+    def __init__(self, spec: GridSpec, capacity: int, max_neighbors: int, h: float):
         self.spec = spec
         # Cells of h/2 test ~125/216 as many candidates as cells of h (measured
         # ~25 % faster list building); coarser cells are searched with reach 1.
-        self.reach = reach_for(spec, h)
+        self.reach = max(1, int(round(h / spec.cell)))
         self.h = float(h)
         self.capacity = int(capacity)
         self.max_neighbors = int(max_neighbors)
@@ -336,36 +289,16 @@ class NeighborGrid:
         self.start = ti.ndarray(ti.i32, nc + 1)
         self.bsum = ti.ndarray(ti.i32, (nc + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.nb_count = ti.ndarray(ti.i32, capacity)
-        self.compact = bool(compact)
-        # 16-bit lists when compact; 32-bit ones from the start otherwise, or from the first build that needs them.
-        self.nb_narrow = ti.ndarray(NARROW, (capacity, max_neighbors)) if self.compact else None
-        self.nb_wide = None if self.compact else ti.ndarray(WIDE, (capacity, max_neighbors))
-        self.wide = not self.compact  # nb is nb_wide
-        self.far = 0  # offsets over offset_limit in the last build
-        self.try_narrow = self.compact  # compact, and the last build's offsets fitted: try 16 bits first
-        self.offset_limit = NARROW_LIMIT if self.compact else WIDE_LIMIT
+        self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow = 0
         self.lower = vec3(*spec.lower)
         self.inv_cell = 1.0 / spec.cell
         self.dims = ivec3(*spec.dims)
 
-    @property
-    def nb(self):
-        """The lists the last :meth:`build` filled: 16-bit, or 32-bit when ``wide``."""
-        return self.nb_wide if self.wide else self.nb_narrow
-
     def nbytes(self) -> int:
         nc = self.spec.ncells
-        entry = (2 if self.nb_narrow is not None else 0) + (4 if self.nb_wide is not None else 0)
-        lists = self.capacity * self.max_neighbors * entry
-        return 4 * (self.capacity * 7 + 2 * nc + 1 + len_blocks(nc)) + lists
-
-    def lists(self, n: int) -> tuple:
-        """(counts, neighbour indices) of the first ``n`` particles as NumPy arrays, the indices
-        absolute (i + offset); entries past a particle's count are meaningless."""
-        counts = self.nb_count.to_numpy()[:n]
-        return counts, self.nb.to_numpy()[:n].astype(np.int64) + np.arange(n)[:, None]
+        return 4 * (self.capacity * (7 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc))
 
     def sort(self, x, n: int) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
@@ -382,39 +315,15 @@ class NeighborGrid:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
         self.sort(x, n)
         gather_vec3(n, self.order, x, self.x_sorted)
-        args = (n, *self.query_args(), self.h, self.order, self.nb_count)
-        self.wide = not self.try_narrow
-        if self.try_narrow:
-            r = _build_lists(*args, self.nb_narrow, self.max_neighbors, NARROW, self.offset_limit)
-            self.wide = int(r[1]) > 0
-        if self.wide:  # some offset needs (or last time needed) more than 16 bits: the same lists, 32-bit
-            if self.nb_wide is None:
-                self.nb_wide = ti.ndarray(WIDE, (self.capacity, self.max_neighbors))
-            r = _build_lists(*args, self.nb_wide, self.max_neighbors, WIDE, self.offset_limit)
-        self.far = int(r[1])
-        self.try_narrow = self.far == 0
-        self.overflow = int(r[0])
+        self.overflow = int(
+            _build_lists(n, *self.query_args(), self.h, self.order, self.nb_count, self.nb, self.max_neighbors)
+        )
         return self.overflow
 
     def query_args(self) -> tuple:
         """(lower, inv_cell, dims, x_sorted, start, reach): what a kernel hands
         :func:`for_each_neighbor` to search this grid after :meth:`build`."""
         return self.lower, self.inv_cell, self.dims, self.x_sorted, self.start, self.reach
-
-
-def reach_for(spec: GridSpec, h: float) -> int:
-    """How many cells the search reaches out along each axis: h / cell, at least 1."""
-    return max(1, int(round(h / spec.cell)))
-
-
-def slice_span(positions: np.ndarray, spec: GridSpec, reach: int) -> int:
-    """The most particles in 2·reach + 1 consecutive x slices of cells: right after a sort
-    into cell order, no neighbour list holds an offset |j − i| larger than this."""
-    if len(positions) == 0:
-        return 0
-    cx = np.floor((positions[:, 0] - spec.lower[0]) / spec.cell).astype(np.int64)
-    pop = np.bincount(np.clip(cx, 0, spec.dims[0] - 1), minlength=spec.dims[0])
-    return int(np.convolve(pop, np.ones(2 * reach + 1, np.int64)).max())
 
 
 def len_blocks(nc: int) -> int:

@@ -37,9 +37,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
-from .grid import (
-    F1, F3, I1, NARROW_LIMIT, NB, NeighborGrid, gather_i32, gather_vec3, grid_spec, neighbor, reach_for, slice_span,
-)
+from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
@@ -121,7 +119,7 @@ def compute_lambda(
     n: ti.i32,
     p: F3,
     nb_count: I1,
-    nb: NB,
+    nb: I2,
     psi: F1,
     grad_psi: F3,
     mass: ti.f32,
@@ -132,23 +130,17 @@ def compute_lambda(
     eps: ti.f32,
     rho: F1,
     lam: F1,
-    list_capacity: ti.template(),
 ):
     """ρ_i = Σ_j m W(x_ij) + ρ0 ψ_i;  C_i = max(ρ_i/ρ0 − 1, 0);
-    λ_i = −C_i / (|∇_i C_i|² + Σ_j |∇_j C_i|² + ε),  ∇_j C_i = −m/ρ0 ∇W(x_ij).
-
-    The neighbour loop runs to min(count, ``list_capacity``) (see :func:`capped_count`):
-    with 16-bit lists LLVM otherwise interleaves it 8 × 4 and runs the usual ~30
-    neighbours in its scalar remainder (the constraints phase took 1.45× as long,
-    measured at 115k)."""
+    λ_i = −C_i / (|∇_i C_i|² + Σ_j |∇_j C_i|² + ε),  ∇_j C_i = −m/ρ0 ∇W(x_ij)."""
     for i in range(n):
         pi = p[i]
         h2 = h * h
         w_sum = poly6(0.0, h2, w_poly6)
         grad_i = vec3(0.0)
         sum_grad2 = 0.0
-        for k in range(capped_count(nb_count, i, list_capacity)):  # sums of ∇W; m/ρ0 applied after the loop
-            r = pi - p[neighbor(nb, i, k)]
+        for k in range(nb_count[i]):  # sums of ∇W; the factor m/ρ0 is applied once after the loop
+            r = pi - p[nb[i, k]]
             w_sum += poly6(r.norm_sqr(), h2, w_poly6)
             g = spiky_grad(r, h, w_spiky)
             grad_i += g
@@ -167,7 +159,7 @@ def correct_positions(
     n: ti.i32,
     p: F3,
     nb_count: I1,
-    nb: NB,
+    nb: I2,
     lam: F1,
     mass: ti.f32,
     rho0: ti.f32,
@@ -203,7 +195,7 @@ def correct_positions(
         h2 = h * h
         acc = vec3(0.0)  # Σ_j (λ_i + λ_j − k (W(x_ij)/W(Δq))ⁿ) ∇W(x_ij)
         for k in range(capped_count(nb_count, i, list_capacity)):
-            j = neighbor(nb, i, k)
+            j = nb[i, k]
             r = pi - p[j]
             q = poly6(r.norm_sqr(), h2, w_poly6) * scorr_inv_w_dq  # W(x_ij)/W(Δq)
             qn = 1.0
@@ -247,7 +239,7 @@ def compute_vorticity_and_xsph(
     p: F3,
     v: F3,
     nb_count: I1,
-    nb: NB,
+    nb: I2,
     rho: F1,
     mass: ti.f32,
     h: ti.f32,
@@ -265,7 +257,7 @@ def compute_vorticity_and_xsph(
         w = vec3(0.0)
         acc = vec3(0.0)
         for k in range(nb_count[i]):
-            j = neighbor(nb, i, k)
+            j = nb[i, k]
             r = p[i] - p[j]
             vj_i = (mass / rho[j]) * (v[j] - v[i])
             w += spiky_grad(r, h, w_spiky).cross(vj_i)
@@ -279,7 +271,7 @@ def apply_vorticity_confinement(
     n: ti.i32,
     p: F3,
     nb_count: I1,
-    nb: NB,
+    nb: I2,
     rho: F1,
     omega: F3,
     mass: ti.f32,
@@ -295,7 +287,7 @@ def apply_vorticity_confinement(
         wi = omega[i].norm()
         eta = vec3(0.0)
         for k in range(nb_count[i]):
-            j = neighbor(nb, i, k)
+            j = nb[i, k]
             eta += (mass / rho[j]) * (omega[j].norm() - wi) * spiky_grad(p[i] - p[j], h, w_spiky)
         ln = eta.norm()
         if ln > 1e-9:
@@ -359,9 +351,7 @@ def estimate_particle_count(scene: Scene) -> int:
 
 def bytes_per_particle(max_neighbors: int) -> int:
     """Device memory per particle: state (x, x*, v, v_tmp, ∇ψ or ω: 5 vec3; ρ, λ, ψ, id: 4
-    scalars) plus grid (cell, rank, order, sorted copy of x*, count: 7 words, and the
-    neighbour lists, counted at 4 B an entry: 16-bit ones take 2, plus 4 in the rare
-    run whose offsets outgrow them)."""
+    scalars) plus grid (cell, rank, order, sorted copy of x*, count, neighbours)."""
     return 4 * (STATE_WORDS + 7 + max_neighbors)
 
 
@@ -508,14 +498,8 @@ class PBFSolver:
         st.v.from_numpy(np.ascontiguousarray(velocities, np.float32))
         st.ids.from_numpy(np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32))
         confine_to_domain(n, st.x, self.box)
-        spec = grid_spec(lo, hi, self.h / 2)
-        # 16-bit lists when, right after a sort, every offset fits in half their range (sim/grid.py).
-        span = slice_span(np.asarray(positions, np.float32), spec, reach_for(spec, self.h))
-        compact = span <= NARROW_LIMIT // 2
-        self.grid = NeighborGrid(spec, n, s.max_neighbors, self.h, compact=compact)
+        self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), n, s.max_neighbors, self.h)
         self.colliders: list = []
-        self.forced_reorder = False  # the last reorder was forced by offsets over 16 bits, which stay
-        self.reorder_due = False  # the last step's offsets outgrew 16 bits: reorder at the next one
         self.step_count = 0
         self.time = 0.0
         self.stats = StepStats()
@@ -552,32 +536,20 @@ class PBFSolver:
         st, g = self.state, self.grid
         compute_lambda(
             self.n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h,
-            self.kernel.poly6, self.kernel.spiky, self.eps, st.rho, st.lam, g.max_neighbors,
+            self.kernel.poly6, self.kernel.spiky, self.eps, st.rho, st.lam,
         )
 
     def step(self, dt: float) -> None:
         s, st, n, g = self.params, self.state, self.n, self.grid
-        if s.reorder_interval:
-            # Reorder every reorder_interval steps, and also when the last step's neighbour offsets
-            # outgrew the 16-bit lists (grid.far): particles back in cell order shrink them. If a
-            # forced reorder does not bring them back, the 32-bit lists stay until the next
-            # scheduled one. Both flags are in the checkpoint, so a resumed run reorders when an
-            # uninterrupted one does.
-            scheduled = self.step_count % s.reorder_interval == 0
-            if scheduled or self.reorder_due:
-                with timer("pbf.reorder"):
-                    self.reorder()
-                self.forced_reorder = not scheduled
-                self.reorder_due = False
+        if s.reorder_interval and self.step_count % s.reorder_interval == 0:
+            with timer("pbf.reorder"):
+                self.reorder()
         with timer("pbf.predict"):
             for c in self.colliders:
                 c.apply_forces(self, dt)
             apply_external_forces(n, st.x, st.v, st.p, self.box, dt)
         with timer("pbf.neighbours"):
             overflow = g.build(st.p, n)
-            self.reorder_due = g.far > 0 and not self.forced_reorder
-            if g.far == 0:
-                self.forced_reorder = False
             if overflow:
                 self.stats.neighbor_overflow += overflow
         with timer("pbf.constraints"):
@@ -690,7 +662,6 @@ class PBFSolver:
             "ids": st.ids.to_numpy(),
             "step_count": np.int64(self.step_count),
             "time": np.float64(self.time),
-            "reorder_flags": np.array([self.reorder_due, self.forced_reorder], np.int8),
             **{f"collider{k}_{name}": a for k, c in enumerate(self.colliders) if hasattr(c, "checkpoint")
                for name, a in c.checkpoint().items()},
         }
@@ -702,8 +673,6 @@ class PBFSolver:
         st.ids.from_numpy(np.asarray(ck["ids"], np.int32))
         self.step_count = int(ck["step_count"])
         self.time = float(ck["time"])
-        # Checkpoints written before the 16-bit lists have no flags: no reorder was due.
-        self.reorder_due, self.forced_reorder = (bool(f) for f in ck.get("reorder_flags", (0, 0)))
         for k, c in enumerate(self.colliders):  # moving bodies: their state, then their pose at that time
             if hasattr(c, "restore"):
                 c.restore({key[len(f"collider{k}_"):]: a for key, a in ck.items() if key.startswith(f"collider{k}_")})
