@@ -131,15 +131,18 @@ def _fluid_mask_checks(viewer, page, positions):
     xy, depth = project(positions)
     assert (xy[:, 0] < panel_x).all() and (xy[:, 0] > 0).all() and (xy[:, 1] > 0).all() and (xy[:, 1] < H).all()
     fluid = _fluid_coloured(img[:, :panel_x])
-    # where the fluid projects: a disc of the particle radius (plus a pixel) around each particle
+    return fluid, _where_projected(viewer, xy, depth, focal, (H, panel_x)), xy
+
+
+def _where_projected(viewer, xy, depth, focal, shape):
+    """Pixels where the fluid projects: a disc of the particle radius (plus a pixel) around each particle."""
     rad = float(viewer.source.radius) * viewer.point_scale * focal / depth + 1.5
-    where = np.zeros_like(fluid)
-    rows, cols = np.mgrid[0:H, 0:panel_x]
+    where = np.zeros(shape, bool)
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
     for (x, y), r in zip(xy, rad):
         r0, r1, c0, c1 = int(y - r), int(y + r) + 1, int(x - r), int(x + r) + 1
-        sub = (rows[r0:r1, c0:c1] - y) ** 2 + (cols[r0:r1, c0:c1] - x) ** 2 <= r * r
-        where[r0:r1, c0:c1] |= sub
-    return fluid, where, xy
+        where[r0:r1, c0:c1] |= (rows[r0:r1, c0:c1] - y) ** 2 + (cols[r0:r1, c0:c1] - x) ** 2 <= r * r
+    return where
 
 
 def test_page_draws_the_fluid_where_it_projects(tiny_run, page):
@@ -486,13 +489,7 @@ def _server_picture_checks(viewer, page, positions):
     panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
     xy, depth = project(positions)
     fluid = _shaded_fluid(img[:, :panel_x])
-    rad = float(viewer.source.radius) * viewer.point_scale * focal / depth + 1.5
-    where = np.zeros_like(fluid)
-    rows, cols = np.mgrid[0:H, 0:panel_x]
-    for (x, y), r in zip(xy, rad):
-        r0, r1, c0, c1 = int(y - r), int(y + r) + 1, int(x - r), int(x + r) + 1
-        where[r0:r1, c0:c1] |= (rows[r0:r1, c0:c1] - y) ** 2 + (cols[r0:r1, c0:c1] - x) ** 2 <= r * r
-    return fluid, where, img
+    return fluid, _where_projected(viewer, xy, depth, focal, fluid.shape), img
 
 
 def _picture_of(viewer, index):
