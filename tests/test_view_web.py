@@ -525,6 +525,29 @@ def test_server_pictures_show_the_fluid_where_it_projects_and_follow_the_timelin
         img3, = _poll(shows(p3), "the page to show the last frame")
         assert (np.abs(img3 - img0).max(axis=-1) > 60).sum() > 500  # a different picture
         assert "particles drawn on the server" in v.g_info.content
+        # a camera move redraws the shown frame for the new view
+        client = next(iter(v.server.get_clients().values()))
+        sent = v.pages()[0].sent
+        client.camera.position = np.asarray(client.camera.position) + [0.15, 0.0, 0.1]
+        _poll(lambda: v.pages()[0].sent > sent, "a picture for the moved camera")
+        img_moved, = _poll(shows(p3), "the page to show the last frame from the moved camera")
+        assert (np.abs(img_moved - img3).max(axis=-1) > 60).sum() > 500
+
+
+def test_auto_draws_on_the_server_above_the_threshold(tiny_run, monkeypatch):
+    """Without a browser: --points auto sends the points of a run under SERVER_POINTS_ABOVE
+    particles to the page, and draws a run over it on the server (the points are hidden)."""
+    import importlib
+
+    web = importlib.import_module("whitecap.view.web")  # the module (the package's `web` is the function)
+    with web.WebViewer(tiny_run, port=0) as v:  # 1,500 particles, [view] web_points = auto
+        assert v.points == "auto" and v.wait_drawn(0)
+        assert v.drawn_on_server is False and v.h_fluid.visible and v.spheres is None
+    monkeypatch.setattr(web, "SERVER_POINTS_ABOVE", 1000)
+    with web.WebViewer(tiny_run, port=0) as v:
+        assert v.wait_drawn(0)
+        assert v.drawn_on_server is True and not v.h_fluid.visible and len(v.spheres[2]) == 1500
+        assert "1,500 particles drawn on the server (more than 1,000: --points auto)" in v.g_info.content
 
 
 def test_server_pictures_are_depth_composited_with_obstacles(tiny_run, tmp_path, page):
