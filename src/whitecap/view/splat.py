@@ -132,13 +132,12 @@ def shade_sphere_pixels(pos: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), rad: 
 
 def camera_rotation(wxyz) -> np.ndarray:
     """The camera-to-world rotation of viser's quaternion (w, x, y, z): columns are the
-    camera's right, down and forward axes in world coordinates."""
-    w, x, y, z = (float(c) for c in wxyz)
-    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    camera's right, down and forward axes in world coordinates (the bodies' quaternion
+    matrix, after normalising)."""
+    from ..sim.bodies import quat_matrix
+
+    q = np.asarray(wxyz, float)
+    return quat_matrix(q / (np.linalg.norm(q) or 1.0))
 
 
 def focal_px(fov: float, height: int) -> float:
