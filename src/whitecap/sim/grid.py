@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from ..errors import WhitecapError
+from .launch import run_direct
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
@@ -210,10 +211,11 @@ def _append_slot(s, r2, si, h2, buf: ti.template(), cap: ti.template(), k: ti.te
 @ti.kernel
 def _build_lists(
     n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, reach: ti.template(), h: ti.f32,
-    order: I1, nb_count: I1, nb: I2, cap: ti.template(),
-) -> ti.i32:
+    order: I1, nb_count: I1, nb: I2, cap: ti.template(), overflow: I1,
+):
     """Fills nb[i, :nb_count[i]] with the neighbours of every particle i, in the
-    order :func:`for_each_neighbor` meets them; returns how many did not fit.
+    order :func:`for_each_neighbor` meets them; adds how many did not fit to
+    ``overflow[0]``.
 
     Every candidate is handled without a branch on its distance
     (:func:`_append_slot`), into a list local to the thread (``cap`` + 1 slots
@@ -224,7 +226,6 @@ def _build_lists(
     16 → 20 ms on the lattice (step 5), 40 → 27 ms at step 70. Stores into the
     local list, unlike stores into ``nb``, cannot alias the grid arrays, so
     their loads stay hoisted out of the candidate loop."""
-    overflow = 0
     for si in range(n):
         # Walk particles in cell order: consecutive iterations share their
         # candidate cells, which then stay in cache.
@@ -239,8 +240,8 @@ def _build_lists(
         for q in range(m):
             nb[i, q] = order[buf[q]]
         nb_count[i] = m
-        overflow += k - m
-    return overflow
+        if k > m:
+            ti.atomic_add(overflow[0], k - m)
 
 
 @dataclass
@@ -291,6 +292,8 @@ class NeighborGrid:
         self.nb_count = ti.ndarray(ti.i32, capacity)
         self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
+        self.overflow_count = ti.ndarray(ti.i32, 1)  # pairs that did not fit, added up by _build_lists
+        self.overflow_count.fill(0)
         self.overflow = 0
         self.lower = vec3(*spec.lower)
         self.inv_cell = 1.0 / spec.cell
@@ -298,27 +301,56 @@ class NeighborGrid:
 
     def nbytes(self) -> int:
         nc = self.spec.ncells
-        return 4 * (self.capacity * (7 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc))
+        return 4 * (self.capacity * (7 + self.max_neighbors) + 2 * nc + 1 + len_blocks(nc) + 1)
+
+    def bindings(self) -> dict:
+        """The grid's arrays and constants by the names its recorded launches use (``g.*``)."""
+        return {
+            "g.cell": self.cell, "g.rank": self.rank, "g.order": self.order, "g.count": self.count,
+            "g.start": self.start, "g.bsum": self.bsum, "g.nb_count": self.nb_count, "g.nb": self.nb,
+            "g.x_sorted": self.x_sorted, "g.overflow": self.overflow_count, "g.lower": self.lower,
+            "g.inv_cell": self.inv_cell, "g.dims": self.dims, "g.ncells": self.spec.ncells, "g.h": self.h,
+        }
+
+    def record_sort(self, rec, x, n) -> None:
+        """Counting sort of the first ``n`` positions of ``x`` into cells (``x``, ``n``: Refs)."""
+        g = rec
+        rec(_clear, g["g.count"], g["g.ncells"])
+        rec(_count_cells, n, x, g["g.lower"], g["g.inv_cell"], g["g.dims"], g["g.cell"], g["g.rank"], g["g.count"])
+        rec(_block_sums, g["g.count"], g["g.ncells"], g["g.bsum"])
+        rec(_scan_blocks, g["g.bsum"])
+        rec(_scan_cells, g["g.count"], g["g.ncells"], g["g.bsum"], g["g.start"], n)
+        rec(_scatter, n, g["g.cell"], g["g.rank"], g["g.start"], g["g.order"])
+        rec(_sort_cells, g["g.ncells"], g["g.start"], g["g.order"])
+
+    def record_build(self, rec, x, n) -> None:
+        """Sort, then fill the neighbour lists; overflowing pairs are added to ``overflow_count``."""
+        g = rec
+        self.record_sort(rec, x, n)
+        rec(gather_vec3, n, g["g.order"], x, g["g.x_sorted"])
+        rec(
+            _build_lists, n, g["g.lower"], g["g.inv_cell"], g["g.dims"], g["g.x_sorted"], g["g.start"], self.reach,
+            g["g.h"], g["g.order"], g["g.nb_count"], g["g.nb"], self.max_neighbors, g["g.overflow"],
+        )
 
     def sort(self, x, n: int) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
-        s = self.spec
-        _clear(self.count, s.ncells)
-        _count_cells(n, x, self.lower, self.inv_cell, self.dims, self.cell, self.rank, self.count)
-        _block_sums(self.count, s.ncells, self.bsum)
-        _scan_blocks(self.bsum)
-        _scan_cells(self.count, s.ncells, self.bsum, self.start, n)
-        _scatter(n, self.cell, self.rank, self.start, self.order)
-        _sort_cells(s.ncells, self.start, self.order)
+        run_direct(lambda rec: self.record_sort(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
 
     def build(self, x, n: int) -> int:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
-        self.sort(x, n)
-        gather_vec3(n, self.order, x, self.x_sorted)
-        self.overflow = int(
-            _build_lists(n, *self.query_args(), self.h, self.order, self.nb_count, self.nb, self.max_neighbors)
-        )
+        before = self.take_overflow()
+        run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
+        self.overflow = self.take_overflow()
+        self.overflow_count.fill(before)  # what a recorded step had counted and not yet taken
         return self.overflow
+
+    def take_overflow(self) -> int:
+        """Neighbour pairs that did not fit since the last call (reads back from the device)."""
+        k = int(self.overflow_count[0])
+        if k:
+            self.overflow_count.fill(0)
+        return k
 
     def query_args(self) -> tuple:
         """(lower, inv_cell, dims, x_sorted, start, reach): what a kernel hands

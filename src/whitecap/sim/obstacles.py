@@ -604,14 +604,30 @@ class ObstacleCollider:
         self.vel_a.from_numpy(np.asarray(A, np.float32))
         self.vel_b.from_numpy(np.asarray(B, np.float32))
 
-    def _geo(self):
-        return self.values, self.off, self.origin, self.inv_dx, self.dims, self.box_lo, self.box_hi, self.rot, self.trans
+    # Recorded launches (sim/launch.py): the solver's step records these into its phases.
+    def bindings(self, s, pre: str) -> dict:
+        """This collider's arrays and constants, by the names its recorded launches use."""
+        return {
+            pre + "values": self.values, pre + "off": self.off, pre + "origin": self.origin,
+            pre + "inv_dx": self.inv_dx, pre + "dims": self.dims, pre + "box_lo": self.box_lo,
+            pre + "box_hi": self.box_hi, pre + "rot": self.rot, pre + "trans": self.trans,
+            pre + "stiffness": self.stiffness, pre + "friction": self.friction, pre + "band": self.band,
+            pre + "vel_a": self.vel_a, pre + "vel_b": self.vel_b, pre + "dyn": self.dyn, pre + "imp": self.imp,
+            pre + "mom": self.mom, pre + "body_of": self.body_of, pre + "m": self.m,
+            pre + "m_inv_dt": self.m * self.inv_dt,
+        }
 
-    def _coupling(self):
-        return self.dyn, self.imp, self.mom, self.body_of
+    @staticmethod
+    def _geo(rec, pre: str) -> list:
+        return [rec[pre + k] for k in ("values", "off", "origin", "inv_dx", "dims", "box_lo", "box_hi", "rot", "trans")]
 
-    def apply_forces(self, s, dt: float) -> None:
-        """First call of a step: move the bodies to their pose at its end, then the penalty."""
+    @staticmethod
+    def _coupling(rec, pre: str) -> list:
+        return [rec[pre + k] for k in ("dyn", "imp", "mom", "body_of")]
+
+    def prepare(self, s, dt: float) -> None:
+        """Host work before a step's launches: move the bodies to their pose at its end,
+        and clear the momentum the dynamic ones will collect."""
         if self.moving:
             self.set_poses(s.time, s.time + dt, dt)
         if self.bodies:
@@ -619,7 +635,12 @@ class ObstacleCollider:
             for a in (self.imp, self.mom):
                 a.fill(0.0)
             self.body_of.fill(-1)
-        obstacle_penalty(s.n, s.state.x, s.state.v, *self._geo(), self.stiffness, s.r, dt, *self._coupling(), self.m)
+
+    def record_forces(self, rec, pre: str) -> None:
+        """The penalty, before the prediction."""
+        r = rec
+        rec(obstacle_penalty, r["n"], r["x"], r["v"], *self._geo(r, pre), r[pre + "stiffness"], r["r"], r["dt"],
+            *self._coupling(r, pre), r[pre + "m"])
 
     def body_records(self) -> list[dict]:
         """Every obstacle's current pose as run.json records it (sim.bodies.pose_record)."""
@@ -632,19 +653,23 @@ class ObstacleCollider:
         if self.moving:
             self.set_poses(t, t)
 
-    def add_density_map(self, s) -> None:
-        st = s.state
-        obstacle_project_and_density_map(
-            s.n, st.p, *self._geo(), s.r, s.h, s.psi_table, s.dpsi_table, st.psi, st.grad_psi,
-            *self._coupling(), self.m * self.inv_dt,
-        )
+    def record_density_map(self, rec, pre: str) -> None:
+        r = rec
+        rec(obstacle_project_and_density_map, r["n"], r["p"], *self._geo(r, pre), r["r"], r["h"], r["psi_table"],
+            r["dpsi_table"], r["psi"], r["grad_psi"], *self._coupling(r, pre), r[pre + "m_inv_dt"])
 
-    def project(self, s) -> None:
-        obstacle_project(s.n, s.state.p, *self._geo(), s.r, *self._coupling(), self.m * self.inv_dt)
+    def record_project(self, rec, pre: str) -> None:
+        r = rec
+        rec(obstacle_project, r["n"], r["p"], *self._geo(r, pre), r["r"], *self._coupling(r, pre),
+            r[pre + "m_inv_dt"])
 
-    def respond(self, s) -> None:
-        obstacle_response(s.n, s.state.p, s.state.v, *self._geo(), self.vel_a, self.vel_b, self.friction, s.r,
-                          self.band, *self._coupling(), self.m)
+    def record_respond(self, rec, pre: str) -> None:
+        r = rec
+        rec(obstacle_response, r["n"], r["p"], r["v"], *self._geo(r, pre), r[pre + "vel_a"], r[pre + "vel_b"],
+            r[pre + "friction"], r["r"], r[pre + "band"], *self._coupling(r, pre), r[pre + "m"])
+
+    def finish_step(self, s) -> None:
+        """Host work after a step's launches: the dynamic bodies take the particles' reaction."""
         if self.bodies and self.in_step:
             self.in_step = False
             imp = self.imp.to_numpy().astype(np.float64)

@@ -38,6 +38,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
+from .launch import KernelGraph, permuted, run_direct
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 vec3 = ti.math.vec3
@@ -500,6 +501,10 @@ class PBFSolver:
         confine_to_domain(n, st.x, self.box)
         self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), n, s.max_neighbors, self.h)
         self.colliders: list = []
+        # The step's phases run as Taichi compute graphs (sim/launch.py), one per phase and
+        # structure; off, they launch kernel by kernel (the same launches, for comparison).
+        self.use_graph = True
+        self._graphs: dict = {}
         self.step_count = 0
         self.time = 0.0
         self.stats = StepStats()
@@ -526,77 +531,147 @@ class PBFSolver:
         gather_i32(n, order, st.ids, self.grid.rank)
         st.ids, self.grid.rank = self.grid.rank, st.ids
 
+    def bindings(self, dt: float) -> dict:
+        """Everything the step's recorded launches read, by name (see sim/launch.py): the state's
+        arrays (``x``, ``p``, ``v``, ``t`` the scratch, ``omega``: ∇ψ's array, which holds ω after
+        the constraints), the grid's (``g.*``), the colliders' (``c0.*``, …) and the scalars."""
+        s, st = self.params, self.state
+        b = {
+            "n": self.n, "x": st.x, "p": st.p, "v": st.v, "t": st.v_tmp, "omega": st.grad_psi,
+            "rho": st.rho, "lam": st.lam, "psi": st.psi, "grad_psi": st.grad_psi,
+            "box": self.box, "psi_table": self.psi_table, "dpsi_table": self.dpsi_table,
+            "dt": float(dt), "inv_dt": 1.0 / dt if dt > 0 else 0.0, "r": self.r, "h": self.h, "mass": self.mass,
+            "rho0": self.rho0, "w_poly6": self.kernel.poly6, "w_spiky": self.kernel.spiky, "eps": self.eps,
+            "scorr_k": self.scorr_k, "scorr_inv_w_dq": self.scorr_inv_w_dq, "walls_next": 1, "walls_last": 0,
+            "wall_friction": float(s.wall_friction), "xsph_c": float(s.xsph_c),
+            "vorticity_epsilon": float(s.vorticity_epsilon),
+            **self.grid.bindings(),
+        }
+        for k, c in enumerate(self.colliders):
+            b.update(c.bindings(self, f"c{k}."))
+        return b
+
+    # Recorded launches (sim/launch.py): each phase of the step is written once, as calls
+    # rec(kernel, *args), and runs as a compute graph or kernel by kernel.
+    def record_boundary_density(self, rec) -> None:
+        """ψ, ∇ψ of the walls at x*, then each collider's projection and density map."""
+        r = rec
+        rec(wall_density_map, r["n"], r["p"], r["box"], r["h"], r["psi_table"], r["dpsi_table"], r["psi"],
+            r["grad_psi"])
+        for k, c in enumerate(self.colliders):
+            c.record_density_map(rec, f"c{k}.")
+
+    def record_lambda(self, rec) -> None:
+        r = rec
+        rec(compute_lambda, r["n"], r["p"], r["g.nb_count"], r["g.nb"], r["psi"], r["grad_psi"], r["mass"],
+            r["rho0"], r["h"], r["w_poly6"], r["w_spiky"], r["eps"], r["rho"], r["lam"])
+
+    def record_predict(self, rec) -> None:
+        r = rec
+        for k, c in enumerate(self.colliders):
+            c.record_forces(rec, f"c{k}.")
+        rec(apply_external_forces, r["n"], r["x"], r["v"], r["p"], r["box"], r["dt"])
+
+    def record_neighbours(self, rec) -> None:
+        self.grid.record_build(rec, rec["p"], rec["n"])
+
+    def record_constraints(self, rec, iterations: int) -> None:
+        r, s = rec, self.params
+        self.record_boundary_density(rec)
+        for it in range(iterations):
+            if it > 0:  # the walls' share came with the previous correction
+                for k, c in enumerate(self.colliders):
+                    c.record_density_map(rec, f"c{k}.")
+            self.record_lambda(rec)
+            rec(
+                correct_positions, r["n"], r["p"], r["g.nb_count"], r["g.nb"], r["lam"], r["mass"], r["rho0"], r["h"],
+                r["w_poly6"], r["w_spiky"], r["scorr_k"], r["scorr_inv_w_dq"], s.scorr_n, r["box"],
+                r["walls_next" if it + 1 < iterations else "walls_last"], r["psi_table"], r["dpsi_table"],
+                r["psi"], r["grad_psi"], r["t"], self.grid.max_neighbors,
+            )
+            rec.swap("p", "t")
+        # Colliders project at the start of each iteration (fused with their
+        # density map, see record_boundary_density) and once more here: the last
+        # Δp pushes particles back inside the contact distance r, and
+        # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
+        for k, c in enumerate(self.colliders):
+            c.record_project(rec, f"c{k}.")
+
+    def record_velocity(self, rec) -> None:
+        r = rec
+        rec(update_velocity, r["n"], r["x"], r["p"], r["v"], r["inv_dt"], r["box"], r["wall_friction"])
+        for k, c in enumerate(self.colliders):
+            c.record_respond(rec, f"c{k}.")
+
+    def record_vorticity_xsph(self, rec, confinement: bool) -> None:
+        """ω and XSPH share one neighbour pass (both read the velocities after the
+        position update); confinement then uses ω of the neighbours and is added on
+        top of the XSPH-smoothed velocity. ω is kept in ∇ψ's array: ∇ψ is dead once
+        the constraints are done (recomputed before the next step's first λ), which
+        saves 12 B a particle."""
+        r = rec
+        rec(compute_vorticity_and_xsph, r["n"], r["p"], r["v"], r["g.nb_count"], r["g.nb"], r["rho"], r["mass"],
+            r["h"], r["w_poly6"], r["w_spiky"], r["xsph_c"], r["omega"], r["t"])
+        rec.swap("v", "t")
+        if confinement:
+            rec(apply_vorticity_confinement, r["n"], r["p"], r["g.nb_count"], r["g.nb"], r["rho"], r["omega"],
+                r["mass"], r["h"], r["w_spiky"], r["vorticity_epsilon"], r["dt"], r["v"])
+
+    def _phases(self) -> list[tuple[str, tuple, object]]:
+        """(timer name, structure key, record function) of each phase of a step, for the
+        current parameters: a phase's graph is compiled once per structure key."""
+        s = self.params
+        phases = [
+            ("pbf.predict", (), self.record_predict),
+            ("pbf.neighbours", (), self.record_neighbours),
+            ("pbf.constraints", (s.iterations,), lambda rec: self.record_constraints(rec, s.iterations)),
+            ("pbf.velocity", (), self.record_velocity),
+        ]
+        if s.vorticity_epsilon > 0 or s.xsph_c > 0:
+            conf = s.vorticity_epsilon > 0
+            phases.append(("pbf.vorticity_xsph", (conf,), lambda rec: self.record_vorticity_xsph(rec, conf)))
+        return phases
+
+    def _run_phase(self, name: str, key: tuple, record, bindings: dict) -> dict:
+        """Launch one phase (as a compute graph unless ``use_graph`` is off); returns the
+        bindings with the roles the phase swapped (ping-pong buffers) permuted."""
+        if self.use_graph:
+            graph = self._graphs.get((name, key))
+            if graph is None:
+                graph = self._graphs[(name, key)] = KernelGraph(record)
+            roles = graph.run(bindings)
+        else:
+            roles = run_direct(record, bindings)
+        return permuted(bindings, roles) if roles else bindings
+
     def boundary_density(self) -> None:
-        st = self.state
-        wall_density_map(self.n, st.p, self.box, self.h, self.psi_table, self.dpsi_table, st.psi, st.grad_psi)
-        for c in self.colliders:
-            c.add_density_map(self)
+        run_direct(self.record_boundary_density, self.bindings(0.0))
 
     def compute_lambda(self) -> None:
-        st, g = self.state, self.grid
-        compute_lambda(
-            self.n, st.p, g.nb_count, g.nb, st.psi, st.grad_psi, self.mass, self.rho0, self.h,
-            self.kernel.poly6, self.kernel.spiky, self.eps, st.rho, st.lam,
-        )
+        run_direct(self.record_lambda, self.bindings(0.0))
 
     def step(self, dt: float) -> None:
-        s, st, n, g = self.params, self.state, self.n, self.grid
+        s, st = self.params, self.state
         if s.reorder_interval and self.step_count % s.reorder_interval == 0:
             with timer("pbf.reorder"):
                 self.reorder()
-        with timer("pbf.predict"):
-            for c in self.colliders:
-                c.apply_forces(self, dt)
-            apply_external_forces(n, st.x, st.v, st.p, self.box, dt)
-        with timer("pbf.neighbours"):
-            overflow = g.build(st.p, n)
-            if overflow:
-                self.stats.neighbor_overflow += overflow
-        with timer("pbf.constraints"):
-            self.boundary_density()
-            for it in range(s.iterations):
-                if it > 0:  # the walls' share came with the previous correction
-                    for c in self.colliders:
-                        c.add_density_map(self)
-                self.compute_lambda()
-                correct_positions(
-                    n, st.p, g.nb_count, g.nb, st.lam, self.mass, self.rho0, self.h, self.kernel.poly6,
-                    self.kernel.spiky, self.scorr_k, self.scorr_inv_w_dq, s.scorr_n, self.box,
-                    int(it + 1 < s.iterations), self.psi_table, self.dpsi_table,
-                    st.psi, st.grad_psi, st.v_tmp, g.max_neighbors,
-                )
-                st.p, st.v_tmp = st.v_tmp, st.p
-            # Colliders project at the start of each iteration (fused with their
-            # density map, see boundary_density) and once more here: the last
-            # Δp pushes particles back inside the contact distance r, and
-            # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
-            for c in self.colliders:
-                c.project(self)
-        with timer("pbf.velocity"):
-            update_velocity(n, st.x, st.p, st.v, 1.0 / dt, self.box, s.wall_friction)
-            for c in self.colliders:
-                c.respond(self)
-        if s.vorticity_epsilon > 0 or s.xsph_c > 0:
-            # ω and XSPH share one neighbour pass (both read the velocities
-            # after the position update); confinement then uses ω of the
-            # neighbours and is added on top of the XSPH-smoothed velocity.
-            # ω is kept in ∇ψ's array: ∇ψ is dead once the constraints are done
-            # (recomputed before the next step's first λ), which saves 12 B a particle.
-            k = self.kernel
-            with timer("pbf.vorticity_xsph"):
-                compute_vorticity_and_xsph(
-                    n, st.p, st.v, g.nb_count, g.nb, st.rho, self.mass, self.h, k.poly6, k.spiky, s.xsph_c,
-                    st.grad_psi, st.v_tmp,
-                )
-                st.v, st.v_tmp = st.v_tmp, st.v
-                if s.vorticity_epsilon > 0:
-                    apply_vorticity_confinement(
-                        n, st.p, g.nb_count, g.nb, st.rho, st.grad_psi, self.mass, self.h, k.spiky,
-                        s.vorticity_epsilon, dt, st.v,
-                    )
-        st.x, st.p = st.p, st.x  # x ← x*
+        for c in self.colliders:
+            c.prepare(self, dt)  # host work: poses of moving bodies, their momentum sums cleared
+        b = self.bindings(dt)
+        for name, key, record in self._phases():
+            with timer(name):
+                b = self._run_phase(name, key, record, b)
+        st.x, st.p, st.v, st.v_tmp = b["p"], b["x"], b["v"], b["t"]  # x ← x* (and the ping-pong's end)
+        for c in self.colliders:
+            c.finish_step(self)  # host work: the bodies' reactions
         self.step_count += 1
         self.time += dt
+
+    def take_overflow(self) -> int:
+        """Neighbour pairs that did not fit the lists since the last call."""
+        k = self.grid.take_overflow()
+        self.stats.neighbor_overflow += k
+        return k
 
     # ---------------------------------------------------------------- frames
     def max_speed(self) -> tuple[float, int]:
@@ -624,6 +699,7 @@ class PBFSolver:
         dt = 1.0 / s.frame_rate / nsub
         for _ in range(nsub):
             self.step(dt)
+        self.take_overflow()
         vmax, bad = self.max_speed()
         self.stats.max_speed = vmax
         if bad or vmax > s.max_speed:
