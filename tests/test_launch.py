@@ -97,3 +97,20 @@ def test_recorder_roles_follow_the_ping_pong():
     rec.swap("p", "t")
     rec.swap("v", "t")
     assert launch.permuted({"p": 1, "t": 2, "v": 3}, rec.roles) == {"p": 1, "t": 3, "v": 2}
+
+
+def test_without_compute_graphs_the_step_launches_kernel_by_kernel(tmp_path, monkeypatch, capfd):
+    """A backend that cannot build a graph: one warning, then the same launches one by one."""
+    from whitecap.sim import pbf
+
+    sc = scene(tmp_path)
+    _, x0, _, _ = run(sc, False, frames=1)
+
+    def refuse(record):
+        raise RuntimeError("graphs are not supported here")
+
+    monkeypatch.setattr(pbf, "KernelGraph", refuse)
+    s, x, _, _ = run(sc, True, frames=1)
+    assert s.use_graph is False and np.array_equal(x, x0)
+    out = "".join(capfd.readouterr())
+    assert out.count("no Taichi compute graph") == 1 and "graphs are not supported here" in out

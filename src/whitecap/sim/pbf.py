@@ -635,10 +635,17 @@ class PBFSolver:
     def _run_phase(self, name: str, key: tuple, record, bindings: dict) -> dict:
         """Launch one phase (as a compute graph unless ``use_graph`` is off); returns the
         bindings with the roles the phase swapped (ping-pong buffers) permuted."""
-        if self.use_graph:
-            graph = self._graphs.get((name, key))
-            if graph is None:
+        graph = self._graphs.get((name, key)) if self.use_graph else None
+        if self.use_graph and graph is None:
+            try:
                 graph = self._graphs[(name, key)] = KernelGraph(record)
+            except Exception as e:  # a backend without compute graphs: the same launches one by one
+                from ..progress import console
+
+                console.print(f"[yellow]warning:[/] no Taichi compute graph on this backend ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else ''}); launching kernel by kernel", soft_wrap=True)
+                self.use_graph = False
+        if graph is not None:
             roles = graph.run(bindings)
         else:
             roles = run_direct(record, bindings)
