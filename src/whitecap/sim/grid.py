@@ -314,23 +314,23 @@ class NeighborGrid:
 
     def record_sort(self, rec, x, n) -> None:
         """Counting sort of the first ``n`` positions of ``x`` into cells (``x``, ``n``: Refs)."""
-        g = rec
-        rec(_clear, g["g.count"], g["g.ncells"])
-        rec(_count_cells, n, x, g["g.lower"], g["g.inv_cell"], g["g.dims"], g["g.cell"], g["g.rank"], g["g.count"])
-        rec(_block_sums, g["g.count"], g["g.ncells"], g["g.bsum"])
-        rec(_scan_blocks, g["g.bsum"])
-        rec(_scan_cells, g["g.count"], g["g.ncells"], g["g.bsum"], g["g.start"], n)
-        rec(_scatter, n, g["g.cell"], g["g.rank"], g["g.start"], g["g.order"])
-        rec(_sort_cells, g["g.ncells"], g["g.start"], g["g.order"])
+        rec(_clear, rec["g.count"], rec["g.ncells"])
+        rec(_count_cells, n, x, rec["g.lower"], rec["g.inv_cell"], rec["g.dims"], rec["g.cell"], rec["g.rank"],
+            rec["g.count"])
+        rec(_block_sums, rec["g.count"], rec["g.ncells"], rec["g.bsum"])
+        rec(_scan_blocks, rec["g.bsum"])
+        rec(_scan_cells, rec["g.count"], rec["g.ncells"], rec["g.bsum"], rec["g.start"], n)
+        rec(_scatter, n, rec["g.cell"], rec["g.rank"], rec["g.start"], rec["g.order"])
+        rec(_sort_cells, rec["g.ncells"], rec["g.start"], rec["g.order"])
 
     def record_build(self, rec, x, n) -> None:
         """Sort, then fill the neighbour lists; overflowing pairs are added to ``overflow_count``."""
-        g = rec
         self.record_sort(rec, x, n)
-        rec(gather_vec3, n, g["g.order"], x, g["g.x_sorted"])
+        rec(gather_vec3, n, rec["g.order"], x, rec["g.x_sorted"])
         rec(
-            _build_lists, n, g["g.lower"], g["g.inv_cell"], g["g.dims"], g["g.x_sorted"], g["g.start"], self.reach,
-            g["g.h"], g["g.order"], g["g.nb_count"], g["g.nb"], self.max_neighbors, g["g.overflow"],
+            _build_lists, n, rec["g.lower"], rec["g.inv_cell"], rec["g.dims"], rec["g.x_sorted"], rec["g.start"],
+            self.reach, rec["g.h"], rec["g.order"], rec["g.nb_count"], rec["g.nb"], self.max_neighbors,
+            rec["g.overflow"],
         )
 
     def sort(self, x, n: int) -> None:
@@ -339,10 +339,9 @@ class NeighborGrid:
 
     def build(self, x, n: int) -> int:
         """Sort and fill neighbour lists; returns how many neighbours overflowed."""
-        before = self.take_overflow()
+        before = int(self.overflow_count[0])  # what recorded steps counted and no one took yet stays
         run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
-        self.overflow = self.take_overflow()
-        self.overflow_count.fill(before)  # what a recorded step had counted and not yet taken
+        self.overflow = int(self.overflow_count[0]) - before
         return self.overflow
 
     def take_overflow(self) -> int:

@@ -642,8 +642,9 @@ class PBFSolver:
             except Exception as e:  # a backend without compute graphs: the same launches one by one
                 from ..progress import console
 
+                why = str(e).splitlines()[0] if str(e) else ""
                 console.print(f"[yellow]warning:[/] no Taichi compute graph on this backend ({type(e).__name__}: "
-                              f"{str(e).splitlines()[0] if str(e) else ''}); launching kernel by kernel", soft_wrap=True)
+                              f"{why}); launching kernel by kernel", soft_wrap=True)
                 self.use_graph = False
         if graph is not None:
             roles = graph.run(bindings)
