@@ -108,6 +108,30 @@ def run_one(n_target: int, arch: str, steps: int, reorder_interval: int | None =
     }
 
 
+def cpu_model() -> str:
+    """The processor's name, so that a figure says which machine it came from."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown CPU"
+
+
+def gpu_names() -> list[str]:
+    """The NVIDIA GPUs' names from nvidia-smi (empty when it is not there)."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [line.strip() for line in out.stdout.splitlines() if line.strip()]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--arch", default="cpu")
@@ -145,7 +169,8 @@ def main() -> None:
                 raise SystemExit(out.returncode)
             results.append({**json.loads(out.stdout.strip().splitlines()[-1]), "load": (load0, load_average())})
     how = "jittered start, CFL-limited dt" if a.moving else "fixed dt"
-    print(f"PBF dam break, 4 iterations, {how}, {os.cpu_count()} cores")
+    print(f"PBF dam break, 4 iterations, {how}, {os.cpu_count()} cores ({cpu_model()})"
+          + ("".join(f", GPU {g}" for g in gpu_names()) if "cuda" in archs else ""))
     print(f"{'arch':5s} {'particles':>10s} {'ms/step':>9s} {'CPU ms':>8s} {'M p-it/s':>9s} {'vs SPH-PBF':>10s} {'vs target':>9s} {'B/particle':>10s} {'peak B/p':>8s} {'res B/p':>7s} {'load':>10s}")
     for r in results:
         print(
