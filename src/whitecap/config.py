@@ -84,7 +84,7 @@ class Solver(_Section):
     scorr_n: int = Field(4, ge=1, le=8, description="artificial pressure exponent n [-]")
     scorr_dq: float = Field(0.2, ge=0, lt=1, description="artificial pressure Δq as a fraction of h [-]")
     max_neighbors: int = Field(64, ge=16, le=512, description="fixed neighbour-list capacity per particle [-]")
-    reorder_interval: int = Field(32, ge=0, description="steps between cell reorders of particle data; 0 = never [-]")
+    reorder_interval: int = Field(8, ge=0, description="steps between cell reorders of particle data; 0 = never [-] (8: 2-6 % faster steps than 32 at 120k-1M, measured interleaved in one process)")
     wall_friction: float = Field(0.0, ge=0, le=1, description="tangential velocity damping at domain walls [-]")
     max_speed: float = Field(
         100.0, gt=0, description="a particle faster than this is a blow-up and stops the run [m/s]"
