@@ -6,7 +6,7 @@ argument (about 150 µs a launch for a kernel of three arguments, 250 µs for
 the obstacle kernels' twenty, measured on the 2-core development machine at
 n = 0). A step of the solver launches 22 kernels, 29 with an obstacle, so at
 15k particles a fifth of a step went to launching. A compute graph binds its
-arguments once per run and launches its kernels from C++ (about 45 µs each,
+arguments once per run and launches its kernels from C++ (about 45–70 µs each,
 most of it the thread pool's dispatch).
 
 A sequence of launches is a function of a *recorder*: ``rec(kernel, *args)``
@@ -22,8 +22,8 @@ way; :attr:`Recorder.roles` after a sequence says which binding ended in which
 role, and the caller permutes its arrays alike (:func:`permuted`).
 
 Template arguments (compile-time values such as a loop bound) are passed as
-plain Python values in both modes: :func:`_dispatch` compiles the kernel with
-them, which ``ti.graph.GraphBuilder.dispatch`` itself does not support in
+plain Python values in both modes: :class:`GraphRecorder` compiles the kernel
+with them, which ``ti.graph.GraphBuilder.dispatch`` itself does not support in
 Taichi 1.7.4 (it takes every argument as a symbolic graph argument)."""
 
 from __future__ import annotations
@@ -56,6 +56,9 @@ class Recorder:
         """Ping-pong: from now on role ``a`` is what ``b`` was and the other way round."""
         ra, rb = self[a].name, self[b].name
         self.roles[a], self.roles[b] = rb, ra
+        for k in (a, b):  # a role back on its own binding needs no permutation
+            if self.roles[k] == k:
+                del self.roles[k]
 
     def __call__(self, kernel, *args) -> None:  # pragma: no cover - interface
         raise NotImplementedError

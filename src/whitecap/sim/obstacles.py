@@ -605,7 +605,7 @@ class ObstacleCollider:
         self.vel_b.from_numpy(np.asarray(B, np.float32))
 
     # Recorded launches (sim/launch.py): the solver's step records these into its phases.
-    def bindings(self, s, pre: str) -> dict:
+    def bindings(self, pre: str) -> dict:
         """This collider's arrays and constants, by the names its recorded launches use."""
         return {
             pre + "values": self.values, pre + "off": self.off, pre + "origin": self.origin,

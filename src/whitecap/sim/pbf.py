@@ -548,8 +548,13 @@ class PBFSolver:
             **self.grid.bindings(),
         }
         for k, c in enumerate(self.colliders):
-            b.update(c.bindings(self, f"c{k}."))
+            b.update(c.bindings(f"c{k}."))
         return b
+
+    def record_colliders(self, rec, what: str) -> None:
+        """Each collider's recorded launches ``what`` (record_forces, …), its bindings named ``c<k>.``."""
+        for k, c in enumerate(self.colliders):
+            getattr(c, what)(rec, f"c{k}.")
 
     # Recorded launches (sim/launch.py): each phase of the step is written once, as calls
     # rec(kernel, *args), and runs as a compute graph or kernel by kernel.
@@ -558,8 +563,7 @@ class PBFSolver:
         r = rec
         rec(wall_density_map, r["n"], r["p"], r["box"], r["h"], r["psi_table"], r["dpsi_table"], r["psi"],
             r["grad_psi"])
-        for k, c in enumerate(self.colliders):
-            c.record_density_map(rec, f"c{k}.")
+        self.record_colliders(rec, "record_density_map")
 
     def record_lambda(self, rec) -> None:
         r = rec
@@ -568,8 +572,7 @@ class PBFSolver:
 
     def record_predict(self, rec) -> None:
         r = rec
-        for k, c in enumerate(self.colliders):
-            c.record_forces(rec, f"c{k}.")
+        self.record_colliders(rec, "record_forces")
         rec(apply_external_forces, r["n"], r["x"], r["v"], r["p"], r["box"], r["dt"])
 
     def record_neighbours(self, rec) -> None:
@@ -580,8 +583,7 @@ class PBFSolver:
         self.record_boundary_density(rec)
         for it in range(iterations):
             if it > 0:  # the walls' share came with the previous correction
-                for k, c in enumerate(self.colliders):
-                    c.record_density_map(rec, f"c{k}.")
+                self.record_colliders(rec, "record_density_map")
             self.record_lambda(rec)
             rec(
                 correct_positions, r["n"], r["p"], r["g.nb_count"], r["g.nb"], r["lam"], r["mass"], r["rho0"], r["h"],
@@ -594,14 +596,12 @@ class PBFSolver:
         # density map, see record_boundary_density) and once more here: the last
         # Δp pushes particles back inside the contact distance r, and
         # x ← x* must keep it (test_no_particle_ends_a_step_closer_than_its_radius).
-        for k, c in enumerate(self.colliders):
-            c.record_project(rec, f"c{k}.")
+        self.record_colliders(rec, "record_project")
 
     def record_velocity(self, rec) -> None:
         r = rec
         rec(update_velocity, r["n"], r["x"], r["p"], r["v"], r["inv_dt"], r["box"], r["wall_friction"])
-        for k, c in enumerate(self.colliders):
-            c.record_respond(rec, f"c{k}.")
+        self.record_colliders(rec, "record_respond")
 
     def record_vorticity_xsph(self, rec, confinement: bool) -> None:
         """ω and XSPH share one neighbour pass (both read the velocities after the
