@@ -361,6 +361,52 @@ def test_neutral_body_stays_where_it_was_released(tmp_path):
     assert max(t for _, _, t in track) < 5.0
 
 
+def wall_bound_body(tmp_path, gravity=(0.0, 0.0, 0.0)):
+    """The slab of slab_scene (density 2000), alone: it spans the tank's width (y) exactly."""
+    return obs.load_obstacles(slab_scene(tmp_path, 2000.0, 0.12, gravity)).bodies[0]
+
+
+def hull_world(body) -> np.ndarray:
+    return (body.hull - body.c0) @ bodies.quat_matrix(body.q).T + body.c
+
+
+def test_walls_turn_back_a_body_jammed_between_them(tmp_path):
+    """A slab as wide as the tank, set turning about z (yaw), meets both side walls with opposite
+    corners: the walls stop the turn and turn it back, and its centre never jumps. (The walls used
+    to act on the centre alone, one side per axis: the turn went on, and the centre was thrown 3 cm
+    in one step, which crushed the water under a heavy body and flung it out of the tank.)"""
+    body = wall_bound_body(tmp_path)
+    body.W = np.array([0.0, 0.0, 2.0])
+    dt = 1 / 300
+    for _ in range(100):
+        c = body.c.copy()
+        body.advance(dt)
+        assert np.linalg.norm(body.c - c) < 1e-3  # no jumps: at most a millimetre a step
+        v = hull_world(body)
+        assert (v >= body.lo - 1e-4).all() and (v <= body.hi + 1e-4).all()  # within a tenth of a millimetre
+    R = bodies.quat_matrix(body.q)
+    assert math.degrees(math.acos(min(1.0, R[0, 0]))) < 0.5  # turned back between the walls
+    assert abs(body.W[2]) < 0.05 and body.c[1] == pytest.approx(0.05, abs=1e-3)
+
+
+def test_a_tilted_body_dropped_on_the_floor_lands_on_it_without_gaining_energy(tmp_path):
+    body = wall_bound_body(tmp_path, gravity=(0.0, 0.0, -9.81))
+    body.q = np.array([math.cos(math.radians(10) / 2), 0.0, math.sin(math.radians(10) / 2), 0.0])  # 10° about y
+    g, dt = 9.81, 1 / 300
+
+    def energy():
+        I = bodies.quat_matrix(body.q) @ body.I0 @ bodies.quat_matrix(body.q).T
+        return 0.5 * body.mass * body.V @ body.V + 0.5 * body.W @ I @ body.W + body.mass * g * body.c[2]
+
+    e0 = energy()
+    for _ in range(300):
+        body.advance(dt)
+        assert hull_world(body)[:, 2].min() > -1e-4  # never through the floor
+        assert energy() <= e0 + 1e-9 * abs(e0) + 1e-6
+    assert hull_world(body)[:, 2].min() < 1e-3  # resting on it
+    assert np.linalg.norm(body.V) < 0.05 and np.linalg.norm(body.W) < 0.5
+
+
 def test_momentum_is_exchanged_between_body_and_fluid(tmp_path):
     """No gravity, no walls touched: a body pushed at 0.5 m/s through a free blob of water. The water
     gains momentum, and body + water momentum stays within 5 % of the initial push over the window.
