@@ -238,8 +238,11 @@ def zero_below(n: ti.i32, nb_count: I1, min_count: ti.i32, a: F1):
 
 
 @ti.func
-def _weigh_fluid(s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()):
-    """Adds fluid particle ``order[s]`` at distance r to the neighbourhood sums, weighted by W̃ = 1 − r/h."""
+def _weigh_fluid(
+    g: ti.template(), s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()
+):
+    """Adds fluid particle ``order[s]`` at distance r to the neighbourhood sums, weighted by W̃ = 1 − r/h
+    (``g``, the index of the query point, is always 0: one point a query)."""
     wt = 1.0 - ti.sqrt(r2) / h
     cnt += 1
     vsum += wt * fv[order[s]]
@@ -256,7 +259,7 @@ def fluid_neighbourhood(
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor(p, h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False)
+    for_each_neighbor([p], h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False)
     return cnt, vsum, wsum
 
 
