@@ -229,12 +229,31 @@ def for_each_neighbor(
 #: 18.3 / 19.0 with 6), 5 20.0 / 20.0, 6 20.6 / 20.0.
 GROUP = 4
 GROUP_SPREAD = 8
-#: Neighbour rows are padded to a multiple of this many entries on the CPU: the
-#: 8 single-precision lanes of the AVX registers that LLVM vectorises the
-#: solver's neighbour loops with (x86-64). Measured on λ at 115k particles
-#: (Xeon, AVX-512): 5.00 → 4.05 ms a pass. On a GPU each particle has its
-#: own thread and padding would only add work: 1 there.
+#: Neighbour rows are padded to a multiple of this many entries on a CPU whose
+#: vector gathers LLVM uses (:func:`cpu_gathers`): the 8 single-precision lanes
+#: that it vectorises the solver's neighbour loops with. Measured on λ at 115k
+#: particles: Intel Xeon with AVX-512, 5.00 → 4.05 ms a pass; AMD EPYC (no
+#: gathers: vectors built from scalar loads), 4.1 → 4.4 ms, so 1 there. On a
+#: GPU each particle has its own thread and padding would only add work: 1.
 LIST_PAD = 8
+
+
+def cpu_gathers() -> bool:
+    """Whether LLVM vectorises gathered loads with gather instructions on this processor:
+    x86-64 with AVX-512, or Intel's with AVX2 (LLVM 15's x86 cost model; AMD's before
+    AVX-512 build vectors from scalar loads). Read from /proc/cpuinfo; False elsewhere."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            info = {}
+            for line in fh:
+                key, _, value = line.partition(":")
+                info.setdefault(key.strip(), value.strip())
+                if "flags" in info and "vendor_id" in info:
+                    break
+    except OSError:
+        return False
+    flags = set(info.get("flags", "").split())
+    return "avx512f" in flags or (info.get("vendor_id") == "GenuineIntel" and "avx2" in flags)
 
 
 @ti.func
@@ -322,7 +341,7 @@ def _store_list(
     in slot ``si`` out to its row of ``nb``, as particle indices; counts the excess as overflow.
 
     The row is then padded with the particle itself up to a multiple of ``pad``
-    (:data:`LIST_PAD` on the CPU), where the solver's neighbour loops read it
+    (:data:`LIST_PAD` on a CPU with gathers), where the solver's neighbour loops read it
     (:func:`~whitecap.sim.pbf.padded_count`): LLVM vectorises those loops ``pad``
     neighbours at a time and leaves the rest of a list to a scalar loop, about
     a fifth of the pass for the usual 25–35 neighbours. A pair of a particle with
@@ -382,7 +401,7 @@ class NeighborGrid:
         # the CPU only; a GPU runs a thread per particle, as before.
         cpu = runtime.current() != "cuda"
         self.group = GROUP if cpu else 1
-        self.pad = LIST_PAD if cpu else 1
+        self.pad = LIST_PAD if cpu and cpu_gathers() else 1
         nc = spec.ncells
         self.cell = ti.ndarray(ti.i32, capacity)
         self.rank = ti.ndarray(ti.i32, capacity)
