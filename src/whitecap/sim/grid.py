@@ -224,9 +224,11 @@ def for_each_neighbor(
 #: Particles (consecutive in cell order) whose neighbour lists are built in one
 #: scan on the CPU, and how many cells apart along z they may lie for it.
 #: Measured at 115k particles after 80 steps (Xeon, 2 cores; the same lists),
-#: min of 12 builds in two rounds: one by one 30.1 / 30.4 ms, groups of 2
-#: 19.8 / 19.9, 3 22.4 / 21.7, 4 18.2 / 17.5 (spread 8; 18.6 / 20.5 with 4,
-#: 18.3 / 19.0 with 6), 5 20.0 / 20.0, 6 20.6 / 20.0.
+#: min of 12 builds in two rounds, groups of consecutive slots: one by one
+#: 30.1 / 30.4 ms, groups of 2 19.8 / 19.9, 3 22.4 / 21.7, 4 18.2 / 17.5
+#: (spread 8; 18.6 / 20.5 with 4, 18.3 / 19.0 with 6), 5 20.0 / 20.0, 6
+#: 20.6 / 20.0. Groups aligned to the columns (_build_lists): 17.4–17.9 →
+#: 16.5–16.8 ms there, and 3.0 → 2.2 ms on frame 20 of the bunny demo.
 GROUP = 4
 GROUP_SPREAD = 8
 #: Neighbour rows are padded to a multiple of this many entries on a CPU whose
@@ -293,10 +295,17 @@ def _build_lists(
     multiple of ``pad`` (at most ``cap``) with i itself (see :func:`_store_list`);
     adds how many did not fit to ``overflow[0]``.
 
-    Particles are taken ``group`` (:data:`GROUP` on the CPU) at a time in cell
-    order; a group that shares one column of cells (nearly all: a column holds
-    about a hundred particles of a tank) is searched in one scan, the others
-    one by one. The lists are the same either way.
+    On the CPU the particles of each column of cells are taken ``group``
+    (:data:`GROUP`) at a time, in cell order from the column's first: the
+    particle that starts a group (its slot minus the column's first slot is a
+    multiple of ``group``) builds the lists of the group, the others skip. A
+    group that lies within :data:`GROUP_SPREAD` cells along z is searched in
+    one scan, the others one by one; the lists are the same either way.
+    Groups never span two columns, which matters where columns are short
+    (thin water, spray: in the bunny demo 38–49 % of the groups of four
+    consecutive slots spanned two columns), and the loop stays one over the
+    particles, so the two threads share it evenly. On a GPU (``group`` 1)
+    every particle builds its own list.
 
     Every candidate is handled without a branch on its distance
     (:func:`_append_slot`), into a list local to the thread (``cap`` + 1 slots
@@ -307,30 +316,47 @@ def _build_lists(
     16 → 20 ms on the lattice (step 5), 40 → 27 ms at step 70. Stores into the
     local list, unlike stores into ``nb``, cannot alias the grid arrays, so
     their loads stay hoisted out of the candidate loop."""
-    for grp in range((n + group - 1) // group):
-        # Walk particles in cell order: consecutive groups share their
+    for si in range(n):
+        # Walk particles in cell order: consecutive ones share their
         # candidate cells, which then stay in cache.
         h2 = h * h
-        slots = [ti.min(grp * group + g, n - 1) for g in ti.static(range(group))]
-        ps = [x_sorted[slots[g]] for g in ti.static(range(group))]
-        cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(group))]
-        if _same_column(cs, GROUP_SPREAD):
-            bufs = [ti.Vector([0] * (cap + 1), dt=ti.i32) for _ in ti.static(range(group))]  # bufs[g][cap]: overflow
-            ks = [0 for _ in ti.static(range(group))]
-            for_each_neighbor(ps, h, lower, inv_cell, dims, x_sorted, start, reach, _append_slot,
-                              (slots, h2, bufs, cap, ks), True)
-            for g in ti.static(range(group)):
-                if grp * group + g < n:
-                    _store_list(order, slots[g], bufs[g], ks[g], cap, nb_count, nb, overflow, pad)
-        elif ti.static(group > 1):
-            for g in range(group):  # one by one (a loop, not unrolled: one more copy of the scan's code, not four)
-                si = grp * group + g
-                if si < n:
-                    buf = ti.Vector([0] * (cap + 1), dt=ti.i32)
-                    k = 0
-                    for_each_neighbor([x_sorted[si]], h, lower, inv_cell, dims, x_sorted, start, reach, _append_slot,
-                                      ([si], h2, [buf], cap, [k]), True)
-                    _store_list(order, si, buf, k, cap, nb_count, nb, overflow, pad)
+        if ti.static(group == 1):
+            _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, reach, order, nb_count, nb, cap, overflow,
+                         pad)
+        else:
+            c0 = cell_of(x_sorted[si], lower, inv_cell, dims)
+            column = (c0.x * dims.y + c0.y) * dims.z  # the column's first cell
+            if (si - start[column]) % group == 0:
+                end = start[column + dims.z]  # one past the column's last slot
+                slots = [ti.min(si + g, end - 1) for g in ti.static(range(group))]
+                ps = [x_sorted[slots[g]] for g in ti.static(range(group))]
+                cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(group))]
+                if _same_column(cs, GROUP_SPREAD):
+                    bufs = [ti.Vector([0] * (cap + 1), dt=ti.i32) for _ in ti.static(range(group))]  # [cap]: sink
+                    ks = [0 for _ in ti.static(range(group))]
+                    for_each_neighbor(ps, h, lower, inv_cell, dims, x_sorted, start, reach, _append_slot,
+                                      (slots, h2, bufs, cap, ks), True)
+                    for g in ti.static(range(group)):
+                        if si + g < end:
+                            _store_list(order, slots[g], bufs[g], ks[g], cap, nb_count, nb, overflow, pad)
+                else:
+                    for g in range(group):  # one by one (a loop: one more copy of the scan's code, not four)
+                        if si + g < end:
+                            _single_list(si + g, h, h2, lower, inv_cell, dims, x_sorted, start, reach, order,
+                                         nb_count, nb, cap, overflow, pad)
+
+
+@ti.func
+def _single_list(
+    si, h, h2, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3, start: I1,
+    reach: ti.template(), order: I1, nb_count: I1, nb: I2, cap: ti.template(), overflow: I1, pad: ti.template(),
+):
+    """The neighbour list of the particle in slot ``si`` alone (see :func:`_build_lists`)."""
+    buf = ti.Vector([0] * (cap + 1), dt=ti.i32)  # buf[cap]: the sink of the overflow
+    k = 0
+    for_each_neighbor([x_sorted[si]], h, lower, inv_cell, dims, x_sorted, start, reach, _append_slot,
+                      ([si], h2, [buf], cap, [k]), True)
+    _store_list(order, si, buf, k, cap, nb_count, nb, overflow, pad)
 
 
 @ti.func
