@@ -20,6 +20,7 @@ whatever the particle count.
 """
 
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -240,6 +241,7 @@ GROUP_SPREAD = 8
 LIST_PAD = 8
 
 
+@functools.lru_cache(maxsize=1)
 def cpu_gathers() -> bool:
     """Whether LLVM vectorises gathered loads with gather instructions on this processor:
     x86-64 with AVX-512, or Intel's with AVX2 (LLVM 15's x86 cost model; AMD's before
