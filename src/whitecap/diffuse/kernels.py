@@ -259,7 +259,9 @@ def fluid_neighbourhood(
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor([p], h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False)
+    for_each_neighbor(
+        [p], h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False
+    )
     return cnt, vsum, wsum
 
 
