@@ -252,7 +252,7 @@ def test_resume_with_another_scene_is_refused_listing_the_changed_keys(tmp_path,
     _sim(base, run, frames=1)
     before = _snapshot(run)
     bigger = tiny_scene_dict(output={"frames": 3}, foam={"enabled": False}, solver={"particle_radius": 0.012})
-    with pytest.raises(InputError, match=r"scene.toml: .*changed: solver\.particle_radius\)"):
+    with pytest.raises(InputError, match=r"run.json: .*changed: solver\.particle_radius\)"):
         _sim(bigger, run, resume=True)
     tweaked = tiny_scene_dict(seed=9, output={"frames": 3}, foam={"enabled": False},
                               solver={"particle_radius": 0.01, "iterations": 5})

@@ -511,7 +511,7 @@ class Output(_Section):
 class Scene(_Section):
     """A whole run. Sections: domain, solver, fluid, obstacle, foam, mesh, view, render, cluster, output."""
 
-    name: str = Field("scene", description="a label for the run")
+    name: str = Field("scene", description="a label for the run, and the run directory's name under out/")
     seed: int = Field(0, ge=0, lt=2**32, description="random seed for everything stochastic")
     domain: Domain = Field(default_factory=Domain)
     solver: Solver = Field(default_factory=Solver)
@@ -526,6 +526,16 @@ class Scene(_Section):
 
     # Where relative paths in the scene (meshes) are resolved; not part of the TOML.
     base_dir: str = Field(".", exclude=True, description="directory of the scene file (internal)")
+
+    @field_validator("name")
+    @classmethod
+    def _one_path_component(cls, v: str) -> str:
+        # The default run directory is out/NAME: a name with a separator, '..' or nothing at all
+        # would put the run (and a --force deletion) outside out/ or into out/ itself.
+        if not v.strip() or v in (".", "..") or any(c in v for c in "/\\\0:") or v != v.strip():
+            raise ValueError("must be one folder name, not empty, without '/', '\\', ':' or '..' "
+                             "(the run goes to out/NAME)")
+        return v
 
     @model_validator(mode="after")
     def _blocks_inside(self) -> "Scene":
@@ -620,10 +630,15 @@ def scene_from_dict(data: dict, source: str = "<scene>", base_dir: str | Path = 
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene file. Raises InputError with file and key."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, not a scene file (give the .toml file)")
     if not p.is_file():
         raise InputError(f"{p}: scene file not found")
     try:
-        data = tomllib.loads(p.read_text())
+        data = tomllib.loads(p.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{p}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
+                         "save the scene file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{p}: malformed TOML: {exc}") from None
     return scene_from_dict(data, str(p), p.parent.resolve())

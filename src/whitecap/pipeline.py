@@ -63,7 +63,7 @@ RUN_STAGES = ("simulate", "mesh", "render")
 
 def _simulation_state(out: Path, frames: int) -> str:
     """'new', 'partial' or 'done' for the simulate stage of a run directory."""
-    from .sim.driver import CHECKPOINT
+    from .io.run import CHECKPOINT
 
     if not (out / "run.json").exists():
         return "new"
@@ -277,6 +277,7 @@ def foam(
     radius: float | None = None,
     seed: int | None = None,
     show_progress: bool = True,
+    force: bool = False,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
 
@@ -286,7 +287,7 @@ def foam(
     """
     from .errors import InputError
 
-    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress)
+    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress, force=force)
     if ini is not None:
         from .diffuse import postprocess_params_file
 

@@ -21,15 +21,16 @@ never mixed in.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
-from ..io.lock import run_lock
+from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
-from ..io.run import RUN_JSON, RunInfo, frame_name, source_identity
+from ..io.run import RUN_JSON, RunInfo, claim_run_dir, frame_name, remove_run, source_identity
 from ..progress import console, progress
 from . import ROLES, Case, CaseShape
 
@@ -132,22 +133,31 @@ def _obstacle_entry(shape: CaseShape, rel: str) -> dict:
 def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False) -> RunInfo:
     """Write ``case`` as a run directory at ``out`` (made if missing); resumable.
 
-    A run directory of another simulation at ``out`` is refused (its frames
-    would be mixed with this case's) unless ``force``, which starts it over.
+    ``out`` follows :func:`whitecap.io.run.claim_run_dir`: a run of another simulation is refused
+    (its frames would be mixed with this case's) unless ``force``, which replaces it whole; a folder
+    of files whitecap did not write is refused. An import that fails on bad input leaves nothing
+    behind but what was there before.
     """
     out = Path(out)
     check_case(case)
     identity = case_identity(case)
-    old = None
-    if (out / RUN_JSON).exists():
-        old = RunInfo.load(out)
-        if old.simulation != identity and not force:
-            raise InputError(f"{out}: holds a run of another simulation ({old.extra.get('source', 'whitecap')}); "
-                             "choose another --out, or pass --force to start it over")
-    out.mkdir(parents=True, exist_ok=True)
+    state = claim_run_dir(out, identity, force=force)
+    created = not out.exists()
     with run_lock(out, "import"):
-        return _write(case, out, identity, old if old is not None and old.simulation == identity else None,
-                      show_progress)
+        if state == "replace":
+            remove_run(out)
+        old = RunInfo.load(out) if state == "same" else None
+        try:
+            return _write(case, out, identity, old, show_progress)
+        except WhitecapError:
+            if old is None:  # bad input met half-way: take back what this import wrote
+                remove_run(out)
+            raise
+        finally:
+            if created and not (out / RUN_JSON).exists():
+                (out / LOCK_FILE).unlink(missing_ok=True)
+                with contextlib.suppress(OSError):
+                    out.rmdir()
 
 
 def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progress: bool) -> RunInfo:
@@ -157,12 +167,12 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
     # Shapes: built once by the reader, written once here (rewritten, identical, on a resume).
     shapes = ordered_shapes(case)
     taken: set[str] = set()
-    info.obstacles = []
-    for s in shapes:
-        rel = f"{GEOMETRY_DIR}/{_safe_name(s.name, taken)}.ply"
+    rels = [f"{GEOMETRY_DIR}/{_safe_name(s.name, taken)}.ply" for s in shapes]
+    info.obstacles = [_obstacle_entry(s, rel) for s, rel in zip(shapes, rels)]
+    info.save(out)  # the run records its files before any is written (only those are ever removed)
+    for s, rel in zip(shapes, rels):
         write_mesh(out / rel, SurfaceMesh(np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int32),
                                           source=s.source or s.name))
-        info.obstacles.append(_obstacle_entry(s, rel))
     moving = [s for s in shapes if s.poses is not None]
     times = case.times if case.times is not None else [i * case.frame_dt for i, _ in case.fluid]
     done = {i for i, rel in info.files("fluid") if (out / rel).is_file()}

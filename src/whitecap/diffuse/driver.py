@@ -14,6 +14,8 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,7 +25,7 @@ from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
-from ..io.run import RunInfo, frame_name, source_identity
+from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run, source_identity
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
@@ -209,6 +211,7 @@ def postprocess(
     frames: list[tuple[int, Path]] | None = None,
     domain: tuple | None = None,
     look_ahead: bool = True,
+    force: bool = False,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
 
@@ -222,6 +225,8 @@ def postprocess(
     that `whitecap mesh`, `view` and `render` can continue from there.
     'auto' reads frames sampled across the whole sequence first (``look_ahead``);
     without it, it keeps the simulation's running estimate, as inside ``simulate``.
+    An ``out`` other than the input follows :func:`whitecap.io.run.claim_run_dir`: a run
+    of another simulation there is refused unless ``force``, which replaces it whole.
     """
     src = Path(src)
     files, info, known = _input_frames(src, frames)
@@ -234,8 +239,13 @@ def postprocess(
                           particle_mass=info.particle_mass if info is not None else known.get("mass"))
     seed = run_seed if seed is None else seed
     frame_dt, r = _frame_dt_and_radius(src, info, known, dt, radius)
+    state = "same"
+    if out.resolve() != src.resolve():  # converted into a run of its own: never over another simulation
+        state = claim_run_dir(out, info.simulation if info is not None else _source_identity(files, up), force)
     out.mkdir(parents=True, exist_ok=True)
     with run_lock(out, "foam"):
+        if state == "replace":
+            remove_run(out)
         return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead)
 
 
@@ -282,6 +292,10 @@ def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list
 
 
 def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radius) -> tuple[float, float]:
+    for opt, v in (("--dt", dt), ("--radius", radius)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{opt}: must be a positive number of {'seconds' if opt == '--dt' else 'metres'} "
+                             f"(got {v:g})")
     frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
     if not frame_dt or frame_dt <= 0:
         raise InputError(f"{src}: the time between frames is unknown; pass --dt SECONDS")

@@ -27,9 +27,11 @@ must be relative paths inside the run.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import hashlib
 import json
 import math
+import os
 import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -277,3 +279,160 @@ def obstacle_path(src: str, info: "RunInfo", run_dir: str | Path | None) -> Path
     bases = [Path(info.extra["scene_dir"])] if info.extra.get("scene_dir") else []
     bases += [Path(run_dir)] if run_dir is not None else []
     return next((b / p for b in bases + [Path(".")] if (b / p).is_file()), None)
+
+
+# ============================================================================ what a run owns
+#: The resume state of ``simulate`` (sim/driver.py), at the top of the run.
+CHECKPOINT = "checkpoint.npz"
+#: The resolved scene ``simulate`` writes; whitecap's own only while its SHA-256 is the one run.json records.
+SCENE_FILE = "scene.toml"
+#: Files at the top of a run that whitecap writes under these names and nothing else does.
+OWN_TOP_FILES = (CHECKPOINT, "profile.json", "render/movie.mp4")
+#: The writer lock's file (io/lock.py; named here too, since io/run.py sits below it).
+_LOCK_FILE = ".whitecap.lock"
+
+
+def _raw(run_dir: Path) -> dict | None:
+    """run.json as stored (stale entries included: they name files whitecap wrote too), or None
+    when there is none; a malformed one is refused, so nothing is ever removed on a guess."""
+    p = run_dir / RUN_JSON
+    if not p.is_file():
+        return None
+    try:
+        data = json.loads(p.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: malformed JSON ({exc}); whitecap will not write into or clear this "
+                         "directory: move it away or choose another --out") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def scene_sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _scene_file_owned(run_dir: Path, data: dict | None) -> bool:
+    """Is RUN/scene.toml the file whitecap wrote (its hash is in run.json)? A run from before the
+    hash was recorded: whitecap's when it still describes the run's own simulation."""
+    p = run_dir / SCENE_FILE
+    if data is None or not p.is_file():
+        return False
+    recorded = (data.get("extra") or {}).get("scene_sha256")
+    if recorded is not None:
+        return hashlib.sha256(p.read_bytes()).hexdigest() == recorded
+    try:
+        return bool(data.get("simulation")) and simulation_identity(p.read_bytes().decode()) == data["simulation"]
+    except (ValueError, tomllib.TOMLDecodeError):
+        return False
+
+
+def owned_files(run_dir: str | Path) -> list[Path]:
+    """Every file in ``run_dir`` that whitecap recorded as its own: the files of every frame that
+    run.json lists (of any simulation), the obstacle meshes an import wrote into the run, the
+    Blender scene, the checkpoint, the stage profile, the scene file while unedited, and run.json
+    itself (last). Only these are ever removed (:func:`remove_run`)."""
+    run_dir = Path(run_dir)
+    data = _raw(run_dir)
+    if data is None:
+        return []
+    rels: list[str] = []
+    for f in data.get("frames") or []:
+        if isinstance(f, dict) and isinstance(f.get("files"), dict):
+            rels += list(f["files"].values())
+    extra = data.get("extra") if isinstance(data.get("extra"), dict) else {}
+    if "scene_dir" not in extra:  # an imported case: its shapes' meshes are files in the run
+        for o in data.get("obstacles") or []:
+            if isinstance(o, dict):
+                rels += [o[k] for k in ("mesh", "render_mesh") if isinstance(o.get(k), str)]
+    blend = extra.get("blend")
+    if isinstance(blend, dict) and isinstance(blend.get("file"), str):
+        rels.append(blend["file"])
+    rels += list(OWN_TOP_FILES)
+    files, seen = [], set()
+    for rel in rels:
+        try:
+            check_relpath(rel, "")
+        except InputError:
+            continue  # never follow a path out of the run
+        p = run_dir / rel
+        if rel not in seen and p.is_file():
+            seen.add(rel)
+            files.append(p)
+    if _scene_file_owned(run_dir, data):
+        files.append(run_dir / SCENE_FILE)
+    return files + [run_dir / RUN_JSON]
+
+
+def remove_run(run_dir: str | Path) -> list[Path]:
+    """Remove what whitecap recorded as its own in ``run_dir`` (:func:`owned_files`), run.json last
+    so that an interrupted removal leaves a run that a second one finishes; then the folders this
+    emptied. A user's file, recorded nowhere, stays where it is. Returns the files removed."""
+    run_dir = Path(run_dir)
+    files = owned_files(run_dir)
+    for p in files:
+        p.unlink(missing_ok=True)
+    for d in sorted({p.parent for p in files if p.parent != run_dir}, key=lambda d: -len(d.parts)):
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when empty
+    return files
+
+
+def _foreign(run_dir: Path) -> list[str]:
+    """Entries of a directory without run.json that whitecap did not write: anything but the lock
+    file, an atomic write's temporary file, and empty folders."""
+    from .atomic import _TEMP_NAME
+
+    found = []
+    for top, dirs, names in os.walk(run_dir):  # stops at the third: --out may name a big folder
+        dirs.sort()
+        for name in sorted(names):
+            if (name == _LOCK_FILE and Path(top) == run_dir) or _TEMP_NAME.match(name):
+                continue
+            found.append(str((Path(top) / name).relative_to(run_dir)))
+            if len(found) >= 3:
+                return found
+    return found
+
+
+def claim_run_dir(out: str | Path, identity: str, force: bool = False, source: str = "") -> str:
+    """May a stage that makes a run of ``identity`` write into ``out``? The one rule that
+    ``simulate``, ``import`` and ``foam --out`` share:
+
+    - ``"new"``: ``out`` does not exist, is empty, or holds only whitecap's lock file;
+    - ``"same"``: ``out`` is a run of this very simulation (continue it);
+    - ``"replace"``: a run of another simulation, with ``force`` (the caller removes it with
+      :func:`remove_run` once its own set-up has succeeded).
+
+    Refused in one line: a run of another simulation without ``force``, and, whatever ``force``
+    says, a directory holding files whitecap did not write (no run.json) or a file in the way.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: is a file, not a run directory")
+    if not out.exists():
+        return "new"
+    data = _raw(out)
+    if data is None:
+        foreign = _foreign(out)
+        if foreign:
+            raise InputError(f"{out}: holds files whitecap did not write ({', '.join(foreign)}); whitecap writes "
+                             "only into a new or empty directory or a run of its own: choose another --out")
+        return "new"
+    if data.get("simulation") == identity:
+        return "same"
+    if not force:
+        what = (data.get("extra") or {}).get("source") or (data.get("extra") or {}).get("name") or "a whitecap scene"
+        raise InputError(f"{out}: holds another simulation (made from {what}){source}; pass --force to replace "
+                         "it whole, or choose another --out")
+    return "replace"
+
+
+def check_scene_file(out: str | Path) -> None:
+    """Refuse to write the resolved scene over a RUN/scene.toml that whitecap did not write (the
+    user's own scene, or one edited since): comments and edits would be lost."""
+    out = Path(out)
+    p = out / SCENE_FILE
+    if p.exists() and not _scene_file_owned(out, _raw(out)):
+        raise InputError(f"{p}: not the scene whitecap wrote here (your own file, or edited since); whitecap "
+                         "writes the resolved scene to this name: move the file, or choose another --out")

@@ -14,7 +14,6 @@ solver free of imports from later stages.
 from __future__ import annotations
 
 import contextlib
-import shutil
 import time
 import tomllib
 from pathlib import Path
@@ -27,12 +26,12 @@ from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import atomic_path
 from ..io.lock import LOCK_FILE, run_lock
-from ..io.run import IDENTITY_IGNORES, RUN_JSON, WALLS, RunInfo, frame_name, simulation_identity
+from ..io.run import (CHECKPOINT, IDENTITY_IGNORES, RUN_JSON, SCENE_FILE, WALLS, RunInfo, check_scene_file,
+                      claim_run_dir, frame_name, remove_run, scene_sha256, simulation_identity)
 from ..progress import progress
 from ..timing import timer
 from . import runtime
 
-CHECKPOINT = "checkpoint.npz"
 
 
 class FrameHook(Protocol):
@@ -132,16 +131,17 @@ def _sub(data: dict, prefix: str) -> dict:
 
 
 def scene_changes(scene: Scene, out: Path) -> list[str]:
-    """Dotted keys whose resolved values differ between ``scene`` and the run's ``scene.toml``.
+    """Dotted keys whose resolved values differ between ``scene`` and the run's ``scene.toml``
+    (a hint for the message: whether a run may continue is decided by its identity in run.json).
 
     ``output.frames`` does not count (a run may be extended), nor does ``[cluster]`` (where frames run).
     """
-    old_file = Path(out) / "scene.toml"
+    old_file = Path(out) / SCENE_FILE
     if not old_file.is_file():
         return []
     try:
-        old = scene_from_dict(tomllib.loads(old_file.read_text()), str(old_file)).to_toml()
-    except (tomllib.TOMLDecodeError, InputError):
+        old = scene_from_dict(tomllib.loads(old_file.read_bytes().decode("utf-8")), str(old_file)).to_toml()
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, InputError):
         return ["scene.toml (unreadable)"]
     a, b = _flatten(tomllib.loads(old)), _flatten(tomllib.loads(scene.to_toml()))
     missing = object()
@@ -165,22 +165,31 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def refuse_changed_scene(scene: Scene, out: Path) -> None:
-    """A one-line error when ``out`` holds a run of another scene (continuing it would mix two simulations)."""
-    changed = scene_changes(scene, out)
-    if changed:
-        shown = ", ".join(changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
+    """A one-line error unless ``out`` is a run of this very scene: the identity run.json records
+    (the simulation its frames come from) must be the scene's. Continuing a run of another scene,
+    an imported case or a converted sequence would mix two simulations in one run."""
+    out = Path(out)
+    identity = simulation_identity(scene.to_toml())
+    try:
+        claim_run_dir(out, identity)
+    except InputError:
+        changed = [] if RunInfo.load(out).extra.get("source") else scene_changes(scene, out)
+        if changed:
+            shown = ", ".join(changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
+            what = f"was made from another scene (changed: {shown})"
+        else:
+            what = f"holds another simulation ({_made_from(out)})"
         raise InputError(
-            f"{Path(out) / 'scene.toml'}: the run was made from another scene (changed: {shown}); "
-            "a run continues only with its own scene: simulate with --force to start over, or use another --out"
-        )
+            f"{out / RUN_JSON}: the run {what}; a run continues only with its own scene: "
+            "simulate with --force to replace it, or use another --out"
+        ) from None
 
 
-def _replace_old_run(out: Path) -> None:
-    """Remove the previous run's simulation output; its derived files become stale by identity."""
-    for sub in ("fluid", "diffuse"):
-        shutil.rmtree(out / sub, ignore_errors=True)
-    for f in (CHECKPOINT, RUN_JSON):
-        (out / f).unlink(missing_ok=True)
+def _made_from(out: Path) -> str:
+    info = RunInfo.load(out)
+    if info.extra.get("source"):
+        return f"converted from {info.extra['source']}"
+    return f"identity {info.simulation or 'unknown'}; its scene.toml may have been edited since"
 
 
 def run_simulation(
@@ -210,21 +219,25 @@ def run_simulation(
         with run_lock(out, "simulate"):
             return _simulate(scene, out, nframes, resume, force, arch, hooks, show_progress, solver)
     finally:
-        if created and not (out / RUN_JSON).exists():  # set-up failed in a new directory: leave nothing
+        if out.is_dir() and not (out / RUN_JSON).exists():  # refused, or failed, where no run was: leave nothing
             (out / LOCK_FILE).unlink(missing_ok=True)
-            with contextlib.suppress(OSError):
-                out.rmdir()
+            if created:
+                with contextlib.suppress(OSError):
+                    out.rmdir()
 
 
 def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, arch: str, hooks, show_progress,
               solver) -> RunInfo:
+    identity = simulation_identity(scene.to_toml())
     has_run = (out / RUN_JSON).exists()
     if has_run and not resume and not force:
         raise WhitecapError(f"{out}: already holds a run; pass --resume to continue it or --force to start over")
     if resume and has_run and not force:
         refuse_changed_scene(scene, out)
-    # With --resume --force a run of another scene starts over.
-    from_checkpoint = resume and (out / CHECKPOINT).exists() and not (force and scene_changes(scene, out))
+    # Files whitecap did not write are refused even with --force; --force replaces another simulation.
+    same = claim_run_dir(out, identity, force=True) == "same"
+    check_scene_file(out)
+    from_checkpoint = resume and same and (out / CHECKPOINT).exists()
     start_frame, data = _load_checkpoint(out) if from_checkpoint else (0, {})
 
     # Set up everything (particle count and memory, fluid, obstacles) before touching the old run.
@@ -236,13 +249,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         solver.restore(_sub(data, "solver"))
         for h in hooks:
             h.restore(_sub(data, h.name))
-        if has_run:
-            info = RunInfo.load(out)
-            info.truncate(start_frame)
-            if not info.simulation:  # a run from before identities: its files are this scene's
-                info.simulation = run_info_for(scene, solver).simulation
-                for f in info.frames:
-                    f["made_from"] = {k: info.simulation for k in f["files"]}
+        info = RunInfo.load(out)
+        info.truncate(start_frame)
     for h in hooks:
         h.last_frame = nframes
         h.on_start(solver, out, info)
@@ -267,11 +275,17 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         info.save(out)
 
     frame_dt = 1.0 / scene.solver.frame_rate
-    if from_checkpoint:  # frame start_frame and those before it are done: never recompute them
-        write_text(out / "scene.toml", scene.to_toml())
-    else:
-        _replace_old_run(out)
-        write_text(out / "scene.toml", scene.to_toml())
+    scene_text = scene.to_toml()
+    if not from_checkpoint:  # else frame start_frame and those before it are done: never recompute them
+        if has_run:
+            remove_run(out)  # what the old run recorded as its own; derived files become stale by identity
+        info.extra["scene_sha256"] = scene_sha256(scene_text)
+        info.save(out)  # the directory is a run (of this simulation) before anything else lands in it
+    write_text(out / SCENE_FILE, scene_text)
+    if info.extra.get("scene_sha256") != scene_sha256(scene_text):
+        info.extra["scene_sha256"] = scene_sha256(scene_text)
+        info.save(out)
+    if not from_checkpoint:
         emit(0, frame_dt)
         _save_checkpoint(out, 0, solver, hooks)
     bar = progress(disable=not show_progress)
