@@ -30,14 +30,12 @@ from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
-from ..io.run import RUN_JSON, RunInfo, claim_run_dir, frame_name, remove_run, source_identity
+from ..io.run import (DOMAIN_RULE, RUN_JSON, RunInfo, claim_run_dir, domain_text, flow_domain, frame_name, remove_run,
+                      sequence_bounds, source_identity)
 from ..progress import console, progress
 from . import ROLES, Case, CaseShape
 
 GEOMETRY_DIR = "geometry"
-#: Room above the case's shapes in the run's domain, as a fraction of their height: splashes
-#: thrown over a tank's rim stay inside (the diffuse stage removes particles that leave the domain).
-DOMAIN_HEADROOM = 1.0
 #: Render looks of imported shapes: the tank in light grey stone, fixed obstacles in terracotta clay (so a
 #: building stands out against the tank's floor), bodies in orange plastic.
 ROLE_LOOKS = {
@@ -92,33 +90,32 @@ def case_identity(case: Case) -> str:
                            {"solver": case.solver, "shapes": shapes, "options": case.fluid_reader_options})
 
 
-def _domain(case: Case, first_positions: np.ndarray | None) -> dict[str, list[float]]:
+def _domain(case: Case, opts: dict) -> dict[str, list[float]]:
+    """The case's own domain when it states one; else :func:`whitecap.io.run.flow_domain` of the
+    fluid over all frames and the shapes (the rule ``foam`` applies to a bare sequence too)."""
     if case.domain is not None:
         lo, hi = case.domain
         return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
-    pts = [np.asarray(s.vertices, np.float64) for s in case.shapes]
-    if first_positions is not None and len(first_positions):
-        pts.append(np.asarray(first_positions, np.float64))
-    if not pts:
+    boxes = [(np.asarray(s.vertices, np.float64).min(0), np.asarray(s.vertices, np.float64).max(0))
+             for s in case.shapes]
+    flow = sequence_bounds([p for _, p in case.fluid], **opts)
+    boxes += [flow] if flow is not None else []
+    if not boxes:
         raise InputError(f"{case.source}: no particles and no shapes: the domain is unknown")
-    allp = np.concatenate(pts)
-    lo, hi = allp.min(0), allp.max(0)
-    if case.shapes:
-        # The shapes' box, its floor where the lowest shape stands (the renderer's ground goes
-        # there), and room above for splashes (diffuse particles leaving the domain are removed).
-        hi[2] += DOMAIN_HEADROOM * (hi[2] - lo[2])
-    else:
-        lo, hi = lo - 2 * case.particle_radius, hi + 2 * case.particle_radius
-    return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
+    lo, hi = np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)
+    domain = flow_domain((lo, hi), case.particle_radius)
+    console.print(f"domain: {domain_text(domain)} ({DOMAIN_RULE})", soft_wrap=True)
+    return domain
 
 
-def _new_info(case: Case, identity: str, first_positions: np.ndarray | None) -> RunInfo:
+def _new_info(case: Case, identity: str, opts: dict) -> RunInfo:
     r = case.particle_radius
     mass = case.particle_mass if case.particle_mass else case.rest_density * (2 * r) ** 3
     info = RunInfo(
         particle_radius=float(r), rest_density=float(case.rest_density), particle_mass=float(mass),
-        gravity=[float(g) for g in case.gravity], domain=_domain(case, first_positions),
-        frame_rate=1.0 / case.frame_dt, extra={"source": str(case.source), "solver": case.solver, "seed": 0},
+        gravity=[float(g) for g in case.gravity], domain=_domain(case, opts),
+        frame_rate=1.0 / case.frame_dt, extra={"source": str(case.source), "solver": case.solver, "seed": 0,
+                                               "domain_rule": "the case's" if case.domain is not None else DOMAIN_RULE},
     )
     info.simulation = identity
     return info
@@ -154,16 +151,16 @@ def write_case(case: Case, out: str | Path, show_progress: bool = True, force: b
                 remove_run(out)
             raise
         finally:
-            if created and not (out / RUN_JSON).exists():
+            if not (out / RUN_JSON).exists():
                 (out / LOCK_FILE).unlink(missing_ok=True)
-                with contextlib.suppress(OSError):
-                    out.rmdir()
+                if created:
+                    with contextlib.suppress(OSError):
+                        out.rmdir()
 
 
 def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progress: bool) -> RunInfo:
     opts = {"up": case.up, **case.fluid_reader_options}
-    first = None if old is not None else read(case.fluid[0][1], **opts)
-    info = old if old is not None else _new_info(case, identity, first.positions if first is not None else None)
+    info = old if old is not None else _new_info(case, identity, opts)
     # Shapes: built once by the reader, written once here (rewritten, identical, on a resume).
     shapes = ordered_shapes(case)
     taken: set[str] = set()
@@ -183,7 +180,7 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
     with bar:
         task = bar.add_task("import", total=len(case.fluid), completed=len(case.fluid) - len(todo), info="")
         for k, index, path in todo:
-            fr = first if (k == 0 and first is not None) else read(path, **opts)
+            fr = read(path, **opts)
             fr.check_finite()
             fr.time = float(times[k])
             rel = frame_name("fluid", index)

@@ -25,7 +25,8 @@ from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
-from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run, source_identity
+from ..io.run import (DOMAIN_RULE, RunInfo, claim_run_dir, domain_text, flow_domain, frame_name, remove_run,
+                      sequence_bounds, source_identity)
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
@@ -186,16 +187,6 @@ def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int
     return files, None, known
 
 
-def _first_particles(files: list[tuple[int, Path]], first: ParticleFrame, up: str) -> np.ndarray | None:
-    """Positions of the first frame that has particles (None when every frame is empty)."""
-    for k, (_, path) in enumerate(files):
-        fr = first if k == 0 else read(path, up=up)
-        if len(fr):
-            fr.check_finite()
-            return fr.positions
-    return None
-
-
 def postprocess(
     src: str | Path,
     out: str | Path | None = None,
@@ -319,7 +310,7 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     reader = _Reader(files, None if src_is_run else up)
     first = reader.first()
     if info is None:
-        info = _foreign_run_info(src, files, first, known, r, frame_dt, up, seed)
+        info = _foreign_run_info(src, files, known, r, frame_dt, up, seed)
     # Results for a whitecap run go into that run; anywhere else the fluid
     # frames are copied along so the output is a complete run directory.
     convert = out.resolve() != src.resolve()
@@ -364,24 +355,26 @@ class _Reader:
         return self.read(0, keep=True)
 
 
-def _foreign_run_info(src: Path, files: list, first: ParticleFrame, known: dict, r: float, frame_dt: float, up: str,
+def _foreign_run_info(src: Path, files: list, known: dict, r: float, frame_dt: float, up: str,
                       seed: int) -> RunInfo:
     """A run.json for a sequence from another solver: the domain from its case file (or the
-    caller), else the first frame with particles grown by half its extent."""
+    caller), else :func:`whitecap.io.run.flow_domain` of the fluid over all frames (as ``import``)."""
     if "lower" in known and "upper" in known:
-        lo, hi = known["lower"], known["upper"]
+        domain = {"lower": list(map(float, known["lower"])), "upper": list(map(float, known["upper"]))}
+        rule = f"the case's ({known['case']})" if "case" in known else "given"
     else:
-        pts = _first_particles(files, first, up)
-        if pts is None:
+        bounds = sequence_bounds([path for _, path in files], up=up)
+        if bounds is None:
             raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
                              "make diffuse particles from")
-        lo = (pts.min(0) - 0.5 * np.ptp(pts, 0) - 4 * r).tolist()
-        hi = (pts.max(0) + 0.5 * np.ptp(pts, 0) + 4 * r).tolist()
+        domain, rule = flow_domain(bounds, r), DOMAIN_RULE
+    console.print(f"domain: {domain_text(domain)} ({rule})", soft_wrap=True)
     info = RunInfo(
         particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
         particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
-        domain={"lower": list(map(float, lo)), "upper": list(map(float, hi))}, frame_rate=1.0 / frame_dt,
-        extra={"source": str(src), "seed": seed, **({"case": known["case"]} if "case" in known else {})},
+        domain=domain, frame_rate=1.0 / frame_dt,
+        extra={"source": str(src), "seed": seed, "domain_rule": rule,
+               **({"case": known["case"]} if "case" in known else {})},
     )
     info.simulation = _source_identity(files, up)
     return info

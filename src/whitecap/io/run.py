@@ -37,6 +37,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import InputError
 from .atomic import write_text
 
@@ -436,3 +438,45 @@ def check_scene_file(out: str | Path) -> None:
     if p.exists() and not _scene_file_owned(out, _raw(out)):
         raise InputError(f"{p}: not the scene whitecap wrote here (your own file, or edited since); whitecap "
                          "writes the resolved scene to this name: move the file, or choose another --out")
+
+
+# ============================================================================ the domain of a foreign run
+#: Margin around the flow on every side, in particle radii: a diffuse particle made at the fluid's
+#: edge starts inside (the foam stage removes those that leave the domain).
+FLOW_MARGIN_RADII = 4.0
+#: Room above the flow (or the case's shapes), as a fraction of their height: spray thrown above
+#: the highest water of any frame, or over a tank's rim, stays inside.
+FLOW_HEADROOM = 1.0
+#: How run.json's ``extra.domain_rule`` names this rule.
+DOMAIN_RULE = (f"the box of the fluid over all frames (and the case's shapes), grown by {FLOW_MARGIN_RADII:g} r "
+               f"on every side and {FLOW_HEADROOM:g}x its height above")
+
+
+def sequence_bounds(paths: list[Path], **read_kw) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box holding every particle of every frame (None when all frames are empty): the flow's
+    reach, which a single frame does not show (a dam break travels far beyond its first frame)."""
+    from .registry import read
+
+    lo = hi = None
+    for path in paths:
+        pos = read(path, **read_kw).positions
+        if len(pos):
+            if not np.isfinite(pos).all():
+                raise InputError(f"{path}: positions hold NaN or infinite values")
+            a, b = pos.min(0).astype(np.float64), pos.max(0).astype(np.float64)
+            lo, hi = (a, b) if lo is None else (np.minimum(lo, a), np.maximum(hi, b))
+    return None if lo is None else (lo, hi)
+
+
+def flow_domain(bounds: tuple[np.ndarray, np.ndarray], r: float) -> dict[str, list[float]]:
+    """The domain of a run made from another solver's frames (``import`` and ``foam`` alike):
+    :data:`DOMAIN_RULE` applied to ``bounds`` (:func:`sequence_bounds`, with any shapes' box)."""
+    lo = np.asarray(bounds[0], np.float64) - FLOW_MARGIN_RADII * r
+    hi = np.asarray(bounds[1], np.float64) + FLOW_MARGIN_RADII * r
+    hi[2] += FLOW_HEADROOM * (bounds[1][2] - bounds[0][2])
+    return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
+
+
+def domain_text(domain: dict[str, list[float]]) -> str:
+    """``(x, y, z) .. (x, y, z)``: a domain box for a message."""
+    return " .. ".join("(" + ", ".join(f"{v:.4g}" for v in domain[k]) + ")" for k in ("lower", "upper"))

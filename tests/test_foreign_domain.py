@@ -1,0 +1,63 @@
+"""The domain of a run made from another solver's frames encloses the flow over all frames, by one
+rule shared by `foam` and `import` (issue 30, item 14), printed and recorded in run.json."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from whitecap.cli import main
+from whitecap.io import ParticleFrame, write
+from whitecap.io.run import DOMAIN_RULE, RunInfo, flow_domain, sequence_bounds
+
+R = 0.01
+
+
+def travelling_block(folder, frames=4, step=0.3):
+    """A 16 cm block of water that travels 30 cm along x each frame (a dam-break front runs this far)."""
+    folder.mkdir(parents=True)
+    g = (np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * 2 * R
+    paths = []
+    for k in range(frames):
+        pos = (g + [step * k, 0.0, 0.0]).astype(np.float32)
+        vel = np.tile(np.float32([step * 30, 0.0, 0.0]), (len(g), 1))
+        paths.append(folder / f"frame_{k:04d}.ply")
+        write(paths[-1], ParticleFrame(pos, vel, np.arange(len(g), dtype=np.uint32)))
+    return paths
+
+
+def inside(points, domain) -> bool:
+    return bool(((points >= domain["lower"]) & (points <= domain["upper"])).all())
+
+
+def test_foam_domain_holds_every_frame_of_a_travelling_flow(tmp_path, capsys):
+    paths = travelling_block(tmp_path / "seq")
+    out = tmp_path / "F"
+    assert main(["foam", str(tmp_path / "seq"), "--out", str(out), "--dt", "0.033", "--radius", str(R)]) == 0
+    info = RunInfo.load(out)
+    from whitecap.io import read
+
+    for p in paths:
+        assert inside(read(p).positions, info.domain), p
+    assert info.domain == flow_domain(sequence_bounds(paths), R)
+    assert info.extra["domain_rule"] == DOMAIN_RULE
+    assert "domain: (" in capsys.readouterr().err
+    # The top has room for spray: as high again as the water.
+    lo, hi = np.array(info.domain["lower"]), np.array(info.domain["upper"])
+    assert hi[2] - lo[2] >= 2 * 0.16
+
+
+def test_import_uses_the_same_rule_over_all_frames(tmp_path):
+    from whitecap.pipeline import read_case
+
+    from .test_cases_dualsphysics import synthetic_case
+
+    synthetic_case(tmp_path / "case", frames=3)
+    out = tmp_path / "run"
+    assert main(["import", str(tmp_path / "case"), "--out", str(out)]) == 0
+    case = read_case(tmp_path / "case")
+    boxes = [sequence_bounds([p for _, p in case.fluid])]
+    boxes += [(np.min(s.vertices, 0), np.max(s.vertices, 0)) for s in case.shapes]
+    want = flow_domain((np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)), case.particle_radius)
+    info = RunInfo.load(out)
+    assert np.allclose(info.domain["lower"], want["lower"]) and np.allclose(info.domain["upper"], want["upper"])
+    assert info.extra["domain_rule"] == DOMAIN_RULE
