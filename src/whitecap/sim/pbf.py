@@ -36,6 +36,7 @@ import taichi as ti
 
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
+from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .launch import KernelGraph, permuted, run_direct
@@ -376,28 +377,12 @@ def bytes_per_particle(max_neighbors: int) -> int:
 STATE_WORDS = 5 * 3 + 4  # 4-byte words of FluidState per particle
 
 
-# A run may plan to use at most this share of the memory that is free when it starts:
-# the rest stays for the interpreter, NumPy copies of frames being written, Taichi's
-# runtime, the foam stage and the operating system, so a run that passes the check
-# does not push the machine into swap.
-MEMORY_HEADROOM = 0.8
-
-
 def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
-    """(whether ``n`` particles fit in MEMORY_HEADROOM of the free memory, the bytes they need)."""
+    """(whether ``n`` particles fit in MEMORY_HEADROOM of the free memory, the bytes they need). The rest
+    stays for the interpreter, NumPy copies of frames being written, Taichi's runtime, the foam stage
+    and the operating system, so a run that passes the check does not push the machine into swap."""
     need = n * bytes_per_particle(max_neighbors)
     return need <= MEMORY_HEADROOM * available_memory(), need
-
-
-def available_memory() -> int:
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 1 << 62
 
 
 def half_space_tables(h: float) -> tuple[np.ndarray, np.ndarray]:

@@ -11,11 +11,14 @@ write per frame, from the main process).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from ..config import Cluster, Mesh, load_scene
@@ -82,6 +85,7 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
     cfg = mesh_config(config, **overrides)
     params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up,
                                walls=walls)
+    check_memory(inputs[0][1], params, up=None if is_run else up)
     # Meshes are recorded in run.json only when they land inside the run.
     inside = is_run and out_dir.resolve().is_relative_to(src.resolve())
     frames = []
@@ -90,6 +94,44 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         rel = os.path.relpath(o, src) if inside else str(o)
         frames.append((i, p, o, rel))
     return MeshJob(frames, params, src if inside else None)
+
+
+#: Bytes splashsurf keeps per marching-cubes point near the surface (its density value, index and
+#: hash-map entry, the vertex and its share of triangles and normals), from its memory on a dam break.
+BYTES_PER_SURFACE_POINT = 64
+#: Surface points per face area of the fluid's bounding box, over the box's own faces: splashes and
+#: folds give a water surface a larger area than its box.
+SURFACE_AREA_FACTOR = 2.0
+
+
+def check_memory(first: Path, params: MeshParams, up: str | None) -> None:
+    """Refuse, before any frame starts, a reconstruction whose marching-cubes grid would not fit in
+    memory (``--cube-size 0.001`` makes cells a thousand times finer than the particles): the points
+    near the surface are estimated from the first frame's bounding box."""
+    from ..io import read
+    from ..resources import MEMORY_HEADROOM, available_memory
+
+    pos = read(first, **({"up": up} if up else {})).positions
+    if not len(pos):
+        return
+    e = np.ptp(pos, 0).astype(np.float64) + 2 * params.surface_radius
+    cell = params.cube_size * params.particle_radius
+    points = SURFACE_AREA_FACTOR * 2 * (e[0] * e[1] + e[1] * e[2] + e[0] * e[2]) / cell**2
+    need = points * BYTES_PER_SURFACE_POINT
+    if need > MEMORY_HEADROOM * available_memory():
+        raise InputError(
+            f"mesh.cube_size: {params.cube_size:g} r = {cell:.3g} m cells would need about {need / 2**30:,.0f} GiB "
+            f"for the surface of {first.name} ({points:.2g} grid points), more than this machine has free; "
+            "raise --cube-size (0.5 to 1 is usual)")
+
+
+def settings_key(params: MeshParams) -> str:
+    """What makes two meshes of a frame the same: every reconstruction setting but splashsurf's own
+    threading (how the work is split, not what it makes). Recorded per mesh in run.json, so meshes of
+    other settings are made again rather than skipped."""
+    d = params.as_dict()
+    d.pop("multi_threading", None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True,
@@ -114,8 +156,10 @@ def _done(job: MeshJob, frame: tuple) -> bool:
 def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster: str | None = None,
               cluster_config: Cluster | None = None) -> list[dict]:
     if job.run_dir is not None:  # read under the lock, so no simulate can change what is current meanwhile
-        current = dict(RunInfo.load(job.run_dir).files("mesh"))
-        job.recorded = {i for i, _, _, rel in job.frames if current.get(i) == rel}
+        info = RunInfo.load(job.run_dir)
+        current, key = dict(info.files("mesh")), settings_key(job.params)
+        job.recorded = {i for i, _, _, rel in job.frames
+                        if current.get(i) == rel and info.frame(i).get("mesh_settings") == key}
     todo = [f for f in job.frames if force or not _done(job, f)]
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
     out_dirs = sorted({f[2].parent for f in job.frames})
@@ -159,9 +203,16 @@ def record(job: MeshJob) -> RunInfo:
     """Add the meshes of ``job.stats`` to run.json (main process only)."""
     info = RunInfo.load(job.run_dir)
     made = {s["index"] for s in job.stats}  # meshed now, or skipped as current: never a stale file
+    key = settings_key(job.params)
     for i, _, o, rel in job.frames:
         if i in made and o.is_file():
             info.set_file(i, "mesh", rel)
-    info.extra["mesh"] = job.params.as_dict()
+            info.frame(i)["mesh_settings"] = key
+    # The settings of the meshes run.json lists: only once every one of them was made with these.
+    meshed = [f for f in info.frames if "mesh" in f["files"]]
+    if meshed and all(f.get("mesh_settings") == key for f in meshed):
+        info.extra["mesh"] = job.params.as_dict()
+    else:
+        info.extra.pop("mesh", None)
     info.save(job.run_dir)
     return info

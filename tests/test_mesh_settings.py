@@ -1,0 +1,51 @@
+"""`mesh` settings are part of each mesh's identity, and a grid that cannot fit is refused up front
+(issue 30, items 12 and 19)."""
+
+from __future__ import annotations
+
+import shutil
+
+from whitecap.cli import main
+from whitecap.io.run import RunInfo
+
+FAST = ["--jobs", "1", "--smoothing-iters", "0"]
+
+
+def test_new_cube_size_remakes_every_mesh_and_run_json_holds_only_applied_settings(tiny_run, tmp_path, capsys):
+    run = tmp_path / "R"
+    shutil.copytree(tiny_run, run)
+    assert main(["mesh", str(run), *FAST]) == 0
+    first = {p.name: p.read_bytes() for p in (run / "mesh").glob("*.ply")}
+    assert RunInfo.load(run).extra["mesh"]["cube_size"] == 0.5
+    capsys.readouterr()
+    assert main(["mesh", str(run), *FAST, "--cube-size", "0.8"]) == 0
+    assert "meshed 4 frames" in capsys.readouterr().out
+    second = {p.name: p.read_bytes() for p in (run / "mesh").glob("*.ply")}
+    assert second.keys() == first.keys() and all(second[k] != first[k] for k in first)
+    assert RunInfo.load(run).extra["mesh"]["cube_size"] == 0.8
+    # The same settings again: nothing to do.
+    assert main(["mesh", str(run), *FAST, "--cube-size", "0.8"]) == 0
+    assert "meshed 0 frames" in capsys.readouterr().out
+
+
+def test_a_partly_remeshed_run_records_no_settings(tiny_run, tmp_path):
+    from whitecap.surface.driver import plan, run_mesh
+
+    run = tmp_path / "R"
+    shutil.copytree(tiny_run, run)
+    assert main(["mesh", str(run), *FAST]) == 0
+    job = plan(run, mesh_smoothing_iters=0, cube_size=0.8)
+    job.frames = job.frames[:2]  # as if interrupted after two frames
+    run_mesh(job, jobs=1, show_progress=False)
+    info = RunInfo.load(run)
+    assert "mesh" not in info.extra  # two settings in one run: neither is "the" run's
+    assert len(info.files("mesh")) == 4
+
+
+def test_a_cube_size_that_cannot_fit_is_refused_before_any_frame(tiny_run, tmp_path, capsys):
+    run = tmp_path / "R"
+    shutil.copytree(tiny_run, run)
+    assert main(["mesh", str(run), *FAST, "--cube-size", "0.00001"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "mesh.cube_size" in err and "GiB" in err, err
+    assert not (run / "mesh").exists()
