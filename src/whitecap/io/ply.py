@@ -2,7 +2,8 @@
 
 Fluid frames carry ``x y z vx vy vz density id``; diffuse frames add
 ``type lifetime radius``. Any extra float/int vertex property is read into
-``ParticleFrame.arrays``.
+``ParticleFrame.arrays``. A file cut short is refused with one line: the file,
+``truncated``, the element and its declared and held rows.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement, PlyElementParseError
+from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseError
 
 from ..errors import InputError
 from .atomic import atomic_path
@@ -32,9 +33,18 @@ def read_vertices(path: Path, known_list_len: dict | None = None):
     try:
         ply = PlyData.read(str(path), known_list_len=known_list_len or {})
     except PlyElementParseError as exc:
-        raise InputError(f"{path}: {exc}") from None
+        raise _element_error(path, exc) from None
+    except PlyHeaderParseError as exc:
+        if "early end-of-file" in str(exc):
+            raise InputError(f"{path}: truncated: the file ends inside its header") from None
+        raise InputError(f"{path}: not a readable PLY file ({exc})") from None
     except Exception as exc:  # plyfile raises a variety of types on garbage
         raise InputError(f"{path}: not a readable PLY file ({exc})") from None
+    if ply.text and not _ends_with_newline(path):
+        # an ASCII file whose last row stops inside a value: writers end every row with an end of line
+        last = ply.elements[-1] if ply.elements else None
+        raise InputError(f"{path}: truncated: the file ends inside the last row"
+                         + (f" of element '{last.name}'" if last is not None else "") + " (no end of line after it)")
     if "vertex" not in ply:
         raise InputError(f"{path}: PLY has no 'vertex' element")
     v = ply["vertex"].data
@@ -43,6 +53,26 @@ def read_vertices(path: Path, known_list_len: dict | None = None):
         if k not in names:
             raise InputError(f"{path}: PLY vertex element has no '{k}' property")
     return ply, v, names
+
+
+def _element_error(path: Path, exc: PlyElementParseError) -> InputError:
+    """One line for plyfile's element errors; rows missing at the end of the file say ``truncated``
+    with the rows the element declares and the complete rows the file holds."""
+    el = exc.element
+    if el is not None and exc.row is not None and (exc.message == "early end-of-file" or (
+            exc.message in ("early end-of-line", "malformed input") and not _ends_with_newline(path))):
+        return InputError(f"{path}: truncated: element '{el.name}' declares {el.count} rows, "
+                          f"the file holds {exc.row}")
+    return InputError(f"{path}: {exc}")
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        if f.tell() == 0:
+            return False
+        f.seek(-1, 2)
+        return f.read(1) == b"\n"
 
 
 def read_ply(path: Path, up: str = "z", require_velocity: bool = False) -> ParticleFrame:

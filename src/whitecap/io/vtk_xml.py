@@ -1,11 +1,13 @@
 """VTK XML PolyData (.vtp) for point clouds and triangle meshes (vtk package).
 
 ParaView opens these directly; a :mod:`whitecap.io.pvd` collection strings
-them into a time series.
+them into a time series. :func:`check_complete` refuses a VTK XML file (``.vtp``,
+``.vtu``) that was cut short, in one line naming the file and the array.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,58 @@ def _vtk():
     except ImportError as exc:  # pragma: no cover - vtk is a dependency
         raise MissingDependency(f"the 'vtk' package is needed for VTK export ({exc})") from None
     return numpy_support, vtkPoints, vtkCellArray, vtkPolyData, vtkXMLPolyDataWriter, vtkXMLPolyDataReader
+
+
+_ARRAY_TAG = re.compile(rb"<DataArray\b[^>]*>")
+_ATTR = {k: re.compile(rb'\b' + k + rb'="([^"]*)"') for k in (b"Name", b"format", b"offset")}
+
+
+def check_complete(path: str | Path) -> None:
+    """Raise InputError (one line: the file, ``truncated``, the array it stops in) when a VTK XML
+    file (``.vtu``, ``.vtp``) does not end with its closing ``</VTKFile>``. Reads its first and last
+    few hundred bytes (the whole file only to name the array of a file that is cut)."""
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(512)
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 256))
+            tail = f.read()
+            if not (head.lstrip().startswith(b"<?xml") or b"<VTKFile" in head) or \
+                    tail.rstrip().endswith(b"</VTKFile>"):
+                return
+            f.seek(0)
+            raw = f.read()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    raise InputError(f"{p}: truncated: {_where_cut(raw)} (no closing </VTKFile>)")
+
+
+def _where_cut(raw: bytes) -> str:
+    """Which array a VTK XML file that lost its end stops in (inline, or in the appended data)."""
+    def attr(tag: bytes, key: bytes) -> str | None:
+        m = _ATTR[key].search(tag)
+        return m.group(1).decode("utf-8", "replace") if m else None
+
+    app = raw.find(b"<AppendedData")
+    if app >= 0:
+        start = raw.find(b"_", app) + 1  # the raw or base64 data begins after an underscore
+        at = len(raw) - start
+        inside = None
+        for m in _ARRAY_TAG.finditer(raw, 0, app):
+            if attr(m.group(), b"format") == "appended" and int(attr(m.group(), b"offset") or 0) <= at:
+                inside = attr(m.group(), b"Name") or inside
+        return (f"the file ends inside the appended data of array '{inside}'" if start > 0 and inside
+                else "the file ends inside its appended data")
+    tags = list(_ARRAY_TAG.finditer(raw))
+    if not tags:
+        return "the file ends before its first array"
+    last = tags[-1]
+    name = attr(last.group(), b"Name") or "?"
+    if last.group().endswith(b"/>") or raw.find(b"</DataArray>", last.end()) >= 0:
+        return f"the file ends after array '{name}'"
+    return f"the file ends inside array '{name}'"
 
 
 def _cells(numpy_support, vtkCellArray, conn: np.ndarray, per_cell: int):
@@ -75,7 +129,10 @@ def read_vtp(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray], np.nd
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: file not found")
+    check_complete(p)
     r = Reader()
+    if not r.CanReadFile(str(p)):
+        raise InputError(f"{p}: not a readable VTK XML PolyData (.vtp) file")
     r.SetFileName(str(p))
     r.Update()
     poly = r.GetOutput()

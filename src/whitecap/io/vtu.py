@@ -1,6 +1,7 @@
 """VTK XML unstructured grids (``.vtu``) through meshio: points plus point data
 (``velocity``/``Vel``/``v``, ``density``, ``id``), as ParaView and many
-solvers write them."""
+solvers write them. A file cut short is refused in one line naming the file and
+the array (:func:`whitecap.io.vtk_xml.check_complete`)."""
 
 from __future__ import annotations
 
@@ -12,16 +13,24 @@ from ..errors import InputError
 from .axes import to_z_up
 from .frame import ParticleFrame
 from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, register
+from .vtk_xml import check_complete
 
 
 def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
-    import meshio
+    from meshio import vtu
 
+    check_complete(path)
     try:
-        m = meshio.read(str(path))
+        # meshio's own reader: meshio.read prints its errors and exits the process on a bad file
+        m = vtu.read(str(path))
     except Exception as exc:
-        raise InputError(f"{path}: not a readable VTU file ({exc})") from None
+        raise InputError(f"{path}: not a readable VTU file ({str(exc) or type(exc).__name__})") from None
     arrays = dict(m.point_data)
+    for k, v in arrays.items():
+        if len(v) != len(m.points):
+            what = "truncated: " if len(v) < len(m.points) else ""
+            raise InputError(f"{path}: {what}array '{k}' holds {len(v)} values for the {len(m.points)} points "
+                             "the file declares (NumberOfPoints)")
     vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing array 'velocity'; found {sorted(arrays) or 'no arrays'}")
