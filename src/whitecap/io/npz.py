@@ -106,4 +106,18 @@ def write_npz(path: Path, frame: ParticleFrame) -> None:
             np.savez(fh, **arrays)
 
 
-register("npz", (".npz",), read_npz, write_npz)
+def check_npz(path: Path) -> None:
+    """The cheap completeness check (:func:`whitecap.io.registry.check`): the zip directory's end
+    record within the file's last bytes; a file without one is read for the exact error."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - (1 << 16) - 22))  # the end record, then a comment of at most 64 KiB
+        tail = f.read()
+    k = tail.rfind(b"PK\x05\x06")
+    if k >= 0 and k + 22 <= len(tail) and k + 22 + int.from_bytes(tail[k + 20:k + 22], "little") == len(tail):
+        return
+    read_npz(Path(path))
+
+
+register("npz", (".npz",), read_npz, write_npz, check=check_npz)

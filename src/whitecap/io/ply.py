@@ -122,4 +122,47 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
         PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(str(tmp))
 
 
-register("ply", (".ply",), read_ply, write_ply)
+_PLY_BYTES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def check_ply(path: Path) -> None:
+    """The cheap completeness check (:func:`whitecap.io.registry.check`): for a binary file of
+    fixed-size rows, the size the header declares against the file's size; for an ASCII file, an
+    end of line at the end. Anything else (lists, a bad header) is read for the exact error."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+        f.seek(0, 2)
+        size = f.tell()
+    end = head.find(b"end_header")
+    nl = head.find(b"\n", end)
+    if end < 0 or nl < 0:
+        read_vertices(path)
+        return
+    words = [ln.split() for ln in head[:end].decode("latin-1").splitlines()]
+    fmt = next((w[1] for w in words if len(w) > 1 and w[0] == "format"), "")
+    if fmt == "ascii":  # one row per line: count the lines (no parse)
+        rows = sum(int(w[2]) for w in words if len(w) == 3 and w[0] == "element" and w[2].isdigit())
+        with open(path, "rb") as f:
+            f.seek(nl + 1)
+            if f.read().count(b"\n") < rows or not _ends_with_newline(path):
+                read_vertices(path)
+        return
+    offset, elements = nl + 1, []
+    for w in words:
+        if w and w[0] == "element" and len(w) == 3 and w[2].isdigit():
+            elements.append([w[1], int(w[2]), 0])
+        elif w and w[0] == "property" and elements:
+            if len(w) != 3 or w[1] not in _PLY_BYTES:  # a list, or a type not known here
+                read_vertices(path)
+                return
+            elements[-1][2] += _PLY_BYTES[w[1]]
+    for name, count, row in elements:
+        if offset + count * row > size:
+            raise InputError(f"{path}: truncated: element '{name}' declares {count} rows, "
+                             f"the file holds {(size - offset) // row if row else 0}")
+        offset += count * row
+
+
+register("ply", (".ply",), read_ply, write_ply, check=check_ply)

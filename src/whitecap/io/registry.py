@@ -9,6 +9,11 @@ particle frames, :func:`read_mesh` / :func:`write_mesh` surface meshes; each
 picks the format from the file extension or an explicit name; :func:`write_scene`
 writes a whole run.
 
+Every reader refuses a file that was cut short (an array shorter than its header
+declares) with one line naming the file and saying ``truncated``; :func:`check`
+makes that test from headers and sizes alone, to check a whole sequence before
+anything is written.
+
 Solvers name the same array differently (``Vel``, ``velocity``, ``v``); every
 reader finds the standard arrays with :func:`find_array` and the alias tables
 below, so a new alias is added once for every format.
@@ -48,6 +53,7 @@ def find_array(arrays: dict, names: tuple[str, ...]) -> str | None:
 
 Reader = Callable[..., "ParticleFrame | SurfaceMesh"]
 Writer = Callable[..., None]
+Check = Callable[[Path], None]
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,9 @@ class Format:
     reader: Reader | None
     writer: Writer | None
     kind: str = PARTICLES
+    #: a cheap completeness check (headers and sizes, no parse of the data) that raises InputError
+    #: naming the file when it was cut short; the reader makes the same check and more
+    check: Check | None = None
 
 
 # Keyed by (kind, name): "ply" is both a particle and a mesh format.
@@ -65,11 +74,11 @@ FORMATS: dict[tuple[str, str], Format] = {}
 
 def register(
     name: str, extensions: tuple[str, ...], reader: Reader | None = None, writer: Writer | None = None,
-    kind: str = PARTICLES,
+    kind: str = PARTICLES, check: Check | None = None,
 ) -> None:
     if kind not in KINDS:
         raise ValueError(f"format {name}: kind must be one of {KINDS}, not {kind!r}")
-    FORMATS[(kind, name)] = Format(name, extensions, reader, writer, kind)
+    FORMATS[(kind, name)] = Format(name, extensions, reader, writer, kind, check)
 
 
 def formats(kind: str = PARTICLES) -> dict[str, Format]:
@@ -105,6 +114,18 @@ def _write(path: str | Path, data, fmt: str | None, kind: str, **options) -> Non
     if f.writer is None:
         raise InputError(f"{path}: {kind} format '{f.name}' cannot be written")
     f.writer(Path(path), data, **options)
+
+
+def check(path: str | Path, fmt: str | None = None, kind: str = PARTICLES) -> None:
+    """Raise InputError (one line naming the file and saying ``truncated``) when a file was cut
+    short, from its headers and size alone: cheap enough to run over every frame of a sequence
+    before anything is written. Formats without such a check pass; their reader still checks."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: file not found")
+    f = format_for(p, fmt, kind)
+    if f.check is not None:
+        f.check(p)
 
 
 def read(path: str | Path, fmt: str | None = None, **options) -> ParticleFrame:

@@ -181,7 +181,11 @@ def check_legacy_vtk(path: str | Path) -> None:
             size = os.fstat(f.fileno()).st_size
             head = [f.readline() for _ in range(3)]
             if not head[0].startswith(b"# vtk DataFile"):
+                if size and b"# vtk DataFile".startswith(head[0]) and not head[0].endswith(b"\n"):
+                    raise InputError(f"{p}: truncated: the file ends inside its header")
                 return
+            if not head[2].endswith(b"\n"):
+                raise InputError(f"{p}: truncated: the file ends inside its header")
             fmt = head[2].strip().upper()
             if fmt == b"BINARY":
                 _BinaryWalk(p, f, size).walk()
@@ -239,7 +243,7 @@ class _BinaryWalk:
         self.f.seek(start + need)
 
     def walk(self) -> None:
-        pending = None  # a header that promises more to follow
+        pending = "the header"  # a header that promises more to follow
         while (s := self.line()) is not None:
             pending = None
             parts = s.split()
@@ -248,6 +252,10 @@ class _BinaryWalk:
                 pending = self.section(key, parts)
             except (IndexError, ValueError):
                 raise _Unknown from None
+            if key == b"DATASET" and parts[1:2] != [b"STRUCTURED_POINTS"]:
+                pending = b" ".join(parts).decode("latin-1")  # the points must follow
+        if pending == "the header":
+            raise InputError(f"{self.path}: truncated: the file ends after its header")
         if pending:
             raise InputError(f"{self.path}: truncated: the file ends after the line '{pending}'")
 
@@ -333,12 +341,13 @@ def _check_ascii_tail(path: Path, f, size: int, new_cells: bool) -> None:
                 raise _ends_inside(path, mm[nl + 1:size])
         hdr = _last_header(mm, size)
         if hdr is None:
-            return
+            raise InputError(f"{path}: truncated: the file ends after its header")
         start, end, classes = hdr
         parts = mm[start:end].split()
         key = parts[0].upper()
         try:
-            if key in (b"POINT_DATA", b"CELL_DATA", b"FIELD") and int(parts[-1]) > 0 and not mm[end:size].strip():
+            if (key in (b"POINT_DATA", b"CELL_DATA", b"FIELD") and int(parts[-1]) > 0 or key == b"DATASET"
+                    and parts[1:2] != [b"STRUCTURED_POINTS"]) and not mm[end:size].strip():
                 raise InputError(f"{path}: truncated: the file ends after the line "
                                  f"'{mm[start:end].decode('latin-1').strip()}'")
             what, declared = _ascii_declared(mm, start, end, parts, key, new_cells)
@@ -458,5 +467,5 @@ def _count_values(block: bytes) -> int:
     return int(solid[:1].sum()) + int(np.count_nonzero(solid[1:] & ~solid[:-1]))
 
 
-register("vtk", (".vtk",), read_vtk, None)
-register("vtk", (".vtk",), read_mesh_vtk, None, kind=MESH)
+register("vtk", (".vtk",), read_vtk, None, check=check_legacy_vtk)
+register("vtk", (".vtk",), read_mesh_vtk, None, kind=MESH, check=check_legacy_vtk)

@@ -61,4 +61,4 @@ def write_vtu(path: Path, frame: ParticleFrame) -> None:
         meshio.write(str(tmp), meshio.Mesh(frame.positions, [("vertex", np.arange(n).reshape(-1, 1))], point_data=data))
 
 
-register("vtu", (".vtu",), read_vtu, write_vtu)
+register("vtu", (".vtu",), read_vtu, write_vtu, check=check_complete)
