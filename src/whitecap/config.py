@@ -221,6 +221,12 @@ class Motion(_Section):
         return self
 
 
+#: Densities a dynamic obstacle may have [kg/m³]: from light foams (expanded polystyrene is 10–30) to
+#: the densest metals (osmium, 22 590). Far below, the fluid's smallest push throws the body out of
+#: the tank within a step; far above, the wall contacts no longer hold it.
+BODY_DENSITY = (1.0, 25_000.0)
+
+
 class Obstacle(_Section):
     """A rigid obstacle from a watertight triangle mesh (OBJ/STL/PLY); static unless it has a motion."""
 
@@ -242,7 +248,8 @@ class Obstacle(_Section):
     )
     motion: Motion | None = Field(None, description="prescribed motion; unset = static")
     dynamic: bool = Field(False, description="a rigid body moved by the fluid and gravity (two-way coupling)")
-    density: float | None = Field(None, gt=0, description="dynamic: the body's density [kg/m³]")
+    density: float | None = Field(None, ge=BODY_DENSITY[0], le=BODY_DENSITY[1],
+                                  description="dynamic: the body's density [kg/m³]")
     mass: float | None = Field(None, gt=0, description="dynamic: the body's mass, instead of density [kg]")
 
     @model_validator(mode="after")

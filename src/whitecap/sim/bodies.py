@@ -40,8 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Motion, Obstacle, Scene
-from ..errors import InputError
+from ..config import BODY_DENSITY, Motion, Obstacle, Scene
+from ..errors import InputError, SimulationError
 
 
 def axis_rotation(axis, angle: float) -> np.ndarray:
@@ -238,12 +238,16 @@ class RigidBody:
     that a wall acts on the body's rotation as well as on its centre. A body
     turned against two opposite walls is turned back between them."""
 
-    def __init__(self, mesh, o: Obstacle, gravity, domain_lo, domain_hi):
+    def __init__(self, mesh, o: Obstacle, gravity, domain_lo, domain_hi, index: int = 0):
         vol = float(mesh.volume)
+        self.name = f"obstacle[{index}] ({o.mesh})"
         if vol <= 0:
             raise InputError(f"{o.mesh}: a dynamic obstacle needs a closed mesh with positive volume")
         self.mass = float(o.mass) if o.mass is not None else float(o.density) * vol
         rho = self.mass / vol
+        if not BODY_DENSITY[0] <= rho <= BODY_DENSITY[1]:  # the density's own range is checked by the scene
+            raise InputError(f"{self.name}: mass: {o.mass:g} kg over the mesh's {vol:.4g} m³ is a density of "
+                             f"{rho:.4g} kg/m³, outside {BODY_DENSITY[0]:g}..{BODY_DENSITY[1]:g}")
         props = mesh.mass_properties  # for unit density
         self.c0 = np.asarray(props["center_mass"], np.float64)
         self.I0 = np.asarray(props["inertia"], np.float64) * rho
@@ -272,6 +276,10 @@ class RigidBody:
         q = self.q + 0.5 * dt * quat_mul(np.array([0.0, *self.W]), self.q)
         self.q = q / np.linalg.norm(q)
         self.collide_walls()
+        if not (np.isfinite(self.c).all() and (self.c >= self.lo).all() and (self.c <= self.hi).all()):
+            raise SimulationError(
+                f"{self.name}: left the domain (centre of mass at {np.round(self.c, 4).tolist()}, speed "
+                f"{np.linalg.norm(self.V):.3g} m/s); check its density or mass and the time step")
 
     def _contacts(self, slop: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(hull vertices, walls, depths) of every vertex more than ``slop`` past a wall; walls 0–2

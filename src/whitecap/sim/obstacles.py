@@ -309,7 +309,7 @@ def load_obstacles(scene: Scene) -> Obstacles | None:
 
             m = load_mesh(scene.resolve(o.mesh), o.repair)
             m.apply_transform(obstacle_transform(o))
-            bodies[k] = RigidBody(m, o, scene.domain.gravity, lo, hi)
+            bodies[k] = RigidBody(m, o, scene.domain.gravity, lo, hi, index=k)
     return Obstacles(scene, grids, bodies)
 
 
