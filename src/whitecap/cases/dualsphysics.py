@@ -5,7 +5,8 @@ Files read (PartVTK legacy VTK, z up):
 - the fluid: ``PartFluid_NNNN.vtk`` (else the fluid particles, ``Type`` 3, of ``PartAll_NNNN.vtk``);
 - the boundaries: ``PartAll_NNNN.vtk`` (else ``PartBound_NNNN.vtk``), with the
   point arrays ``Type`` and ``Mk`` (and ``Idp`` for moving bodies);
-- the case XML beside them (or ``xml=``): the spacing dp, output interval,
+- the case XML beside them (the only ``*.xml`` there; with several, ``xml=`` must
+  choose, :func:`whitecap.io.dualsphysics.find_case_xml`): the spacing dp, output interval,
   constants, which Mks are one shape, and which are fixed, moving or floating
   (:mod:`whitecap.io.dualsphysics`).
 
@@ -23,6 +24,10 @@ rigid motion (:mod:`whitecap.cases.rigid_fit`) of its particles, matched by
 ``Idp``, from the first boundary file to that frame's; or, with
 ``floating_csv``, the motion DualSPHysics' FloatingInfo tool wrote
 (:func:`read_floating_csv`).
+
+Every fluid and boundary file is checked for truncation (:func:`whitecap.io.registry.check`,
+headers and sizes only) before the case is returned, so a file cut short stops the import
+before anything is written.
 """
 
 from __future__ import annotations
@@ -34,9 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.dualsphysics import CaseInfo, read_case as read_case_xml
+from ..io.dualsphysics import CaseInfo, find_case_xml, read_case as read_case_xml
 from ..io.registry import find_array
-from ..io.sequence import find_sequence
+from ..io.registry import check
+from ..io.sequence import frame_number
 from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
 from . import Case, CaseShape
 from .particle_surface import cell_surface
@@ -52,16 +58,32 @@ CONTAINER_FLUID_FRACTION = 0.9
 FLUID_PREFIX, ALL_PREFIX, BOUND_PREFIX = "PartFluid_", "PartAll_", "PartBound_"
 
 
-def _files(folder: Path, prefix: str) -> list[tuple[int, Path]]:
-    if not any(folder.glob(f"{prefix}*.vtk")):
+def _named(folder: Path, prefix: str) -> list[Path]:
+    """The ``PREFIX*.vtk`` files of a folder, listed (not globbed: the folder's name may hold ``[``)."""
+    if not folder.is_dir():
         return []
-    return find_sequence(folder / f"{prefix}*.vtk")
+    return sorted(p for p in folder.iterdir() if p.name.startswith(prefix) and p.name.lower().endswith(".vtk"))
+
+
+def _files(folder: Path, prefix: str) -> list[tuple[int, Path]]:
+    files = _named(folder, prefix)
+    if not files:
+        return []
+    frames: dict[int, Path] = {}
+    for p in files:
+        n = frame_number(p)
+        if n is None:
+            raise InputError(f"{p}: no frame number in the file name")
+        if n in frames:
+            raise InputError(f"{p}: frame {n} also given by {frames[n].name}")
+        frames[n] = p
+    return sorted(frames.items())
 
 
 def is_case(folder: str | Path) -> bool:
     """Whether ``folder`` holds DualSPHysics PartVTK output (PartFluid_/PartAll_/PartBound_ files)."""
     f = Path(folder)
-    return f.is_dir() and any(any(f.glob(f"{p}*.vtk")) for p in (FLUID_PREFIX, ALL_PREFIX, BOUND_PREFIX))
+    return any(_named(f, p) for p in (FLUID_PREFIX, ALL_PREFIX, BOUND_PREFIX))
 
 
 def _boundary_particles(path: Path) -> dict[str, np.ndarray]:
@@ -87,13 +109,8 @@ def _boundary_particles(path: Path) -> dict[str, np.ndarray]:
 
 
 def _xml(folder: Path, xml: str | Path | None) -> tuple[CaseInfo | None, Path | None]:
-    if xml is not None:
-        p = Path(xml)
-        if not p.is_file():
-            raise InputError(f"{p}: case XML not found")
-        return read_case_xml(p), p
-    xmls = sorted(folder.glob("*.xml"))
-    return (read_case_xml(xmls[0]), xmls[0]) if xmls else (None, None)
+    p = find_case_xml(folder, xml, option="--xml")
+    return (read_case_xml(p), p) if p is not None else (None, None)
 
 
 def _groups(info: CaseInfo | None, mks: list[int]) -> list[tuple[str, list[int]]]:
@@ -122,6 +139,8 @@ def read_case(folder: str | Path, xml: str | Path | None = None, up: str = "z",
     if not fluid:
         raise InputError(f"{folder}: no fluid frames (PartFluid_*.vtk or PartAll_*.vtk)")
     bound = dict(_files(folder, ALL_PREFIX) or _files(folder, BOUND_PREFIX))
+    for _, path in fluid + sorted(bound.items()):
+        check(path)  # a file cut short is refused now, before anything is written (headers and sizes only)
     frame_dt = info.time_out if info is not None and info.time_out else None
     if frame_dt is None:
         raise InputError(f"{folder}: the time between frames is unknown: no case XML with a TimeOut parameter "

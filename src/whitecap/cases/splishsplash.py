@@ -32,6 +32,10 @@ A body with ``isWall`` is the case's container; a body that moves (or that the
 scene calls ``isDynamic``) is a ``body`` with a pose per fluid frame; any other
 is an ``obstacle``. Everything is turned z up with ``io.axes.to_z_up`` when the
 solver's up axis is y (SPlisHSPlasH's default).
+
+Every fluid frame is checked for truncation (:func:`whitecap.io.registry.check`, headers
+and sizes only) when the case is read, so a frame cut short stops ``import`` before
+anything is written; a BIN file cut short says ``truncated`` with the field it stops in.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import read_mesh
 from ..io.axes import to_z_up
+from ..io.registry import check
 from . import Case, CaseShape
 from .rigid_fit import fit_poses, pose
 
@@ -112,6 +117,8 @@ def read_case(folder: str | Path, up: str = "y", scene_json: str | Path | None =
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder")
     fluid_model, fluid = _fluid_frames(folder, model)
+    for _, path in fluid:
+        check(path)  # a frame cut short is refused now, before anything is written (headers and sizes only)
     scene_path = Path(scene_json) if scene_json is not None else _find_scene(folder)
     scene = _Scene(scene_path)
     r = scene.config_number("particleRadius", DEFAULT_PARTICLE_RADIUS)
@@ -451,7 +458,7 @@ def _read_bin_header(path: Path) -> tuple[list[tuple[str, np.ndarray, bool]], in
     def take(fmt: str, at: int, field: str):
         size = struct.calcsize(fmt)
         if at + size > len(buf):
-            raise InputError(f"{path}: {field}: the file ends at byte {len(buf)}, {at + size} needed (truncated?)")
+            raise InputError(f"{path}: {field}: truncated: the file ends at byte {len(buf)}, {at + size} needed")
         return struct.unpack_from(fmt, buf, at), at + size
 
     (n,), at = take("<I", 0, "number of bodies")
@@ -461,7 +468,7 @@ def _read_bin_header(path: Path) -> tuple[list[tuple[str, np.ndarray, bool]], in
     for i in range(n):
         (length,), at = take("<I", at, f"body {i} mesh name length")
         if at + length > len(buf):
-            raise InputError(f"{path}: body {i} mesh name: {length} bytes, past the end of the file (truncated?)")
+            raise InputError(f"{path}: body {i} mesh name: truncated: {length} bytes, past the end of the file")
         try:
             name = buf[at:at + length].decode("utf-8")
         except UnicodeDecodeError:
@@ -479,8 +486,13 @@ def _read_bin_header(path: Path) -> tuple[list[tuple[str, np.ndarray, bool]], in
         bodies.append((name, np.asarray(scale, np.float64), bool(wall)))
     if len(buf) - at != n * _POSE_BYTES:
         raise InputError(f"{path}: pose block: {len(buf) - at} bytes after the header, {n * _POSE_BYTES} "
-                         f"expected for {n} bodies")
+                         f"expected for {n} bodies{_cut(len(buf) - at, n * _POSE_BYTES)}")
     return bodies, at
+
+
+def _cut(held: int, declared: int) -> str:
+    """The words that say a block is short because the file was cut."""
+    return " (truncated)" if held < declared else ""
 
 
 def _read_bin_poses(path: Path, offset: int, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -488,7 +500,7 @@ def _read_bin_poses(path: Path, offset: int, n: int) -> list[tuple[np.ndarray, n
     buf = _read_bytes(path)
     if len(buf) - offset != n * _POSE_BYTES:
         raise InputError(f"{path}: pose block: {len(buf) - offset} bytes, {n * _POSE_BYTES} expected "
-                         f"for the {n} bodies of the first file")
+                         f"for the {n} bodies of the first file{_cut(len(buf) - offset, n * _POSE_BYTES)}")
     a = np.frombuffer(buf, "<f4", n * 12, offset).astype(np.float64).reshape(n, 12)
     out = []
     for i in range(n):

@@ -42,6 +42,27 @@ class CaseInfo:
         return self.rho0 * self.dp**3
 
 
+def find_case_xml(folder: str | Path, xml: str | Path | None = None, option: str = "--xml") -> Path | None:
+    """The case XML of a DualSPHysics output ``folder``: ``xml`` when given (it must be a file),
+    else the only ``*.xml`` file in the folder; None when there is none. Several XML files are
+    refused (InputError, one line naming the folder and the candidates and asking for
+    ``option``: ``--xml`` for ``import``, ``--case`` for ``foam``): their output intervals and
+    spacings may differ, and picking one by name would be a guess."""
+    if xml is not None:
+        p = Path(xml)
+        if not p.is_file():
+            raise InputError(f"{p}: case XML not found")
+        return p
+    d = Path(folder)
+    if not d.is_dir():
+        return None
+    found = sorted(q for q in d.iterdir() if q.suffix.lower() == ".xml" and q.is_file() and not q.name.startswith("."))
+    if len(found) > 1:
+        raise InputError(f"{d}: {len(found)} case XML files ({', '.join(q.name for q in found)}); "
+                         f"choose the one that was run with {option} FILE")
+    return found[0] if found else None
+
+
 def read_case(path: str | Path) -> CaseInfo:
     p = Path(path)
     try:

@@ -1,5 +1,8 @@
 """Numbered particle sequences: ``dir/`` or ``dir/name_*.ply`` -> [(index, path)].
 
+Folders and files that exist are taken literally (a folder named ``run[1]`` is not a
+pattern); wildcards apply to what does not exist as a path.
+
 A sequence is any set of files the io registry reads whose names end in a
 frame number (``fluid_00012.ply``, ``PartFluid_0012.vtk``, ``frame12.npz``).
 """
@@ -7,6 +10,7 @@ frame number (``fluid_00012.ply``, ``PartFluid_0012.vtk``, ``frame12.npz``).
 from __future__ import annotations
 
 import glob
+import os
 import re
 from pathlib import Path
 
@@ -27,16 +31,29 @@ def _readable(p: Path) -> bool:
     return any(name.endswith(ext) for f in formats(PARTICLES).values() if f.reader for ext in f.extensions)
 
 
+def glob_paths(spec: str | Path) -> list[Path]:
+    """The files a glob pattern matches, sorted. Its leading folders that exist are taken
+    literally, so a folder whose name holds ``[`` ``]`` (``run[1]/*.vtk``) is that folder,
+    not a character class; the rest of the pattern keeps its wildcards."""
+    parts = Path(spec).parts
+    for k in range(len(parts) - 1, 0, -1):
+        base = Path(*parts[:k])
+        if base.is_dir():
+            return [Path(p) for p in sorted(glob.glob(os.path.join(glob.escape(str(base)), *parts[k:])))]
+    return [Path(p) for p in sorted(glob.glob(str(spec)))]
+
+
 def find_sequence(spec: str | Path) -> list[tuple[int, Path]]:
     """Frames of a sequence, sorted by frame number.
 
     ``spec`` is a directory (every readable numbered file in it, which must
-    share one extension) or a glob pattern. Raises InputError when nothing
-    matches or two files claim the same frame number.
+    share one extension), one file, or a glob pattern (:func:`glob_paths`). A path
+    that exists is taken as it is, whatever characters its name holds. Raises
+    InputError when nothing matches or two files claim the same frame number.
     """
     s = str(spec)
-    if any(c in s for c in "*?["):
-        paths = [Path(p) for p in sorted(glob.glob(s))]
+    if any(c in s for c in "*?[") and not Path(s).exists():
+        paths = glob_paths(s)
         if not paths:
             raise InputError(f"{s}: no files match this pattern")
     else:
@@ -49,7 +66,8 @@ def find_sequence(spec: str | Path) -> list[tuple[int, Path]]:
             paths = sorted(p for p in d.iterdir() if p.is_file() and not p.name.startswith(".") and _readable(p))
             exts = {p.suffix.lower() for p in paths}
             if len(exts) > 1:
-                raise InputError(f"{d}: mixed file types {sorted(exts)}; pass a glob such as '{d}/*.ply'")
+                raise InputError(f"{d}: mixed file types {sorted(exts)}; pass a glob such as "
+                                 f"'{d / ('*' + sorted(exts)[0])}'")
     frames: dict[int, Path] = {}
     for k, p in enumerate(paths):
         n = frame_number(p)
