@@ -92,7 +92,9 @@ def test_foam_records_its_identity_and_a_new_source_makes_mesh_redo(tmp_path, ca
     assert main(["foam", str(tmp_path / "seqA"), "--out", str(out), "--radius", "0.01", "--dt", "0.0333333"]) == 0
     first = RunInfo.load(out).simulation
     assert main(["mesh", str(out), "--jobs", "1", "--smoothing-iters", "2"]) == 0
-    assert main(["foam", str(tmp_path / "seqB"), "--out", str(out), "--radius", "0.01", "--dt", "0.0333333"]) == 0
+    args = ["foam", str(tmp_path / "seqB"), "--out", str(out), "--radius", "0.01", "--dt", "0.0333333"]
+    assert main(args) == 2  # another simulation's run: replaced only with --force, and then whole
+    assert main([*args, "--force"]) == 0
     assert RunInfo.load(out).simulation != first
     capsys.readouterr()
     assert main(["mesh", str(out), "--jobs", "1", "--smoothing-iters", "2"]) == 0

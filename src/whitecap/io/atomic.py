@@ -51,6 +51,23 @@ def write_text(path: str | Path, text: str) -> None:
     write_bytes(path, text.encode())
 
 
+def write_arrays(path: str | Path, arrays: dict) -> None:
+    """``arrays`` as an .npz archive (what :func:`numpy.load` reads), written atomically.
+
+    Not ``np.savez``: when a write fails (disk full) it leaves its ZipFile open, and that
+    object's ``__del__`` prints a second traceback after the one-line error. Here the archive
+    is closed on every path, so the OSError, naming ``path``, is all the user sees."""
+    import zipfile
+
+    import numpy as np
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for name, value in arrays.items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+
+
 #: a temporary file of :func:`atomic_path`: ".STEM.XXXXXXXX.tmpSUFFIX" (mkstemp's 8 random characters)
 _TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^.]+)?$")
 

@@ -24,7 +24,7 @@ import numpy as np
 from ..config import Scene, scene_from_dict
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
-from ..io.atomic import atomic_path
+from ..io.atomic import write_arrays
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.run import (CHECKPOINT, IDENTITY_IGNORES, RUN_JSON, SCENE_FILE, WALLS, RunInfo, check_scene_file,
                       claim_run_dir, frame_name, remove_run, scene_sha256, simulation_identity)
@@ -111,9 +111,7 @@ def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
     for h in hooks:
         data.update({f"{h.name}/{k}": v for k, v in h.checkpoint().items()})
     data["frame"] = np.int64(index)
-    with atomic_path(out / CHECKPOINT) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **data)
+    write_arrays(out / CHECKPOINT, data)
 
 
 def _load_checkpoint(out: Path) -> tuple[int, dict]:

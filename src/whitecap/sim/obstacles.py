@@ -43,6 +43,7 @@ high (README, Floating bodies); the fluid meets it by contact alone, whose
 momentum (projection, penalty, velocity response) the body takes back.
 """
 
+import contextlib
 import hashlib
 import json
 import os
@@ -54,7 +55,7 @@ import taichi as ti
 
 from ..config import Obstacle, Scene, obstacle_transform
 from ..errors import InputError
-from ..io.atomic import atomic_path
+from ..io.atomic import write_arrays
 from ..timing import timer
 from .grid import F1, F3, I1
 
@@ -190,10 +191,9 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     with timer("obstacles.sdf"):
         vals = compute_sdf(m.vertices, m.faces, pts).astype(np.float32).reshape(tuple(dims))
     grid = SDFGrid(lo.astype(np.float32), float(dx), vals, m.bounds[0].astype(np.float32), m.bounds[1].astype(np.float32))
-    cached.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(cached) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, origin=grid.origin, spacing=grid.spacing, values=vals, aabb_lo=grid.aabb_lo, aabb_hi=grid.aabb_hi)
+    with contextlib.suppress(OSError):  # a cache: a full or read-only disk only costs the next run the SDF
+        write_arrays(cached, dict(origin=grid.origin, spacing=grid.spacing, values=vals, aabb_lo=grid.aabb_lo,
+                                  aabb_hi=grid.aabb_hi))
     return grid
 
 
