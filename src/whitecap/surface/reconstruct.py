@@ -21,10 +21,15 @@ water and the wall: in a glass tank that reads as a film of air. For the walls
 that the run says held the fluid (``RunInfo.solid_walls``), the vertices
 within :data:`WALL_SNAP` r of a wall plane that face it are moved onto the
 plane (:func:`close_wall_gap`), so the water meets the wall.
+
+Threads. splashsurf runs on one thread (:func:`single_threaded_splashsurf`),
+so a frame is the same bytes whichever executor meshes it; the mesh stage
+runs frames side by side instead (a process pool, or Dask workers).
 """
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import asdict, dataclass
@@ -54,7 +59,9 @@ class MeshParams:
     mesh_smoothing_weights: bool = True
     normals_smoothing_iters: int = 10
     interpolate_velocity: bool = True
-    multi_threading: bool = True
+    #: No effect: splashsurf always runs on one thread (see :func:`single_threaded_splashsurf`).
+    #: Kept so that callers passing it and run.json records that hold it stay valid.
+    multi_threading: bool = False
     up: str = "z"
     #: Solid walls the surface is closed against: (axis 0-2, side -1 lower / +1 upper, plane coordinate [m]).
     walls: tuple = ()
@@ -85,7 +92,7 @@ class MeshParams:
             smoothing_length=self.smoothing_length,  # multiple of the surface radius
             cube_size=self.cube_size,  # multiple of the surface radius
             iso_surface_threshold=self.iso_surface_threshold,
-            multi_threading=self.multi_threading,
+            multi_threading=False,  # one thread in any case (single_threaded_splashsurf)
             mesh_cleanup=self.mesh_cleanup,
             mesh_smoothing_iters=self.mesh_smoothing_iters or None,
             mesh_smoothing_weights=self.mesh_smoothing_weights,
@@ -117,9 +124,36 @@ def params_from_config(particle_radius: float, config: Mesh | None = None, rest_
     ).check()
 
 
+#: Environment variable that sizes rayon's global thread pool, which splashsurf's parallel code runs on.
+RAYON_THREADS = "RAYON_NUM_THREADS"
+
+
+def single_threaded_splashsurf() -> None:
+    """Give splashsurf one thread, so that its output is the same bytes in every process.
+
+    splashsurf (Rust, on rayon's global thread pool) splits its work between
+    threads and adds the pieces in the order they finish: the vertices come out
+    in another order, and the sums that follow (mesh smoothing, vertex normals,
+    the interpolated velocity) add the same terms in another order. With more
+    than one thread the last bits of positions, normals and velocities
+    therefore change from run to run, whatever pysplashsurf's
+    ``multi_threading`` flag says (its post-processing is parallel regardless).
+    :func:`_snap` hides nearly all of that, but a value that lies within that
+    noise of a rounding boundary still comes out differently. With one thread
+    splashsurf's output is the same, bit for bit, in any process.
+
+    rayon reads the variable once, when the process first uses its pool, so this
+    runs before every splashsurf call whitecap makes (a worker process, local or
+    Dask, makes its first one here). A process that called pysplashsurf itself
+    before whitecap did keeps the pool it started with.
+    """
+    os.environ[RAYON_THREADS] = "1"
+
+
 def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: MeshParams,
                 source: str = "<memory>") -> SurfaceMesh:
     """The surface of one particle cloud. No particles give an empty mesh."""
+    single_threaded_splashsurf()
     import pysplashsurf
 
     pos = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -201,11 +235,11 @@ SNAP = 2.0**-20
 def _snap(a: np.ndarray) -> np.ndarray:
     """Round to multiples of :data:`SNAP`.
 
-    splashsurf's multi-threaded sums (normals, interpolated attributes) add
-    the same terms in a varying order, so the last bits of these arrays change
-    from run to run, and a component near zero can then round to a different
-    float32. Rounding far above that noise keeps the files reproducible; it is
-    far below anything a renderer can show.
+    A guard beside :func:`single_threaded_splashsurf`: should splashsurf's
+    last bits ever differ (a pool started with more threads, another build of
+    it), a component near zero would round to a different float32. Rounding
+    far above that noise keeps the files reproducible in nearly every case; it
+    is far below anything a renderer can show.
     """
     return np.round(np.asarray(a, dtype=np.float64) * (1.0 / SNAP)) * SNAP
 
@@ -214,7 +248,7 @@ def canonical_order(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
                     extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A vertex permutation and remapped faces that depend on the geometry only.
 
-    splashsurf's multi-threaded run emits the same vertices in a different
+    splashsurf with several threads emits the same vertices in a different
     order each time; sorting them by position (normals, then ``extra``, break
     ties) and the faces by their vertex indices makes a mesh file byte-for-byte
     reproducible, whatever the threading or ``--jobs``. Winding is kept: a
