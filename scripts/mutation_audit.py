@@ -183,6 +183,10 @@ MUTATIONS: list[Mutation] = [
     M("diffuse-obstacles-skipped-for-foam", "diffuse/generator.py",
       "hit &= kind != BUBBLE\n", "hit &= kind == SPRAY\n",
       [PHYS, "tests/test_obstacles.py", "tests/test_bodies.py"], "foam that ends a frame inside an obstacle stays there"),
+    M("diffuse-body-pose-a-frame-late", "diffuse/driver.py",
+      "g.at_frame(t, info.body_pose(index, g.index), 0.0 if first else dt,",
+      "g.at_frame(t, info.body_pose(max(index - 1, 0), g.index), 0.0 if first else dt,",
+      ["tests/test_bodies.py"], "diffuse particles tested against the body where it was a frame before"),
     # ------------------------------------------------------------------ io/
     M("usd-fps", "io/usd.py",
       "    stage.SetFramesPerSecond(cache.frame_rate)\n", "",

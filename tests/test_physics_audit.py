@@ -132,6 +132,35 @@ def test_friction_acts_along_the_surface_of_a_turned_body(tmp_path):
     assert v[on_plate, 2].max() < 0.3
 
 
+def test_foam_the_water_carries_into_a_body_is_put_back_on_its_surface(tmp_path):
+    """Foam more than BODY_CONTACT r behind a moving, turning box (so not riding on it) that a fast
+    current (1.5 m/s) carries into the box within a frame ends the frame outside it, a radius off
+    the face it came through, moving with the body: never inside. (test_bodies checks spray and
+    bubbles the same way; foam goes its own way in the generator.)"""
+    from whitecap.diffuse.generator import BODY_CONTACT
+    from whitecap.io.diffuse_types import FOAM
+
+    from .test_bodies import moving_box
+
+    g, gen, law_ = moving_box(tmp_path)
+    dt = 1 / 30
+    for i in range(1, 4):
+        g.at_frame(i * dt, None, dt)
+    R, T = law_.pose(3 * dt)
+    back = np.array([[-0.05 - 0.035, 0.0, 0.0], [-0.05 - 0.032, 0.02, -0.01], [-0.05 - 0.034, -0.03, 0.02]])
+    x0 = (back @ R.T + (R @ [0.3, 0.2, 0.2] + T)).astype(np.float32)  # 3.2-3.5 cm behind its −x face
+    assert (g.sample(x0, before=True) > BODY_CONTACT * 0.01).all()
+    v = np.tile((R @ [1.5, 0.0, 0.0]).astype(np.float32), (3, 1))
+    moved = x0 + v * dt  # 5 cm along: inside the box
+    assert (g.sample(moved) < -0.005).all()
+    x, v_new, alive = gen._obstacles(x0, moved, v, np.full(3, FOAM, np.uint8))
+    assert alive.all()
+    d = g.sample(x)
+    assert (d > 0).all(), d  # outside
+    assert np.allclose(d, 0.01, atol=0.002), d  # one radius (SURFACE_OFFSET r) off the face
+    assert np.allclose(v_new, g.velocity(x), atol=1e-4)  # moving with the body, not into it
+
+
 # ---------------------------------------------------------------- keyframes
 def keyframe_law(keys, **motion):
     sc = scene_from_dict({"obstacle": [{"mesh": "m.stl", "translate": [0.2, 0.1, 0.0],
