@@ -71,16 +71,60 @@ def test_bad_files_are_named(tmp_path, capsys):
     assert code != 0 and "p_0000.ply" in err and "NaN" in err
 
 
-def test_writes_are_atomic(tmp_path):
+@pytest.mark.parametrize("ext", ["ply", "npz", "vtu"])
+def test_writes_are_atomic(tmp_path, monkeypatch, ext):
+    """A writer that fails half way through its file (the disk fills up after some bytes went out)
+    leaves the earlier file as it was and no temporary file, and the error names the file asked
+    for. The failure is inside the atomic write: every file the format writer opens is cut short."""
+    import builtins
+    import errno
+    from pathlib import Path
+
     f = frame()
-    target = tmp_path / "f.ply"
+    target = tmp_path / f"f.{ext}"
     io.write(target, f)
     before = target.read_bytes()
-    bad = io.ParticleFrame(f.positions, f.velocities, f.ids, arrays={"x": np.zeros(len(f), np.complex64)})
-    with pytest.raises(Exception):
-        io.write(target, bad)
+    real_open = builtins.open
+    cut = []
+
+    class Full:
+        """A file object that takes a few bytes, then reports a full disk."""
+
+        def __init__(self, fh, name):
+            self.fh, self.name = fh, name
+
+        def write(self, data):
+            if self.fh.tell() > 16:
+                cut.append(self.name)
+                raise OSError(errno.ENOSPC, "No space left on device", self.name)
+            return self.fh.write(data[:32])
+
+        def __getattr__(self, k):
+            return getattr(self.fh, k)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+    def full_open(file, mode="r", *a, **kw):
+        fh = real_open(file, mode, *a, **kw)
+        if "w" in mode and Path(str(file)).parent == tmp_path:
+            return Full(fh, str(file))
+        return fh
+
+    monkeypatch.setattr(builtins, "open", full_open)
+    other = frame(seed=1)
+    try:
+        with pytest.raises(OSError) as e:
+            io.write(target, other)
+    finally:
+        monkeypatch.setattr(builtins, "open", real_open)
+    assert cut and all(c != str(target) for c in cut)  # the writer was cut short in a temporary file
+    assert e.value.errno == errno.ENOSPC and e.value.filename == str(target)
     assert target.read_bytes() == before  # the earlier file survives a failed write
-    assert [p.name for p in tmp_path.iterdir()] == ["f.ply"]  # and no temporary is left
+    assert [p.name for p in tmp_path.iterdir()] == [target.name]  # and no temporary is left
 
 
 def test_splishsplash_partio_bgeo_with_y_up(tmp_path):
