@@ -2,7 +2,10 @@
 
 Skipped with a message where viser, Playwright or a Chromium binary is missing
 (``pip install 'whitecap[web]'`` and Debian's ``chromium``; ``make`` installs both).
-Waits poll for a condition with a generous limit; nothing here measures time.
+Waits on the viewer's events (a frame drawn, a page connecting, a page answering
+for a server picture: WebViewer.wait_until) and on the page's own (an image decoded,
+an animation frame), so how long anything takes under load does not decide a result.
+The few polls left (page text) have a generous limit; nothing here measures time.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 VIEWPORT = {"width": 1280, "height": 720}
 WAIT_S = 120.0  # upper limit of every poll: a loaded 2-core machine can be slow to start a browser
+HANG_GUARD_S = 1800.0  # event waits: only a guard against a hung viewer; each ends on its event first
+STEADY_SHOTS_AT_MOST = 50  # screenshots taken for two in a row to agree (a count of page frames, not a clock)
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
 
 viser = pytest.importorskip("viser", reason="the browser viewer needs viser: pip install 'whitecap[web]'")
@@ -76,11 +81,42 @@ def page(browser):
     pg.close()
 
 
+def _until(viewer, predicate, what: str):
+    """Wait on the viewer's events until ``predicate()`` holds; returns its value."""
+    got = viewer.wait_until(predicate, HANG_GUARD_S)
+    assert got, f"the viewer hung waiting for {what}"
+    return got
+
+
+# Counts the server pictures (viser sends them as image/jpeg blobs, the depth too) whose image
+# the page is still decoding: the page revokes a blob's URL once its texture is installed.
+PENDING_IMAGES_SCRIPT = """
+(() => {
+  const pending = new Set();
+  const create = URL.createObjectURL.bind(URL), revoke = URL.revokeObjectURL.bind(URL);
+  URL.createObjectURL = (o) => {
+    const u = create(o);
+    if (o instanceof Blob && o.type === "image/jpeg") pending.add(u);
+    return u;
+  };
+  URL.revokeObjectURL = (u) => { pending.delete(u); return revoke(u); };
+  window.__whitecapPendingImages = () => pending.size;
+})();
+"""
+
+
+# The page has decoded every picture it was sent and runs no CSS animation (the page fades in
+# when it starts: a screenshot taken meanwhile shows the picture dimmed).
+PAGE_AT_REST = """() => window.__whitecapPendingImages() === 0
+    && document.getAnimations().every(a => a.playState !== "running")"""
+
+
 def _open(viewer, page) -> None:
     """Load the viewer's page and wait until the browser has connected and the first frame is sent."""
+    page.add_init_script(PENDING_IMAGES_SCRIPT)
     page.goto(viewer.url)
-    _poll(lambda: viewer.server.get_clients(), "the page to connect")
-    _poll(lambda: viewer.drawn_frame is not None, "the first frame")
+    _until(viewer, lambda: viewer.pages(), "the page to connect")
+    _until(viewer, lambda: viewer.drawn_frame is not None, "the first frame")
 
 
 def _shot(page) -> np.ndarray:
@@ -190,7 +226,7 @@ def test_timeline_moves_the_drawn_particles(tiny_run, page):
         first = _drawn(v.h_fluid)
         last_k = len(v.source) - 1
         _move_slider_to_end(page)
-        _poll(lambda: v.state.frame == last_k and v.drawn_frame == v.source.indices[last_k], "the last frame to be drawn")
+        _until(v, lambda: v.state.frame == last_k and v.drawn_frame == v.source.indices[last_k], "the last frame to be drawn")
         p3 = v.source.frame(last_k).positions
         drawn = _drawn(v.h_fluid)
         assert np.abs(drawn - p3).max() < 1e-6
@@ -225,7 +261,7 @@ def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
     with WebViewer(run, port=0, max_points=500) as v:
         for k in (0, 2):
             v.seek(k)
-            assert v.wait_drawn(k)
+            assert v.wait_drawn(k, HANG_GUARD_S)
             (_, h), = v.h_obstacles
             M = viser.transforms.SE3.from_rotation_and_translation(viser.transforms.SO3(np.asarray(h.wxyz)), np.asarray(h.position)).as_matrix()
             want = obstacle_matrix({"mesh": ""}, meta["frames"][k]["bodies"][0])
@@ -250,14 +286,16 @@ def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
     scene = tmp_path / "tiny.toml"
     scene.write_text(tomli_w.dumps(tiny_scene_dict(foam={"enabled": False}, view={"steps_per_draw": 2})))
     with WebViewer(scene, port=0) as v:
-        _poll(lambda: v.source.steps >= 4 and v.frames_sent >= 2, "the live simulation to advance")
+        v.play()  # no page opens here: start the simulation from Python
+        _until(v, lambda: v.source.steps >= 4 and v.frames_sent >= 2, "the live simulation to advance")
         v.g_solver["iterations"].value = 7
-        _poll(lambda: v.scene.solver.iterations == 7, "the iterations slider to reach the solver")
+        _until(v, lambda: v.scene.solver.iterations == 7, "the iterations slider to reach the solver")
         steps = v.source.steps
-        _poll(lambda: v.source.steps > steps, "more steps")
+        _until(v, lambda: v.source.steps > steps, "more steps")
     # drawn on the server, a live frame hands the solver's particles to the pages' pictures
     with WebViewer(scene, port=0, points="server") as v:
-        _poll(lambda: v.frames_sent >= 2 and v.spheres is not None, "the live simulation to reach the server's drawing")
+        v.play()
+        _until(v, lambda: v.frames_sent >= 2 and v.spheres is not None, "the live simulation to reach the server's drawing")
         assert v.drawn_on_server and not v.h_fluid.visible
         P = v.spheres[2]
         assert len(P) == v.source.solver.n and np.isfinite(P).all()
@@ -318,12 +356,12 @@ def test_a_bad_frame_is_reported_in_the_panel_and_the_viewer_goes_on(tiny_run, t
     pf.positions[5] = np.nan
     write(bad, ParticleFrame(pf.positions, pf.velocities, pf.ids, pf.density, time=pf.time))
     with WebViewer(run, port=0) as v:
-        assert v.wait_drawn(0)
+        assert v.wait_drawn(0, HANG_GUARD_S)
         v.seek(2)
-        _poll(lambda: v.error and "fluid_00002.ply" in v.error, "the error to be reported")
+        _until(v, lambda: v.error and "fluid_00002.ply" in v.error, "the error to be reported")
         assert "fluid_00002.ply" in v.g_info.content and v.state.paused
         v.seek(1)
-        assert v.wait_drawn(1)
+        assert v.wait_drawn(1, HANG_GUARD_S)
 
 
 def test_a_frame_with_an_empty_surface_hides_the_previous_surface(tiny_run, tmp_path):
@@ -358,10 +396,10 @@ def test_a_frame_with_an_empty_surface_hides_the_previous_surface(tiny_run, tmp_
         shown = lambda: v.h_surface is not None and v.h_surface.visible  # noqa: E731
         for k in (0, 1, 2):
             v.seek(k)
-            assert v.wait_drawn(k)
+            assert v.wait_drawn(k, HANG_GUARD_S)
             idx = v.source.indices[k]
             if len(boxes[idx].faces):  # (frame 0 may have been drawn before the surface was switched on)
-                _poll(lambda: shown() and np.allclose(np.asarray(v.h_surface.vertices), boxes[idx].vertices, atol=1e-6),
+                _until(v, lambda: shown() and np.allclose(np.asarray(v.h_surface.vertices), boxes[idx].vertices, atol=1e-6),
                       f"frame {idx}'s surface to be shown")
             else:
                 assert not shown()
@@ -382,7 +420,7 @@ def test_stepping_through_frames_does_not_recompile_the_point_shader(tiny_run, p
 
     def show(v, k):
         v.seek(k)
-        assert v.wait_drawn(k)
+        assert v.wait_drawn(k, HANG_GUARD_S)
         _poll(lambda: page.get_by_text(f"frame {v.source.indices[k]} ({k + 1} of").count(), f"the page to show frame {k}")
         page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")  # drawn
 
@@ -483,18 +521,36 @@ def _shaded_fluid(img: np.ndarray) -> np.ndarray:
     return out
 
 
-def _server_picture_checks(viewer, page, positions):
+def _shown_picture(viewer, page, index) -> np.ndarray:
+    """A screenshot of the page showing the server picture of source frame ``index`` for the
+    page's camera. Every wait is on an event, not a clock: the page has answered for that
+    picture (so it has it), has decoded every picture it was sent, and shows the same image
+    in two screenshots in a row, an animation frame apart (the first screenshot after a new
+    picture can catch the page's canvas part-way). If a newer picture was sent meanwhile
+    (the page moved its camera), the wait starts over."""
+    while True:
+        pp = _until(viewer, lambda: viewer.picture_shown(index), f"the page to receive the picture of frame {index}")
+        seq = viewer.spheres[0]
+        page.wait_for_function(PAGE_AT_REST, timeout=HANG_GUARD_S * 1000)
+        img, prev = None, None
+        for _ in range(STEADY_SHOTS_AT_MOST):
+            page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+            prev, img = img, _shot(page)
+            if prev is not None and np.array_equal(img, prev):
+                break
+        else:
+            raise AssertionError(f"the page never showed a steady image in {STEADY_SHOTS_AT_MOST} screenshots")
+        if viewer.picture_shown(index) is pp and pp.settled(seq):
+            return img
+
+
+def _server_picture_checks(viewer, page, positions, img=None):
     project, focal, (W, H) = _camera(viewer)
-    img = _shot(page)
+    img = _shot(page) if img is None else img
     panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
     xy, depth = project(positions)
     fluid = _shaded_fluid(img[:, :panel_x])
     return fluid, _where_projected(viewer, xy, depth, focal, fluid.shape), img
-
-
-def _picture_of(viewer, index):
-    pages = viewer.pages()
-    return bool(pages) and pages[0].frame == index and pages[0].sent > 0
 
 
 def test_server_pictures_show_the_fluid_where_it_projects_and_follow_the_timeline(tiny_run, page):
@@ -506,31 +562,31 @@ def test_server_pictures_show_the_fluid_where_it_projects_and_follow_the_timelin
 
     with WebViewer(tiny_run, port=0, points="server") as v:
         _open(v, page)
-        _poll(lambda: _picture_of(v, v.source.indices[0]), "the first server picture")
         assert not v.h_fluid.visible  # the points themselves are not sent
         p0 = v.source.frame(0).positions
 
-        def shows(pos):
-            def check():
-                fluid, where, img = _server_picture_checks(v, page, pos)
-                ok = fluid.sum() > 2000 and (fluid & where).sum() / fluid.sum() > 0.97 and (fluid & where).sum() / where.sum() > 0.6
-                return [img] if ok else None
-            return check
+        def shows(pos, index):
+            img = _shown_picture(v, page, index)
+            fluid, where, _ = _server_picture_checks(v, page, pos, img)
+            assert fluid.sum() > 2000
+            assert (fluid & where).sum() / fluid.sum() > 0.97  # fluid colour only where the fluid projects
+            assert (fluid & where).sum() / where.sum() > 0.6  # and most of the projected region is fluid
+            return img
 
-        img0, = _poll(shows(p0), "the fluid to appear in the page")
+        img0 = shows(p0, v.source.indices[0])
         last_k = len(v.source) - 1
         _move_slider_to_end(page)
-        _poll(lambda: _picture_of(v, v.source.indices[last_k]), "the picture of the last frame")
+        _until(v, lambda: v.drawn_frame == v.source.indices[last_k], "the last frame to be drawn")
         p3 = v.source.frame(last_k).positions
-        img3, = _poll(shows(p3), "the page to show the last frame")
+        img3 = shows(p3, v.source.indices[last_k])
         assert (np.abs(img3 - img0).max(axis=-1) > 60).sum() > 500  # a different picture
         assert "particles drawn on the server" in v.g_info.content
         # a camera move redraws the shown frame for the new view
         client = next(iter(v.server.get_clients().values()))
         sent = v.pages()[0].sent
         client.camera.position = np.asarray(client.camera.position) + [0.15, 0.0, 0.1]
-        _poll(lambda: v.pages()[0].sent > sent, "a picture for the moved camera")
-        img_moved, = _poll(shows(p3), "the page to show the last frame from the moved camera")
+        _until(v, lambda: v.pages()[0].sent > sent, "a picture for the moved camera")
+        img_moved = shows(p3, v.source.indices[last_k])
         assert (np.abs(img_moved - img3).max(axis=-1) > 60).sum() > 500
 
 
@@ -541,11 +597,11 @@ def test_auto_draws_on_the_server_above_the_threshold(tiny_run, monkeypatch):
 
     web = importlib.import_module("whitecap.view.web")  # the module (the package's `web` is the function)
     with web.WebViewer(tiny_run, port=0) as v:  # 1,500 particles, [view] web_points = auto
-        assert v.points == "auto" and v.wait_drawn(0)
+        assert v.points == "auto" and v.wait_drawn(0, HANG_GUARD_S)
         assert v.drawn_on_server is False and v.h_fluid.visible and v.spheres is None
     monkeypatch.setattr(web, "SERVER_POINTS_ABOVE", 1000)
     with web.WebViewer(tiny_run, port=0) as v:
-        assert v.wait_drawn(0)
+        assert v.wait_drawn(0, HANG_GUARD_S)
         assert v.drawn_on_server is True and not v.h_fluid.visible and len(v.spheres[2]) == 1500
         assert "1,500 particles drawn on the server (more than 1,000: --points auto)" in v.g_info.content
 
@@ -578,19 +634,76 @@ def test_server_pictures_are_depth_composited_with_obstacles(tiny_run, tmp_path,
     (run / "run.json").write_text(json.dumps(meta))
     with WebViewer(run, port=0, points="server") as v:
         _open(v, page)
-        _poll(lambda: _picture_of(v, v.source.indices[0]), "the first server picture")
+        img = _shown_picture(v, page, v.source.indices[0])
+        project, focal, _ = _camera(v)
 
-        def composited():
-            project, focal, _ = _camera(v)  # (the page may report its camera again while it starts)
+        def square(point, half_m):
+            (x, y), z = (a[0] for a in project(np.asarray(point)[None]))
+            h = max(int(0.6 * half_m * focal / z), 2)  # inside the cube's projection
+            return slice(int(y) - h, int(y) + h), slice(int(x) - h, int(x) + h)
 
-            def square(point, half_m):
-                (x, y), z = (a[0] for a in project(np.asarray(point)[None]))
-                h = max(int(0.6 * half_m * focal / z), 2)  # inside the cube's projection
-                return slice(int(y) - h, int(y) + h), slice(int(x) - h, int(x) + h)
+        fs, bs = square(front, 0.015), square(behind, 0.025)
+        fluid, where, _ = _server_picture_checks(v, page, v.source.frame(0).positions, img)
+        # both cubes lie inside the fluid's projection; in front, no fluid shows; behind, only fluid
+        assert where[fs].all() and where[bs].all()
+        assert fluid[fs].mean() < 0.05 and fluid[bs].mean() > 0.9
 
-            fs, bs = square(front, 0.015), square(behind, 0.025)
-            fluid, where, _ = _server_picture_checks(v, page, v.source.frame(0).positions)
-            # both cubes lie inside the fluid's projection; in front, no fluid shows; behind, only fluid
-            return (where[fs].all() and where[bs].all() and fluid[fs].mean() < 0.05 and fluid[bs].mean() > 0.9) or None
 
-        _poll(composited, "the front cube to hide the fluid and the fluid to hide the back cube")
+# ---------------------------------------------------------------------- issue 30: the viewer as users meet it
+
+
+@pytest.mark.parametrize("port", ["70000", "-5", "65536"])
+def test_a_port_out_of_range_is_refused_in_one_line(tiny_run, port, capsys):
+    """--port 70000 is not "already in use" and --port -5 is not a host that cannot be
+    resolved: the line says what a port is."""
+    from whitecap.cli import main
+
+    assert main(["view", str(tiny_run), "--web", "--port", port]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--port must be a number from 1 to 65535" in err and port in err, err
+    assert "in use" not in err and "resolve" not in err
+
+
+def test_live_scene_waits_for_the_first_page(tmp_path, page):
+    """A live scene does not simulate while nobody looks: the loop runs (it has drawn frame 0
+    and gone round many times) but the solver has made no step, and the panel says why; the
+    first page to connect starts it."""
+    import tomli_w
+
+    from .conftest import tiny_scene_dict
+
+    from whitecap.view.web import WebViewer
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(tomli_w.dumps(tiny_scene_dict(foam={"enabled": False}, view={"steps_per_draw": 2})))
+    with WebViewer(scene, port=0) as v:
+        _until(v, lambda: v.passes >= 20 and v.drawn_frame is not None, "the loop to go round")
+        assert v.source.steps == 0 and v.state.paused
+        assert "waiting for a page to open" in v.g_info.content
+        _open(v, page)
+        _until(v, lambda: v.source.steps >= 4 and v.frames_sent >= 2, "the simulation to start with the page")
+        assert not v.state.paused
+
+
+def test_auto_keeps_one_place_for_a_run_whose_count_crosses_the_threshold(tiny_run, tmp_path, monkeypatch):
+    """Without a browser: a run whose frames hold 1,500, 1,560, 1,570 and 1,580 particles,
+    with the threshold at 1,550: --points auto draws every frame in the same place, going back
+    and forth over the frames (it used to flip between the page and the server)."""
+    import importlib
+
+    from .test_surface_export import synthetic_diffuse
+
+    web = importlib.import_module("whitecap.view.web")
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    synthetic_diffuse(run)  # frame k > 0 gets 50 + 10 k diffuse particles
+    monkeypatch.setattr(web, "SERVER_POINTS_ABOVE", 1550)
+    with web.WebViewer(run, port=0) as v:
+        counts = [sum(v.source.frame(k).counts().values()) for k in range(4)]
+        assert counts == [1500, 1560, 1570, 1580]
+        places = []
+        for k in (0, 1, 2, 3, 2, 0, 3):
+            v.seek(k)
+            assert v.wait_drawn(k, HANG_GUARD_S)
+            places.append(v.drawn_on_server)
+        assert places == [False] * len(places)

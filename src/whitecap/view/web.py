@@ -14,7 +14,9 @@ served from the installed package; nothing is fetched from the network.
     whitecap.view.web("out/dam_break")           # inline in a Jupyter notebook
 
 One loop thread owns the source: it advances frames (paced at the run's frame
-rate, as GGUI) and sends each one it draws. Browser events (sliders, buttons)
+rate, as GGUI) and sends each one it draws. A live scene waits, paused, for the
+first page to connect before it simulates, so the start of the flow is not over
+before anyone looks (play, from the page or from Python, also starts it). Browser events (sliders, buttons)
 only change the viewer's state and wake the loop. viser keeps only the newest
 update of each scene object for a client that falls behind, so a slow browser
 skips frames instead of queueing them, and the server holds one frame at a time
@@ -26,7 +28,10 @@ GGUI's) for each connected page's own camera and sends a JPEG picture with a dep
 image, which viser's page composites with what it still draws itself (domain box,
 obstacles, moving bodies, surface mesh). ``auto`` picks ``server`` above
 SERVER_POINTS_ABOVE particles, as ParaView's remote render threshold and trame's
-remote/local switch move rendering to the server when the geometry is large: where
+remote/local switch move rendering to the server when the geometry is large. The
+choice is made once, at the first frame drawn, and kept for the run: it changes only
+when the count passes the threshold by a factor AUTO_HYSTERESIS (above it ×, or below
+it ÷), so a run near the threshold does not flip its look from frame to frame. Where
 WebGL runs in software (a machine without a GPU) 100k points cost the browser about
 0.3 s of CPU a frame, and through an SSH tunnel a 640×480 picture (~50 kB) is far
 less to send than 100k points (~1.5 MB). Each page has a render thread that draws the
@@ -84,6 +89,7 @@ HEADLESS_CHROMIUM_ARGS = ("--enable-unsafe-swiftshader", "--use-gl=angle", "--us
 # choose --points browser there.
 POINTS_MODES = ("auto", "browser", "server")
 SERVER_POINTS_ABOVE = 30_000  # auto: particles (fluid + diffuse) in a frame above which the server draws them
+AUTO_HYSTERESIS = 1.5  # auto: after the first frame's choice, switch only past SERVER_POINTS_ABOVE × or ÷ this
 JPEG_QUALITY = 85  # server pictures [-]: ~40-50 kB at 640x480
 ACK_KEY = "whitecap-picture-ack"  # localStorage key the page is asked for after each picture (the pacing round trip)
 SENT_FRAMES_KEPT = 100_000  # pictures whose frame a page remembers (the benchmark maps the page's pictures to frames)
@@ -96,10 +102,17 @@ def _u8(rgb) -> np.ndarray:
     return np.clip(np.round(np.asarray(rgb, np.float32) * 255.0), 0, 255).astype(np.uint8)
 
 
+def check_port(port) -> int:
+    """``port`` as a TCP port number: 1..65535, or 0 for any free port; else a one-line error."""
+    if isinstance(port, bool) or not isinstance(port, (int, np.integer)) or not 0 <= int(port) <= 65535:
+        raise InputError(f"view --web: --port must be a number from 1 to 65535 (0: any free port), got {port}")
+    return int(port)
+
+
 def check_port_free(host: str, port: int) -> None:
     """A one-line error naming the port when something already listens on it (viser
     itself would quietly move to the next free port, away from an SSH forward)."""
-    if not port:
+    if not check_port(port):
         return
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
@@ -147,6 +160,7 @@ class WebViewer:
             raise InputError(f"view --web: point shape must be one of {', '.join(POINT_SHAPES)}, got '{point_shape}'")
         if max_points < 1:
             raise InputError(f"view --max-points: expected at least 1, got {max_points}")
+        port = check_port(port)
         self.source, self.cfg = open_source(target, arch, up)  # a missing run stops here, before any server
         points = points or self.cfg.web_points
         if points not in POINTS_MODES:
@@ -159,7 +173,8 @@ class WebViewer:
         self.max_points = int(max_points)
         self.paced = paced
         self.state = _new_state(self.cfg, self.source)
-        self.state.paused = not self.live  # playback waits for play; live simulates at once
+        self.state.paused = True  # playback waits for play; live waits for the first page, then simulates
+        self.waiting_for_page = self.live  # cleared by the first connection or by play / pause
         self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True, "surface": False}
         self.point_scale = float(self.cfg.point_scale)
         self.point_shape = point_shape
@@ -178,6 +193,9 @@ class WebViewer:
         self._sub_cache: dict[int, np.ndarray | None] = {}
         self._poses: dict[int, dict | None] = {}  # per obstacle, the body pose last sent (absent: at rest)
         self.drawn_on_server: bool | None = None  # where the last frame's particles were drawn
+        self._auto_server: bool | None = None  # --points auto: the choice made for this run (module docstring)
+        self.passes = 0  # loop passes made (wait_until's waiters count progress by them)
+        self._events = threading.Condition()  # notified after each loop pass, drawn frame, connection and picture
         self.spheres = None  # server drawing: (seq, frame index, positions, radii, colours) of the frame shown
         self._spheres_seq = 0
         self._pictures: dict[int, "_PagePictures"] = {}  # server drawing: one render thread per connected page
@@ -281,7 +299,7 @@ class WebViewer:
                 self.g_loop = g.add_checkbox("loop", self.state.loop)
             self.g_frame.on_update(self._on_frame_slider)
             self.g_loop.on_update(lambda e: self._poke(loop=self.g_loop.value))
-        self.g_play.on_click(lambda e: self._poke(paused=not self.state.paused))
+        self.g_play.on_click(lambda e: self.play(self.state.paused))
         self.g_step.on_click(lambda e: self._poke(step_once=True, paused=True))
         with g.add_folder("display"):
             self.g_color = g.add_dropdown("colour by", ("speed", "density"), initial_value=self.state.color_mode)
@@ -301,6 +319,10 @@ class WebViewer:
         self.g_shape.on_update(lambda e: self._set_shape(self.g_shape.value))
 
     # ------------------------------------------------------------------ events (viser's threads)
+    def _notify(self) -> None:
+        with self._events:
+            self._events.notify_all()
+
     def _poke(self, **changes) -> None:
         for k, v in changes.items():
             setattr(self.state, k, v)
@@ -337,6 +359,7 @@ class WebViewer:
         self._poke(frame=int(np.clip(k, 0, len(self.source) - 1)), paused=True)
 
     def play(self, on: bool = True) -> None:
+        self.waiting_for_page = False
         self._poke(paused=not on)
 
     # ------------------------------------------------------------------ loop
@@ -372,14 +395,25 @@ class WebViewer:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def wait_drawn(self, k: int, timeout: float = 60.0) -> bool:
-        """Poll until the picture of played frame ``k`` has been sent (tests, notebooks)."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if self.state.frame == k and self.drawn_frame == self._index(k):
-                return True
-            time.sleep(0.01)
-        return False
+    def wait_until(self, predicate, timeout: float | None = None):
+        """Wait until ``predicate()`` is true, checking it after each event of the viewer (a
+        loop pass, a frame drawn, a page connecting, a server picture reaching its page);
+        returns its value, or None after ``timeout`` seconds (None: no limit)."""
+        with self._events:
+            return self._events.wait_for(predicate, timeout) or None
+
+    def wait_drawn(self, k: int, timeout: float | None = 60.0) -> bool:
+        """Wait until played frame ``k`` has been drawn and sent (tests, notebooks)."""
+        return bool(self.wait_until(lambda: self.state.frame == k and self.drawn_frame == self._index(k), timeout))
+
+    def picture_shown(self, index: int) -> "_PagePictures | None":
+        """A page that has received the server picture of source frame ``index`` for its
+        current camera, drawn from the newest spheres (nothing newer is on the way to it)."""
+        sph = self.spheres
+        for pp in self.pages():
+            if sph is not None and sph[1] == index and pp.settled(sph[0]):
+                return pp
+        return None
 
     def _index(self, k: int) -> int:
         return k if self.live else self.source.indices[k]
@@ -403,6 +437,8 @@ class WebViewer:
                 self.g_info.content = f"**error:** {self.error}"
                 log.warning("%s", self.error)
                 self._drawn_key = (self.state.frame, getattr(self.source, "steps", 0), self._version)
+            self.passes += 1
+            self._notify()
             self._wake.wait(PLAY_WAIT_S if not self.state.paused else IDLE_WAIT_S)
             self._wake.clear()
 
@@ -503,7 +539,10 @@ class WebViewer:
             P, R, C = np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
         self.spheres = (self._spheres_seq, fr.index, P, R, C)
         self._wake_pages()
-        why = f" (more than {SERVER_POINTS_ABOVE:,}: --points auto)" if self.points == "auto" else ""
+        why = ""
+        if self.points == "auto":
+            why = (f" (more than {SERVER_POINTS_ABOVE:,}: --points auto)" if len(P) > SERVER_POINTS_ABOVE
+                   else " (--points auto: kept for this run)")
         return [f"{len(P):,} particles drawn on the server{why}"]
 
     # ------------------------------------------------------------------ server pictures, per page
@@ -511,6 +550,9 @@ class WebViewer:
         with self._pictures_lock:
             if not self._stop.is_set():
                 self._pictures[client.client_id] = _PagePictures(self, client)
+        if self.waiting_for_page:  # a live scene starts when someone looks
+            self.play(True)
+        self._notify()
 
     def _disconnect(self, client) -> None:
         with self._pictures_lock:
@@ -539,11 +581,18 @@ class WebViewer:
         return sph is not None and any(pp.ready() and pp.seq != sph[0] for pp in self.pages())
 
     def _on_server(self, fr) -> bool:
-        """Whether this frame's particles are drawn here (``points``, module docstring)."""
+        """Whether this frame's particles are drawn here (``points``; ``auto``: chosen at the
+        first frame and kept unless the count passes the threshold by AUTO_HYSTERESIS)."""
         if self.points != "auto":
             return self.points == "server"
         n = fr.n_fluid + (len(fr.diffuse_positions) if fr.diffuse_positions is not None else 0)  # a live frame: no copy
-        return n > SERVER_POINTS_ABOVE
+        if self._auto_server is None:
+            self._auto_server = n > SERVER_POINTS_ABOVE
+        elif self._auto_server and n < SERVER_POINTS_ABOVE / AUTO_HYSTERESIS:
+            self._auto_server = False
+        elif not self._auto_server and n > SERVER_POINTS_ABOVE * AUTO_HYSTERESIS:
+            self._auto_server = True
+        return self._auto_server
 
     def _draw(self, fr) -> None:
         st = self.state
@@ -574,6 +623,7 @@ class WebViewer:
                 self.g_frame.value = st.frame
         self.drawn_frame = fr.index
         self.frames_sent += 1
+        self._notify()
 
     def _draw_surface(self, index: int) -> None:
         path = self.surfaces.get(index) if self.show["surface"] else None
@@ -600,7 +650,8 @@ class WebViewer:
             return "loading…"
         st = self.state
         head = (f"frame {fr.index}" if self.live else f"frame {fr.index} ({st.frame + 1} of {len(self.source)})")
-        lines = [f"**{head}** · t = {fr.time:.3f} s · {'paused' if st.paused else 'playing'}"]
+        mode = "waiting for a page to open" if self.waiting_for_page else "paused" if st.paused else "playing"
+        lines = [f"**{head}** · t = {fr.time:.3f} s · {mode}"]
         if self.live:
             lines.append(f"{self.source.steps} solver steps")
         lines.append(" · ".join(f"{name}: {c:,}" for name, c in fr.counts().items()))
@@ -636,16 +687,30 @@ class _PagePictures:
         self.frame: int | None = None  # source frame index of the last picture
         self.render_s = 0.0  # time spent drawing and encoding pictures [s]
         self.sent_frames = collections.deque(maxlen=SENT_FRAMES_KEPT)  # source frame of each picture sent (benchmark)
+        self.acked = 0  # pictures the page has answered for (it has received them)
         self._key = None
+        self._acked_key = None  # key of the last picture the page answered for
         self._closed = threading.Event()
         self._splatter = Splatter()
-        client.camera.on_update(lambda cam: self.wake.set())
+        client.camera.on_update(self._camera_moved)
         self._thread = threading.Thread(target=self._run, name=f"whitecap-page-{client.client_id}", daemon=True)
         self._thread.start()
+
+    def _camera_moved(self, cam) -> None:
+        self.wake.set()
+        self.viewer._notify()
 
     def ready(self) -> bool:
         """Whether the page has told its camera (pictures can be drawn for it)."""
         return self.client.camera.update_timestamp != 0.0
+
+    def _view(self) -> tuple:
+        cam = self.client.camera
+        return (tuple(cam.position), tuple(cam.wxyz), float(cam.fov), int(cam.image_width), int(cam.image_height))
+
+    def settled(self, seq: int) -> bool:
+        """Whether the page has received the picture of spheres ``seq`` for its current camera."""
+        return self.ready() and self._acked_key == (seq, self._view())
 
     def close(self) -> None:
         self._closed.set()
@@ -682,11 +747,13 @@ class _PagePictures:
     def _picture(self) -> None:
         if not self.ready():
             return
-        cam = self.client.camera
-        W, H = int(cam.image_width), int(cam.image_height)
         sph = self.viewer.spheres
-        view = (tuple(cam.position), tuple(cam.wxyz), float(cam.fov), W, H)
+        view = self._view()
+        W, H = view[3], view[4]
         key = (sph[0] if sph is not None else None, view)
+        if key == self._key and self._acked_key != key and self.sent:
+            self._ask()  # the page has not answered for this picture yet: ask again
+            return
         if key == self._key or W <= 0 or H <= 0:
             return
         t0 = time.perf_counter()
@@ -703,10 +770,21 @@ class _PagePictures:
             self.sent += 1
             self.sent_frames.append(sph[1])
         self.viewer._wake.set()  # an unpaced loop waits for the pages to take each frame
+        self._ask()
+
+    def _ask(self) -> None:
+        """The pacing round trip: the page answers after it has handled the picture sent
+        before (it handles messages in order). A page that answers nothing for
+        ACK_TIMEOUT_S gets the next picture anyway and is asked again for this one."""
+        key = self._key
         try:
             self.client.local_storage.get_item(ACK_KEY, timeout=ACK_TIMEOUT_S)
         except TimeoutError:
             pass
+        else:
+            self._acked_key = key
+            self.acked += 1
+            self.viewer._notify()
         self.wake.set()  # a newer frame or camera may have come meanwhile
 
 
@@ -715,7 +793,8 @@ def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str 
     """The CLI's ``view --web``: serve until Ctrl-C, after printing the URL."""
     v = WebViewer(target, host=host, port=port, arch=arch, up=up, color_mode=color_mode, max_points=max_points,
                   points=points)
-    announce(f"whitecap view: open {v.url} in a browser (Ctrl-C stops)")
+    announce(f"whitecap view: open {v.url} in a browser (Ctrl-C stops)"
+             + ("; the simulation starts when the page opens" if v.live else ""))
     if v.host in ("localhost", "127.0.0.1", "::1"):
         announce(f"  from another machine: ssh -L {v.port}:localhost:{v.port} THIS_HOST, then open http://localhost:{v.port}")
     try:
