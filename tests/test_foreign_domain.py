@@ -61,3 +61,20 @@ def test_import_uses_the_same_rule_over_all_frames(tmp_path):
     info = RunInfo.load(out)
     assert np.allclose(info.domain["lower"], want["lower"]) and np.allclose(info.domain["upper"], want["upper"])
     assert info.extra["domain_rule"] == DOMAIN_RULE
+
+
+def test_foam_refuses_to_guess_between_two_case_xmls(tmp_path, capsys):
+    import shutil
+
+    from .conftest import DATA
+
+    src = tmp_path / "dsph"
+    shutil.copytree(DATA / "dualsphysics", src)
+    xml = (src / "CaseDambreak.xml").read_text()
+    (src / "Another.xml").write_text(xml.replace('key="TimeOut" value="0.02"', 'key="TimeOut" value="0.05"'))
+    assert main(["foam", str(src), "--out", str(tmp_path / "F")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "2 case XML files" in err and "--case" in err, err
+    assert not (tmp_path / "F").exists()
+    assert main(["foam", str(src), "--out", str(tmp_path / "F"), "--case", str(src / "CaseDambreak.xml")]) == 0
+    assert RunInfo.load(tmp_path / "F").extra["case"] == str(src / "CaseDambreak.xml")

@@ -162,8 +162,10 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: s
     return tau
 
 
-def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
-    """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...)."""
+def _input_frames(src: Path, frames: list | None = None, case: str | Path | None = None
+                  ) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
+    """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...):
+    from the DualSPHysics case XML ``case``, else the one beside the files (several: refused)."""
     from ..io.sequence import find_sequence
 
     if frames is None and src.is_dir() and (src / "run.json").exists():
@@ -176,14 +178,11 @@ def _input_frames(src: Path, frames: list | None = None) -> tuple[list[tuple[int
         raise InputError(f"{src}: no such file or directory")
     files = list(frames) if frames is not None else find_sequence(src)
     known: dict = {}
-    folder = src if src.is_dir() else src.parent
-    xmls = sorted(folder.glob("*.xml")) if folder.is_dir() else []
-    if xmls:
-        from ..io.dualsphysics import read_case
+    from ..io.dualsphysics import find_case_xml
 
-        case = read_case(xmls[0])
-        known.update(radius=case.particle_radius, mass=case.mass, dt=case.time_out, rest_density=case.rho0,
-                     gravity=case.gravity, lower=case.lower, upper=case.upper, case=str(xmls[0]))
+    xml = find_case_xml(src if src.is_dir() else src.parent, case, option="--case")
+    if xml is not None:
+        known.update(_case_values(xml))
     return files, None, known
 
 
@@ -220,9 +219,7 @@ def postprocess(
     of another simulation there is refused unless ``force``, which replaces it whole.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, frames)
-    if case is not None:
-        known.update(_case_values(case))
+    files, info, known = _input_frames(src, frames, case)
     if domain is not None:
         known.update(lower=list(map(float, domain[0])), upper=list(map(float, domain[1])))
     foam_cfg, run_seed, grids, out = _run_settings(src, info, out)

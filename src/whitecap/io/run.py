@@ -441,15 +441,19 @@ def check_scene_file(out: str | Path) -> None:
 
 
 # ============================================================================ the domain of a foreign run
-#: Margin around the flow on every side, in particle radii: a diffuse particle made at the fluid's
-#: edge starts inside (the foam stage removes those that leave the domain).
+#: Margin around the flow on its four sides: a share of its extent along that axis, plus some
+#: particle radii. Spray leaves the water ballistically and can land beyond where any fluid went
+#: (over a tank's rim, off a free jet); the foam stage removes diffuse particles that leave the
+#: domain, and the domain is only that bound (no grid is sized by it), so it errs on the side of room.
+FLOW_MARGIN = 0.5
 FLOW_MARGIN_RADII = 4.0
-#: Room above the flow (or the case's shapes), as a fraction of their height: spray thrown above
-#: the highest water of any frame, or over a tank's rim, stays inside.
+#: Room above the flow (or the case's shapes), as a share of their height, plus FLOW_MARGIN_RADII r.
 FLOW_HEADROOM = 1.0
-#: How run.json's ``extra.domain_rule`` names this rule.
-DOMAIN_RULE = (f"the box of the fluid over all frames (and the case's shapes), grown by {FLOW_MARGIN_RADII:g} r "
-               f"on every side and {FLOW_HEADROOM:g}x its height above")
+#: How run.json's ``extra.domain_rule`` names this rule. The floor is the lowest particle's bottom
+#: (or the lowest shape): water rests on it, and the renderer puts its ground there.
+DOMAIN_RULE = (f"the box of the fluid over all frames and the case's shapes, grown by {FLOW_MARGIN:g}x its "
+               f"extent + {FLOW_MARGIN_RADII:g} r on the four sides and {FLOW_HEADROOM:g}x its height + "
+               f"{FLOW_MARGIN_RADII:g} r above, its floor at the lowest particle's bottom")
 
 
 def sequence_bounds(paths: list[Path], **read_kw) -> tuple[np.ndarray, np.ndarray] | None:
@@ -471,9 +475,11 @@ def sequence_bounds(paths: list[Path], **read_kw) -> tuple[np.ndarray, np.ndarra
 def flow_domain(bounds: tuple[np.ndarray, np.ndarray], r: float) -> dict[str, list[float]]:
     """The domain of a run made from another solver's frames (``import`` and ``foam`` alike):
     :data:`DOMAIN_RULE` applied to ``bounds`` (:func:`sequence_bounds`, with any shapes' box)."""
-    lo = np.asarray(bounds[0], np.float64) - FLOW_MARGIN_RADII * r
-    hi = np.asarray(bounds[1], np.float64) + FLOW_MARGIN_RADII * r
-    hi[2] += FLOW_HEADROOM * (bounds[1][2] - bounds[0][2])
+    lo, hi = np.array(bounds[0], np.float64), np.array(bounds[1], np.float64)
+    e = hi - lo
+    margin = FLOW_MARGIN * e[:2] + FLOW_MARGIN_RADII * r
+    lo[:2], hi[:2] = lo[:2] - margin, hi[:2] + margin
+    lo[2], hi[2] = lo[2] - r, hi[2] + FLOW_HEADROOM * e[2] + FLOW_MARGIN_RADII * r
     return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
 
 
