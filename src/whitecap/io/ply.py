@@ -128,8 +128,9 @@ _PLY_BYTES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16":
 
 def check_ply(path: Path) -> None:
     """The cheap completeness check (:func:`whitecap.io.registry.check`): for a binary file of
-    fixed-size rows, the size the header declares against the file's size; for an ASCII file, an
-    end of line at the end. Anything else (lists, a bad header) is read for the exact error."""
+    fixed-size rows, the size the header declares against the file's size; for an ASCII file, its
+    lines (one per row) against the rows declared, and an end of line at the end. Anything else
+    (lists in a binary file, a bad header) and any shortfall is read for the exact error."""
     path = Path(path)
     with open(path, "rb") as f:
         head = f.read(1 << 16)
