@@ -7,8 +7,9 @@ point groups, primitive groups, point attributes, vertex attributes, primitive
 attributes, attributes), one descriptor per point attribute (int16 name length,
 name, int16 size, int32 type: 0 FLOAT, 1 INT, 5 VECTOR, then ``size`` default
 values), then per point ``x y z w`` and every attribute's values as 4-byte words,
-then the two end bytes ``00 ff``. Point attributes are matched by name as in the
-VTK readers: ``velocity``/``v``, ``density``, ``id``; the rest stay in ``arrays``.
+then any primitives and detail attributes (skipped), then the two end bytes
+``00 ff``. Point attributes are matched by name as in the VTK readers:
+``velocity``/``v``, ``density``, ``id``; the rest stay in ``arrays``.
 
 A file cut short is refused with one line naming the file and saying
 ``truncated`` (the point count the header declares against the points the file
@@ -61,7 +62,7 @@ def _parse(path: Path, data: bytes, complete: bool) -> tuple[np.ndarray, dict[st
     if data[:5] != b"BgeoV" and len(data) >= 5:
         raise _fail(path, "no BgeoV header (Houdini's newer JSON BGEO is not supported)")
     try:
-        version, npts, *_, nattr, _, _, _ = struct.unpack_from(">9i", data, 5)
+        version, npts, nprim, _, _, nattr, _, _, ndetail = struct.unpack_from(">9i", data, 5)
         at = 41
         attrs = []
         for _ in range(nattr):
@@ -86,7 +87,8 @@ def _parse(path: Path, data: bytes, complete: bool) -> tuple[np.ndarray, dict[st
     end = at + 4 * width * npts
     if not complete:
         raise _fail(path, "truncated: the compressed stream stops before its end")
-    if data[end:end + 2] != END:
+    # the end bytes follow the points, or the primitives and detail attributes (not read here) after them
+    if len(data) < end + 2 or not (data[end:end + 2] == END if nprim == 0 and ndetail == 0 else data.endswith(END)):
         raise _fail(path, "truncated: the file ends before its two end bytes" if len(data) < end + 2 else
                     "the two end bytes 00 ff do not follow the point data")
     block = np.frombuffer(data, ">f4", width * npts, at).reshape(npts, width)
@@ -150,7 +152,8 @@ def check_bgeo(path: Path) -> None:
                 (length,) = struct.unpack_from(">h", data, at)
                 (n,) = struct.unpack_from(">h", data, at + 2 + length)
                 at, width = at + 2 + length + 6 + 4 * n, width + n
-            if at <= len(data) and (at + 4 * width * npts + len(END)) % (1 << 32) == isize:
+            if at <= len(data) and (at + 4 * width * npts + len(END)) % (1 << 32) == isize \
+                    and fields[2] == 0 and fields[8] == 0:  # with primitives, the size is not known from the header
                 return
         except (zlib.error, struct.error):
             pass
