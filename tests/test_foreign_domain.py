@@ -4,6 +4,7 @@ rule shared by `foam` and `import` (issue 30, item 14), printed and recorded in 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from whitecap.cli import main
 from whitecap.io import ParticleFrame, write
@@ -78,3 +79,23 @@ def test_foam_refuses_to_guess_between_two_case_xmls(tmp_path, capsys):
     assert not (tmp_path / "F").exists()
     assert main(["foam", str(src), "--out", str(tmp_path / "F"), "--case", str(src / "CaseDambreak.xml")]) == 0
     assert RunInfo.load(tmp_path / "F").extra["case"] == str(src / "CaseDambreak.xml")
+
+
+def test_a_kinetic_energy_minimum_no_particle_reaches_is_named_with_the_speed_it_needs(tmp_path, capsys):
+    from .conftest import DATA
+    from .test_diffuse import full_ini
+
+    ini = tmp_path / "job.ini"
+    # 5 J per particle of the case's mass: far beyond what a dam break's particles carry
+    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out=str(tmp_path / "o"),
+                            xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"), custom="no",
+                            MinKineticEnergyThreshold=5.0, MaxKineticEnergyThreshold=50.0))
+    assert main(["foam", "--params", str(ini)]) == 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert "no diffuse particles were generated: no fluid particle reached the kinetic-energy minimum" in err
+    assert "[FOAMPARAMETERS] MinKineticEnergyThreshold" in err and "auto" not in err.split("generated:")[1]
+    info = RunInfo.load(tmp_path / "o")
+    need = float(err.split("needs a speed of ")[1].split(" m/s")[0])
+    assert need == pytest.approx((2 * 5.0 / info.particle_mass) ** 0.5, rel=1e-2)
+    fastest = float(err.split("the fastest moved at ")[1].split(" m/s")[0])
+    assert 0.5 < fastest < need

@@ -55,11 +55,15 @@ class FoamStage:
         self._pending: DiffuseState | None = None
         self.verbose = verbose
         self.last_frame: int | None = None  # the run's last frame index, where known (set by simulate)
+        self.max_speed = 0.0  # the fastest fluid particle seen [m/s]: to say which threshold no flow reached
+        self.particle_mass: float | None = None
+        self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
 
     def on_start(self, solver, out: Path, info: RunInfo) -> None:
         self.start(info)
 
     def start(self, info: RunInfo) -> None:
+        self.particle_mass = info.particle_mass
         self.gen = FoamGenerator(
             self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed,
             obstacles=self.obstacles,
@@ -74,6 +78,9 @@ class FoamStage:
             first = index == 0
             g.at_frame(t, info.body_pose(index, g.index), 0.0 if first else dt,
                        None if first else info.body_pose(index - 1, g.index))
+        if frame.velocities is not None and len(frame):
+            v = frame.velocities
+            self.max_speed = max(self.max_speed, float(np.sqrt(np.einsum("ij,ij->i", v, v).max())))
         d = self.gen.step(frame, index, dt)
         rel = frame_name("diffuse", index)
         write(out / rel, d)
@@ -103,16 +110,30 @@ class FoamStage:
 
     def warn_if_empty(self) -> None:
         rows = self.gen.state.counts if self.gen else []
-        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0 and self.params.auto:
+        if rows and sum(r[2] + r[3] + r[4] for r in rows) == 0 and self.params.auto and \
+                "ke_min" not in self.params.explicit:
             console.print(
                 "[yellow]warning:[/] no diffuse particles were generated: 'auto' found no water moving faster "
                 "than air entrainment needs (about 1 m/s, foam.ke_min). Set the thresholds to make some anyway."
             )
         elif rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
-            console.print(
-                "[yellow]warning:[/] no diffuse particles were generated: the flow never exceeded the clamping "
-                "thresholds (foam.ta_min, wc_min, ke_min). Lower them or use foam.preset = \"auto\" (the default)."
-            )
+            console.print(f"[yellow]warning:[/] no diffuse particles were generated: {self._unreached()}", soft_wrap=True)
+
+    def _unreached(self) -> str:
+        """Which fixed threshold no particle reached, in the units it was given, and the speed it needs."""
+        p = self.params
+        ke_min = p.ke_min  # kinetic energy per unit mass [J/kg] = v²/2
+        if 0.5 * self.max_speed**2 < ke_min:
+            need = math.sqrt(2.0 * ke_min)
+            where = self.names.get("ke_min", "foam.ke_min")
+            per_particle = (f" ({ke_min * self.particle_mass:.3g} J per particle of {self.particle_mass:.3g} kg)"
+                            if self.particle_mass else "")
+            return (f"no fluid particle reached the kinetic-energy minimum ({where} = {ke_min:.3g} J/kg"
+                    f"{per_particle}), which needs a speed of {need:.3g} m/s; the fastest moved at "
+                    f"{self.max_speed:.3g} m/s. Lower it to make some.")
+        return ("the flow's trapped-air and wave-crest potentials never exceeded their minimums "
+                f"(foam.ta_min = {p.ta_min:g}, foam.wc_min = {p.wc_min:g}), although particles reached the "
+                f"kinetic-energy minimum. Lower those, or use foam.preset = \"auto\" (the default).")
 
 
 def obstacle_grids(scene: Scene) -> list:
@@ -234,7 +255,8 @@ def postprocess(
     with run_lock(out, "foam"):
         if state == "replace":
             remove_run(out)
-        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead)
+        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead,
+                            _threshold_names(ini))
 
 
 def _case_values(case: str | Path) -> dict:
@@ -298,8 +320,19 @@ def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
     return source_identity([path for _, path in files], up)
 
 
+def _threshold_names(ini) -> dict[str, str]:
+    """Where a parameter file set the thresholds it gives per particle ("f.ini: [DIFFUSE] KEMin"), for messages."""
+    if ini is None:
+        return {}
+    from .params import IniFile, read_ini
+
+    f = ini if isinstance(ini, IniFile) else read_ini(ini)
+    return {ours: where for ours, (where, _) in f.joules.items()}
+
+
 def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
-                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool) -> RunInfo:
+                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool,
+                 names: dict[str, str]) -> RunInfo:
     src_is_run = info is not None
     if src_is_run:  # read again under the lock: what is current cannot change from here on
         info = RunInfo.load(src)
@@ -314,6 +347,7 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
     stage = FoamStage(p, seed, verbose=True, obstacles=grids)
+    stage.names = names
     stage.last_frame = files[-1][0] if files else None
     stage.start(info)
     if p.model == "foamgenerator":
