@@ -49,3 +49,44 @@ def test_a_cube_size_that_cannot_fit_is_refused_before_any_frame(tiny_run, tmp_p
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "mesh.cube_size" in err and "GiB" in err, err
     assert not (run / "mesh").exists()
+
+
+def _sequence(folder, frames=(3, 4)):
+    from .test_surface import lattice_sphere, write_frame
+
+    for i in frames:
+        write_frame(folder / f"part_{i:04d}.ply", lattice_sphere(0.08))
+    return folder
+
+
+def test_mesh_outside_a_run_never_overwrites_or_skips_on_a_users_file(tmp_path, capsys):
+    seq = _sequence(tmp_path / "seq")
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "fluid_00004.ply").write_bytes(b"the user's own mesh")
+    assert main(["mesh", str(seq), "--radius", "0.01", "-o", str(out), *FAST]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "fluid_00004.ply: not written by whitecap" in err, err
+    assert (out / "fluid_00004.ply").read_bytes() == b"the user's own mesh"
+    for extra in ([], ["--force"]):  # not even with --force
+        assert main(["mesh", str(seq), "--radius", "0.01", "-o", str(out), *FAST, *extra]) == 2
+    assert (out / "fluid_00004.ply").read_bytes() == b"the user's own mesh"
+
+
+def test_mesh_outside_a_run_remakes_frames_of_another_input_or_settings(tmp_path, capsys):
+    import os
+
+    seq = _sequence(tmp_path / "seq")
+    assert main(["mesh", str(seq), "--radius", "0.01", *FAST]) == 0
+    capsys.readouterr()
+    assert main(["mesh", str(seq), "--radius", "0.01", *FAST]) == 0
+    assert "meshed 0 frames" in capsys.readouterr().out
+    assert main(["mesh", str(seq), "--radius", "0.01", *FAST, "--cube-size", "0.8"]) == 0
+    assert "meshed 2 frames" in capsys.readouterr().out
+    # A frame of the input written again (another simulation's output in the same place): made again.
+    from .test_surface import lattice_sphere, write_frame
+
+    write_frame(seq / "part_0004.ply", lattice_sphere(0.06))
+    os.utime(seq / "part_0004.ply", ns=(1, 1))
+    assert main(["mesh", str(seq), "--radius", "0.01", *FAST, "--cube-size", "0.8"]) == 0
+    assert "meshed 1 frames" in capsys.readouterr().out

@@ -178,7 +178,7 @@ def test_sequence_input_needs_radius_and_writes_beside_it(tmp_path, capsys):
     assert main(["mesh", str(seq), "--jobs", "1"]) == 2
     assert "--radius" in capsys.readouterr().err
     assert main(["mesh", str(tmp_path / "seq" / "part_*.ply"), "--radius", "0.01", "--jobs", "1"]) == 0
-    assert sorted(p.name for p in (seq / "mesh").iterdir()) == ["fluid_00003.ply", "fluid_00004.ply"]
+    assert sorted(p.name for p in (seq / "mesh").iterdir()) == ["fluid_00003.ply", "fluid_00004.ply", "mesh.json"]
 
 
 @pytest.mark.parametrize("radius", ["0", "-0.01"])

@@ -26,7 +26,8 @@ from ..errors import InputError
 from ..executor import executor, map_frames
 from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
-from ..io.run import RUN_JSON, RunInfo
+from ..io.manifest import Manifest
+from ..io.run import RUN_JSON, RunInfo, source_identity
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
@@ -40,8 +41,9 @@ class MeshJob:
     frames: list[tuple[int, Path, Path, str]]
     params: MeshParams
     run_dir: Path | None = None
-    recorded: set[int] = field(default_factory=set)  # frames whose mesh run.json records as current
+    recorded: set[int] = field(default_factory=set)  # frames whose mesh run.json (or the manifest) records as current
     stats: list[dict[str, Any]] = field(default_factory=list)
+    on_done: Any = None  # outside a run: records a finished frame in the folder's manifest
 
 
 def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
@@ -148,19 +150,39 @@ def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_pr
         return _run_mesh(job, jobs, force, show_progress, cluster, cluster_config)
 
 
+#: The manifest of meshes written outside a run (io/manifest.py): a sequence's mesh/ folder, or --out.
+MESH_MANIFEST = "mesh.json"
+
+
 def _done(job: MeshJob, frame: tuple) -> bool:
-    """A frame's mesh exists and (in a run) was made from the run's current simulation."""
-    return frame[2].is_file() and (job.run_dir is None or frame[0] in job.recorded)
+    """A frame's mesh exists and was made from this input and these settings (in a run: from the
+    run's current simulation, as run.json records; elsewhere: as the folder's manifest does)."""
+    return frame[2].is_file() and frame[0] in job.recorded
+
+
+def _frame_key(path: Path, params: MeshParams) -> str:
+    """What a mesh outside a run was made from: its input file (name, size, time) and the settings."""
+    return f"{source_identity([path], params.up)}-{settings_key(params)}"
 
 
 def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster: str | None = None,
               cluster_config: Cluster | None = None) -> list[dict]:
+    manifest = None
     if job.run_dir is not None:  # read under the lock, so no simulate can change what is current meanwhile
         info = RunInfo.load(job.run_dir)
         current, key = dict(info.files("mesh")), settings_key(job.params)
         job.recorded = {i for i, _, _, rel in job.frames
                         if current.get(i) == rel and info.frame(i).get("mesh_settings") == key}
+    elif job.frames:  # outside a run: only files the folder's manifest lists are ours
+        manifest = Manifest(job.frames[0][2].parent, MESH_MANIFEST)
+        keys = {i: _frame_key(p, job.params) for i, p, _, _ in job.frames}
+        job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}
     todo = [f for f in job.frames if force or not _done(job, f)]
+    if manifest is not None:
+        manifest.refuse_foreign([o.name for _, _, o, _ in todo], "mesh")
+        manifest.plan([o.name for _, _, o, _ in todo])
+        outputs = {i: o for i, _, o, _ in todo}
+        job.on_done = lambda i: manifest.record(outputs[i].name, keys[i])
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
     out_dirs = sorted({f[2].parent for f in job.frames})
     try:
@@ -191,6 +213,8 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
                 if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
                     job.stats = [stats[r.index]]
                     record(job)
+                elif job.on_done is not None:
+                    job.on_done(r.index)
                 return f"{s['particles']} particles -> {s['faces']} triangles"
 
             map_frames(ex, "mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], bar, task, done,
