@@ -32,8 +32,11 @@ its samples until the next frame: motion blur within a frame comes from the
 velocities). A frame layer's name carries a hash of its sources, so a rerun
 reuses the frames whose sources did not change (resume), and a stage that is
 replaced never points at frames of another simulation: the stage file is
-renamed into place last, and only then are frame layers it does not name
-removed.
+renamed into place last, and only then are the frame layers that the replaced
+stage named, and this one does not, removed. Nothing else in the frames folder
+is touched: a file no whitecap stage listed is not whitecap's to delete. (``whitecap
+export`` also lists every file in ``export.json`` before writing, so the next
+export removes what an interrupted one left.)
 
 Units of the camera: USD gives focal length and apertures in tenths of a
 scene unit; with metersPerUnit 1 that is 1 dm, so the value in mm is
@@ -43,6 +46,7 @@ divided by 100.
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 from typing import Callable
 
@@ -79,6 +83,10 @@ def frames_dir(path: Path) -> Path:
 
 def manifest_path(path: Path) -> Path:
     return path.parent / f"{path.stem}.manifest.usda"
+
+
+#: a frame layer's name (frame_layer_path): frame index and 12 hex digits of its sources' hash
+FRAME_LAYER_NAME = re.compile(r"^frame_\d{5,}_[0-9a-f]{12}\.usdc$")
 
 
 def frame_layer_path(path: Path, index: int, fingerprint: str) -> Path:
@@ -249,14 +257,40 @@ def write_usd(path: str | Path, cache: SceneCache, advance: Callable[[str], None
     api.SetClipManifestAssetPath(Sdf.AssetPath(f"./{manifest_path(path).name}"))
     api.SetClipActive(Vt.Vec2dArray([(float(i), float(k)) for k, (i, _) in enumerate(cache.frames)]))
     api.SetClipTimes(Vt.Vec2dArray([(float(i), float(i)) for i, _ in cache.frames]))
+    before = previous_frames(path)
     with atomic_path(path) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"USD could not write {path}")
-    # The stage now names only this export's frames: drop the others (earlier simulations, old settings).
+    # The stage now names only this export's frames: drop those the replaced stage named
+    # (earlier simulations, old settings), and nothing else.
     keep = {f.name for f in clips}
-    for f in frames_dir(path).iterdir():
-        if f.name not in keep and f.is_file():
+    for f in before:
+        if f.name not in keep:
             f.unlink(missing_ok=True)
+
+
+def previous_frames(path: Path) -> list[Path]:
+    """The frame layers that the stage now at ``path`` (an earlier export) uses as value clips:
+    files named as :func:`frame_layer_path` names them, in its frames folder. None when there
+    is no readable stage there."""
+    from pxr import Sdf
+
+    if not path.is_file():
+        return []
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(str(path))
+        spec = layer.GetPrimAtPath(WORLD) if layer is not None else None
+        clips = spec.GetInfo("clips") if spec is not None and spec.HasInfo("clips") else {}
+        assets = [a.path for a in clips.get("default", {}).get("assetPaths", [])]
+    except Exception:  # noqa: BLE001 -- not a stage of ours: it names no frames of ours
+        return []
+    folder = frames_dir(path)
+    found = []
+    for a in assets:
+        f = path.parent / a
+        if f.parent.resolve() == folder.resolve() and FRAME_LAYER_NAME.match(f.name):
+            found.append(folder / f.name)
+    return found
 
 
 register("usd", (".usd", ".usdc", ".usda"), writer=write_usd, kind=SCENE)

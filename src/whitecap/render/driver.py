@@ -13,13 +13,23 @@ Cycles already uses every core for one frame, so on a small machine one
 worker is fastest; ``jobs`` > 1 starts that many worker processes, each
 rendering an interleaved share of the frames with Cycles threads split
 between them (worth it when scene updates dominate, or on many cores).
+
+Before any Blender starts, the image size is checked against Blender's limits
+and its memory against what the machine has free (:func:`check_image_memory`),
+and ``render/`` is checked to be writable: an operating-system error (a
+read-only folder, a full disk, in this process or in a worker) propagates as
+``OSError`` naming the path.
 """
 
 from __future__ import annotations
 
+import errno
+import json
 import os
+import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from ..config import Render, load_scene
@@ -31,6 +41,17 @@ from ..progress import progress
 from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
+#: Memory one Blender process needs per pixel of the image [B]: Cycles' float RGBA result,
+#: its film accumulation and the denoiser's passes (noisy colour, albedo, normal), and the
+#: float and 8-bit copies made to save the PNG. An estimate on the high side: a render it
+#: lets through fits; one it refuses could not be saved in the memory left anyway.
+BYTES_PER_PIXEL = 96
+#: Share of the free memory the Blender processes of a render may plan to use (as simulate's).
+MEMORY_HEADROOM = 0.8
+#: A worker that stops on an operating-system error exits with this status after printing
+#: OS_ERROR_TAG and the error as JSON on its last line of standard error; the parent raises it.
+OS_ERROR_EXIT = 5
+OS_ERROR_TAG = "whitecap-oserror "
 
 
 def require_bpy():
@@ -50,6 +71,75 @@ def render_settings(run_dir: Path, device: str | None = None) -> Render:
 
 def frame_path(run_dir: Path, index: int) -> Path:
     return run_dir / "render" / f"frame_{index:05d}.png"
+
+
+def available_memory() -> int:
+    """Bytes of memory free for new processes (Linux MemAvailable); very large when unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 1 << 62
+
+
+def _memory_size(text: str) -> int:
+    """'16GB', '2.5 GiB' -> bytes (the [cluster] memory field's units, as Dask reads them)."""
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)\s*([KMGT])(i?)B", text.strip())
+    if not m:
+        return 1 << 62
+    return int(float(m.group(1)) * (1024 if m.group(3) else 1000) ** ("KMGT".index(m.group(2)) + 1))
+
+
+def check_image_memory(run_dir: Path, cfg: Render, quality: str, processes: int, cluster: str | None = None) -> None:
+    """Refuse, in one line naming scene.toml's field, an image Blender cannot make: a side
+    outside Blender's range, or ``processes`` Blender processes whose images need more memory
+    than is free here (or than a batch job of ``[cluster]`` has). Runs before Blender starts."""
+    from .stage import image_size
+
+    field = "preview_resolution" if quality == "preview" else "resolution"
+    where = run_dir / "scene.toml"
+    w, h = image_size(cfg, quality == "preview", where)
+    per_process = w * h * BYTES_PER_PIXEL
+    if cluster in (None, "", "local"):
+        need, have, what = per_process * processes, MEMORY_HEADROOM * available_memory(), "this machine has free"
+    elif cluster in ("slurm", "pbs"):
+        from ..executor import cluster_settings
+
+        mem = cluster_settings(run_dir).memory
+        need, have, what = per_process, MEMORY_HEADROOM * _memory_size(mem), f"a batch job has ([cluster] memory = {mem})"
+    else:
+        return  # a scheduler's workers: their memory is not known here
+    if need > have:
+        many = f" for {processes} Blender processes" if need != per_process else ""
+        raise InputError(f"{where}: render.{field}: {w}x{h} px needs about {need / 2**30:.1f} GiB{many}, "
+                         f"more than {what} ({have / MEMORY_HEADROOM / 2**30:.1f} GiB); lower the resolution"
+                         + (" or --jobs" if many else ""))
+
+
+def check_writable(folder: Path) -> None:
+    """Create and remove a file in ``folder``: an OSError naming the folder (read-only, full)
+    comes here, before Blender starts, rather than from every worker."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".whitecap-probe-", dir=folder)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno or errno.EIO), str(folder)) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def worker_os_error(stderr: str) -> OSError | None:
+    """The OSError a worker reported on its last tagged line of standard error, if any."""
+    for line in reversed(stderr.strip().splitlines()):
+        if line.startswith(OS_ERROR_TAG):
+            try:
+                e = json.loads(line[len(OS_ERROR_TAG):])
+                return OSError(e["errno"], e["strerror"], *([e["filename"]] if e.get("filename") else []))
+            except (ValueError, KeyError, TypeError):
+                return None
+    return None
 
 
 def parse_range(spec: str | None, available: list[int]) -> list[int]:
@@ -183,6 +273,9 @@ def render_run(
     scheduler address, or local, slurm, pbs) renders the frames on Dask, one
     Blender process per Dask worker (:mod:`whitecap.render.cluster`).
     """
+    from ..surface.export import check_jobs
+
+    check_jobs("render", jobs)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: run directory not found")
@@ -203,12 +296,15 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     meshes = [i for i, _ in info.files("mesh")]
     if not meshes:
         raise InputError(f"{run_dir}: no surface meshes yet; run `whitecap mesh {run_dir}` first")
-    if not cluster:  # on a cluster, Blender runs on the workers
-        require_bpy()
     wanted = parse_range(frames, meshes)
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
     cfg = render_settings(run_dir, device)
+    check_image_memory(run_dir, cfg, quality, max(1, min(int(jobs or 1), len(wanted))), cluster)
+    (run_dir / "render").mkdir(parents=True, exist_ok=True)
+    check_writable(run_dir / "render")
+    if not cluster:  # on a cluster, Blender runs on the workers
+        require_bpy()
     from .stage import environment_path, texture_path
 
     # A missing image fails here, in one line, not in every worker.
@@ -225,7 +321,6 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     blend = run_dir / "render" / "scene.blend"
     made = info.extra.get("blend")
     need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation)
-    (run_dir / "render").mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(int(jobs or 1), len(todo) or 1))
     bar = progress(disable=not show_progress)
     with bar:
@@ -264,14 +359,20 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                     if line.startswith("rendered"):
                         _record(run_dir, [int(line.split()[1])])
                         bar.advance(task)
-            errors = []
+            errors, os_errors = [], []
             for p, log in zip(procs, logs):
                 p.wait()
                 p.stdout.close()
                 if p.returncode:
                     log.seek(0)
-                    errors.append((log.read().strip().splitlines() or ["unknown error"])[-1])
+                    text = log.read()
+                    found = worker_os_error(text) if p.returncode == OS_ERROR_EXIT else None
+                    if found is not None:
+                        os_errors.append(found)
+                    errors.append((text.strip().splitlines() or ["unknown error"])[-1])
                 log.close()
+            if os_errors:  # a full disk or a read-only folder: the OS error itself (CLI exit 5)
+                raise os_errors[0]
             if errors:
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
             if need_blend:

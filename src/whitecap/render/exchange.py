@@ -18,6 +18,10 @@ The scene is the one the renderer builds (no Blender needed to describe it):
 
 The writers are the io registry's scene formats (``usd``: :mod:`whitecap.io.usd`,
 ``abc``: :mod:`whitecap.io.alembic`). Output goes to ``RUN/export/<to>/scene.<to>``.
+As for the ParaView series (:mod:`whitecap.surface.export`), ``export.json`` there
+lists whitecap's files (the USD frame layers too), extended before anything is
+written; an export removes only listed files it did not write again. With ``--out``
+outside the run, the run is only read (a shared lock) and may be read-only.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from ..errors import InputError
 from ..io import read, read_mesh, write_scene
 from ..io.cache import CacheCamera, CacheObstacle, FrameGeometry, PointSet, SceneCache
 from ..io.diffuse_types import TYPE_NAMES
-from ..io.lock import run_lock
+from ..io.lock import export_locks
 from ..io.run import RunInfo
 from ..progress import progress
 from . import stage
@@ -169,31 +173,39 @@ def _camera(run_dir: Path, info: RunInfo, cfg: Render, frames, boxes, has_mesh: 
 
 
 def export_scene(run: str | Path, to: str = "usd", out: str | Path | None = None,
-                 show_progress: bool = True) -> dict[str, Path | str]:
+                 show_progress: bool = True, jobs: int | None = None) -> dict[str, Path | str]:
     """Write ``run`` as one scene file (``RUN/export/<to>/scene.<to>`` unless ``out`` names a
-    directory). Returns {target: path}, plus {"note": ...} when the export left something out."""
+    directory). Returns {target: path}, plus {"note": ...} when the export left something out.
+    ``jobs`` is checked as for the series (one process writes a scene)."""
+    from ..surface.export import check_jobs
+
     if to not in SCENE_TARGETS:
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(SCENE_TARGETS)})")
+    check_jobs("export", jobs)
     run = Path(run)
     if not run.is_dir():
         raise InputError(f"{run}: no such run directory")
-    with run_lock(run, "export"):
-        from ..surface.export import replace_previous
+    out = Path(out) if out is not None else run / "export" / to
+    with export_locks(run, out, "export"):
+        from ..surface.export import record_planned, replace_previous
         from .driver import render_settings
 
         info = RunInfo.load(run)
-        cache = build_cache(run, info, render_settings(run))
-        out = Path(out) if out is not None else run / "export" / to
+        cfg = render_settings(run)
+        stage.image_size(cfg, False, run / "scene.toml")  # the camera's aspect comes from it
+        cache = build_cache(run, info, cfg)
         path = out / f"scene.{to}"
-        with progress(disable=None if show_progress else True) as bar:
-            task = bar.add_task(f"export {to}", total=len(cache.frames) + (to == "abc"), info="")
-            write_scene(path, cache, fmt=to, advance=lambda label: bar.update(task, advance=1, info=label))
         if to == "usd":
             from ..io.usd import files
 
             written = {str(f.relative_to(out)) for f in files(path, cache)}
         else:
             written = {path.name}
+        out.mkdir(parents=True, exist_ok=True)
+        record_planned(out, info.simulation, written)
+        with progress(disable=None if show_progress else True) as bar:
+            task = bar.add_task(f"export {to}", total=len(cache.frames) + (to == "abc"), info="")
+            write_scene(path, cache, fmt=to, advance=lambda label: bar.update(task, advance=1, info=label))
         replace_previous(out, info.simulation, written)
     result: dict[str, Path | str] = {to: path}
     if cache.notes:

@@ -419,6 +419,21 @@ def scene_bounds(run_dir: Path | None, info: RunInfo, obstacles=()) -> tuple[np.
     return lo, hi
 
 
+#: Blender's range for an image side [px] (RenderSettings.resolution_x and _y).
+MIN_SIDE, MAX_SIDE = 4, 65536
+
+
+def image_size(cfg: Render, preview: bool = False, where: str | Path = "scene.toml") -> tuple[int, int]:
+    """(width, height) of the image at this quality; a side outside Blender's range is an
+    InputError naming ``where`` (the run's scene.toml) and the field."""
+    field = "preview_resolution" if preview else "resolution"
+    w, h = (int(v) for v in getattr(cfg, field))
+    if not (MIN_SIDE <= w <= MAX_SIDE and MIN_SIDE <= h <= MAX_SIDE):
+        raise InputError(f"{where}: render.{field}: {w}x{h} px: each side must be {MIN_SIDE} to {MAX_SIDE} px "
+                         "(Blender's limits)")
+    return w, h
+
+
 def image_aspect(cfg: Render, preview: bool = False) -> float:
     """Width / height of the rendered image at this quality."""
     w, h = cfg.preview_resolution if preview else cfg.resolution
@@ -495,7 +510,15 @@ def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None
     path = obstacle_path(src, info, run_dir) if src else None
     if path is None:
         return None
-    return trimesh.load(str(path), force="mesh")
+    known = trimesh.available_formats()
+    ext = next((e for e in sorted(known, key=len, reverse=True) if path.name.lower().endswith("." + e)), None)
+    if ext is None:
+        raise InputError(f"{path}: obstacle mesh: unknown file extension '{path.suffix or path.name}' "
+                         "(use .obj, .stl, .ply, .off, .glb or .gltf)")
+    try:
+        return trimesh.load(str(path), force="mesh")
+    except (NotImplementedError, ValueError, KeyError, IndexError) as exc:
+        raise InputError(f"{path}: obstacle mesh: cannot read it as .{ext} ({exc})".replace("\n", " ")) from None
 
 
 # ============================================================================ obstacle textures

@@ -6,17 +6,32 @@ frames come one a line on standard input (:func:`~whitecap.render.driver.serve_w
 bpy is a whole Blender in one process; rendering in a child keeps it out of
 the caller (which may hold a Taichi runtime) and lets frames spread over
 several processes.
+
+An operating-system error (a full disk, a read-only folder) ends the worker
+with status ``OS_ERROR_EXIT`` and, as the last line of standard error, the
+error as JSON after ``OS_ERROR_TAG``, so the parent raises the same OSError.
 """
 
+import json
 import sys
 from pathlib import Path
 
 from ..workers import die_with_parent
-from .driver import render_worker, serve_worker
+from .driver import OS_ERROR_EXIT, OS_ERROR_TAG, render_worker, serve_worker
 
 
 def main() -> None:
     die_with_parent()  # a killed `whitecap render` takes its Blender workers with it
+    try:
+        _work()
+    except OSError as exc:
+        name = exc.filename if isinstance(exc.filename, str) else None
+        sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps({'errno': exc.errno, 'strerror': exc.strerror or str(exc), 'filename': name})}\n")
+        sys.stderr.flush()
+        sys.exit(OS_ERROR_EXIT)
+
+
+def _work() -> None:
     run, quality, frames, threads, save, device = sys.argv[1:7]
     if frames == "serve":
         serve_worker(Path(run), quality, int(threads) or None, device)

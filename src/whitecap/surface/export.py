@@ -10,7 +10,13 @@ ParaView plays the run.
 ``export.json`` in the output directory records the identity of the
 simulation the series were made from and the files written; a new export
 removes the files of the previous one that it does not write again, so no
-series of an earlier simulation is left behind.
+series of an earlier simulation is left behind. Nothing else in the output
+directory is ever removed: files whitecap did not list there are the user's.
+The files an export is about to write are added to the list before the first
+is written, so an interrupted export's files are removed by the next one.
+
+Only the output is written: with ``--out`` outside the run, the run is read
+under a shared lock (:func:`whitecap.io.lock.read_lock`) and may be read-only.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
 from ..io.pvd import write_pvd, write_series
 from ..executor import cluster_settings, executor, map_frames
 from ..io.atomic import sweep_temps, write_text
-from ..io.lock import run_lock
+from ..io.lock import export_locks
 from ..io.run import RunInfo, check_relpath
 from ..io.vtk_xml import write_vtp
 from ..progress import progress
@@ -91,11 +97,19 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     """
     if to not in TARGETS:
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(TARGETS)})")
+    check_jobs("export", jobs)
     run = Path(run)
     if not run.is_dir():
         raise InputError(f"{run}: no such run directory")
-    with run_lock(run, "export"):
-        return _export(run, to, out, split_types, kinds, show_progress, jobs, cluster)
+    out = Path(out) if out is not None else run / "export"
+    with export_locks(run, out, "export"):
+        return _export(run, to, out, split_types, kinds, show_progress, jobs or 1, cluster)
+
+
+def check_jobs(stage: str, jobs: int | None) -> None:
+    """``--jobs`` is a count of processes: None (the default) or at least 1."""
+    if jobs is not None and jobs < 1:
+        raise InputError(f"{stage}: --jobs must be at least 1 (got {jobs})")
 
 
 def export_frame(src: Path, kind: str, paths: dict[str, Path], to: str) -> None:
@@ -116,10 +130,9 @@ def export_frame(src: Path, kind: str, paths: dict[str, Path], to: str) -> None:
             _write_points(paths[f"diffuse_{label}"], _subset(frame, t == code), to)
 
 
-def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds: tuple[str, ...],
+def _export(run: Path, to: str, out: Path, split_types: bool, kinds: tuple[str, ...],
             show_progress: bool, jobs: int = 1, cluster: str | None = None) -> dict[str, Path]:
     info = RunInfo.load(run)
-    out = Path(out) if out is not None else run / "export"
     ext = "vtp" if to == "vtk" else "ply"
     times = {f["index"]: float(f["time"]) for f in info.frames}
     work = [(kind, i, rel) for kind in kinds for i, rel in info.files(kind)]
@@ -137,6 +150,9 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
         tasks.append((k, (run / rel, kind, paths, to)))
 
     out.mkdir(parents=True, exist_ok=True)
+    collections = {f"{name}.{'pvd' if to == 'vtk' else 'series'}" for name in series}
+    files = collections | {rel for entries in series.values() for _, rel in entries}
+    record_planned(out, info.simulation, files)
     ex = executor(cluster, run, jobs=min(max(1, jobs), len(tasks)), cfg=cluster_settings(run) if cluster else None)
     try:
         with progress(disable=None if show_progress else True) as bar:
@@ -156,23 +172,39 @@ def _export(run: Path, to: str, out: str | Path | None, split_types: bool, kinds
             path = out / f"{name}.series"
             write_series(path, entries)
         written[name] = path
-    files = {path.name for path in written.values()} | {rel for entries in series.values() for _, rel in entries}
     replace_previous(out, info.simulation, files)
     return written
 
 
-def replace_previous(out: Path, simulation: str, files: set[str]) -> None:
-    """Remove what the previous export wrote and this one did not; record this one in export.json."""
-    old: list = []
+def _listed(out: Path) -> list[str]:
+    """The files export.json in ``out`` lists (relative paths inside ``out``); none when it is
+    missing, unreadable or not whitecap's (a JSON object with 'simulation' and a 'files' list)."""
     try:
-        old = json.loads((out / MANIFEST).read_text()).get("files", [])
-    except (OSError, ValueError, AttributeError):
-        pass
-    for rel in old if isinstance(old, list) else []:
+        data = json.loads((out / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(data, dict) or not isinstance(data.get("simulation"), str) or not isinstance(data.get("files"), list):
+        return []
+    listed = []
+    for rel in data["files"]:
         try:
-            rel = check_relpath(rel, str(out / MANIFEST))
+            listed.append(check_relpath(rel, str(out / MANIFEST)))
         except InputError:
             continue  # never delete outside the export directory
+    return listed
+
+
+def record_planned(out: Path, simulation: str, files: set[str]) -> None:
+    """Before writing: add the files this export will write to export.json's list, so that an
+    export interrupted half-way leaves only files that the next one knows to be its own."""
+    write_text(out / MANIFEST, json.dumps({"simulation": simulation, "files": sorted(set(_listed(out)) | set(files))},
+                                          indent=1))
+
+
+def replace_previous(out: Path, simulation: str, files: set[str]) -> None:
+    """Remove what export.json lists (earlier exports, an interrupted one) and this export did
+    not write; record this one in export.json. Files it does not list are never touched."""
+    for rel in _listed(out):
         if rel not in files:
             (out / rel).unlink(missing_ok=True)
     write_text(out / MANIFEST, json.dumps({"simulation": simulation, "files": sorted(files)}, indent=1))
