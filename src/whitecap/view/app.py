@@ -260,12 +260,12 @@ def run_headless(
     source, cfg = open_source(target, arch, up)
     if color_mode:
         cfg = cfg.model_copy(update={"color_mode": color_mode})
+    n = (len(source) if frames is None else min(int(frames), len(source))) if not source.live else (frames or 1)
+    out = Path(out)
+    manifest = _claim_view_folder(out, [f"view_{k:05d}.png" for k in range(n)] + (["view.mp4"] if mp4 else []))
     window = make_window(tuple(size or cfg.window_size), headless=True)
     rend = _renderer(window, source, cfg)
     state = _new_state(cfg, source)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    n = (len(source) if frames is None else min(int(frames), len(source))) if not source.live else (frames or 1)
     paths = []
     scene = source.scene if source.live else None
     prog = progress(disable=None if show_progress else True)
@@ -299,12 +299,32 @@ def run_headless(
         path = out / f"view_{k:05d}.png"
         with atomic_path(path) as tmp:
             window.save_image(str(tmp))
+        manifest.record(path.name, "")
         paths.append(path)
         prog.advance(task)
     prog.stop()
     if mp4:
         encode_mp4(paths, out / "view.mp4", fps=_fps(source), quality=VIEW_MP4_QUALITY)
+        manifest.record("view.mp4", "")
     return paths
+
+
+VIEW_MANIFEST = "view.json"  # what headless views wrote into their folder (io/manifest.py)
+
+
+def _claim_view_folder(out: Path, names: list[str]):
+    """The folder's manifest, once nothing of the user's is in the way of ``names``; the frames an
+    earlier, longer view left there are removed (they were ours), so the folder shows one view."""
+    from ..io.manifest import Manifest
+
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(out, VIEW_MANIFEST)
+    manifest.refuse_foreign(names, "view")
+    for rel in [r for r in manifest.files if r not in names]:
+        (out / rel).unlink(missing_ok=True)
+        del manifest.files[rel]
+    manifest.plan(names)
+    return manifest
 
 
 def _fps(source) -> float:

@@ -1,0 +1,20 @@
+"""`view --headless --out D` writes only over what an earlier view wrote there, and leaves one
+view's frames in D (issue 30: nothing of the user's overwritten, no frames of two runs mixed)."""
+
+from __future__ import annotations
+
+from .test_view import H, W, _cli, _render
+
+
+def test_headless_view_keeps_the_users_files_and_one_views_frames(tiny_run, tmp_path):
+    out = tmp_path / "pics"
+    out.mkdir()
+    (out / "view_00001.png").write_bytes(b"my holiday picture")
+    r = _cli(tiny_run, "--headless", "--out", out, "--size", W, H, "--no-legend")
+    assert r.returncode == 2 and "view_00001.png: not written by whitecap" in r.stderr.strip().splitlines()[-1]
+    assert (out / "view_00001.png").read_bytes() == b"my holiday picture"
+
+    (out / "view_00001.png").unlink()
+    assert [p.name for p in _render(tiny_run, out)] == [f"view_{k:05d}.png" for k in range(4)]
+    # A shorter view into the same folder: no frame of the first one is left beside it.
+    assert [p.name for p in _render(tiny_run, out, "--frames", "2")] == ["view_00000.png", "view_00001.png"]
