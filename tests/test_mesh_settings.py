@@ -90,3 +90,33 @@ def test_mesh_outside_a_run_remakes_frames_of_another_input_or_settings(tmp_path
     os.utime(seq / "part_0004.ply", ns=(1, 1))
     assert main(["mesh", str(seq), "--radius", "0.01", *FAST, "--cube-size", "0.8"]) == 0
     assert "meshed 1 frames" in capsys.readouterr().out
+
+
+def test_mesh_during_the_first_frame_of_simulate_names_the_writer(tmp_path, capsys):
+    """simulate writes run.json before its first frame: a mesh started then names the writer."""
+    import json
+    import subprocess
+    import sys
+
+    from whitecap.io.run import RunInfo
+
+    run = tmp_path / "R"
+    run.mkdir()
+    info = RunInfo(particle_radius=0.01, rest_density=1000.0, particle_mass=0.008, gravity=[0, 0, -9.81],
+                   domain={"lower": [0, 0, 0], "upper": [1, 1, 1]}, frame_rate=30.0, simulation="abc")
+    info.save(run)
+    assert json.loads((run / "run.json").read_text())["frames"] == []
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from whitecap.io.lock import run_lock\n"
+        f"with run_lock({str(run)!r}, 'simulate'):\n    print('held', flush=True); time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["mesh", str(run), *FAST]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "another whitecap process is writing" in err and "simulate" in err, err
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["mesh", str(run), *FAST]) == 2  # nobody writing: the run simply has no frames
+    assert "the run has no fluid frames" in capsys.readouterr().err

@@ -25,7 +25,7 @@ from ..config import Cluster, Mesh, load_scene
 from ..errors import InputError
 from ..executor import executor, map_frames
 from ..io.atomic import sweep_temps
-from ..io.lock import run_lock
+from ..io.lock import read_lock, run_lock
 from ..io.manifest import Manifest
 from ..io.run import RUN_JSON, RunInfo, source_identity
 from ..io.sequence import find_sequence
@@ -76,7 +76,8 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         walls = walls_from_run(info)
         inputs = [(i, src / rel) for i, rel in info.files("fluid")]
         if not inputs:
-            raise InputError(f"{src / RUN_JSON}: the run has no fluid frames")
+            with read_lock(src, "mesh"):  # a simulate still at its first frame: name it rather than say "none"
+                raise InputError(f"{src / RUN_JSON}: the run has no fluid frames")
         out_dir = Path(out) if out is not None else src / "mesh"
     else:
         inputs = find_sequence(source)
