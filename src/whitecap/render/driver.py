@@ -123,7 +123,7 @@ def check_writable(folder: Path) -> None:
     """Create and remove a file in ``folder``: an OSError naming the folder (read-only, full)
     comes here, before Blender starts, rather than from every worker."""
     try:
-        fd, probe = tempfile.mkstemp(prefix=".whitecap-probe-", dir=folder)
+        fd, probe = tempfile.mkstemp(prefix=".whitecap-write-test-", dir=folder)
     except OSError as exc:
         raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno or errno.EIO), str(folder)) from None
     os.close(fd)
