@@ -413,7 +413,6 @@ def test_a_worker_on_a_full_disk_is_the_os_error(meshed_run, monkeypatch, capsys
 
 
 # ---------------------------------------------------------------------------- export on a full disk
-@pytest.mark.xfail(strict=True, reason="needs io/vtk_xml.py to raise VTK's system error as OSError (issue 30 report)")
 def test_vtk_export_on_a_full_disk_is_the_os_error(tiny_run, tmp_path, monkeypatch, capsys):
     """VTK's writer, writing into a full disk (/dev/full), fails with errno ENOSPC: the user
     sees the OS error naming the file and exit 5, as the README promises."""

@@ -299,9 +299,15 @@ def test_rerun_keeps_unchanged_frames_and_never_mixes_simulations(scene_run, tmp
     d = wio.read(run / "diffuse/diffuse_00002.ply")
     d.positions[:] += 0.01
     wio.write(run / "diffuse/diffuse_00002.ply", d)
+    manifest = first.parent / "export.json"  # an interrupted export listed its layer before writing it
+    m = json.loads(manifest.read_text())
+    m["files"].append("scene_frames/frame_00009_0123456789ab.usdc")
+    manifest.write_text(json.dumps(m))
     (frames_dir / "frame_00009_0123456789ab.usdc").write_bytes(b"left by an interrupted export")
+    (frames_dir / "notes.txt").write_text("mine")
     export(run, to="usd", show_progress=False)
-    after = {p.name: p.stat().st_mtime_ns for p in frames_dir.iterdir()}
+    assert (frames_dir / "notes.txt").read_text() == "mine"
+    after = {p.name: p.stat().st_mtime_ns for p in frames_dir.iterdir() if p.name != "notes.txt"}
     assert len(after) == 4
     assert [n for n in after if n not in before] == [n for n in after if n.startswith("frame_00002_")]
     assert all(after[n] == before[n] for n in after if not n.startswith("frame_00002_"))

@@ -226,7 +226,7 @@ def export(
     if to in ("usd", "abc"):
         from .render.exchange import export_scene
 
-        return export_scene(run, to=to, out=out, show_progress=show_progress)
+        return export_scene(run, to=to, out=out, show_progress=show_progress, jobs=jobs)
     if to not in EXPORT_TARGETS:
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
     from .surface.export import export_run

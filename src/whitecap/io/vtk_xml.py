@@ -7,6 +7,8 @@ them into a time series. :func:`check_complete` refuses a VTK XML file (``.vtp``
 
 from __future__ import annotations
 
+import errno
+import os
 import re
 from pathlib import Path
 
@@ -120,7 +122,10 @@ def write_vtp(path: str | Path, points: np.ndarray, arrays: dict[str, np.ndarray
     with atomic_path(path) as tmp:
         w.SetFileName(str(tmp))
         if w.Write() != 1:
-            raise InputError(f"{path}: VTK writer failed")
+            code = w.GetErrorCode()  # VTK keeps the system's errno when a write fails (28: disk full)
+            if 0 < code < 20000:
+                raise OSError(code, os.strerror(code), str(path))
+            raise OSError(errno.EIO, f"VTK could not write the file (VTK error code {code})", str(path))
 
 
 def read_vtp(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:

@@ -114,7 +114,7 @@ def check_memory(first: Path, params: MeshParams, up: str | None) -> None:
     from ..io import read
     from ..resources import MEMORY_HEADROOM, available_memory
 
-    pos = read(first, **({"up": up} if up else {})).positions
+    pos = read(first, require_velocity=False, **({"up": up} if up else {})).positions
     if not len(pos):
         return
     e = np.ptp(pos, 0).astype(np.float64) + 2 * params.surface_radius
