@@ -159,15 +159,29 @@ def test_an_interrupted_vtk_export_is_cleaned_up_by_the_next(tiny_run, tmp_path,
     assert all((out / rel).is_file() for rel in listed) and not any(rel.startswith("diffuse_") for rel in listed)
 
 
-def test_a_foreign_export_json_deletes_nothing(tiny_run, tmp_path):
-    """An export.json that is not whitecap's (no simulation identity) lists nothing to delete."""
+def test_a_foreign_export_json_deletes_nothing(tiny_run, tmp_path, capsys):
+    """An export.json that is not whitecap's (no format, no simulation identity) lists nothing to
+    delete, and is the user's own file: the export refuses rather than overwrite it."""
     run = _copy(tiny_run, tmp_path / "run")
     out = tmp_path / "out"
     out.mkdir()
     (out / "data.csv").write_text("1,2,3\n")
-    (out / "export.json").write_text(json.dumps({"files": ["data.csv"]}))
-    assert main(["export", str(run), "--out", str(out)]) == 0
-    assert (out / "data.csv").read_text() == "1,2,3\n"
+    theirs = json.dumps({"files": ["data.csv"]})
+    (out / "export.json").write_text(theirs)
+    assert main(["export", str(run), "--out", str(out)]) == 2
+    assert "export.json: not a whitecap manifest" in capsys.readouterr().err
+    assert (out / "data.csv").read_text() == "1,2,3\n" and (out / "export.json").read_text() == theirs
+
+
+def test_export_never_overwrites_a_users_file_in_its_way(tiny_run, tmp_path, capsys):
+    run = _copy(tiny_run, tmp_path / "run")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "fluid.pvd").write_text("my ParaView collection")
+    assert main(["export", str(run), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "fluid.pvd: not written by whitecap" in err, err
+    assert (out / "fluid.pvd").read_text() == "my ParaView collection"
 
 
 # ---------------------------------------------------------------------------- item 7: a read-only run

@@ -301,7 +301,7 @@ def test_rerun_keeps_unchanged_frames_and_never_mixes_simulations(scene_run, tmp
     wio.write(run / "diffuse/diffuse_00002.ply", d)
     manifest = first.parent / "export.json"  # an interrupted export listed its layer before writing it
     m = json.loads(manifest.read_text())
-    m["files"].append("scene_frames/frame_00009_0123456789ab.usdc")
+    m["files"]["scene_frames/frame_00009_0123456789ab.usdc"] = None
     manifest.write_text(json.dumps(m))
     (frames_dir / "frame_00009_0123456789ab.usdc").write_bytes(b"left by an interrupted export")
     (frames_dir / "notes.txt").write_text("mine")

@@ -31,12 +31,21 @@ class Manifest:
         self.folder = Path(folder)
         self.path = self.folder / name
         self.files: dict[str, str | None] = {}
+        self.simulation: str | None = None  # the run the files came from, where there is one (export)
+        self.foreign = False  # a file of this name that is not whitecap's manifest
         try:
             data = json.loads(self.path.read_bytes().decode("utf-8"))
         except (OSError, ValueError):
             data = None  # none yet, or unreadable: nothing in the folder counts as ours
-        listed = data.get("files") if isinstance(data, dict) else None
-        for rel, key in (listed.items() if isinstance(listed, dict) else ()):
+        if not isinstance(data, dict) or not (data.get("format") == FORMAT or isinstance(data.get("simulation"), str)):
+            # Not whitecap's (an export.json of before this format names its simulation): it lists
+            # nothing as ours, and it is the user's file, so it is not overwritten either.
+            self.foreign = self.path.exists() or self.path.is_symlink()
+            return
+        self.simulation = data.get("simulation") if isinstance(data.get("simulation"), str) else None
+        listed = data.get("files")
+        entries = listed.items() if isinstance(listed, dict) else ((rel, None) for rel in listed or ())
+        for rel, key in entries:
             try:
                 check_relpath(rel, str(self.path))
             except InputError:
@@ -48,7 +57,11 @@ class Manifest:
         return self.files.get(rel) == key and (self.folder / rel).is_file()
 
     def refuse_foreign(self, rels, what: str) -> None:
-        """A one-line error when one of ``rels`` exists but was not written here by whitecap."""
+        """A one-line error when one of ``rels`` (or the manifest's own name) exists but was not
+        written here by whitecap."""
+        if self.foreign:
+            raise InputError(f"{self.path}: not a whitecap manifest; {what} keeps its list of written files under "
+                             "this name: move the file, or choose another --out")
         for rel in rels:
             p = self.folder / rel
             if rel not in self.files and (p.exists() or p.is_symlink()):
@@ -65,6 +78,16 @@ class Manifest:
         self.files[rel] = key
         self.save()
 
+    def keep_only(self, rels) -> None:
+        """Remove every listed file not in ``rels`` (an earlier job's, an interrupted one's) and forget it."""
+        keep = set(rels)
+        for rel in [r for r in self.files if r not in keep]:
+            (self.folder / rel).unlink(missing_ok=True)
+            del self.files[rel]
+
     def save(self) -> None:
-        write_text(self.path, json.dumps({"format": "whitecap-manifest", "files": self.files}, indent=1,
-                                         sort_keys=True) + "\n")
+        data = {"format": FORMAT, **({"simulation": self.simulation} if self.simulation else {}), "files": self.files}
+        write_text(self.path, json.dumps(data, indent=1, sort_keys=True) + "\n")
+
+
+FORMAT = "whitecap-manifest"

@@ -21,7 +21,6 @@ under a shared lock (:func:`whitecap.io.lock.read_lock`) and may be read-only.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +34,8 @@ from ..io.pvd import write_pvd, write_series
 from ..executor import cluster_settings, executor, map_frames
 from ..io.atomic import sweep_temps, write_text
 from ..io.lock import export_locks
-from ..io.run import RunInfo, check_relpath
+from ..io.manifest import Manifest
+from ..io.run import RunInfo
 from ..io.vtk_xml import write_vtp
 from ..progress import progress
 
@@ -176,35 +176,21 @@ def _export(run: Path, to: str, out: Path, split_types: bool, kinds: tuple[str, 
     return written
 
 
-def _listed(out: Path) -> list[str]:
-    """The files export.json in ``out`` lists (relative paths inside ``out``); none when it is
-    missing, unreadable or not whitecap's (a JSON object with 'simulation' and a 'files' list)."""
-    try:
-        data = json.loads((out / MANIFEST).read_text())
-    except (OSError, ValueError):
-        return []
-    if not isinstance(data, dict) or not isinstance(data.get("simulation"), str) or not isinstance(data.get("files"), list):
-        return []
-    listed = []
-    for rel in data["files"]:
-        try:
-            listed.append(check_relpath(rel, str(out / MANIFEST)))
-        except InputError:
-            continue  # never delete outside the export directory
-    return listed
-
-
 def record_planned(out: Path, simulation: str, files: set[str]) -> None:
-    """Before writing: add the files this export will write to export.json's list, so that an
-    export interrupted half-way leaves only files that the next one knows to be its own."""
-    write_text(out / MANIFEST, json.dumps({"simulation": simulation, "files": sorted(set(_listed(out)) | set(files))},
-                                          indent=1))
+    """Before writing: refuse a file in the way that export.json does not list (the user's), then
+    add the files this export will write to the list, so that an export interrupted half-way leaves
+    only files that the next one knows to be its own (io/manifest.py)."""
+    m = Manifest(out, MANIFEST)
+    m.refuse_foreign(sorted(files), "export")
+    m.simulation = simulation
+    m.plan(sorted(files))
 
 
 def replace_previous(out: Path, simulation: str, files: set[str]) -> None:
     """Remove what export.json lists (earlier exports, an interrupted one) and this export did
     not write; record this one in export.json. Files it does not list are never touched."""
-    for rel in _listed(out):
-        if rel not in files:
-            (out / rel).unlink(missing_ok=True)
-    write_text(out / MANIFEST, json.dumps({"simulation": simulation, "files": sorted(files)}, indent=1))
+    m = Manifest(out, MANIFEST)
+    m.keep_only(files)
+    m.simulation = simulation
+    m.files.update({rel: simulation for rel in files})
+    m.save()

@@ -320,9 +320,7 @@ def _claim_view_folder(out: Path, names: list[str]):
     out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out, VIEW_MANIFEST)
     manifest.refuse_foreign(names, "view")
-    for rel in [r for r in manifest.files if r not in names]:
-        (out / rel).unlink(missing_ok=True)
-        del manifest.files[rel]
+    manifest.keep_only(names)
     manifest.plan(names)
     return manifest
 
