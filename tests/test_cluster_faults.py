@@ -35,7 +35,7 @@ import tomli_w  # noqa: E402
 
 from whitecap import pipeline  # noqa: E402
 from whitecap.cli import main  # noqa: E402
-from whitecap.io import ParticleFrame  # noqa: E402
+from whitecap.io import ParticleFrame, read_mesh  # noqa: E402
 from whitecap.io import write as write_particles  # noqa: E402
 from whitecap.io.run import RunInfo  # noqa: E402
 
@@ -146,3 +146,347 @@ def test_a_large_frame_is_the_same_bytes_whatever_meshes_it(tmp_path, worker_pro
     assert len(set(digests.values())) == 1, f"splashsurf's output differs between runs: {digests}"
     files = {k: hashlib.sha256(b).hexdigest()[:12] for k, (_, b, _) in runs.items()}
     assert len(set(files.values())) == 1, f"mesh files differ: {files}"
+
+
+# ============================================================================ items 15, 16: bad addresses
+def _cli_within(args: list[str], limit: float = 60.0) -> tuple[int | None, float]:
+    """``whitecap ARGS`` in a thread: its exit status (None if it had not returned after ``limit`` s) and time.
+
+    An exception out of ``main`` (a traceback for the user) fails the test at once."""
+    box: dict = {}
+
+    def go() -> None:
+        try:
+            box["rc"] = main(args)
+        except BaseException as exc:  # noqa: BLE001
+            box["exc"] = exc
+
+    t = threading.Thread(target=go, daemon=True)
+    t0 = time.monotonic()
+    t.start()
+    t.join(limit)
+    if "exc" in box:
+        raise AssertionError(f"whitecap {' '.join(args)} ended in a traceback: {box['exc']!r}") from box["exc"]
+    return box.get("rc"), time.monotonic() - t0
+
+
+class Listener:
+    """A local TCP service in a thread that accepts connections and answers each with ``reply`` (or nothing)."""
+
+    def __init__(self, reply: bytes | None = None):
+        self.reply, self.conns = reply, []
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.accepted = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self) -> None:
+        while not self.stop.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except (socket.timeout, TimeoutError):
+                continue
+            except OSError:
+                return
+            self.accepted += 1
+            self.conns.append(conn)
+            if self.reply is not None:
+                conn.sendall(self.reply)  # and then never a word more, nor a close
+
+    def __enter__(self) -> "Listener":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(5)
+        self.sock.close()
+        for c in self.conns:
+            c.close()
+
+
+def _untouched(run: Path) -> None:
+    assert not (run / "mesh").exists()
+    assert not [p for p in run.iterdir() if p.name.startswith(".whitecap-probe")]
+
+
+@pytest.fixture
+def timed_run(tiny_run, tmp_path) -> Path:
+    """A run whose [cluster] section waits 2 s for a scheduler."""
+    return _run_copy(tiny_run, tmp_path / "run", cluster={"connect_timeout": 2.0})
+
+
+@pytest.mark.parametrize("spec", ["127.0.0.1", "lokal", "notaurl", "bogus://x"])
+def test_a_malformed_address_is_refused_in_one_line_before_connecting(timed_run, capsys, monkeypatch, spec):
+    def no_connection(*a, **kw):
+        raise AssertionError(f"a connection was tried for --cluster {spec}")
+
+    monkeypatch.setattr(socket, "create_connection", no_connection)
+    monkeypatch.setattr(distributed, "Client", no_connection)
+    rc, seconds = _cli_within(["mesh", str(timed_run), "--cluster", spec])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert "\n" not in err and "Traceback" not in err and err.startswith(f"error: --cluster {spec}: "), err
+    for hint in ("local", "slurm", "pbs", "tcp://"):
+        assert hint in err, (hint, err)
+    if spec == "lokal":
+        assert "did you mean 'local'" in err
+    if spec == "127.0.0.1":
+        assert "tcp://127.0.0.1:PORT" in err
+    assert seconds < 30
+    _untouched(timed_run)
+
+
+def test_a_listener_that_never_answers_fails_within_the_connect_timeout(timed_run, capsys):
+    with Listener(reply=None) as silent:
+        address = f"tcp://127.0.0.1:{silent.port}"
+        rc, seconds = _cli_within(["mesh", str(timed_run), "--cluster", address])
+        assert silent.accepted >= 1  # it was reached, and it said nothing
+    assert rc is not None, f"--cluster {address} still waiting after {seconds:.0f} s (connect_timeout is 2 s)"
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert err.startswith(f"error: --cluster {address}: ") and "did not answer as a Dask scheduler within 2 s" in err
+    assert seconds < 30
+    _untouched(timed_run)
+
+
+# What a web server says to a stranger: its first 8 bytes, read as a Dask message length, are 3.5 EiB.
+HTTP_REPLY = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n"
+# A plausible length followed by bytes that are no Dask message.
+GARBAGE_REPLY = (24).to_bytes(8, "little") + b"\xff" * 24
+
+
+@pytest.mark.parametrize("reply", [HTTP_REPLY, GARBAGE_REPLY], ids=["http", "garbage"])
+def test_a_service_that_answers_junk_is_a_one_line_error(timed_run, capsys, reply):
+    with Listener(reply=reply) as junk:
+        rc, seconds = _cli_within(["mesh", str(timed_run), "--cluster", f"127.0.0.1:{junk.port}"])
+    assert rc is not None, f"still waiting after {seconds:.0f} s"
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert err.startswith(f"error: --cluster 127.0.0.1:{junk.port}: ") and "not as a Dask scheduler" in err, err
+    assert seconds < 30
+    _untouched(timed_run)
+
+
+# ============================================================================ the dashboard, Dask's log lines
+def _get(url: str) -> int:
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def test_cluster_local_starts_no_dashboard_and_no_port_warning(tmp_path, capfd):
+    """Another program holds Dask's dashboard port 8787: no warning about it, and no dashboard page is served."""
+    import warnings
+
+    from whitecap.config import Cluster
+    from whitecap.executor import connect
+
+    held = socket.socket()
+    try:
+        held.bind(("", 8787))
+        held.listen(1)
+    except OSError:
+        pass  # someone else holds it already: the same situation
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            ex = connect("local", tmp_path, Cluster(), jobs=1)
+            try:
+                http_port = ex.client.scheduler_info()["services"]["dashboard"]
+                page = _get(f"http://127.0.0.1:{http_port}/status")
+            finally:
+                ex.close()
+    finally:
+        held.close()
+    assert not [str(w.message) for w in caught if "8787" in str(w.message) or "port" in str(w.message).lower()]
+    err = capfd.readouterr().err
+    assert "already in use" not in err and "Traceback" not in err, err
+    assert page == 404  # no dashboard, nor a page asking to install bokeh for one
+
+
+def test_batch_cluster_scheduler_serves_no_dashboard():
+    """slurm/pbs: the scheduler runs here; it serves no dashboard (whose link no one would be shown)."""
+    from whitecap.config import Cluster
+    from whitecap.executor import batch_cluster
+
+    c = batch_cluster("slurm", Cluster())
+    try:
+        page = _get(f"http://127.0.0.1:{c.scheduler_info['services']['dashboard']}/status")
+    finally:
+        c.close()
+    assert page == 404
+
+
+class KillAtFrame(distributed.WorkerPlugin):
+    """Test plugin: a worker dies (SIGKILL) whenever it is about to write the mesh of frame ``index``."""
+
+    def __init__(self, index: int):
+        self.index = index
+
+    def setup(self, worker=None):
+        import importlib
+
+        rec = importlib.import_module("whitecap.surface.reconstruct")
+        real, name = rec.write_mesh, f"fluid_{self.index:05d}."
+
+        def write_mesh(path, surface):
+            if Path(path).name.startswith(name):
+                os.kill(os.getpid(), signal.SIGKILL)
+            return real(path, surface)
+
+        rec.write_mesh = write_mesh
+
+
+TIMESTAMPED = re.compile(r"^\d{4}-\d\d-\d\d[ T]\d\d:\d\d:\d\d", re.M)
+DASK_LOGGER = re.compile(r"\b(distributed|tornado)(\.\w+)* - (DEBUG|INFO|WARNING|ERROR|CRITICAL) - ")
+
+
+def test_a_dying_worker_prints_no_raw_dask_log_line(tiny_run, tmp_path, capfd, monkeypatch):
+    """`mesh --cluster local`: the worker that takes frame 2 dies every time. Dask logs an error about it
+    (timestamped, with its logger's name); whitecap prints only its own lines: the bar, the summary and
+    one error naming the frame."""
+    import cloudpickle
+    import dask
+
+    from whitecap.executor import DaskExecutor
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    real_check = DaskExecutor.check_shared
+
+    def check_shared(self):  # the test's hook into the cluster whitecap starts itself
+        self.client.register_plugin(KillAtFrame(2), name="kill-at-frame-2")
+        return real_check(self)
+
+    monkeypatch.setattr(DaskExecutor, "check_shared", check_shared)
+    monkeypatch.setenv("WHITECAP_PROGRESS", "1")  # the progress bar on, as in a terminal
+    # Dask's logging as outside pytest (whose own log capture makes Dask skip it): a stderr handler
+    # with timestamps on the 'distributed' logger, which does not propagate.
+    dask_log = logging.getLogger("distributed")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s - %(name)s - %(levelname)s - %(message)s"))
+    monkeypatch.setattr(dask_log, "handlers", [handler])
+    monkeypatch.setattr(dask_log, "propagate", False)
+    run = _run_copy(tiny_run, tmp_path / "run")
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):  # the first death fails the frame
+        rc = main(["mesh", str(run), "--cluster", "local", "--jobs", "2"])
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc != 0
+    assert not TIMESTAMPED.search(err), err
+    assert not DASK_LOGGER.search(err) and "Traceback" not in err, err
+    assert lines[-1].startswith("error: mesh: 1 of 4 frames failed on the cluster (frame 2: KilledWorker"), lines[-1]
+    assert [i for i, _ in RunInfo.load(run).files("mesh")] == [0, 1, 3]  # the others are kept
+
+
+# ============================================================================ results belong to their frames
+class LostThenRecomputed:
+    """A Dask future as the client can see it when the worker holding its result dies just after it finished:
+    no longer 'finished' (the scheduler is running the frame again), and result() waits for the new one."""
+
+    def __init__(self, key: str, result, lost: bool):
+        self.key, self._result = key, result
+        self.status = "lost" if lost else "finished"
+
+    def result(self, timeout=None):
+        return self._result
+
+    def exception(self, timeout=None):
+        return None
+
+
+class InlineClient:
+    """Just enough of distributed.Client for DaskExecutor.map: runs each task here, at once."""
+
+    loop = None
+
+    def __init__(self, lost_key_prefix: str):
+        self.lost = lost_key_prefix
+
+    def submit(self, fn, *args, key: str, pure: bool = False):
+        return LostThenRecomputed(key, fn(*args), lost=key.startswith(self.lost))
+
+    def cancel(self, futures):
+        pass
+
+    def close(self):
+        pass
+
+
+def _double(x: int) -> int:
+    return 2 * x
+
+
+def test_a_frame_whose_result_was_lost_and_made_again_is_delivered(tmp_path, monkeypatch):
+    from whitecap.executor import DaskExecutor
+
+    monkeypatch.setattr(distributed, "as_completed", lambda futures, **kw: iter(futures))
+    ex = DaskExecutor(InlineClient("frame-00002"), tmp_path)
+    try:
+        got = {r.index: (r.value, r.error) for r in ex.map(_double, [(i, (10 * i,)) for i in range(4)])}
+    finally:
+        ex.close()
+    assert got == {i: (20 * i, None) for i in range(4)}
+
+
+@pytest.fixture(scope="module")
+def in_process_cluster():
+    """Two worker threads in this process: a frame's writing can be slowed from the test."""
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None,
+                                  silence_logs=logging.CRITICAL) as c:
+        yield c
+
+
+def test_a_partly_done_cluster_run_resumes_with_each_result_recorded_as_its_own_frame(
+        tiny_run, tmp_path, in_process_cluster, monkeypatch, capsys):
+    """A first cluster run makes frames 0 and 3 (1 and 2 have broken inputs); with the inputs mended, the
+    rerun makes only 1 and 2, and 2 finishes first. Every result is its own frame's: the stats, run.json
+    and the files (the bytes of a serial run's)."""
+    import importlib
+
+    rec = importlib.import_module("whitecap.surface.reconstruct")  # the module, not surface's function
+    address = in_process_cluster.scheduler_address
+    reference = _run_copy(tiny_run, tmp_path / "serial")
+    pipeline.mesh(reference, jobs=1, show_progress=False)
+
+    run = _run_copy(tiny_run, tmp_path / "run")
+    inputs = dict(RunInfo.load(run).files("fluid"))
+    assert sorted(inputs) == [0, 1, 2, 3]
+    kept = {i: (run / inputs[i]).read_bytes() for i in (1, 2)}
+    for i in (1, 2):
+        (run / inputs[i]).write_bytes(kept[i][:300])
+    assert main(["mesh", str(run), "--cluster", address]) != 0
+    assert [i for i, _ in RunInfo.load(run).files("mesh")] == [0, 3]
+    first = {p.name: p.stat().st_mtime_ns for p in (run / "mesh").iterdir()}
+    for i in (1, 2):
+        (run / inputs[i]).write_bytes(kept[i])
+
+    real, finished = rec.write_mesh, []
+
+    def write_mesh(path, surface):
+        if Path(path).name.startswith("fluid_00001."):
+            time.sleep(2.0)  # frame 1 is slow: frame 2, submitted after it, finishes first
+        real(path, surface)
+        finished.append(int(Path(path).name.split("_")[1].split(".")[0]))
+
+    monkeypatch.setattr(rec, "write_mesh", write_mesh)
+    stats = pipeline.mesh(run, cluster=address, show_progress=False)
+    capsys.readouterr()
+    assert finished == [2, 1], f"the frames did not finish out of order ({finished}): the test tested nothing"
+    assert [(s["index"], s["skipped"]) for s in stats] == [(0, True), (1, False), (2, False), (3, True)]
+    for s in stats:
+        assert Path(s["out"]).name == f"fluid_{s['index']:05d}.ply", s
+    made = {s["index"]: s for s in stats if not s["skipped"]}
+    assert made[1]["faces"] != made[2]["faces"]  # the frames differ, so a swap would show
+    for i in (1, 2):  # each frame's stats describe that frame's file
+        assert made[i]["faces"] == len(read_mesh(run / "mesh" / f"fluid_{i:05d}.ply").faces)
+    assert dict(RunInfo.load(run).files("mesh")) == {i: f"mesh/fluid_{i:05d}.ply" for i in range(4)}
+    assert _files(run / "mesh") == _files(reference / "mesh")
+    assert {n: (run / "mesh" / n).stat().st_mtime_ns for n in first} == first  # frames 0 and 3 not made again

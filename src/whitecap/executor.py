@@ -22,20 +22,38 @@ it imports Dask only when a cluster is asked for.
 
 from __future__ import annotations
 
+import asyncio
+import difflib
+import logging
 import os
 import shutil
+import socket
+import struct
+import threading
 import time
 import uuid
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, CancelledError, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from .errors import MissingDependency, WhitecapError
+from .errors import InputError, MissingDependency, WhitecapError
 from .workers import die_with_parent
 
 CLUSTER_HINT = "install it with: pip install 'whitecap[cluster]' (dask, distributed, dask-jobqueue)"
+#: the clusters --cluster starts itself; anything else is a scheduler address
+CLUSTER_KINDS = ("local", "slurm", "pbs")
+#: what --cluster takes, for error messages
+ADDRESS_HINT = "give local, slurm, pbs or a scheduler's address tcp://HOST:PORT (`dask scheduler` prints it)"
+#: the protocols a Dask scheduler address may name (distributed's comm backends)
+SCHEMES = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+#: a Dask scheduler greets every connection with its handshake, a message of this many bytes at most
+MAX_HANDSHAKE = 1 << 20
+#: scheduler options of the clusters whitecap starts: no dashboard (it needs bokeh, and no one is shown
+#: its link); the scheduler's small HTTP server (health checks) on any free port of this machine, so that
+#: a port another cluster holds is no warning
+NO_DASHBOARD = {"dashboard": False, "dashboard_address": "127.0.0.1:0"}
 #: the command each batch system submits jobs with (dask-jobqueue calls it)
 SUBMIT_COMMAND = {"slurm": "sbatch", "pbs": "qsub"}
 #: file name prefix of the probe written into the shared directory to check that workers see it
@@ -218,15 +236,19 @@ class DaskExecutor:
             futures[fut] = index
         try:
             for fut in as_completed(list(futures), loop=self.client.loop):
-                index = futures.pop(fut)
-                if fut.status == "finished":
+                index = futures.pop(fut, None)
+                if index is None:  # yielded once already
+                    continue
+                # Not fut.status: a worker that dies holding a finished frame's result turns the future back
+                # to pending (or lost) while the scheduler runs the frame again; result() waits for that.
+                try:
                     value, worker, seconds = fut.result()
-                    yield FrameResult(index, value, worker, seconds)
-                else:
-                    exc = fut.exception()
-                    if isinstance(exc, RunDirNotShared):
-                        raise exc
+                except RunDirNotShared:
+                    raise
+                except (Exception, CancelledError) as exc:  # the frame's own error, or Dask's (KilledWorker...)
                     yield FrameResult(index, error=exc)
+                else:
+                    yield FrameResult(index, value, worker, seconds)
         finally:
             if futures:
                 self.client.cancel(list(futures))
@@ -256,6 +278,79 @@ def _probe(path: str, token: str) -> bool | str:
         return f"{exc.strerror or exc}"
 
 
+# ============================================================================ Dask's own log lines
+class DaskLogs:
+    """While a cluster run is on, Dask's log lines in this process become whitecap's one-line messages.
+
+    The scheduler of ``--cluster local``, slurm or pbs, its nannies and the
+    client live in this process, and Dask gives its loggers a handler of their
+    own that prints timestamped lines (``2026-01-02 10:11:12,345 -
+    distributed.scheduler - ERROR - ...``, tracebacks included) to stderr, in
+    the middle of the progress bar when a worker dies. While this is started,
+    those handlers are set aside: errors come out as ``dask: <first line>``
+    through the progress console (above the bar), each once and at most
+    :attr:`LIMIT` of them; anything below an error, and the errors of
+    :attr:`QUIET`, are dropped (a frame whose worker died runs again, and one
+    that cannot is named by whitecap's own summary and error line).
+    :meth:`close` puts Dask's handlers back.
+    """
+
+    ROOTS = ("distributed", "tornado", "bokeh")
+    LIMIT = 5
+    #: errors Dask recovers from by itself, or that whitecap reports in its own words (the frame's failure)
+    QUIET = ("Couldn't gather keys", "workers died while trying to run it")
+
+    def __init__(self):
+        self._saved: list[tuple[logging.Logger, list[logging.Handler], bool]] = []
+        self._seen: set[str] = set()
+        self._lock = threading.Lock()
+        self.handler = _ToConsole(self)
+
+    def start(self) -> "DaskLogs":
+        names = [n for n in list(logging.Logger.manager.loggerDict)
+                 if n.split(".", 1)[0] in self.ROOTS]
+        for name in sorted(set(names) | set(self.ROOTS)):
+            log = logging.getLogger(name)
+            if name in self.ROOTS or log.handlers:  # the loggers Dask gave a handler (they do not propagate)
+                self._saved.append((log, log.handlers[:], log.propagate))
+                log.handlers = [self.handler]
+                log.propagate = False
+        return self
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from rich.markup import escape
+
+        from .progress import console
+
+        text = (record.getMessage().strip().splitlines() or [""])[0].strip()
+        if any(q in text for q in self.QUIET):
+            return
+        with self._lock:
+            if not text or text in self._seen or len(self._seen) > self.LIMIT:
+                return
+            self._seen.add(text)
+            line = f"dask: {text}" if len(self._seen) <= self.LIMIT else "dask: (further messages not shown)"
+        console.print(f"[dim]{escape(line)}[/dim]", highlight=False, soft_wrap=True)
+
+    def close(self) -> None:
+        for log, handlers, propagate in reversed(self._saved):
+            log.handlers = handlers
+            log.propagate = propagate
+        self._saved = []
+
+
+class _ToConsole(logging.Handler):
+    def __init__(self, owner: DaskLogs):
+        super().__init__(level=logging.ERROR)
+        self.owner = owner
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.owner.emit(record)
+        except Exception:  # never let a log line break the run
+            pass
+
+
 # ============================================================================ connecting
 def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskExecutor:
     """A :class:`DaskExecutor` for ``--cluster SPEC``: a scheduler address, or local, slurm or pbs.
@@ -265,40 +360,57 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
     An address that does not answer within ``cfg.connect_timeout`` seconds is a
     one-line :class:`ClusterError`; so is a worker that cannot see ``shared``.
     """
+    spec = str(spec).strip()
+    address = scheduler_address(spec)  # a malformed one is refused before anything starts
     require_distributed()
     import distributed
 
     from .config import Cluster
 
     cfg = cfg or Cluster()
-    spec = str(spec).strip()
+    if spec in ("slurm", "pbs") and shutil.which(SUBMIT_COMMAND[spec]) is None:
+        # else the jobs would fail in the background and the bar wait for ever
+        raise ClusterError(f"--cluster {spec}: '{SUBMIT_COMMAND[spec]}' is not on the PATH; run whitecap where "
+                           f"{spec} jobs are submitted from (a login node)")
+    logs = DaskLogs().start()
     owns: list = []
-    if spec == "local":
-        n = jobs or cfg.jobs or len(os.sched_getaffinity(0))
-        # One thread per worker: the frame functions use their own threads (splashsurf, Cycles).
-        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                           dashboard_address=None, silence_logs=40)
-        owns.append(cluster)
-        address = cluster.scheduler_address
-    elif spec in ("slurm", "pbs"):
-        submit = SUBMIT_COMMAND[spec]
-        if shutil.which(submit) is None:  # else the jobs would fail in the background and the bar wait for ever
-            raise ClusterError(f"--cluster {spec}: '{submit}' is not on the PATH; run whitecap where {spec} jobs are "
-                               "submitted from (a login node)")
-        cluster = batch_cluster(spec, cfg)
-        owns.append(cluster)
-        cluster.scale(jobs=jobs or cfg.jobs)
-        address = cluster.scheduler_address
-    else:
-        address = spec if "://" in spec else f"tcp://{spec}"
-    try:
-        client = distributed.Client(address, timeout=f"{cfg.connect_timeout}s", set_as_default=False)
-    except (OSError, TimeoutError) as exc:
+
+    def give_up() -> None:
         for obj in owns:
             obj.close()
+        logs.close()
+
+    try:
+        if spec == "local":
+            n = jobs or cfg.jobs or len(os.sched_getaffinity(0))
+            # One thread per worker: a frame is one task at a time. No dashboard (it needs bokeh, and
+            # its HTTP server on a fixed port warned when another cluster held it), no worker log lines.
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                               dashboard_address=None, silence_logs=logging.CRITICAL,
+                                               scheduler_kwargs=NO_DASHBOARD)
+            owns.append(cluster)
+            address = cluster.scheduler_address
+        elif spec in ("slurm", "pbs"):
+            cluster = batch_cluster(spec, cfg)
+            owns.append(cluster)
+            cluster.scale(jobs=jobs or cfg.jobs)
+            address = cluster.scheduler_address
+        else:
+            check_scheduler(spec, address, cfg.connect_timeout)
+    except BaseException:
+        give_up()
+        raise
+    try:
+        client = distributed.Client(address, timeout=f"{cfg.connect_timeout}s", set_as_default=False)
+    except Exception as exc:  # the probe passed, so this is rare: a scheduler that went away meanwhile
+        give_up()
         raise ClusterError(f"--cluster {spec}: no Dask scheduler answered at {address} within "
                            f"{cfg.connect_timeout:g} s ({type(exc).__name__}); start one with `dask scheduler` "
                            "or check the address") from None
+    except BaseException:
+        give_up()
+        raise
+    owns.append(logs)  # closed last, after the cluster, so its closing lines stay quiet too
     threads = 0
     if spec == "local":
         threads = max(1, len(os.sched_getaffinity(0)) // n)
@@ -308,8 +420,7 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
         ex = DaskExecutor(client, shared, owns=tuple(owns), frame_threads=threads)
     except BaseException:
         client.close()
-        for obj in owns:
-            obj.close()
+        give_up()
         raise
     try:
         if spec == "local":
@@ -320,6 +431,157 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
         ex.close()
         raise
     return ex
+
+
+def scheduler_address(spec: str) -> str | None:
+    """The scheduler address ``--cluster SPEC`` names (None for local, slurm, pbs), or a one-line InputError.
+
+    Checked before any connection is tried: a known protocol (tcp:// when none
+    is given), a host and a port number; a bare word is taken for a misspelt
+    local, slurm or pbs.
+    """
+    if spec in CLUSTER_KINDS:
+        return None
+    if not spec:
+        raise InputError(f"--cluster: empty; {ADDRESS_HINT}")
+    scheme, sep, rest = spec.partition("://")
+    if not sep:
+        scheme, rest = "tcp", spec
+        if not any(c in spec for c in ":./") and spec.lower() != "localhost":  # a word: a misspelt kind
+            near = difflib.get_close_matches(spec.lower(), CLUSTER_KINDS, n=1, cutoff=0.6)
+            guess = f" (did you mean '{near[0]}'?)" if near else ""
+            raise InputError(f"--cluster {spec}: not a cluster kind or a scheduler address{guess}; {ADDRESS_HINT}")
+    if scheme.lower() not in SCHEMES:
+        raise InputError(f"--cluster {spec}: unknown protocol '{scheme}' (Dask speaks {', '.join(SCHEMES[:-1])}); "
+                         f"{ADDRESS_HINT}")
+    scheme = scheme.lower()
+    if scheme == "inproc":  # a scheduler in this very process (tests, notebooks)
+        if not rest:
+            raise InputError(f"--cluster {spec}: no address after inproc://; {ADDRESS_HINT}")
+        return f"{scheme}://{rest}"
+    host, port = _host_port(rest)
+    if not host or any(c.isspace() for c in host) or "/" in rest:
+        raise InputError(f"--cluster {spec}: not a scheduler address; {ADDRESS_HINT}")
+    if port is None:
+        raise InputError(f"--cluster {spec}: no port; give {scheme}://{rest.rstrip(':')}:PORT "
+                         "(a scheduler listens on 8786 unless told otherwise), or local, slurm, pbs")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"--cluster {spec}: port '{port}' is not a number from 1 to 65535; {ADDRESS_HINT}")
+    return f"{scheme}://{rest}"
+
+
+def _host_port(rest: str) -> tuple[str, str | None]:
+    """('host', 'port' or None) of HOST:PORT, [IPv6]:PORT, HOST or [IPv6]."""
+    if rest.startswith("["):
+        host, _, tail = rest[1:].partition("]")
+        return host, (tail[1:] if tail.startswith(":") else None if not tail else tail)
+    host, sep, port = rest.rpartition(":")
+    return (host, port) if sep else (rest, None)
+
+
+def check_scheduler(spec: str, address: str, timeout: float) -> None:
+    """Fail in one line unless a Dask scheduler completes its handshake at ``address`` within ``timeout`` s.
+
+    ``distributed.Client`` bounds only the TCP connection by its timeout: a
+    listener that accepts and never answers holds it for ever, and a service
+    that answers something else makes it read a message as long as the first
+    eight bytes say (exabytes). Here the whole exchange has one deadline: for
+    tcp:// a plain socket first reads the scheduler's greeting and checks its
+    length, then Dask's own handshake runs under ``asyncio.wait_for``.
+    """
+    if address.startswith("inproc://"):
+        return
+    deadline = time.monotonic() + timeout
+    where = address.split("://", 1)[1]
+    not_dask = (f"--cluster {spec}: the service at {where} answered, but not as a Dask scheduler does; "
+                "check the address and port (a scheduler listens on 8786 unless told otherwise)")
+    silent = (f"--cluster {spec}: something at {where} accepted the connection but did not answer as a Dask "
+              f"scheduler within {timeout:g} s; check the address and port, or raise [cluster] connect_timeout")
+    if address.startswith("tcp://"):
+        greeting = _tcp_greeting(spec, address, deadline, timeout)
+        if greeting is None:
+            raise ClusterError(silent)
+        if not 0 < greeting <= MAX_HANDSHAKE:
+            raise ClusterError(not_dask)
+    outcome: list = []
+
+    async def handshake() -> None:
+        from distributed.comm import connect as dask_connect
+        from distributed.security import Security
+
+        # the client's TLS settings, as distributed.Client passes them (Dask's config)
+        args = Security().get_connection_args("client")
+        comm = await dask_connect(address, timeout=max(0.1, deadline - time.monotonic()), **args)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            reply = await comm.read()
+        finally:
+            comm.abort()
+        outcome.append(str(reply.get("type")) if isinstance(reply, dict) else "")
+
+    def run() -> None:
+        try:
+            asyncio.run(asyncio.wait_for(handshake(), max(0.1, deadline - time.monotonic())))
+        except BaseException as exc:  # noqa: BLE001: every failure becomes one line below
+            outcome.append(exc)
+
+    # In a thread of its own, so that a caller inside an event loop (a notebook) can connect too.
+    t = threading.Thread(target=run, name="whitecap-scheduler-probe", daemon=True)
+    t.start()
+    t.join(max(0.1, deadline - time.monotonic()) + 5.0)
+    result = outcome[0] if outcome else TimeoutError()
+    if result == "Scheduler":
+        return
+    if result in ("Worker", "Nanny"):
+        raise ClusterError(f"--cluster {spec}: {where} is a Dask worker, not the scheduler; give the scheduler's "
+                           "address (tcp://HOST:PORT, 8786 unless told otherwise)")
+    if isinstance(result, (TimeoutError, asyncio.TimeoutError)):
+        raise ClusterError(silent)
+    if isinstance(result, OSError) and not isinstance(result, TimeoutError):
+        raise ClusterError(f"--cluster {spec}: no Dask scheduler answered at {address} within {timeout:g} s "
+                           f"({type(result).__name__}); start one with `dask scheduler` or check the address")
+    raise ClusterError(not_dask)
+
+
+def _tcp_greeting(spec: str, address: str, deadline: float, timeout: float) -> int | None:
+    """The length a tcp:// peer announces for its first message, None if it sends nothing before ``deadline``.
+
+    A refused connection is tried again until the deadline (a scheduler may be
+    starting); an unknown host fails at once.
+    """
+    host, port = _host_port(address.split("://", 1)[1])
+    last: OSError | None = None
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise ClusterError(f"--cluster {spec}: no Dask scheduler answered at {address} within {timeout:g} s "
+                               f"({type(last or TimeoutError()).__name__}); start one with `dask scheduler` or "
+                               "check the address")
+        try:
+            sock = socket.create_connection((host, int(port)), timeout=left)
+            break
+        except socket.gaierror:
+            raise ClusterError(f"--cluster {spec}: host '{host}' not found; check the address "
+                               "(tcp://HOST:PORT), or give local, slurm or pbs") from None
+        except (socket.timeout, TimeoutError) as exc:
+            last = exc
+        except OSError as exc:  # refused, unreachable: try again until the deadline
+            last = exc
+            time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+    with sock:
+        head = b""
+        try:
+            while len(head) < 8:
+                sock.settimeout(max(0.01, deadline - time.monotonic()))
+                chunk = sock.recv(8 - len(head))
+                if not chunk:  # closed without a word
+                    return 0
+                head += chunk
+        except (socket.timeout, TimeoutError):
+            return None
+        except OSError:
+            return 0
+    return struct.unpack("<Q", head)[0]
 
 
 def batch_cluster(kind: str, cfg):
@@ -336,7 +598,7 @@ def batch_options(cfg) -> dict[str, Any]:
     """dask-jobqueue's keyword arguments for one batch job described by the ``[cluster]`` section."""
     kw: dict[str, Any] = dict(
         cores=cfg.cores, processes=cfg.processes, memory=cfg.memory, walltime=cfg.walltime,
-        job_name="whitecap", scheduler_options={"dashboard_address": ":0"},
+        job_name="whitecap", scheduler_options=dict(NO_DASHBOARD),
         # One frame at a time per worker: the frame itself uses the job's cores
         # (splashsurf's threads, Cycles' threads), as a local run does.
         worker_extra_args=["--nthreads", "1"],
