@@ -490,3 +490,54 @@ def test_a_partly_done_cluster_run_resumes_with_each_result_recorded_as_its_own_
     assert dict(RunInfo.load(run).files("mesh")) == {i: f"mesh/fluid_{i:05d}.ply" for i in range(4)}
     assert _files(run / "mesh") == _files(reference / "mesh")
     assert {n: (run / "mesh" / n).stat().st_mtime_ns for n in first} == first  # frames 0 and 3 not made again
+
+
+def test_a_local_cluster_that_does_not_start_is_one_line_with_a_hint(tiny_run, tmp_path, capsys, monkeypatch):
+    """A script without the `if __name__ == '__main__':` guard makes each spawned worker run it again, and
+    Dask's LocalCluster fails with 'Nanny failed to start'; whitecap says so in one line, with the remedy."""
+    def nanny_fails(*args, **kw):
+        raise RuntimeError("Nanny failed to start.")
+
+    monkeypatch.setattr(distributed, "LocalCluster", nanny_fails)
+    run = _run_copy(tiny_run, tmp_path / "run")
+    rc, _ = _cli_within(["mesh", str(run), "--cluster", "local"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err, err
+    assert err.startswith("error: --cluster local: the local Dask cluster did not start (RuntimeError: Nanny failed")
+    assert "if __name__ == '__main__':" in err
+    _untouched(run)
+
+
+class _Failing:
+    class last_worker:
+        address = "tcp://10.0.0.9:4000"
+
+    def result(self):
+        raise distributed.scheduler.KilledWorker("save-blend", self.last_worker, 3)
+
+
+class _BlendCluster:
+    """Just enough of a DaskExecutor for render_on_cluster: the task that saves scene.blend loses its worker."""
+
+    cluster, frame_threads, summaries = True, 0, []
+
+    class client:
+        @staticmethod
+        def submit(fn, *args, pure=False):
+            return _Failing()
+
+    def register(self, plugin, name):
+        pass
+
+    def unregister(self, name):
+        pass
+
+
+def test_saving_the_blend_file_on_a_dead_worker_is_one_line(tmp_path):
+    from whitecap.errors import WhitecapError
+    from whitecap.render.cluster import render_on_cluster
+
+    with pytest.raises(WhitecapError) as err:
+        render_on_cluster(_BlendCluster(), tmp_path, "preview", "CPU", [], True, None, None, lambda i: None)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("render: saving render/scene.blend on the cluster failed (KilledWorker")

@@ -385,9 +385,14 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
             n = jobs or cfg.jobs or len(os.sched_getaffinity(0))
             # One thread per worker: a frame is one task at a time. No dashboard (it needs bokeh, and
             # its HTTP server on a fixed port warned when another cluster held it), no worker log lines.
-            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, silence_logs=logging.CRITICAL,
-                                               scheduler_kwargs=NO_DASHBOARD)
+            try:
+                cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                   dashboard_address=None, silence_logs=logging.CRITICAL,
+                                                   scheduler_kwargs=NO_DASHBOARD)
+            except Exception as exc:  # most often: workers are spawned, and the calling script re-ran itself
+                raise ClusterError(f"--cluster local: the local Dask cluster did not start ({_one_line(exc)}); "
+                                   "from a Python script, call whitecap under `if __name__ == '__main__':`, "
+                                   "since each worker process imports the script again") from None
             owns.append(cluster)
             address = cluster.scheduler_address
         elif spec in ("slurm", "pbs"):
@@ -664,7 +669,11 @@ def _failed_info(summary: Summary) -> str:
 
 
 def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
+    """'Type: last line of the message' (a message that cannot be made into text is left out)."""
+    try:
+        text = str(exc).strip().splitlines()
+    except Exception:
+        text = []
     return f"{type(exc).__name__}: {text[-1] if text else ''}".rstrip(": ")
 
 

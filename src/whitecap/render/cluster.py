@@ -95,7 +95,7 @@ def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[i
     """
     import uuid
 
-    from ..executor import map_frames
+    from ..executor import ClusterError, _one_line, map_frames
 
     name = f"whitecap-blender-{uuid.uuid4().hex[:8]}"
     ex.register(BlenderWorkers(str(Path(run_dir).resolve()), quality, device, ex.frame_threads), name)
@@ -109,7 +109,11 @@ def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[i
         if todo:
             map_frames(ex, "render", render_frame, [(i, (name, i)) for i in todo], bar, task, done, report=report)
         if need_blend:
-            ex.client.submit(save_blend, name, pure=False).result()
+            try:
+                ex.client.submit(save_blend, name, pure=False).result()
+            except Exception as exc:  # its worker died (KilledWorker), or Blender failed
+                raise ClusterError(f"render: saving render/scene.blend on the cluster failed ({_one_line(exc)}); "
+                                   "the rendered frames are kept, rerun to save it") from None
     finally:
         ex.unregister(name)
     return pids
