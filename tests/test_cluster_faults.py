@@ -8,7 +8,10 @@
 - ``--cluster local`` starts no dashboard and prints no socket warning; a
   worker's death prints no raw Dask log line.
 - A partly done cluster run resumes with each result recorded as the frame it
-  belongs to, when frames finish out of order.
+  belongs to, when frames finish out of order; a frame whose result was lost
+  with its worker and made again is delivered with its value.
+- A local cluster that cannot start, and a scene.blend save whose worker
+  died: one line each.
 """
 
 from __future__ import annotations
@@ -468,13 +471,15 @@ def test_a_partly_done_cluster_run_resumes_with_each_result_recorded_as_its_own_
     for i in (1, 2):
         (run / inputs[i]).write_bytes(kept[i])
 
-    real, finished = rec.write_mesh, []
+    real, finished, frame_2_written = rec.write_mesh, [], threading.Event()
 
     def write_mesh(path, surface):
         if Path(path).name.startswith("fluid_00001."):
-            time.sleep(2.0)  # frame 1 is slow: frame 2, submitted after it, finishes first
+            frame_2_written.wait(60)  # frame 1 waits: frame 2, submitted after it, finishes first
         real(path, surface)
         finished.append(int(Path(path).name.split("_")[1].split(".")[0]))
+        if Path(path).name.startswith("fluid_00002."):
+            frame_2_written.set()
 
     monkeypatch.setattr(rec, "write_mesh", write_mesh)
     stats = pipeline.mesh(run, cluster=address, show_progress=False)
