@@ -1,0 +1,103 @@
+"""Share of the diffuse phase in ``simulate`` (issue 31): the H = 2a dam break of
+bench_solver.py's ``scene_for`` (COLUMN_HEIGHT, here at r = 4 mm), 30 frames at 120 fps,
+with foam on and off, ``simulate(..., profile=True)``.
+
+Prints the wall time of each top-level phase (step, diffuse, output, checkpoint) per frame and
+its share of the run, the foam phase's own split (potentials, advect, generate, compact),
+and the ratio to issue 31's reference figures on 2 CPU cores (diffuse 356 ms a frame,
+37% of the run, against 578 ms a frame of solver). Target: the diffuse phase at most 15%.
+
+    python benchmarks/bench_simulate_foam.py [--radius 0.004] [--frames 30] [--arch cpu] [--foam-only]
+
+Each configuration runs in its own process (one Taichi runtime per process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+REFERENCE_DIFFUSE_MS = 356.0  # issue 31, 2 CPU cores, foam phase per frame
+REFERENCE_SOLVER_MS = 578.0  # issue 31, solver per frame
+REFERENCE_SHARE = 0.37
+TARGET_SHARE = 0.15
+PHASE = "diffuse"  # the foam stage's timer in sim/driver.py (its hook name)
+
+
+def _scene(radius: float, frames: int):
+    sys.path.insert(0, os.path.dirname(__file__))
+    from bench_solver import COLUMN_HEIGHT
+
+    from whitecap.config import scene_from_dict
+
+    a = COLUMN_HEIGHT / 2  # scene_for's column: a wide, a/2 deep, 2a tall, in a 4a × a/2 × 2.5a tank
+    return scene_from_dict(
+        {
+            "domain": {"upper": [4 * a, a / 2, 2.5 * a]},
+            "solver": {"particle_radius": radius, "iterations": 4, "frame_rate": 120},
+            "fluid": [{"lower": [0, 0, 0], "upper": [a, a / 2, 2 * a]}],
+            "output": {"frames": frames},
+        }
+    )
+
+
+def run_one(radius: float, frames: int, arch: str, foam: bool) -> dict:
+    from whitecap import timing
+    from whitecap.pipeline import simulate
+
+    sc = _scene(radius, frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        info = simulate(sc, out=tmp + "/run", frames=frames, arch=arch, foam=foam, profile=True, show_progress=False)
+        n = int(info.extra.get("n_particles", 0) or 0) if hasattr(info, "extra") else 0
+    t = {k: v[0] for k, v in timing.TIMERS.items()}
+    return {"timers": t, "n": n}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--radius", type=float, default=0.004)
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--foam-only", action="store_true", help="skip the run with foam off")
+    ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    os.environ.setdefault("WHITECAP_PROGRESS", "0")
+    if a.one:
+        r = run_one(a.radius, a.frames, a.arch, a.one == "on")
+        print("RESULT " + json.dumps(r))
+        return
+    results = {}
+    for mode in (("on",) if a.foam_only else ("on", "off")):
+        cmd = [sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch, "--one", mode]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+        results[mode] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
+    for mode, r in results.items():
+        t = r["timers"]
+        top = {k: v for k, v in t.items() if "." not in k}
+        total = sum(top.values())
+        f = a.frames
+        print(f"== foam {mode}: {total:.2f} s for {f} frames ({1e3 * total / f:.0f} ms a frame)")
+        for k, v in sorted(top.items(), key=lambda kv: -kv[1]):
+            print(f"  {k:12s} {1e3 * v / f:8.1f} ms/frame {100 * v / total:5.1f}%")
+        for k, v in sorted(t.items()):
+            if k.startswith("foam."):
+                print(f"    {k:16s} {1e3 * v / f:8.1f} ms/frame")
+        if PHASE in top:
+            share = top[PHASE] / total
+            ms = 1e3 * top[PHASE] / f
+            print(f"  diffuse share {100 * share:.1f}% (target <= {100 * TARGET_SHARE:.0f}%; issue 31's reference "
+                  f"{100 * REFERENCE_SHARE:.0f}%): {ms:.0f} ms a frame, {ms / REFERENCE_DIFFUSE_MS:.2f}x the reference "
+                  f"{REFERENCE_DIFFUSE_MS:.0f} ms; solver {1e3 * top.get('step', 0) / f:.0f} ms a frame "
+                  f"(reference {REFERENCE_SOLVER_MS:.0f})")
+    if "off" in results:
+        on = sum(v for k, v in results["on"]["timers"].items() if "." not in k)
+        off = sum(v for k, v in results["off"]["timers"].items() if "." not in k)
+        print(f"foam on / foam off wall time: {on / off:.2f}x  (frame rate with foam: {off / on:.2f}x of without)")
+
+
+if __name__ == "__main__":
+    main()
