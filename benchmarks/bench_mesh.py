@@ -39,7 +39,7 @@ from whitecap import io as wio
 from whitecap import timing
 from whitecap.io.frame import ParticleFrame
 from whitecap.surface.driver import plan, run_mesh
-from whitecap.surface.reconstruct import MeshParams, mesh_frame
+from whitecap.surface.reconstruct import MeshParams, mesh_frame, single_threaded_splashsurf
 
 R = 0.01  # simulation particle radius r [m]
 
@@ -95,7 +95,7 @@ def main() -> None:
             wio.write(seq / f"fluid_{k:05d}.ply", synthetic_frame(a.particles, k))
         src = seq / "fluid_00000.ply"
         frame = wio.read(src)
-        params = MeshParams(particle_radius=R, multi_threading=True).check()
+        params = MeshParams(particle_radius=R).check()
         print(f"machine: {os.cpu_count()} cores; frame: {len(frame)} particles, r = {R} m, "
               f"surface radius {params.surface_radius} m, smoothing {params.smoothing_length}, cube {params.cube_size}")
 
@@ -107,6 +107,7 @@ def main() -> None:
             pysplashsurf.reconstruction_pipeline(pos64, attributes_to_interpolate={"velocity": vel64},
                                                  **params.splashsurf_kwargs())
 
+        single_threaded_splashsurf()  # as mesh_frame does: both timings on rayon's one thread
         bare()  # warm-up (thread pool, page cache)
         stats = mesh_frame(src, tmp / "warm.ply", params)
         t_bare, t_func, t_extra = [], [], []
@@ -131,7 +132,7 @@ def main() -> None:
         # 3: N frames, --jobs 1 against --jobs 2 (pool start and run.json-free sequence input)
         walls = {}
         for jobs in (1, 2):
-            job = plan(seq, out=tmp / f"jobs{jobs}", radius=R, jobs=jobs)
+            job = plan(seq, out=tmp / f"jobs{jobs}", radius=R)
             t0 = time.perf_counter()
             run_mesh(job, jobs=jobs, force=True, show_progress=False)
             walls[jobs] = time.perf_counter() - t0
@@ -170,7 +171,7 @@ def bench_cluster(a) -> None:
             try:
                 for _ in range(a.repeat):  # interleaved: both see the same load
                     for times, cl in ((pool, None), (dask, cluster.scheduler_address)):
-                        job = plan(seq, out=tmp / f"w{workers}{'d' if cl else 'p'}", radius=R, jobs=workers)
+                        job = plan(seq, out=tmp / f"w{workers}{'d' if cl else 'p'}", radius=R)
                         t0 = time.perf_counter()
                         run_mesh(job, jobs=workers, force=True, show_progress=False, cluster=cl)
                         times.append(time.perf_counter() - t0)

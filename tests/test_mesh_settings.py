@@ -118,5 +118,6 @@ def test_mesh_during_the_first_frame_of_simulate_names_the_writer(tmp_path, caps
     finally:
         holder.kill()
         holder.wait()
+        holder.stdout.close()
     assert main(["mesh", str(run), *FAST]) == 2  # nobody writing: the run simply has no frames
     assert "the run has no fluid frames" in capsys.readouterr().err

@@ -189,12 +189,10 @@ def mesh(
         ccfg = cluster_settings(run, config)
     cores = len(os.sched_getaffinity(0))
     remote = bool(cluster) and cluster != "local"
-    # splashsurf's own threads: on when one frame has the machine (one job, or a remote worker)
-    frame_jobs = 1 if remote else (jobs or cores)
-    jobs = jobs or (ccfg.jobs if remote else cores)
+    jobs = jobs or (ccfg.jobs if remote else cores)  # frames at once; splashsurf itself runs on one thread
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
-    job = plan(run, out=out, radius=radius, config=cfg, jobs=frame_jobs, up=up, **overrides)
+    job = plan(run, out=out, radius=radius, config=cfg, up=up, **overrides)
     stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress, cluster=cluster, cluster_config=ccfg)
     if profile:
         print(timing.report("mesh profile"))

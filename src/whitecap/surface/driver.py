@@ -59,7 +59,7 @@ def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
 
 
 def plan(source: str | Path, out: str | Path | None = None, radius: float | None = None,
-         config: Mesh | None = None, jobs: int = 1, up: str = "z", **overrides) -> MeshJob:
+         config: Mesh | None = None, up: str = "z", **overrides) -> MeshJob:
     """Resolve the input (run directory or sequence), the parameters and the output names."""
     src = Path(source)
     is_run = src.is_dir() and (src / RUN_JSON).is_file()
@@ -86,8 +86,7 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         r = radius
         out_dir = Path(out) if out is not None else inputs[0][1].parent / "mesh"
     cfg = mesh_config(config, **overrides)
-    params = params_from_config(r, cfg, rest_density=rest_density, multi_threading=jobs <= 1, up=up,
-                               walls=walls)
+    params = params_from_config(r, cfg, rest_density=rest_density, up=up, walls=walls)
     check_memory(inputs[0][1], params, up=None if is_run else up)
     # Meshes are recorded in run.json only when they land inside the run.
     inside = is_run and out_dir.resolve().is_relative_to(src.resolve())
@@ -133,7 +132,7 @@ def settings_key(params: MeshParams) -> str:
     threading (how the work is split, not what it makes). Recorded per mesh in run.json, so meshes of
     other settings are made again rather than skipped."""
     d = params.as_dict()
-    d.pop("multi_threading", None)
+    d.pop("multi_threading", None)  # recorded by earlier versions, which threaded splashsurf on one job
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -59,9 +59,6 @@ class MeshParams:
     mesh_smoothing_weights: bool = True
     normals_smoothing_iters: int = 10
     interpolate_velocity: bool = True
-    #: No effect: splashsurf always runs on one thread (see :func:`single_threaded_splashsurf`).
-    #: Kept so that callers passing it and run.json records that hold it stay valid.
-    multi_threading: bool = False
     up: str = "z"
     #: Solid walls the surface is closed against: (axis 0-2, side -1 lower / +1 upper, plane coordinate [m]).
     walls: tuple = ()
