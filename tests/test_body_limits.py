@@ -43,9 +43,22 @@ def test_a_body_thrown_out_of_the_domain_stops_with_one_line(tmp_path):
     body.V = np.array([0.0, 0.0, 1e5])  # kicked hard: the walls still hold it
     body.advance(1e-3)
     assert (body.c >= body.lo).all() and (body.c <= body.hi).all()
-    body.F = np.array([np.inf, 0.0, 0.0])  # a coupling that blew up: no wall can hold a pose of NaN
+    body.collide_walls = lambda: None  # walls that failed to hold it: the run stops, naming the body
+    body.V = np.array([0.0, 0.0, 100.0])
     with pytest.raises(SimulationError, match=r"obstacle\[0\] \(.*slab.stl\): left the domain"):
-        body.advance(1e-3)
+        body.advance(1e-2)
+
+
+def test_a_coupling_that_blew_up_stops_with_one_line_and_no_numpy_warning(tmp_path):
+    import warnings
+
+    s = build_solver(slab_scene(tmp_path, 500.0, 0.25))
+    body = s.colliders[0].bodies[0]
+    body.F = np.array([np.inf, 0.0, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a RuntimeWarning from NumPy would be printed before the error line
+        with pytest.raises(SimulationError, match=r"obstacle\[0\] \(.*slab.stl\): the fluid's force on it is not finite"):
+            body.advance(1e-3)
 
 
 def test_the_cli_names_the_scene_file_and_the_field(tmp_path, capsys):

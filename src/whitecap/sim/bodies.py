@@ -268,6 +268,9 @@ class RigidBody:
 
     def advance(self, dt: float) -> None:
         """One step of the body under gravity and the fluid's last reaction, stopped at the walls."""
+        if not (np.isfinite(self.F).all() and np.isfinite(self.tau).all()):
+            raise SimulationError(f"{self.name}: the fluid's force on it is not finite (the coupling blew up); "
+                                  "check its density or mass and the time step")
         R = quat_matrix(self.q)
         I = R @ self.I0 @ R.T
         self.V = self.V + dt * (self.F / self.mass + self.g)
