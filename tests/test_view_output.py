@@ -18,3 +18,15 @@ def test_headless_view_keeps_the_users_files_and_one_views_frames(tiny_run, tmp_
     assert [p.name for p in _render(tiny_run, out)] == [f"view_{k:05d}.png" for k in range(4)]
     # A shorter view into the same folder: no frame of the first one is left beside it.
     assert [p.name for p in _render(tiny_run, out, "--frames", "2")] == ["view_00000.png", "view_00001.png"]
+
+
+def test_the_addon_zip_never_replaces_a_users_file(tmp_path, capsys):
+    from whitecap.cli import main
+
+    mine = tmp_path / "notes.txt"
+    mine.write_text("my notes")
+    assert main(["blender-addon", "--out", str(mine)]) == 2
+    assert "not a whitecap add-on zip" in capsys.readouterr().err
+    assert mine.read_text() == "my notes"
+    assert main(["blender-addon", "--out", str(tmp_path)]) == 0  # a folder: the zip goes inside
+    assert main(["blender-addon", "--out", str(tmp_path / "whitecap_blender_addon.zip")]) == 0  # its own: rebuilt

@@ -396,6 +396,17 @@ def _record(run_dir: Path, indices: list[int], blend: bool = False) -> None:
     info.save(run_dir)
 
 
+def _is_addon_zip(path: Path) -> bool:
+    """A zip holding a Blender extension manifest of whitecap's (an earlier build_addon)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return b'id = "whitecap' in z.read("blender_manifest.toml")
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return False
+
+
 def build_addon(out: str | Path | None = None) -> Path:
     """Zip the Blender extension (blender_manifest.toml + add-on package)."""
     import zipfile
@@ -406,6 +417,10 @@ def build_addon(out: str | Path | None = None) -> Path:
     # whitecap modules the add-on imports as its own (pure Python, no imports): one definition
     shared = {"diffuse_types.py": Path(__file__).parents[1] / "io" / "diffuse_types.py"}
     out = Path(out) if out else Path("whitecap_blender_addon.zip")
+    if out.is_dir():
+        out = out / "whitecap_blender_addon.zip"
+    if out.exists() and not _is_addon_zip(out):  # never over the user's file
+        raise InputError(f"{out}: exists and is not a whitecap add-on zip; choose another --out")
     with atomic_path(out) as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
             for f in sorted(src.iterdir()):
