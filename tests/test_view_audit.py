@@ -147,3 +147,21 @@ def test_the_colour_map_is_continuous_and_spans_its_stops():
         assert np.allclose(colormap(np.array([at]), lo, hi)[0], stop, atol=1e-6), k
     assert np.abs(np.diff(c, axis=0)).max() < 1e-3
     assert np.allclose(colormap(np.array([lo - 5.0, hi + 5.0]), lo, hi), COLORMAP_STOPS[[0, -1]])  # clamped
+
+
+def test_the_speed_colour_range_reaches_the_speed_of_a_fall_through_the_box():
+    """The speed colours run from 0 to at least the speed water reaches falling the box's height H
+    (a drop released at the top hits the floor at √(2 g H)), so a resting first frame does not get
+    a range of zero; a faster frame widens the range to its 99th percentile."""
+    from whitecap.view.colors import GRAVITY, fitted_range, free_fall_speed
+    from whitecap.view.sources import Bounds
+
+    b = Bounds(np.array([0.0, 0.0, 0.1]), np.array([0.6, 0.2, 0.5]))
+    z, u, dt = 0.5, 0.0, 1e-5  # a drop from the top, integrated to the floor
+    while z > 0.1:
+        u += GRAVITY * dt
+        z -= u * dt
+    assert free_fall_speed(b) == pytest.approx(u, rel=1e-3)
+    assert fitted_range(np.zeros(50), "speed", free_fall_speed(b)) == pytest.approx((0.0, u), rel=1e-3)
+    fast = np.linspace(0.0, 10.0, 1001)
+    assert fitted_range(fast, "speed", free_fall_speed(b)) == pytest.approx((0.0, 9.9))
