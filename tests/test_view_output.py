@@ -30,3 +30,22 @@ def test_the_addon_zip_never_replaces_a_users_file(tmp_path, capsys):
     assert mine.read_text() == "my notes"
     assert main(["blender-addon", "--out", str(tmp_path)]) == 0  # a folder: the zip goes inside
     assert main(["blender-addon", "--out", str(tmp_path / "whitecap_blender_addon.zip")]) == 0  # its own: rebuilt
+
+
+def test_outputs_never_land_inside_another_run(tiny_run, tmp_path, capsys):
+    """mesh, export and view write outside their own run only into folders of no other run."""
+    import shutil
+
+    from whitecap.cli import main
+
+    other = tmp_path / "other"
+    shutil.copytree(tiny_run, other)
+    before = sorted(p.relative_to(other) for p in other.rglob("*"))
+    for args in (["mesh", str(tiny_run), "-o", str(other / "fluid"), "--jobs", "1"],
+                 ["mesh", str(tiny_run), "-o", str(other / "extra"), "--jobs", "1"],
+                 ["export", str(tiny_run), "--out", str(other / "export")],
+                 ["view", str(tiny_run), "--headless", "--out", str(other / "pics")]):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"lies in the run directory {other.resolve()} of another simulation" in err, err
+    assert sorted(p.relative_to(other) for p in other.rglob("*")) == before

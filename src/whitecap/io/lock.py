@@ -195,5 +195,8 @@ def export_locks(run_dir: str | Path, out: str | Path, stage: str) -> Iterator[N
         with run_lock(run_dir, stage):
             yield
         return
+    from .run import refuse_inside_other_run
+
+    refuse_inside_other_run(out, run_dir, stage)
     with read_lock(run_dir, stage), output_lock(out, stage):
         yield

@@ -486,3 +486,16 @@ def flow_domain(bounds: tuple[np.ndarray, np.ndarray], r: float) -> dict[str, li
 def domain_text(domain: dict[str, list[float]]) -> str:
     """``(x, y, z) .. (x, y, z)``: a domain box for a message."""
     return " .. ".join("(" + ", ".join(f"{v:.4g}" for v in domain[k]) + ")" for k in ("lower", "upper"))
+
+
+def refuse_inside_other_run(out: str | Path, own: str | Path | None, what: str) -> None:
+    """A one-line error when the folder ``out`` (a stage's output outside its own run) lies in a
+    whitecap run directory other than ``own``: its files would sit among another simulation's."""
+    out = Path(out).resolve()
+    own_r = Path(own).resolve() if own is not None else None
+    for d in (out, *out.parents):
+        if d == own_r:
+            return
+        if (d / RUN_JSON).is_file():
+            raise InputError(f"{out}: lies in the run directory {d} of another simulation; {what} would mix its "
+                             "files with that run's: choose a folder outside it")

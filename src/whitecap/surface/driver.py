@@ -27,7 +27,7 @@ from ..executor import executor, map_frames
 from ..io.atomic import sweep_temps
 from ..io.lock import read_lock, run_lock
 from ..io.manifest import Manifest
-from ..io.run import RUN_JSON, RunInfo, source_identity
+from ..io.run import RUN_JSON, RunInfo, refuse_inside_other_run, source_identity
 from ..io.sequence import find_sequence
 from ..progress import progress
 from ..timing import timer
@@ -44,6 +44,7 @@ class MeshJob:
     recorded: set[int] = field(default_factory=set)  # frames whose mesh run.json (or the manifest) records as current
     stats: list[dict[str, Any]] = field(default_factory=list)
     on_done: Any = None  # outside a run: records a finished frame in the folder's manifest
+    source_run: Path | None = None  # the run the frames come from, when they do
 
 
 def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
@@ -95,7 +96,7 @@ def plan(source: str | Path, out: str | Path | None = None, radius: float | None
         o = out_dir / f"fluid_{i:05d}.{cfg.format}"
         rel = os.path.relpath(o, src) if inside else str(o)
         frames.append((i, p, o, rel))
-    return MeshJob(frames, params, src if inside else None)
+    return MeshJob(frames, params, src if inside else None, source_run=src if is_run else None)
 
 
 #: Bytes splashsurf keeps per marching-cubes point near the surface (its density value, index and
@@ -174,6 +175,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         job.recorded = {i for i, _, _, rel in job.frames
                         if current.get(i) == rel and info.frame(i).get("mesh_settings") == key}
     elif job.frames:  # outside a run: only files the folder's manifest lists are ours
+        refuse_inside_other_run(job.frames[0][2].parent, job.source_run, "mesh")
         manifest = Manifest(job.frames[0][2].parent, MESH_MANIFEST)
         keys = {i: _frame_key(p, job.params) for i, p, _, _ in job.frames}
         job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}

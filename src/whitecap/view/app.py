@@ -262,7 +262,8 @@ def run_headless(
         cfg = cfg.model_copy(update={"color_mode": color_mode})
     n = (len(source) if frames is None else min(int(frames), len(source))) if not source.live else (frames or 1)
     out = Path(out)
-    manifest = _claim_view_folder(out, [f"view_{k:05d}.png" for k in range(n)] + (["view.mp4"] if mp4 else []))
+    own = source.path if not source.live and getattr(source, "info", None) is not None else None
+    manifest = _claim_view_folder(out, [f"view_{k:05d}.png" for k in range(n)] + (["view.mp4"] if mp4 else []), own)
     window = make_window(tuple(size or cfg.window_size), headless=True)
     rend = _renderer(window, source, cfg)
     state = _new_state(cfg, source)
@@ -312,11 +313,13 @@ def run_headless(
 VIEW_MANIFEST = "view.json"  # what headless views wrote into their folder (io/manifest.py)
 
 
-def _claim_view_folder(out: Path, names: list[str]):
+def _claim_view_folder(out: Path, names: list[str], own: Path | None):
     """The folder's manifest, once nothing of the user's is in the way of ``names``; the frames an
     earlier, longer view left there are removed (they were ours), so the folder shows one view."""
     from ..io.manifest import Manifest
+    from ..io.run import refuse_inside_other_run
 
+    refuse_inside_other_run(out, own, "view")
     out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out, VIEW_MANIFEST)
     manifest.refuse_foreign(names, "view")
