@@ -397,7 +397,7 @@ def _foreign(run_dir: Path) -> list[str]:
     return found
 
 
-def claim_run_dir(out: str | Path, identity: str, force: bool = False, source: str = "") -> str:
+def claim_run_dir(out: str | Path, identity: str, force: bool = False) -> str:
     """May a stage that makes a run of ``identity`` write into ``out``? The one rule that
     ``simulate``, ``import`` and ``foam --out`` share:
 
@@ -425,7 +425,7 @@ def claim_run_dir(out: str | Path, identity: str, force: bool = False, source: s
         return "same"
     if not force:
         what = (data.get("extra") or {}).get("source") or (data.get("extra") or {}).get("name") or "a whitecap scene"
-        raise InputError(f"{out}: holds another simulation (made from {what}){source}; pass --force to replace "
+        raise InputError(f"{out}: holds another simulation (made from {what}); pass --force to replace "
                          "it whole, or choose another --out")
     return "replace"
 
