@@ -51,6 +51,36 @@ def test_a_successful_atomic_write_replaces_the_file_and_leaves_nothing_else(tmp
     assert target.read_bytes() == b"two" and [p.name for p in target.parent.iterdir()] == ["run.json"]
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "io/npz.py write_npz: np.savez writes into a handle that `with open` closes when the disk fills, "
+    "and numpy leaves its ZipFile unclosed on error; its __del__ later seeks the closed handle "
+    "('Exception ignored in ZipFile.__del__', issue 30: simulate on a full disk). Fix: build the zip "
+    "in memory (np.savez(io.BytesIO()) then write its bytes into the atomic temporary file)"))
+def test_a_full_disk_writing_npz_prints_no_zipfile_traceback(tmp_path):
+    """A failed .npz write raises its one error and nothing more: no zip object left half open whose
+    clean-up prints a second traceback later."""
+    import gc
+    import sys
+
+    from whitecap import io
+
+    from .test_io import cut_files_at, frame
+
+    target = tmp_path / "checkpoint.npz"
+    io.write(target, frame())
+    late = []
+    hook = sys.unraisablehook
+    sys.unraisablehook = late.append
+    try:
+        with pytest.raises(OSError):
+            with cut_files_at(target.stat().st_size // 2):
+                io.write(target, frame(seed=1))
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+    assert not late, [repr(u.exc_value) for u in late]
+
+
 # ---------------------------------------------------------------- USD
 def test_usd_stage_plays_at_the_runs_frame_rate(tiny_run, tmp_path):
     """Both time metadata of the stage are the run's frame rate (30 fps, not USD's default 24):
