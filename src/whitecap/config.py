@@ -511,7 +511,10 @@ class Output(_Section):
 
     frames: int = Field(60, ge=1, le=1_000_000, description="number of frames after frame 0 [-]")
     formats: list[Literal["ply", "npz"]] = Field(["ply"], description="particle file formats to write")
-    checkpoint_interval: int = Field(1, ge=1, description="frames between resume checkpoints [-]")
+    checkpoint_interval: int = Field(
+        0, ge=0, description="frames between resume checkpoints (and one at the last frame); 0: automatic, "
+        "every frame on the CPU and every 20 frames on a GPU, which keeps checkpoints under 5% of the run "
+        "(a resume recomputes the frames after the last checkpoint, byte for byte) [-]")
 
 
 # --------------------------------------------------------------------------- scene

@@ -2,9 +2,16 @@
 
 Per output frame the solver advances ``substeps`` steps, then the frame is
 written to ``fluid/fluid_NNNNN.ply`` (temporary file, then rename) and
-``run.json`` is updated. Every ``output.checkpoint_interval`` frames the full
-state goes to ``checkpoint.npz``; ``resume`` restarts from it and produces
-the same remaining frames as an uninterrupted run.
+``run.json`` is updated. Every ``output.checkpoint_interval`` frames (and at
+the last one) the full state goes to ``checkpoint.npz``; ``resume`` restarts
+from it and produces the same remaining frames as an uninterrupted run.
+
+The files, ``run.json`` and the checkpoints are written by a background thread
+(:class:`whitecap.io.writer.FrameWriter`) while the solver steps on, in the
+order they were handed over: ``run.json`` lists a frame's file only once it is
+complete, and the checkpoint of frame k is written only after every frame up
+to k is on disk and recorded. Its queue is bounded (``WRITER_QUEUE`` jobs), and
+an error of the writer (a full disk) is raised in the loop at the next frame.
 
 Frame hooks (the foam stage, the live viewer) see each frame after the
 solver; they may add files and carry state in the checkpoint. This keeps the
@@ -14,6 +21,8 @@ solver free of imports from later stages.
 from __future__ import annotations
 
 import contextlib
+import copy
+import functools
 import time
 import tomllib
 from pathlib import Path
@@ -24,14 +33,21 @@ import numpy as np
 from ..config import Scene, scene_from_dict
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
-from ..io.atomic import write_arrays
+from ..io.atomic import sweep_temps, write_arrays
 from ..io.lock import LOCK_FILE, run_lock
+from ..io.writer import DEFAULT_QUEUE, FrameWriter
 from ..io.run import (CHECKPOINT, IDENTITY_IGNORES, RUN_JSON, SCENE_FILE, WALLS, RunInfo, check_scene_file,
                       claim_run_dir, frame_name, remove_run, scene_sha256, simulation_identity)
 from ..progress import progress
 from ..timing import timer
 from . import runtime
 
+#: Write frames, run.json and checkpoints in a background thread (False: in the loop, as before; for benchmarks).
+BACKGROUND_WRITER = True
+#: Jobs the background writer may hold waiting (each a copy of a frame, run.json or the state).
+WRITER_QUEUE = DEFAULT_QUEUE
+#: The writer of the simulation now running (None: write at once), used by _save_checkpoint.
+_WRITER: FrameWriter | None = None
 
 
 class FrameHook(Protocol):
@@ -107,11 +123,19 @@ def check_fluid_blocks(scene: Scene, obstacles=None) -> None:
 
 
 def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
+    """The state at frame ``index`` to ``checkpoint.npz``: gathered here, written by the running
+    simulation's background writer (after every file handed to it before), else at once."""
     data = {f"solver/{k}": v for k, v in solver.checkpoint().items()}
     for h in hooks:
         data.update({f"{h.name}/{k}": v for k, v in h.checkpoint().items()})
     data["frame"] = np.int64(index)
-    write_arrays(out / CHECKPOINT, data)
+    writer = _WRITER
+    if writer is None:
+        write_arrays(out / CHECKPOINT, data)
+        return
+    # The solver and the hooks go on (a hook's state may be its live arrays): the writer gets copies.
+    owned = {k: np.array(v, copy=True) for k, v in data.items()}
+    writer.submit(functools.partial(write_arrays, out / CHECKPOINT, owned), "checkpoint")
 
 
 def _load_checkpoint(out: Path) -> tuple[int, dict]:
@@ -226,6 +250,7 @@ def run_simulation(
 
 def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, arch: str, hooks, show_progress,
               solver) -> RunInfo:
+    global _WRITER
     identity = simulation_identity(scene.to_toml())
     has_run = (out / RUN_JSON).exists()
     if has_run and not resume and not force:
@@ -235,6 +260,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     # Files whitecap did not write are refused even with --force; --force replaces another simulation.
     same = claim_run_dir(out, identity, force=True) == "same"
     check_scene_file(out)
+    for d in (out, out / "fluid", out / "diffuse"):  # temporary files of a writer killed mid-file (kill -9)
+        sweep_temps(d)
     from_checkpoint = resume and same and (out / CHECKPOINT).exists()
     start_frame, data = _load_checkpoint(out) if from_checkpoint else (0, {})
 
@@ -256,23 +283,29 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     bodies = next((c for c in solver.colliders if getattr(c, "moving", False)), None)
 
     def emit(index: int, dt: float) -> None:
+        """Frame ``index``: its files and its run.json, handed to ``writer`` in that order."""
         if bodies is not None:  # moving bodies: their pose at this frame, as run.json records it
             info.set_bodies(index, bodies.body_records())
         with timer("output"):
-            a = solver.arrays()
+            a = solver.arrays()  # fresh host copies (to_numpy): the writer may keep them while the solver goes on
             frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
             for fmt in scene.output.formats:
                 rel = frame_name("fluid", index, fmt)
-                write(out / rel, frame)
+                writer.submit(functools.partial(write, out / rel, frame), "fluid")
                 info.set_file(index, "fluid" if fmt == "ply" else f"fluid_{fmt}", rel, solver.time)
-        for h in hooks:
+        for h in hooks:  # on this thread: a hook computes on the device; it writes its own files at once
             with timer(h.name):
                 rel = h.on_frame(frame, index, dt, out, info)
                 if rel:
                     info.set_file(index, h.name, rel, solver.time)
-        info.save(out)
+        with timer("output"):
+            # A snapshot: the loop goes on changing info while the writer saves this one, after the frame's files.
+            if isinstance(writer, _InlineWriter):
+                info.save(out)
+            else:
+                snapshot = copy.deepcopy(info)
+                writer.submit(functools.partial(snapshot.save, out), "run.json")
 
-    frame_dt = 1.0 / scene.solver.frame_rate
     scene_text = scene.to_toml()
     if not from_checkpoint:  # else frame start_frame and those before it are done: never recompute them
         if has_run:
@@ -283,9 +316,58 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     if info.extra.get("scene_sha256") != scene_sha256(scene_text):
         info.extra["scene_sha256"] = scene_sha256(scene_text)
         info.save(out)
+    writer = FrameWriter(WRITER_QUEUE) if BACKGROUND_WRITER else _InlineWriter()
+    _WRITER = writer if BACKGROUND_WRITER else None
+    try:
+        _frames(scene, out, nframes, start_frame, from_checkpoint, solver, hooks, emit, show_progress)
+        writer.flush()  # every file on disk, or the writer's error (a full disk) raised here
+    finally:
+        _WRITER = None
+        writer.close()  # on an error or Ctrl-C, what was handed over is still written (each file whole)
+    if solver.stats.neighbor_overflow:
+        from ..progress import console
+
+        console.print(
+            f"[yellow]warning:[/] {solver.stats.neighbor_overflow} neighbour pairs exceeded "
+            f"solver.max_neighbors={scene.solver.max_neighbors}; raise it for accuracy"
+        )
+    return info
+
+
+#: Automatic checkpoint interval (``output.checkpoint_interval = 0``) per arch. Measured (benchmarks/bench_output.py,
+#: issue 31): on 2 CPU cores a checkpoint costs 1-3% of a frame's wall time at 10k-125k particles, so every frame;
+#: on an H100 (581k particles, foam off) 40 ms against about 38 ms of solver a frame, so every 20th frame keeps it
+#: under 5% even where its writing is not overlapped.
+AUTO_CHECKPOINT_INTERVAL = {"cpu": 1, "cuda": 20}
+
+
+def checkpoint_interval(scene: Scene) -> int:
+    """Frames between checkpoints: ``output.checkpoint_interval``, or by the arch when it is 0 (automatic)."""
+    return scene.output.checkpoint_interval or AUTO_CHECKPOINT_INTERVAL.get(runtime.current() or "cpu", 1)
+
+
+class _InlineWriter:
+    """FrameWriter's interface, writing at once in the caller's thread (``BACKGROUND_WRITER = False``)."""
+
+    def submit(self, job, label: str = "output") -> None:
+        job()
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _frames(scene: Scene, out: Path, nframes: int, start_frame: int, from_checkpoint: bool, solver, hooks, emit,
+            show_progress: bool) -> None:
+    """Frame 0 (a new run), then step, emit and checkpoint each frame after ``start_frame``."""
+    frame_dt = 1.0 / scene.solver.frame_rate
+    interval = checkpoint_interval(scene)
     if not from_checkpoint:
         emit(0, frame_dt)
-        _save_checkpoint(out, 0, solver, hooks)
+        with timer("checkpoint"):
+            _save_checkpoint(out, 0, solver, hooks)
     bar = progress(disable=not show_progress)
     with bar:
         task = bar.add_task("simulate", total=nframes, completed=start_frame, info="")
@@ -294,7 +376,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
             with timer("step"):
                 solver.advance_frame(index)
             emit(index, frame_dt)
-            if index % scene.output.checkpoint_interval == 0 or index == nframes:
+            if index % interval == 0 or index == nframes:
                 with timer("checkpoint"):
                     _save_checkpoint(out, index, solver, hooks)
             el = time.perf_counter() - t0
@@ -306,11 +388,3 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
                 info=f"t={solver.time:.3f}s  {sps:.1f} steps/s  {solver.n:,} particles  "
                 f"vmax={solver.stats.max_speed:.2f} m/s{extra}",
             )
-    if solver.stats.neighbor_overflow:
-        from ..progress import console
-
-        console.print(
-            f"[yellow]warning:[/] {solver.stats.neighbor_overflow} neighbour pairs exceeded "
-            f"solver.max_neighbors={scene.solver.max_neighbors}; raise it for accuracy"
-        )
-    return info

@@ -1,0 +1,128 @@
+"""A background writer: one thread that writes files in the order they are handed to it.
+
+``simulate`` hands each frame's files, its ``run.json`` and its checkpoints to a
+:class:`FrameWriter` and goes on stepping while they are written::
+
+    with FrameWriter() as w:
+        w.submit(functools.partial(write, path, frame), "output")
+        w.flush()          # every file handed over is on disk (or its error is raised here)
+
+- **In order.** One thread, one FIFO queue: a ``run.json`` handed over after a
+  frame's files is written after them, so it never lists a file that is not
+  complete; a checkpoint handed over after frame k's ``run.json`` is written
+  once every frame up to k is on disk and recorded.
+- **Bounded.** The queue holds at most ``maxsize`` jobs; :meth:`submit` blocks
+  while it is full, so a slow disk slows the caller down instead of letting
+  copies of frames pile up in memory. The time spent blocked is the phase
+  timer ``output wait``.
+- **Errors are not lost.** The first exception of a job (a full disk: an OSError
+  naming the file) is raised in the caller's thread by the next :meth:`submit`
+  or :meth:`flush`. Jobs after a failed one are skipped: a later ``run.json``
+  must not list a file that was not written.
+- Jobs must own what they write: hand over arrays the caller will not change.
+  The writer thread never calls Taichi (no ``ti.sync``); its own time is
+  recorded as ``writer.<label>`` in :data:`whitecap.timing.TIMERS` (a dotted
+  name: it overlaps the caller's phases, so it is not counted in the total).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from typing import Callable
+
+from .. import timing
+
+#: Jobs waiting at most (besides the one being written): each may hold a copy of a frame or of the state.
+DEFAULT_QUEUE = 2
+WAIT_TIMER = "output wait"
+
+
+class FrameWriter:
+    def __init__(self, maxsize: int = DEFAULT_QUEUE, name: str = "whitecap-writer") -> None:
+        if maxsize < 1:
+            raise ValueError("maxsize must be at least 1")
+        self._queue: queue.Queue = queue.Queue(maxsize)
+        self._error: BaseException | None = None
+        self._raised = False
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ caller's side
+    def submit(self, job: Callable[[], object], label: str = "output") -> None:
+        """Hand ``job`` to the writer thread; blocks while the queue is full. Raises the error of an
+        earlier job, if one failed."""
+        if self._closed:
+            raise RuntimeError("FrameWriter: submit after close")
+        self._raise()
+        try:
+            self._queue.put_nowait((job, label))
+        except queue.Full:
+            with timing.timer(WAIT_TIMER):
+                self._queue.put((job, label))
+        self._raise()
+
+    def flush(self) -> None:
+        """Wait until every job handed over is done; raise the first error of one."""
+        self._raise()
+        if self._queue.unfinished_tasks:
+            with timing.timer(WAIT_TIMER):
+                self._queue.join()
+        self._raise()
+
+    def close(self) -> None:
+        """Write what is still queued (unless a job failed), then stop the thread. Raises nothing:
+        call :meth:`flush` first to hear of errors. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(None)
+        self._thread.join()
+
+    @property
+    def error(self) -> BaseException | None:
+        return self._error
+
+    def __enter__(self) -> "FrameWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                self.flush()
+        finally:
+            self.close()
+
+    def _raise(self) -> None:
+        if self._error is not None and not self._raised:
+            self._raised = True  # raised once: the caller unwinds, and close() must not raise it again
+            raise self._error
+        if self._error is not None:
+            raise RuntimeError(f"the background writer failed earlier: {self._error}")
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            job = None
+            try:
+                if item is None:
+                    return
+                job, label = item
+                if self._error is not None:
+                    continue  # skipped: what follows a failed write must not be recorded
+                t0 = time.perf_counter()
+                try:
+                    job()
+                except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                    self._error = exc
+                finally:
+                    if timing.ENABLED:
+                        rec = timing.TIMERS[f"writer.{label}"]
+                        rec[0] += time.perf_counter() - t0
+                        rec[1] += 1
+            finally:
+                item = job = None  # the arrays it held go now, not when the next job arrives
+                self._queue.task_done()

@@ -1,0 +1,245 @@
+"""The background writer of `simulate` (issue 31, goal 4): frames, run.json and checkpoints written
+by a thread with a bounded queue, in order; resume byte-identical after kill -9, including a kill
+while a frame is being written; a full disk in the writer reaches the caller as one OSError."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from whitecap.cli import main
+from whitecap.config import scene_from_dict
+from whitecap.io.lock import LOCK_FILE
+from whitecap.io.run import RunInfo
+from whitecap.io.writer import FrameWriter
+from whitecap.pipeline import simulate
+
+from .conftest import ROOT, tiny_scene_dict
+
+# Checkpoints every 2 frames: a resume recomputes the frames after the last one.
+SCENE = tiny_scene_dict(output={"frames": 5, "checkpoint_interval": 2}, foam={"enabled": False})
+
+
+def _snapshot(run: Path) -> dict[str, bytes]:
+    """Every file of the run but the lock file (whose holder line changes)."""
+    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*"))
+            if p.is_file() and p.name != LOCK_FILE}
+
+
+def _listed(run: Path) -> dict[str, int]:
+    return {rel: f["index"] for f in RunInfo.load(run).frames for rel in f["files"].values()}
+
+
+# ----------------------------------------------------------------------------- FrameWriter itself
+def test_jobs_run_in_order_and_flush_waits_for_them():
+    done = []
+    with FrameWriter(maxsize=2) as w:
+        for k in range(20):
+            w.submit(lambda k=k: done.append(k))
+        w.flush()
+        assert done == list(range(20))
+
+
+def test_an_error_in_the_writer_is_raised_by_the_next_call_and_later_jobs_are_skipped():
+    done = []
+    w = FrameWriter(maxsize=4)
+    failed = threading.Event()
+
+    def full():
+        failed.set()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/run/fluid/fluid_00002.ply")
+
+    w.submit(full)
+    failed.wait(30)
+    with pytest.raises(OSError) as err:
+        w.flush()
+    assert err.value.filename == "/run/fluid/fluid_00002.ply" and err.value.errno == errno.ENOSPC
+    w.close()  # raises nothing: the caller has been told
+    w2 = FrameWriter(maxsize=4)
+    gate = threading.Event()
+    w2.submit(gate.wait)
+    w2.submit(full)
+    w2.submit(lambda: done.append("after"))  # queued after the failing job: never run
+    gate.set()
+    with pytest.raises(OSError, match="No space left"):
+        for _ in range(1000):  # the next submit or the flush raises it, whichever comes first
+            w2.submit(lambda: done.append("later"))
+        w2.flush()
+    w2.close()
+    assert "after" not in done
+
+
+def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
+    gate, started = threading.Event(), threading.Event()
+    handed = []
+    w = FrameWriter(maxsize=2)
+
+    def slow():
+        started.set()
+        gate.wait(60)
+
+    def submitter():
+        w.submit(slow)
+        handed.append(1)
+        for _ in range(10):
+            w.submit(lambda: np.zeros(1000))
+            handed.append(1)
+
+    t = threading.Thread(target=submitter, daemon=True)
+    t.start()
+    assert started.wait(30)
+    deadline = time.monotonic() + 30
+    while w._queue.qsize() < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    t.join(0.3)
+    # One job being written and two waiting: the eleven others wait in the caller, not in memory.
+    assert t.is_alive() and w._queue.qsize() == 2 and len(handed) <= 3
+    gate.set()
+    t.join(30)
+    w.flush()
+    w.close()
+    assert len(handed) == 11
+
+
+# ----------------------------------------------------------------------------- simulate
+def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
+    """A slow writer: each run.json saved lists only files already on disk, and the checkpoint of
+    frame k is written once run.json lists every frame up to k."""
+    import whitecap.sim.driver as driver
+
+    run = tmp_path / "R"
+    bad = []
+    real_save, real_write, real_arrays = RunInfo.save, driver.write, driver.write_arrays
+
+    def save(self, run_dir):
+        bad.extend(rel for f in self.frames for rel in f["files"].values() if not (Path(run_dir) / rel).is_file())
+        real_save(self, run_dir)
+
+    def slow_write(path, frame):
+        time.sleep(0.05)  # the loop runs ahead of the disk: only the queue's order keeps run.json honest
+        real_write(path, frame)
+
+    def checkpoint(path, data):
+        k = int(data["frame"])
+        listed = sorted({i for i in _listed(run).values()})
+        if listed[: k + 1] != list(range(k + 1)):
+            bad.append(f"checkpoint {k} before frames {listed}")
+        real_arrays(path, data)
+
+    monkeypatch.setattr(RunInfo, "save", save)
+    monkeypatch.setattr(driver, "write", slow_write)
+    monkeypatch.setattr(driver, "write_arrays", checkpoint)
+    simulate(scene_from_dict(SCENE), out=run, show_progress=False, foam=False)
+    assert bad == []
+    assert sorted(_listed(run).values()) == [0, 1, 2, 3, 4, 5]
+
+
+def test_output_is_byte_identical_with_the_writer_on_and_off(tmp_path, monkeypatch):
+    import whitecap.sim.driver as driver
+
+    d = tiny_scene_dict(output={"frames": 3, "formats": ["ply", "npz"], "checkpoint_interval": 2},
+                        foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0})
+    simulate(scene_from_dict(d), out=tmp_path / "on", show_progress=False)
+    monkeypatch.setattr(driver, "BACKGROUND_WRITER", False)
+    simulate(scene_from_dict(d), out=tmp_path / "off", show_progress=False)
+    on, off = _snapshot(tmp_path / "on"), _snapshot(tmp_path / "off")
+    assert on.keys() == off.keys() and "diffuse/diffuse_00003.ply" in on and "fluid/fluid_00003.npz" in on
+    # run.json records where the scene lies (the same here) and nothing of the run directory's own path
+    assert [k for k in on if on[k] != off[k]] == []
+
+
+def test_disk_full_in_the_writer_is_one_line_naming_the_file_and_resume_continues(tmp_path, monkeypatch, capsys):
+    full_run, run = tmp_path / "full", tmp_path / "R"
+    simulate(scene_from_dict(SCENE), out=full_run, show_progress=False, foam=False)
+    scene_toml = tmp_path / "s.toml"
+    scene_toml.write_text(scene_from_dict(SCENE).to_toml())
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if str(dst).endswith("fluid_00003.ply"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    code = main(["simulate", str(scene_toml), "--out", str(run), "--no-foam"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error")]  # after the progress bar
+    assert code == 5 and len(err) == 1, err
+    err = err[0]
+    assert err == f"error: {run / 'fluid' / 'fluid_00003.ply'}: No space left on device", err
+    listed = _listed(run)
+    assert "fluid/fluid_00003.ply" not in listed and max(listed.values()) <= 2  # nothing after the failed file
+    assert not list(run.rglob("*.tmp*"))
+    assert int(np.load(run / "checkpoint.npz")["frame"]) == 2
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert main(["simulate", str(scene_toml), "--out", str(run), "--no-foam", "--resume"]) == 0
+    a, b = _snapshot(full_run), _snapshot(run)
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if k.startswith("fluid/") and a[k] != b[k]] == []
+
+
+CHILD = textwrap.dedent("""
+    import json, os, sys, time
+    sys.path.insert(0, {src!r})
+    import whitecap.sim.driver as driver
+    from whitecap.config import scene_from_dict
+    from whitecap.io.atomic import atomic_path
+    from whitecap.pipeline import simulate
+
+    real = driver.write
+    signal_file = {signal!r}
+
+    def write(path, frame):
+        if path.name == "fluid_00003.ply":  # half a file in its temporary name, then wait for SIGKILL
+            with atomic_path(path) as tmp:
+                tmp.write_bytes(b"ply\\nformat binary_little_endian 1.0\\n")
+                open(signal_file, "w").close()
+                time.sleep(600)
+        return real(path, frame)
+
+    driver.write = write
+    simulate(scene_from_dict(json.loads({scene!r})), out={out!r}, show_progress=False, foam=False)
+""")
+
+
+def test_kill_9_while_a_frame_is_being_written_resumes_byte_identical(tmp_path):
+    full_run, run, sig = tmp_path / "full", tmp_path / "R", tmp_path / "writing"
+    simulate(scene_from_dict(SCENE), out=full_run, show_progress=False, foam=False)
+    code = CHILD.format(src=str(ROOT / "src"), signal=str(sig), scene=json.dumps(SCENE), out=str(run))
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             env={**os.environ, "WHITECAP_PROGRESS": "0"})
+    try:
+        deadline = time.monotonic() + 300
+        while not sig.exists():
+            assert child.poll() is None, child.stdout.read().decode()
+            assert time.monotonic() < deadline, "the child never reached frame 3's write"
+            time.sleep(0.05)
+        child.send_signal(signal.SIGKILL)
+        child.wait(60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert child.returncode == -signal.SIGKILL
+    # Killed mid-file: its temporary file is there, the file itself is not, and run.json does not list it.
+    assert list((run / "fluid").glob(".fluid_00003.*.tmp.ply")) and not (run / "fluid" / "fluid_00003.ply").exists()
+    listed = _listed(run)
+    full = _snapshot(full_run)
+    for rel in listed:  # every file run.json lists is complete: the very bytes of the uninterrupted run
+        assert (run / rel).read_bytes() == full[rel], rel
+    k = int(np.load(run / "checkpoint.npz")["frame"])
+    assert k == 2 and sorted(set(listed.values())) == [0, 1, 2]  # the checkpoint follows its frames
+    simulate(scene_from_dict(SCENE), out=run, resume=True, show_progress=False, foam=False)
+    after = _snapshot(run)
+    assert sorted(after) == sorted(full)  # the temporary file is swept
+    assert [rel for rel in full if full[rel] != after[rel]] == []
