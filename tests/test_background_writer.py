@@ -27,6 +27,14 @@ from whitecap.pipeline import simulate
 
 from .conftest import ROOT, tiny_scene_dict
 
+
+@pytest.fixture(autouse=True)
+def _writer_on(monkeypatch):
+    """The background writer runs on a GPU by default; these tests run it on the CPU as well."""
+    import whitecap.sim.driver as driver
+
+    monkeypatch.setattr(driver, "BACKGROUND_WRITER", True)
+
 # Checkpoints every 2 frames: a resume recomputes the frames after the last one.
 SCENE = tiny_scene_dict(output={"frames": 5, "checkpoint_interval": 2}, foam={"enabled": False})
 
@@ -192,6 +200,7 @@ CHILD = textwrap.dedent("""
     import json, os, sys, time
     sys.path.insert(0, {src!r})
     import whitecap.sim.driver as driver
+    driver.BACKGROUND_WRITER = True
     from whitecap.config import scene_from_dict
     from whitecap.io.atomic import atomic_path
     from whitecap.pipeline import simulate

@@ -45,7 +45,8 @@ from .atomic import write_text
 FORMAT_VERSION = 1
 RUN_JSON = "run.json"
 #: scene keys (or whole sections) that do not change the simulated frames, left out of the identity
-IDENTITY_IGNORES = ("output.frames", "cluster")
+#: (checkpoints are where a resume starts: the frames after one are the same bytes whatever the interval)
+IDENTITY_IGNORES = ("output.frames", "output.checkpoint_interval", "cluster")
 
 
 def simulation_identity(scene_toml: str) -> str:

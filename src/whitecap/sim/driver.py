@@ -42,8 +42,11 @@ from ..progress import progress
 from ..timing import timer
 from . import runtime
 
-#: Write frames, run.json and checkpoints in a background thread (False: in the loop, as before; for benchmarks).
-BACKGROUND_WRITER = True
+#: Write frames, run.json and checkpoints in a background thread: True, False (in the loop), or None:
+#: on a GPU only. On the CPU, Taichi's kernels hold Python's global lock, so the thread could only write
+#: between kernels and competed with the solver: 125k particles ran 11-13 % slower with it on 2 cores
+#: (benchmarks/bench_output.py), where a checkpoint every frame costs 1-3 % of the run anyway.
+BACKGROUND_WRITER: bool | None = None
 #: Jobs the background writer may hold waiting (each a copy of a frame, run.json or the state).
 WRITER_QUEUE = DEFAULT_QUEUE
 #: The writer of the simulation now running (None: write at once), used by _save_checkpoint.
@@ -316,8 +319,9 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     if info.extra.get("scene_sha256") != scene_sha256(scene_text):
         info.extra["scene_sha256"] = scene_sha256(scene_text)
         info.save(out)
-    writer = FrameWriter(WRITER_QUEUE) if BACKGROUND_WRITER else _InlineWriter()
-    _WRITER = writer if BACKGROUND_WRITER else None
+    background = BACKGROUND_WRITER if BACKGROUND_WRITER is not None else runtime.current() not in (None, "cpu")
+    writer = FrameWriter(WRITER_QUEUE) if background else _InlineWriter()
+    _WRITER = writer if background else None
     try:
         _frames(scene, out, nframes, start_frame, from_checkpoint, solver, hooks, emit, show_progress)
         writer.flush()  # every file on disk, or the writer's error (a full disk) raised here
