@@ -51,11 +51,6 @@ def test_a_successful_atomic_write_replaces_the_file_and_leaves_nothing_else(tmp
     assert target.read_bytes() == b"two" and [p.name for p in target.parent.iterdir()] == ["run.json"]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "io/npz.py write_npz: np.savez writes into a handle that `with open` closes when the disk fills, "
-    "and numpy leaves its ZipFile unclosed on error; its __del__ later seeks the closed handle "
-    "('Exception ignored in ZipFile.__del__', issue 30: simulate on a full disk). Fix: build the zip "
-    "in memory (np.savez(io.BytesIO()) then write its bytes into the atomic temporary file)"))
 def test_a_full_disk_writing_npz_prints_no_zipfile_traceback(tmp_path):
     """A failed .npz write raises its one error and nothing more: no zip object left half open whose
     clean-up prints a second traceback later."""

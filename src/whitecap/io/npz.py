@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .atomic import atomic_path
+from .atomic import write_arrays
 from .axes import to_z_up
 from .frame import ParticleFrame
 from .registry import register
@@ -101,9 +101,7 @@ def write_npz(path: Path, frame: ParticleFrame) -> None:
         arrays["density"] = frame.density
     if frame.time is not None:
         arrays["time"] = np.float64(frame.time)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    write_arrays(path, arrays)  # closes its zip on a failed write (np.savez left it to __del__)
 
 
 def check_npz(path: Path) -> None:
