@@ -33,6 +33,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--budget", type=float, default=None, help="[foam] budget (default: the default, 2)")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"], help="Taichi backend of the foam stage")
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     from whitecap import io
@@ -69,9 +70,11 @@ def main() -> None:
             io.read(f)
         t_read = (time.perf_counter() - t0) / len(files)
         # foam: read + potentials + generation + advection + write (warm up the kernels on one frame first)
-        postprocess(files[0], out=Path(tmp) / "warm", params=params, dt=1 / 30, radius=r, show_progress=False)
+        postprocess(files[0], out=Path(tmp) / "warm", params=params, dt=1 / 30, radius=r, show_progress=False,
+                    arch=a.arch)
         t0 = time.perf_counter()
-        postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False)
+        postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
+                    arch=a.arch)
         t_foam = (time.perf_counter() - t0) / len(files)
         counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
     fps = 1 / t_foam

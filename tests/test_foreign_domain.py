@@ -99,3 +99,17 @@ def test_a_kinetic_energy_minimum_no_particle_reaches_is_named_with_the_speed_it
     assert need == pytest.approx((2 * 5.0 / info.particle_mass) ** 0.5, rel=1e-2)
     fastest = float(err.split("the fastest moved at ")[1].split(" m/s")[0])
     assert 0.5 < fastest < need
+
+
+def test_foam_arch_cuda_without_a_gpu_is_one_line(tiny_run, tmp_path, capsys):
+    from whitecap.sim.runtime import cuda_available
+
+    if cuda_available():
+        pytest.skip("a CUDA device is present")
+    import shutil
+
+    shutil.copytree(tiny_run, tmp_path / "R")
+    assert main(["foam", str(tmp_path / "R"), "--arch", "cuda"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--arch cuda: no CUDA device found" in err, err
+    assert main(["foam", str(tmp_path / "R"), "--arch", "auto"]) == 0  # falls back to the CPU

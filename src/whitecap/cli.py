@@ -91,6 +91,7 @@ def _add_foam(sub) -> None:
     p.add_argument("--radius", type=float, help="fluid particle radius [m] (half the spacing) when unknown")
     p.add_argument("--seed", type=int, help="random seed (default: the run's)")
     p.add_argument("--force", action="store_true", help="replace a run of another simulation at --out (whole)")
+    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
     p.set_defaults(func=_cmd_foam)
 
 
@@ -98,7 +99,7 @@ def _cmd_foam(a) -> int:
     from . import pipeline
 
     info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
-                         radius=a.radius, seed=a.seed, force=a.force)
+                         radius=a.radius, seed=a.seed, force=a.force, arch=a.arch)
     print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {info.extra.get('out', a.out or a.input)}")
     return 0
 

@@ -276,6 +276,7 @@ def foam(
     seed: int | None = None,
     show_progress: bool = True,
     force: bool = False,
+    arch: str = "cpu",
 ) -> RunInfo:
     """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
 
@@ -285,7 +286,8 @@ def foam(
     """
     from .errors import InputError
 
-    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress, force=force)
+    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress, force=force,
+              arch=arch)
     if ini is not None:
         from .diffuse import postprocess_params_file
 

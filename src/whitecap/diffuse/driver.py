@@ -47,8 +47,10 @@ class FoamStage:
 
     name = "diffuse"
 
-    def __init__(self, params: FoamParams, seed: int, verbose: bool = False, obstacles: list | None = None):
+    def __init__(self, params: FoamParams, seed: int, verbose: bool = False, obstacles: list | None = None,
+                 arch: str | None = None):
         self.params = params
+        self.arch = arch  # Taichi backend asked for (post-processing); None: the one running (simulate's)
         self.seed = seed
         self.obstacles = obstacles
         self.gen: FoamGenerator | None = None
@@ -64,9 +66,13 @@ class FoamStage:
 
     def start(self, info: RunInfo) -> None:
         self.particle_mass = info.particle_mass
+        if self.arch is not None:
+            from ..sim import runtime
+
+            runtime.init(self.arch)  # one line when CUDA is asked for and absent
         self.gen = FoamGenerator(
             self.params, info.particle_radius, (info.domain["lower"], info.domain["upper"]), info.gravity, self.seed,
-            obstacles=self.obstacles,
+            arch=self.arch or "cpu", obstacles=self.obstacles,
         )
         self.gen.last_frame = self.last_frame
         if self._pending is not None:
@@ -223,6 +229,7 @@ def postprocess(
     domain: tuple | None = None,
     look_ahead: bool = True,
     force: bool = False,
+    arch: str = "cpu",
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
 
@@ -256,7 +263,7 @@ def postprocess(
         if state == "replace":
             remove_run(out)
         return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead,
-                            _threshold_names(ini))
+                            _threshold_names(ini), arch)
 
 
 def _case_values(case: str | Path) -> dict:
@@ -332,7 +339,7 @@ def _threshold_names(ini) -> dict[str, str]:
 
 def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
                  frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool,
-                 names: dict[str, str]) -> RunInfo:
+                 names: dict[str, str], arch: str = "cpu") -> RunInfo:
     src_is_run = info is not None
     if src_is_run:  # read again under the lock: what is current cannot change from here on
         info = RunInfo.load(src)
@@ -346,7 +353,7 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     convert = out.resolve() != src.resolve()
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
-    stage = FoamStage(p, seed, verbose=True, obstacles=grids)
+    stage = FoamStage(p, seed, verbose=True, obstacles=grids, arch=arch)
     stage.names = names
     stage.last_frame = files[-1][0] if files else None
     stage.start(info)
