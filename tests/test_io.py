@@ -95,7 +95,6 @@ def cut_files_at(limit: int):
 
 
 @pytest.mark.parametrize("ext", ["ply", "npz", "vtu"])
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # npz: see test_io_audit
 def test_writes_are_atomic(tmp_path, ext):
     """A write that fails half way through its file (the disk fills up after some bytes went out)
     leaves the earlier file as it was and no temporary file, and the error names the file asked
