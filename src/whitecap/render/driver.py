@@ -34,6 +34,7 @@ from pathlib import Path
 
 from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
+from ..resources import MEMORY_HEADROOM, available_memory  # the Blender processes' share, as simulate's
 from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RunInfo
@@ -46,8 +47,6 @@ INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and n
 #: float and 8-bit copies made to save the PNG. An estimate on the high side: a render it
 #: lets through fits; one it refuses could not be saved in the memory left anyway.
 BYTES_PER_PIXEL = 96
-#: Share of the free memory the Blender processes of a render may plan to use (as simulate's).
-MEMORY_HEADROOM = 0.8
 #: A worker that stops on an operating-system error exits with this status after printing
 #: OS_ERROR_TAG and the error as JSON on its last line of standard error; the parent raises it.
 OS_ERROR_EXIT = 5
@@ -71,18 +70,6 @@ def render_settings(run_dir: Path, device: str | None = None) -> Render:
 
 def frame_path(run_dir: Path, index: int) -> Path:
     return run_dir / "render" / f"frame_{index:05d}.png"
-
-
-def available_memory() -> int:
-    """Bytes of memory free for new processes (Linux MemAvailable); very large when unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return 1 << 62
 
 
 def _memory_size(text: str) -> int:
