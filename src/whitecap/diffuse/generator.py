@@ -185,7 +185,8 @@ class FoamGenerator:
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
         self._warned_budget = False
-        self._slots = None
+        self._bufs: dict = {}  # Taichi arrays reused from frame to frame (see _buffer)
+        self._candidates = None
         self._S = 0
         self.capacity: int | None = None
         self._sized_for = 0  # fluid particle count the capacity was sized for
@@ -553,9 +554,23 @@ class FoamGenerator:
         n = g.normal(p)
         return np.where(out[:, None], p, x - d[:, None] * n), n
 
+    def _buffer(self, name: str, size: int, dtype=ti.i32, vec: bool = False, cols: int = 0):
+        """A Taichi array of at least ``size`` rows kept from frame to frame, grown geometrically
+        (never allocated per frame once the run's largest frame has been seen)."""
+        a = self._bufs.get(name)
+        if a is None or a.shape[0] < size:
+            rows = max(size, 2 * (a.shape[0] if a is not None else 0), 1)
+            if vec:
+                a = ti.Vector.ndarray(3, ti.f32, rows)
+            else:
+                a = ti.ndarray(dtype, (rows, cols) if cols else rows)
+            self._bufs[name] = a
+        return a
+
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
-        """(2) generation, in parallel per fluid particle into its own run of the output; then
-        the type of each new particle and thinning by its type's multiplier."""
+        """(2) generation, in parallel per fluid particle into its own run of the candidates; then
+        the type of each candidate and thinning by its type's multiplier (K.classify_candidates), and the
+        kept ones compacted in candidate order. Only the kept candidates come to the host."""
         p = self.p
         v_diff, crest, e_k, vort = pots
         self._dt = dt
@@ -569,12 +584,13 @@ class FoamGenerator:
         most = float(mult.max())
         z = np.zeros((0, 3), np.float32)
         none = (z, z, np.zeros(0, np.float32), np.zeros(0, np.uint8), 0)
+        self._candidates = None
         if most <= 0:
             return none
         k = [x * most for x in self.multipliers()]  # candidates for the most generous type; cut below
         cap = self._S = p.slots_per_particle or 0
         m = max(n, 1)
-        cnt, rate = ti.ndarray(ti.i32, m), ti.ndarray(ti.f32, m)
+        cnt, rate = self._buffer("count", m), self._buffer("rate", m, ti.f32)
         frame = index & 0xFFFFFFFF
         lost = K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap, cnt, rate,
                               int(p.model == "foamgenerator"))
@@ -582,41 +598,62 @@ class FoamGenerator:
         total = int(counts.sum())
         if not total:
             return none[:4] + (int(lost),)
-        offset = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
-        if self._slots is None or self._slots[0] < total:
-            size = max(total, 2 * (self._slots[0] if self._slots else 0))
-            self._slots = (size, ti.Vector.ndarray(3, ti.f32, size), ti.Vector.ndarray(3, ti.f32, size), ti.ndarray(ti.f32, size))
-        _, ox, ov, ol = self._slots
-        K.generate(n, fx, fv, fid, e_k, tau, cnt, _nd(offset, ti.i32), p.lifetime_min, p.lifetime_max,
+        offset = np.zeros(m, np.int32)
+        np.cumsum(counts[:-1], out=offset[1:n])
+        off = self._buffer("offset", m)
+        off.from_numpy(np.pad(offset, (0, off.shape[0] - m)))
+        ox, ov, ol = (self._buffer("cand_x", total, vec=True), self._buffer("cand_v", total, vec=True),
+                      self._buffer("cand_life", total, ti.f32))
+        owner, kd, flag = self._buffer("cand_owner", total), self._buffer("cand_kind", total), self._buffer("cand_keep", total)
+        K.generate(n, fx, fv, fid, e_k, tau, cnt, off, p.lifetime_min, p.lifetime_max,
                    p.lifetime_multiplier, self.r, dt, self.seed, frame, ox, ov, ol)
-        x, v, life = ox.to_numpy()[:total], ov.to_numpy()[:total], ol.to_numpy()[:total]
-        rows = np.flatnonzero(counts)
-        owner = np.repeat(np.arange(len(rows)), counts[rows])  # generating particle of each new one
-        slot = np.arange(total) - offset[rows][owner]
-        pid = fluid.ids.astype(np.uint32)[rows][owner]
-        if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
-            tau_ = self.thresholds()
-            e = e_k.to_numpy()[:n][rows][owner].astype(np.float64)
-            i_k = (np.minimum(e, tau_[5]) - np.minimum(e, tau_[4])) / (tau_[5] - tau_[4])
-            x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
-            life = SP.lifetimes(x01, i_k, float(tau_[5]), p.lifetime_min, p.lifetime_max)
+        K.candidate_owners(n, cnt, off, owner)
         # The type each new particle is born as; a particle of type t is kept when its slot is
         # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
-        # particles of a type whose multiplier is unchanged stay exactly the same.
-        kd = ti.ndarray(ti.i32, len(x))
-        K.classify(len(x), _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above,
-                   ti.math.vec3(*self.lo), ti.math.vec3(*self.hi), int(p.model == "foamgenerator" and p.wall_correction), kd)
-        kind = kd.to_numpy()[: len(x)].astype(np.uint8)
+        # particles of a type whose multiplier is unchanged stay exactly the same. The limits
+        # (per fluid particle and type) are known before the types, so the classification does
+        # only the work that decides whether a candidate is kept.
+        rows = np.flatnonzero(counts)
         nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
         u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)
         want = nd0[:, None] * mult.astype(np.float32)[None, :]  # (generating particle, type)
 
-        def kept(want):
+        def limits(want):
             if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
-                limit = np.floor(want + np.float32(0.5))
-            else:
-                limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
-            return slot < limit[owner, kind]
+                return np.floor(want + np.float32(0.5))
+            return np.floor(want) + (u0[:, None] < want - np.floor(want))
+
+        lim = self._buffer("limit", m, cols=3)
+        table = np.zeros(lim.shape, np.int32)
+        table[rows] = np.minimum(limits(want), np.float32(2**30))
+        lim.from_numpy(table)
+        g = self.grid
+        K.classify_candidates(total, ox, owner, off, lim, fx, g.nb_count, g.nb, *args[:7],
+                              p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
+                              int(p.model == "foamgenerator" and p.wall_correction), kd, flag)
+        idx = np.flatnonzero(flag.to_numpy()[:total]).astype(np.int32)
+        nk = len(idx)
+        sel = self._buffer("kept_idx", nk)
+        sel.from_numpy(np.pad(idx, (0, sel.shape[0] - nk)))
+        kx, kv, kl = (self._buffer("kept_x", nk, vec=True), self._buffer("kept_v", nk, vec=True),
+                      self._buffer("kept_life", nk, ti.f32))
+        kk, ko = self._buffer("kept_kind", nk), self._buffer("kept_owner", nk)
+        K.gather_kept(nk, sel, ox, ov, ol, kd, owner, kx, kv, kl, kk, ko)
+        x, v, life = kx.to_numpy()[:nk], kv.to_numpy()[:nk], kl.to_numpy()[:nk]
+        kind, fowner = kk.to_numpy()[:nk].astype(np.uint8), ko.to_numpy()[:nk]
+        self._candidates = {"total": total, "kept": idx, "offset": offset[:n], "counts": counts}  # for tests
+        row = np.searchsorted(rows, fowner)  # the generating particle's row in ``want``
+        slot = idx - offset[fowner]
+        pid = fluid.ids.astype(np.uint32)[fowner]
+        if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
+            tau_ = self.thresholds()
+            e = e_k.to_numpy()[:n][fowner].astype(np.float64)
+            i_k = (np.minimum(e, tau_[5]) - np.minimum(e, tau_[4])) / (tau_[5] - tau_[4])
+            x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
+            life = SP.lifetimes(x01, i_k, float(tau_[5]), p.lifetime_min, p.lifetime_max)
+
+        def kept(want):  # the keep rule, on the candidates the first limits kept (lower limits keep fewer)
+            return slot < limits(want)[row, kind]
 
         keep = kept(want)
         if self._scaled():

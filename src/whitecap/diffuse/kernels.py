@@ -376,3 +376,122 @@ def classify(
     for p in range(nd):
         cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
         kind[p] = diffuse_type_in_box(xd[p], cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
+
+
+# ---------------------------------------------------------------- classifying a frame's candidates
+#: kind of a candidate that no type can keep (see classify_candidates)
+NOT_KEPT = -1
+#: The owner's neighbours are counted within h·(1 − OWNER_SLACK) of a candidate: a strict radius, so
+#: that rounding can never count one that the grid's query (|x_j − x_d|² < h²) leaves out.
+OWNER_SLACK = 1e-4
+
+
+@ti.kernel
+def candidate_owners(n: ti.i32, count: I1, offset: I1, owner: I1):
+    """owner[k] = i for the candidates k ∈ [offset[i], offset[i] + count[i]) of fluid particle i (see generate)."""
+    for i in range(n):
+        for s in range(count[i]):
+            owner[offset[i] + s] = i
+
+
+@ti.func
+def _count_fluid(g, s, r2, h2, cnt: ti.template()):
+    """Counts a fluid particle met by the scan where r² < h² (every candidate of the scanned cells is
+    handed in: no branch on the distance)."""
+    cnt += ti.cast(r2 < h2, ti.i32)
+
+
+@ti.func
+def fluid_count(
+    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1, reach: ti.template(),
+    h: ti.f32,
+) -> ti.i32:
+    """The number of fluid particles within h of a point (as :func:`fluid_neighbourhood` counts them, without
+    its velocity sums)."""
+    cnt = 0
+    for_each_neighbor([p], h, lower, inv_cell, dims, xs, start, reach, _count_fluid, (h * h, cnt), True)
+    return cnt
+
+
+@ti.func
+def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32, enough: ti.i32) -> ti.i32:
+    """How many of fluid particle i's neighbours (its list nb[i, :nb_count[i]], i itself included)
+    lie within r of the point p, counted up to ``enough``. They are distinct fluid particles, so for
+    r ≤ h this never exceeds p's own count of fluid neighbours within h."""
+    c = 0
+    for k in range(nb_count[i]):
+        if (x[nb[i, k]] - p).norm_sqr() < r2:
+            c += 1
+            if c >= enough:
+                break
+    return c
+
+
+@ti.kernel
+def classify_candidates(
+    total: ti.i32,
+    xd: F3,
+    owner: I1,
+    offset: I1,
+    limit: I2,
+    x: F3,
+    nb_count: I1,
+    nb: I2,
+    lower: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    xs: F3,
+    start: I1,
+    reach: ti.template(),
+    h: ti.f32,
+    spray_below: ti.i32,
+    bubble_above: ti.i32,
+    lo: vec3,
+    hi: vec3,
+    wall_correction: ti.i32,
+    kind: I1,
+    keep: I1,
+):
+    """Which of a frame's candidates are kept: candidate k, at slot s = k − offset[i] of fluid particle
+    i = owner[k], is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t], the
+    particle's n_d·m_t rounded (see FoamGenerator._generate). The type is found with the least work
+    that decides this:
+    - s at or above every type's limit: never kept, no count;
+    - s below the foam or the bubble limit: the full type, from the fluid count within h;
+    - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. The owner's own
+      neighbours within h of the candidate are some of its fluid neighbours: when spray_below of them
+      are found, it is not spray (this ends the search early, inside the water, where most candidates
+      are born); else the full count decides.
+    kind[k] is the type of a kept candidate and NOT_KEPT for the others; keep[k] is 1 for the kept."""
+    r2_owner = (h * (1.0 - OWNER_SLACK)) ** 2
+    for k in range(total):
+        i = owner[k]
+        s = k - offset[i]
+        p = xd[k]
+        t = NOT_KEPT
+        if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+            cnt = fluid_count(p, lower, inv_cell, dims, xs, start, reach, h)
+            t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
+            if s >= limit[i, t]:
+                t = NOT_KEPT
+        elif s < limit[i, SPRAY]:
+            if owner_neighbours_near(i, p, x, nb_count, nb, r2_owner, spray_below) < spray_below:
+                if fluid_count(p, lower, inv_cell, dims, xs, start, reach, h) < spray_below:
+                    t = SPRAY
+        kind[k] = t
+        keep[k] = ti.cast(t != NOT_KEPT, ti.i32)
+
+
+@ti.kernel
+def gather_kept(
+    m: ti.i32, idx: I1, xd: F3, vd: F3, life: F1, kind: I1, owner: I1, out_x: F3, out_v: F3, out_life: F1,
+    out_kind: I1, out_owner: I1,
+):
+    """Compaction: the kept candidates idx[0..m) (ascending, so in candidate order) to the front of the outputs."""
+    for j in range(m):
+        k = idx[j]
+        out_x[j] = xd[k]
+        out_v[j] = vd[k]
+        out_life[j] = life[k]
+        out_kind[j] = kind[k]
+        out_owner[j] = owner[k]
