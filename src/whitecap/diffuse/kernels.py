@@ -414,16 +414,14 @@ def fluid_count(
 
 
 @ti.func
-def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32, enough: ti.i32) -> ti.i32:
+def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32) -> ti.i32:
     """How many of fluid particle i's neighbours (its list nb[i, :nb_count[i]], i itself included)
-    lie within r of the point p, counted up to ``enough``. They are distinct fluid particles, so for
-    r ≤ h this never exceeds p's own count of fluid neighbours within h."""
+    lie within r of the point p. They are distinct fluid particles, so for r ≤ h this never exceeds
+    p's own count of fluid neighbours within h. The whole list is counted, without a branch: stopping
+    at a count would branch on every neighbour, unpredictably (at 800k candidates, 29 ms against 18)."""
     c = 0
     for k in range(nb_count[i]):
-        if (x[nb[i, k]] - p).norm_sqr() < r2:
-            c += 1
-            if c >= enough:
-                break
+        c += ti.cast((x[nb[i, k]] - p).norm_sqr() < r2, ti.i32)
     return c
 
 
@@ -460,24 +458,25 @@ def classify_candidates(
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
     - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. The owner's own
       neighbours within h of the candidate are some of its fluid neighbours: when spray_below of them
-      are found, it is not spray (this ends the search early, inside the water, where most candidates
-      are born); else the full count decides.
+      are, it is not spray (this settles, without the grid's search, most candidates: they are born
+      inside the water, near their fluid particle); else the full count decides.
     kind[k] is the type of a kept candidate and NOT_KEPT for the others; keep[k] is 1 for the kept."""
     r2_owner = (h * (1.0 - OWNER_SLACK)) ** 2
     for k in range(total):
         i = owner[k]
         s = k - offset[i]
         p = xd[k]
-        t = NOT_KEPT
+        full = 0
         if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+            full = 1
+        elif s < limit[i, SPRAY]:
+            full = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
+        t = NOT_KEPT
+        if full:  # one search in the kernel's code (it is inlined where it is called)
             cnt = fluid_count(p, lower, inv_cell, dims, xs, start, reach, h)
             t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
             if s >= limit[i, t]:
                 t = NOT_KEPT
-        elif s < limit[i, SPRAY]:
-            if owner_neighbours_near(i, p, x, nb_count, nb, r2_owner, spray_below) < spray_below:
-                if fluid_count(p, lower, inv_cell, dims, xs, start, reach, h) < spray_below:
-                    t = SPRAY
         kind[k] = t
         keep[k] = ti.cast(t != NOT_KEPT, ti.i32)
 

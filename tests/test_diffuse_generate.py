@@ -1,0 +1,114 @@
+"""Generation of new diffuse particles (diffuse/generator.py FoamGenerator._generate): the kept
+candidates are those the old way (every candidate classified by its full fluid-neighbour count, then
+the keep rule) keeps, and they are compacted exactly once each, in candidate order."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from whitecap import io
+from whitecap.diffuse.params import resolve
+
+R = 0.01
+DT = 1.0 / 120.0
+
+
+def _splash(n: int = 12):
+    """A jittered lattice block of water with a sheared, rising velocity field: its upper part throws
+    candidates into the air (spray), its lower part keeps them in the water (foam, bubbles)."""
+    g = np.arange(n) * 2 * R
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3).astype(np.float32) + 0.3
+    x += np.random.default_rng(5).uniform(-0.05 * R, 0.05 * R, x.shape).astype(np.float32)
+    z = (x[:, 2] - x[:, 2].min()) / (2 * R * (n - 1))
+    v = np.stack([1.5 * z, 0.3 * np.sin(9 * x[:, 0]), 0.8 * z * z + 0.2], axis=1).astype(np.float32) * 3.0
+    ids = np.random.default_rng(6).permutation(len(x)).astype(np.uint32)
+    return io.ParticleFrame(positions=x, velocities=v, ids=ids)
+
+
+def _generator(multipliers):
+    from whitecap.diffuse.generator import FoamGenerator
+
+    p = resolve(preset="ihmsen2012")
+    # low thresholds and a large k: tens of candidates a fluid particle, most of them not kept
+    p = replace(p, ta_min=0.0, ta_max=2.0, wc_min=0.0, wc_max=1.0, ke_min=0.0, ke_max=4.0, k_ta=500.0, k_wc=500.0,
+                type_multipliers=multipliers, foam_dissipation=0.0)
+    return FoamGenerator(p, R, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=11)
+
+
+def _reference_keep(gen, frame, index):
+    """The kept candidates the old way: every candidate's type from its full fluid count
+    (kernels.classify), then a candidate at slot s of fluid particle i, of type t, is kept when
+    s < n_d·m_t rounded with the particle's own draw."""
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import ROUNDING_SLOT, _nd, uniform
+
+    p, c, n = gen.p, gen._candidates, len(frame)
+    total, counts, offset = c["total"], c["counts"], c["offset"]
+    x = gen._bufs["cand_x"].to_numpy()[:total]
+    _, _, _, args = gen._prepare(frame, n)
+    kd = ti.ndarray(ti.i32, total)
+    K.classify(total, _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above, ti.math.vec3(*gen.lo),
+               ti.math.vec3(*gen.hi), 0, kd)
+    kind = kd.to_numpy()
+    mult = gen.type_multipliers()
+    rows = np.flatnonzero(counts)
+    nd0 = gen._bufs["rate"].to_numpy()[:n][rows].astype(np.float32) / np.float32(mult.max())
+    u0 = uniform(gen.seed, index, frame.ids[rows], ROUNDING_SLOT, 0)
+    want = nd0[:, None] * mult.astype(np.float32)[None, :]
+    limit = np.floor(want) + (u0[:, None] < want - np.floor(want))
+    owner = np.repeat(np.arange(len(rows)), counts[rows])
+    slot = np.arange(total) - offset[rows][owner]
+    return slot < limit[owner, kind], kind, x
+
+
+@pytest.mark.parametrize("multipliers, thinned", [
+    ((30.0, 1.0, 1.0), 10),  # candidates at spray's rate: most slots can only be spray
+    ((1.0, 1.0, 1.0), 1),  # every candidate kept
+    ((2.0, 8.0, 0.5), 2),
+    ((0.0, 1.0, 3.0), 1),
+])
+def test_the_kept_candidates_are_those_the_full_classification_keeps(multipliers, thinned):
+    gen = _generator(multipliers)
+    frame = _splash()
+    d = gen.step(frame, 0, DT)
+    c = gen._candidates
+    keep, kind, x = _reference_keep(gen, frame, 0)
+    assert c["total"] > 3_000 and c["total"] >= thinned * keep.sum()  # many candidates (with spray first: most not kept)
+    np.testing.assert_array_equal(c["kept"], np.flatnonzero(keep))
+    # the frame's particles (none alive before it, none outside the domain) are exactly the kept candidates
+    np.testing.assert_array_equal(d.positions, x[keep])
+    np.testing.assert_array_equal(d.arrays["type"], kind[keep].astype(np.uint8))
+    made = np.bincount(kind[keep], minlength=3)
+    assert all((made[t] > 20) == (multipliers[t] > 0) for t in range(3)), made  # every type made that may be
+
+
+def test_compaction_keeps_each_kept_candidate_once_in_candidate_order():
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    gen.step(frame, 0, DT)
+    c, b = gen._candidates, gen._bufs
+    kept, total, m = c["kept"], c["total"], len(c["kept"])
+    assert m > 100 and np.all(np.diff(kept) > 0) and kept[-1] < total  # once each, in candidate order
+    np.testing.assert_array_equal(b["kept_x"].to_numpy()[:m], b["cand_x"].to_numpy()[kept])
+    np.testing.assert_array_equal(b["kept_v"].to_numpy()[:m], b["cand_v"].to_numpy()[kept])
+    np.testing.assert_array_equal(b["kept_life"].to_numpy()[:m], b["cand_life"].to_numpy()[kept])
+    np.testing.assert_array_equal(b["kept_owner"].to_numpy()[:m], b["cand_owner"].to_numpy()[kept])
+    # every candidate's owner is the fluid particle whose run [offset, offset + count) holds it
+    owner = b["cand_owner"].to_numpy()[:total]
+    np.testing.assert_array_equal(owner, np.repeat(np.arange(len(frame)), c["counts"]))
+
+
+def test_the_candidate_buffers_are_reused_from_frame_to_frame():
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    gen.step(frame, 0, DT)
+    before = {k: id(v) for k, v in gen._bufs.items()}
+    for _ in range(3):
+        gen.step(frame, 0, DT)  # the same candidates again (and the diffuse particles of the frames before)
+    grown = [k for k, v in gen._bufs.items() if id(v) != before.get(k)]
+    assert not grown, grown
