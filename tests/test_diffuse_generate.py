@@ -112,3 +112,29 @@ def test_the_candidate_buffers_are_reused_from_frame_to_frame():
         gen.step(frame, 0, DT)  # the same candidates again (and the diffuse particles of the frames before)
     grown = [k for k, v in gen._bufs.items() if id(v) != before.get(k)]
     assert not grown, grown
+
+
+def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
+    """kernels.generate_candidates (what the generator runs) and kernels.generate write the same bits."""
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    gen.step(frame, 0, DT)
+    b, c, n = gen._bufs, gen._candidates, len(frame)
+    total = c["total"]
+    fx, fv, fid, _ = gen._prepare(frame, n)
+    e_k = ti.ndarray(ti.f32, n)
+    e_k.from_numpy(np.random.default_rng(1).uniform(0, 8, n).astype(np.float32))
+    tau = ti.ndarray(ti.f32, 8)
+    tau.from_numpy(gen.thresholds())
+    out = [ti.Vector.ndarray(3, ti.f32, total), ti.Vector.ndarray(3, ti.f32, total), ti.ndarray(ti.f32, total)]
+    for life_mult in (0.0, 10.0):
+        args = (gen.p.lifetime_min, gen.p.lifetime_max, life_mult, gen.r, DT, gen.seed, 0)
+        K.generate(n, fx, fv, fid, e_k, tau, b["count"], b["offset"], *args, *out)
+        K.generate_candidates(total, b["cand_owner"], b["offset"], fx, fv, fid, e_k, tau, *args,
+                              b["cand_x"], b["cand_v"], b["cand_life"])
+        for ref, got in zip(out, (b["cand_x"], b["cand_v"], b["cand_life"])):
+            assert ref.to_numpy()[:total].tobytes() == got.to_numpy()[:total].tobytes()

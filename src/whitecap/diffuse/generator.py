@@ -604,10 +604,10 @@ class FoamGenerator:
         off.from_numpy(np.pad(offset, (0, off.shape[0] - m)))
         ox, ov, ol = (self._buffer("cand_x", total, vec=True), self._buffer("cand_v", total, vec=True),
                       self._buffer("cand_life", total, ti.f32))
-        owner, kd, flag = self._buffer("cand_owner", total), self._buffer("cand_kind", total), self._buffer("cand_keep", total)
-        K.generate(n, fx, fv, fid, e_k, tau, cnt, off, p.lifetime_min, p.lifetime_max,
-                   p.lifetime_multiplier, self.r, dt, self.seed, frame, ox, ov, ol)
+        owner, kd = self._buffer("cand_owner", total), self._buffer("cand_kind", total, ti.i8)
         K.candidate_owners(n, cnt, off, owner)
+        K.generate_candidates(total, owner, off, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
+                              p.lifetime_multiplier, self.r, dt, self.seed, frame, ox, ov, ol)
         # The type each new particle is born as; a particle of type t is kept when its slot is
         # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
         # particles of a type whose multiplier is unchanged stay exactly the same. The limits
@@ -630,14 +630,14 @@ class FoamGenerator:
         g = self.grid
         K.classify_candidates(total, ox, owner, off, lim, fx, g.nb_count, g.nb, *args[:7],
                               p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
-                              int(p.model == "foamgenerator" and p.wall_correction), kd, flag)
-        idx = np.flatnonzero(flag.to_numpy()[:total]).astype(np.int32)
+                              int(p.model == "foamgenerator" and p.wall_correction), kd)
+        idx = np.flatnonzero(kd.to_numpy()[:total] >= 0).astype(np.int32)  # the kept, in candidate order
         nk = len(idx)
         sel = self._buffer("kept_idx", nk)
         sel.from_numpy(np.pad(idx, (0, sel.shape[0] - nk)))
         kx, kv, kl = (self._buffer("kept_x", nk, vec=True), self._buffer("kept_v", nk, vec=True),
                       self._buffer("kept_life", nk, ti.f32))
-        kk, ko = self._buffer("kept_kind", nk), self._buffer("kept_owner", nk)
+        kk, ko = self._buffer("kept_kind", nk, ti.i8), self._buffer("kept_owner", nk)
         K.gather_kept(nk, sel, ox, ov, ol, kd, owner, kx, kv, kl, kk, ko)
         x, v, life = kx.to_numpy()[:nk], kv.to_numpy()[:nk], kl.to_numpy()[:nk]
         kind, fowner = kk.to_numpy()[:nk].astype(np.uint8), ko.to_numpy()[:nk]
