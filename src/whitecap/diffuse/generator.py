@@ -406,7 +406,7 @@ class FoamGenerator:
         with timer("foam.compact"):
             kind = self._compact(old, new, index)
         nd = len(st.positions)
-        c = [int((kind == t).sum()) for t in range(3)]
+        c = [int(x) for x in np.bincount(kind, minlength=3)[:3]]
         time_ = fluid.time if fluid.time is not None else index * dt
         if self._scaled():
             st.born = B.born_add(st.born, [time_, *np.bincount(new[3], minlength=3)[:3], *st.type_scale], self.p, dt)
@@ -700,11 +700,11 @@ class FoamGenerator:
             new_x, new_v, new_l, new_k = new_x[:room], new_v[:room], new_l[:room], new_k[:room]
         new_ids = (st.next_id + np.arange(len(new_x))).astype(np.uint32)
         st.next_id += len(new_x)
-        st.positions = np.concatenate([old[0], new_x]).astype(np.float32)
-        st.velocities = np.concatenate([old[1], new_v]).astype(np.float32)
-        st.lifetime = np.concatenate([old[2], new_l]).astype(np.float32)
-        st.ids = np.concatenate([old[3], new_ids]).astype(np.uint32)
-        kind = np.concatenate([old[4], new_k]).astype(np.uint8)
+        st.positions = np.concatenate([old[0], new_x], dtype=np.float32)
+        st.velocities = np.concatenate([old[1], new_v], dtype=np.float32)
+        st.lifetime = np.concatenate([old[2], new_l], dtype=np.float32)
+        st.ids = np.concatenate([old[3], new_ids], dtype=np.uint32)
+        kind = np.concatenate([old[4], new_k], dtype=np.uint8)
         if len(st.positions):
             # Inside the domain and outside every obstacle; new particles born outside
             # the domain go at once, as moved ones do in _advect.
