@@ -568,9 +568,11 @@ class FoamGenerator:
         return a
 
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
-        """(2) generation, in parallel per fluid particle into its own run of the candidates; then
-        the type of each candidate and thinning by its type's multiplier (K.classify_candidates), and the
-        kept ones compacted in candidate order. Only the kept candidates come to the host."""
+        """(2) generation: each fluid particle's number of candidates, each its own run of them (offsets
+        from a prefix sum of the numbers); the candidates sampled in parallel over them
+        (K.generate_candidates), typed only as far as the keep rule needs and thinned by their type's
+        multiplier (K.classify_candidates), and the kept compacted in candidate order (K.gather_kept).
+        Only the kept candidates come to the host."""
         p = self.p
         v_diff, crest, e_k, vort = pots
         self._dt = dt
