@@ -61,6 +61,8 @@ class FrameHook(Protocol):
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str: ...
 
+    def write(self) -> None: ...  # the files of the frame on_frame made (timed as output)
+
     def checkpoint(self) -> dict[str, np.ndarray]: ...
 
     def restore(self, data: dict[str, np.ndarray]) -> None: ...
@@ -296,11 +298,13 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
                 rel = frame_name("fluid", index, fmt)
                 writer.submit(functools.partial(write, out / rel, frame), "fluid")
                 info.set_file(index, "fluid" if fmt == "ply" else f"fluid_{fmt}", rel, solver.time)
-        for h in hooks:  # on this thread: a hook computes on the device; it writes its own files at once
+        for h in hooks:  # on this thread: a hook computes on the device, then writes its own files
             with timer(h.name):
                 rel = h.on_frame(frame, index, dt, out, info)
-                if rel:
-                    info.set_file(index, h.name, rel, solver.time)
+            with timer("output"):
+                h.write()
+            if rel:
+                info.set_file(index, h.name, rel, solver.time)
         with timer("output"):
             # A snapshot: the loop goes on changing info while the writer saves this one, after the frame's files.
             if isinstance(writer, _InlineWriter):
