@@ -25,7 +25,8 @@ from ..errors import InputError
 from ..io import read, read_mesh
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
-from . import stage
+from .terrain import dress_terrain
+from . import camera_follow, sea, stage
 
 
 
@@ -37,6 +38,7 @@ class SceneHandles:
     diffuse: dict  # type index -> object
     camera: object
     water: object
+    sea: object = None  # sea.Sea with [render] sea = true
 
 
 # ---------------------------------------------------------------------------- meshes
@@ -347,12 +349,14 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
     fluid.data.materials.append(water)
     sc.collection.objects.link(fluid)
+    open_sea = sea.add_sea(sc, cfg, info, water, run_dir) if cfg.sea else None
     diffuse = _add_diffuse_objects(sc, cfg, info)
     for k, entry in enumerate(info.obstacles):
         keyframe_body(_add_obstacle(entry, k, info, run_dir), k, info, first, last)
+    dress_terrain(sc, info, run_dir, quality == "preview")  # [terrain]: its material (render/terrain.py)
     cam = _add_camera(sc, cfg, info, first, last, run_dir)
     _compositing(sc, cfg)
-    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water)
+    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water, sea=open_sea)
 
 
 def _configure_cycles(sc, cfg: Render, preview: bool) -> None:
@@ -444,9 +448,19 @@ def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: 
     boxes = [np.array([tuple(o.matrix_world @ Vector(c)) for c in o.bound_box])
              for o in sc.objects if o.name.startswith("obstacle_")]
     bounds = stage.scene_bounds(run_dir, info, boxes)
-    keys, target = stage.camera_keys(cfg, info, bounds, first, last, sc.render.resolution_x / sc.render.resolution_y)
+    aspect = sc.render.resolution_x / sc.render.resolution_y
+    targets = None
+    if camera_follow.active(cfg):  # a follow camera or preset: its look-at point moves too
+        keys, targets = camera_follow.follow_keys(cfg, info, bounds, first, last, aspect, run_dir)
+        target = targets[first]
+    else:
+        keys, target = stage.camera_keys(cfg, info, bounds, first, last, aspect)
     cam_data.clip_start, cam_data.clip_end = stage.camera_clip(keys[first], target)
-    stage.depth_of_field(cam, cfg, _look_at(cam, target))
+    empty = _look_at(cam, target)
+    stage.depth_of_field(cam, cfg, empty)
+    for frame, p in (targets or {}).items():
+        empty.location = p
+        empty.keyframe_insert("location", frame=frame)
     for frame, p in keys.items():
         cam.location = p
         cam.keyframe_insert("location", frame=frame)
@@ -499,8 +513,12 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
         verts, faces, vel = read_surface(run_dir / files["mesh"])
+        if h.sea is not None:  # one open sheet with the sea: the faces on the walls and floor go
+            faces = sea.open_walls(verts, faces, info.domain["lower"], info.domain["upper"], info.particle_radius)
         fill_mesh(h.fluid.data, verts, faces, vel)
         stats["triangles"] = len(faces)
+    if h.sea is not None:
+        sea.update_sea(h.sea, verts if "mesh" in files else np.zeros((0, 3)), frame["time"])
     if "diffuse" in files:
         d = read(run_dir / files["diffuse"])
         types = d.arrays.get("type", np.zeros(len(d), np.uint8))

@@ -101,7 +101,7 @@ def container_kind(cfg: Render, info: RunInfo) -> str:
     """``[render].container``, or its default: glass where the run's walls held the fluid, else none.
     A run with a container of its own (an imported tank: an obstacle with role "container") gets
     none: its tank is drawn as that obstacle, and a second glass box around the domain would hide it."""
-    if has_own_container(info):
+    if has_own_container(info) or cfg.sea:  # the sea runs on where the walls were (render/sea.py)
         return "none"
     if cfg.container is not None:
         return cfg.container
@@ -446,7 +446,13 @@ def camera_keys(cfg: Render, info: RunInfo, bounds, first: int, last: int,
 
     Positions run linearly from :func:`camera_path`'s start to its end and turn
     ``camera_orbit`` degrees about the vertical through the target over the run.
-    The renderer keys its camera with these; the USD and Alembic exports write them."""
+    The renderer keys its camera with these; the USD and Alembic exports write them.
+    A follow camera or preset (render/camera_follow.py) gives its positions and its first look-at point."""
+    from . import camera_follow
+
+    if camera_follow.active(cfg):
+        keys, targets = camera_follow.follow_keys(cfg, info, bounds, first, last, aspect)
+        return keys, targets[first]
     start, end, target = camera_path(cfg, info, bounds, aspect=aspect)
     keys: dict[int, list[float]] = {}
     for frame in range(first, last + 1):

@@ -1,0 +1,369 @@
+"""Open water to the horizon: a sea surface around the domain box (``[render] sea = true``).
+
+The sea is one mesh of rings around the domain's footprint: ring 0 lies on
+the domain's side walls, later rings are offset outward with a spacing that
+grows with the distance, out to :data:`EXTENT` domain sizes, far past the
+horizon at any camera height the renderer picks. Per frame
+(:func:`sea_heights`) each vertex's height blends, over ``sea_blend`` metres
+from the wall, from the simulated water's height at that point of the wall
+to the still-water level plus small waves (a few deep-water sine waves, so the
+frame is a pure function of its time). At the wall the blend is flat
+(smoothstep), so the sea meets the simulated surface at its height and
+without a kink.
+
+The simulated water's mesh is closed: its faces on the side walls and the
+floor would stand inside the sea's water as a glass-like wall. With the sea
+those faces are dropped (:func:`open_walls`), so the fluid mesh and the sea
+together are one open sheet over one body of water (Cycles follows the
+volume across them; the ground is its bottom). The sea uses the water's own
+material; its ripples are a bump weighted by the mesh attribute
+:data:`RIPPLE_ATTR`, which only the sea carries, so the simulated water
+stays as it was.
+
+The geometry is pure numpy (tested without Blender); :func:`add_sea` and
+:func:`update_sea` are the bpy steps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Render
+from ..io.run import RunInfo
+
+#: The sea reaches this many times the domain's longer horizontal side from its edge.
+EXTENT = 500.0
+#: Ring spacing grows by this share of the distance from the wall.
+GROWTH = 0.08
+#: Samples on each quarter circle around a corner of the domain.
+CORNER_SAMPLES = 8
+#: Around-the-domain samples at most (their spacing is at least the perimeter over this).
+MAX_AROUND = 2000
+#: Defaults as shares of the domain's longer horizontal side (see config.Render).
+WAVE_HEIGHT_SHARE, WAVE_LENGTH_SHARE, BLEND_SHARE = 0.025, 0.2, 0.25
+#: The deep-water sine waves: (direction offset [deg], wavelength share, phase [rad]); amplitude ∝ wavelength.
+WAVES = ((0.0, 1.0, 0.0), (25.0, 0.73, 1.7), (-35.0, 0.52, 4.1), (60.0, 0.37, 2.9))
+#: A wave is drawn in the geometry only where the mesh spacing is below its length over this.
+WAVE_SAMPLES = 6.0
+#: Point attribute of the sea mesh: 0 at the domain's edge, 1 past the blend; weights the ripple bump.
+RIPPLE_ATTR = "sea_ripple"
+#: Ripple bump: noise feature size as a share of the wave length, and the bump's strength.
+RIPPLE_SIZE, RIPPLE_STRENGTH = 0.15, 0.6
+
+
+# ============================================================================ pure geometry
+@dataclass
+class SeaLayout:
+    """The fixed topology of the sea: vertex (ring k, sample j) at base[j] + d[k]·normal[j]."""
+
+    lo: np.ndarray  # domain lower corner (3,)
+    hi: np.ndarray  # domain upper corner (3,)
+    base: np.ndarray  # (n, 2) points on the domain's footprint outline (corners repeated)
+    normal: np.ndarray  # (n, 2) outward unit normals
+    wall: np.ndarray  # (n,) which wall a sample lies on: 0 y-, 1 x+, 2 y+, 3 x-; -1 a corner sample
+    d: np.ndarray  # (m,) ring distances from the wall [m], d[0] = 0
+    spacing: np.ndarray  # (m,) mesh spacing at each ring [m]
+    faces: np.ndarray  # (f, 3) triangles, counter-clockwise seen from above
+
+    def xy(self) -> np.ndarray:
+        """(m·n, 2) vertex positions, ring by ring."""
+        return (self.base[None, :, :] + self.d[:, None, None] * self.normal[None, :, :]).reshape(-1, 2)
+
+
+def horizontal_size(info: RunInfo) -> float:
+    lo, hi = np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)
+    return float(max(hi[0] - lo[0], hi[1] - lo[1]))
+
+
+def wave_height(cfg: Render, info: RunInfo) -> float:
+    return cfg.sea_wave_height if cfg.sea_wave_height is not None else WAVE_HEIGHT_SHARE * horizontal_size(info)
+
+
+def wave_length(cfg: Render, info: RunInfo) -> float:
+    return cfg.sea_wave_length if cfg.sea_wave_length is not None else WAVE_LENGTH_SHARE * horizontal_size(info)
+
+
+def blend_distance(cfg: Render, info: RunInfo) -> float:
+    return cfg.sea_blend if cfg.sea_blend is not None else BLEND_SHARE * horizontal_size(info)
+
+
+def sea_layout(lo, hi, step: float, extent: float, fine: float | None = None, fine_until: float = 0.0) -> SeaLayout:
+    """Rings around the footprint of the box [lo, hi]: samples about ``step`` apart along the
+    walls (CORNER_SAMPLES on each corner's quarter circle), rings from the walls out to ``extent``:
+    ``step`` apart at the wall, at most ``fine`` apart out to ``fine_until`` (the waves' region),
+    then further apart with the distance."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    x0, y0, x1, y1 = lo[0], lo[1], hi[0], hi[1]
+    perimeter = 2 * (x1 - x0 + y1 - y0)
+    step = max(step, perimeter / MAX_AROUND)
+    # walls counter-clockwise seen from above: (start, end, outward normal); a corner follows each
+    walls = [((x0, y0), (x1, y0), (0.0, -1.0)), ((x1, y0), (x1, y1), (1.0, 0.0)),
+             ((x1, y1), (x0, y1), (0.0, 1.0)), ((x0, y1), (x0, y0), (-1.0, 0.0))]
+    base, normal, wall = [], [], []
+    for w, (a, b, n) in enumerate(walls):
+        a, b = np.array(a), np.array(b)
+        k = max(2, int(math.ceil(np.linalg.norm(b - a) / step)))
+        t = np.arange(1, k) / k
+        base += list(a + t[:, None] * (b - a))
+        normal += [n] * (k - 1)
+        wall += [w] * (k - 1)
+        a0 = math.atan2(n[1], n[0])
+        for s in np.linspace(0.0, math.pi / 2, CORNER_SAMPLES + 1):
+            base.append(b)
+            normal.append((math.cos(a0 + s), math.sin(a0 + s)))
+            wall.append(-1)
+    fine = max(fine or step, step)
+
+    def gap(x):
+        if x < fine_until:
+            return max(step, min(fine, step + GROWTH * x))
+        return fine + GROWTH * (x - fine_until)
+
+    d = [0.0]
+    while d[-1] < extent:
+        d.append(d[-1] + gap(d[-1]))
+    d = np.array(d)
+    spacing = np.array([gap(x) for x in d])
+    n, m = len(base), len(d)
+    j = np.arange(n)
+    jn = (j + 1) % n
+    faces = []
+    for k in range(m - 1):
+        a, b, c, e = k * n + j, k * n + jn, (k + 1) * n + jn, (k + 1) * n + j
+        # the outline runs counter-clockwise and the rings go outward: (a, c, b) and (a, e, c) face up
+        faces.append(np.stack([a, c, b], 1))
+        faces.append(np.stack([a, e, c], 1))
+    return SeaLayout(lo, hi, np.array(base, float), np.array(normal, float), np.array(wall), d, spacing,
+                     np.concatenate(faces).astype(np.int32))
+
+
+def wall_tolerance(r: float) -> float:
+    """How close to a wall plane a mesh vertex counts as on it [m] (meshing snaps them to ~1e-6 m)."""
+    return max(1e-3 * r, 4e-6)
+
+
+def open_walls(verts: np.ndarray, faces: np.ndarray, lo, hi, r: float) -> np.ndarray:
+    """The fluid mesh's faces less those on the domain's side walls and floor: faces whose
+    three vertices lie on those planes and that do not face up (a surface triangle in a
+    corner, between two walls, stays)."""
+    if len(faces) == 0:
+        return faces
+    v = np.asarray(verts, float)
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    eps = wall_tolerance(r)
+    on = ((np.abs(v[:, 0] - lo[0]) < eps) | (np.abs(v[:, 0] - hi[0]) < eps) | (np.abs(v[:, 1] - lo[1]) < eps)
+          | (np.abs(v[:, 1] - hi[1]) < eps) | (np.abs(v[:, 2] - lo[2]) < eps))
+    f = np.asarray(faces)
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    up = n[:, 2] > 0.5 * np.linalg.norm(n, axis=1)
+    drop = on[f].all(1) & ~up
+    return f[~drop]
+
+
+def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float) -> np.ndarray:
+    """The simulated water's height at each outline sample: the highest fluid-mesh vertex on
+    that wall within a sample spacing (at least r) of it. Where the water does not touch the
+    wall, a gap of up to three samples is bridged, a longer one is the floor. Corner samples
+    take the higher of their two walls' nearest heights."""
+    lo, hi = layout.lo, layout.hi
+    v = np.asarray(verts, float).reshape(-1, 3)
+    eps = wall_tolerance(r)
+    n = len(layout.base)
+    h = np.full(n, np.nan)
+    planes = [(1, lo[1], 0), (0, hi[0], 1), (1, hi[1], 0), (0, lo[0], 1)]  # (normal axis, plane, along axis)
+    for w, (axis, plane, along) in enumerate(planes):
+        sel = np.flatnonzero(layout.wall == w)
+        if len(sel) == 0 or len(v) == 0:
+            continue
+        on = v[np.abs(v[:, axis] - plane) < eps]
+        if len(on) == 0:
+            continue
+        order = np.argsort(on[:, along])
+        u, z = on[order, along], on[order, 2]
+        s = layout.base[sel, along]
+        half = max(np.abs(np.diff(s)).max() if len(s) > 1 else r, r)
+        a, b = np.searchsorted(u, s - half), np.searchsorted(u, s + half)
+        for i, (ia, ib) in enumerate(zip(a, b)):
+            if ib > ia:
+                h[sel[i]] = z[ia:ib].max()
+    edge = layout.wall >= 0
+    known = np.flatnonzero(edge & np.isfinite(h))
+    floor = lo[2]
+    if len(known) == 0:
+        return np.full(n, floor)
+    # bridge short gaps along the loop (edge samples only), else the floor
+    idx = np.flatnonzero(edge)
+    pos = np.searchsorted(known, idx)
+    prev = known[(pos - 1) % len(known)]
+    nxt = known[pos % len(known)]
+    for i, p, q in zip(idx, prev, nxt):
+        if np.isfinite(h[i]):
+            continue
+        gp, gq = (i - p) % n, (q - i) % n
+        edges_between = (layout.wall[np.arange(p, p + gp + gq + 1) % n] >= 0).sum() - 2
+        if edges_between <= 3:
+            t = gp / max(gp + gq, 1)
+            h[i] = (1 - t) * h[p] + t * h[q]
+        else:
+            h[i] = floor
+    # corners: the higher of the nearest wall samples on either side
+    for i in np.flatnonzero(~edge):
+        a = i
+        while layout.wall[a] < 0:
+            a = (a - 1) % n
+        b = i
+        while layout.wall[b] < 0:
+            b = (b + 1) % n
+        h[i] = max(h[a], h[b])
+    return h
+
+
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def waves(xy: np.ndarray, spacing: np.ndarray, t: float, height: float, length: float, direction_deg: float,
+          g: float) -> np.ndarray:
+    """Sea surface elevation at points ``xy`` (n, 2) at time ``t``: the sum of the WAVES sines
+    (deep-water dispersion ω = √(g k)), crest-to-trough ``height`` where all are drawn. A wave
+    shorter than WAVE_SAMPLES × the local mesh ``spacing`` (n,) fades out (the ripple bump
+    stands for it there)."""
+    total = sum(share for _, share, _ in WAVES)
+    z = np.zeros(len(xy))
+    for off, share, phase in WAVES:
+        lam = length * share
+        amp = 0.5 * height * share / total
+        k = 2 * math.pi / lam
+        ang = math.radians(direction_deg + off)
+        kvec = k * np.array([math.cos(ang), math.sin(ang)])
+        fade = np.clip(2.0 - spacing * WAVE_SAMPLES / lam, 0.0, 1.0)
+        z += amp * fade * np.sin(xy @ kvec - math.sqrt(g * k) * t + phase)
+    return z
+
+
+def sea_heights(layout: SeaLayout, edge: np.ndarray, level: float, blend: float, t: float, height: float,
+                length: float, direction_deg: float, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """(z of every vertex, ripple weight of every vertex), ring by ring: from the simulated
+    water's ``edge`` heights at the wall to ``level`` plus :func:`waves` past ``blend``."""
+    m, n = len(layout.d), len(layout.base)
+    s = smoothstep(layout.d / blend)[:, None] * np.ones((1, n))
+    xy = layout.xy()
+    corner = np.where(layout.wall < 0, (math.pi / 2) / CORNER_SAMPLES, 0.0)
+    sp = np.maximum(layout.spacing[:, None], layout.d[:, None] * corner[None, :]).ravel()
+    w = waves(xy, sp, t, height, length, direction_deg, g)
+    z = (1 - s) * edge[None, :] + s * level + s * w.reshape(m, n)
+    return z.ravel(), s.ravel()
+
+
+def still_level(cfg: Render, info: RunInfo, run_dir: Path | None) -> float:
+    """``[render].sea_level``, else the level the first frame's water would settle at over the
+    domain's floor: its volume (particles × mass / rest density, or the closed mesh's volume)
+    over the floor's area. The domain's floor where the run has neither."""
+    if cfg.sea_level is not None:
+        return float(cfg.sea_level)
+    lo, hi = np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)
+    area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+    volume = None
+    if run_dir is not None:
+        from ..io import read, read_mesh
+
+        fluid, mesh = info.files("fluid"), info.files("mesh")
+        if fluid:
+            n = len(read(Path(run_dir) / fluid[0][1]))
+            volume = n * info.particle_mass / info.rest_density
+        elif mesh:
+            m = read_mesh(Path(run_dir) / mesh[0][1])
+            tri = np.asarray(m.vertices, float)[np.asarray(m.faces)]
+            volume = abs(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum()) / 6
+    if volume is None:
+        return float(lo[2])
+    return float(min(lo[2] + volume / area, hi[2]))
+
+
+# ============================================================================ bpy steps
+@dataclass
+class Sea:
+    obj: object
+    layout: SeaLayout
+    level: float
+    blend: float
+    height: float
+    length: float
+    direction: float
+    g: float
+    r: float
+    ripple_w: object  # the noise node whose W the frame time drives
+
+
+def add_ripples(mat, length: float):
+    """A bump on the water material weighted by the RIPPLE_ATTR attribute (0 where a mesh lacks
+    it: the simulated water is untouched). Returns the 4D noise node; its W is the time."""
+    nt = mat.node_tree
+    bsdf = nt.nodes.get("Principled BSDF")
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.noise_dimensions = "4D"
+    noise.inputs["Scale"].default_value = 1.0 / (RIPPLE_SIZE * length)
+    noise.inputs["Detail"].default_value = 3.0
+    nt.links.new(coord.outputs["Object"], noise.inputs["Vector"])
+    attr = nt.nodes.new("ShaderNodeAttribute")
+    attr.attribute_name = RIPPLE_ATTR
+    strength = nt.nodes.new("ShaderNodeMath")
+    strength.operation = "MULTIPLY"
+    nt.links.new(attr.outputs["Fac"], strength.inputs[0])
+    strength.inputs[1].default_value = RIPPLE_STRENGTH
+    bump = nt.nodes.new("ShaderNodeBump")
+    bump.inputs["Distance"].default_value = 0.5 * RIPPLE_SIZE * length
+    nt.links.new(strength.outputs[0], bump.inputs["Strength"])
+    nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    return noise
+
+
+def add_sea(sc, cfg: Render, info: RunInfo, water, run_dir: Path | None) -> Sea:
+    """The sea object (the water's material, with ripples) at its first shape: still water at
+    the level, met by the floor at the walls until a frame's fluid is loaded."""
+    import bpy
+
+    from .scene import make_mesh
+
+    lo, hi = np.array(info.domain["lower"], float), np.array(info.domain["upper"], float)
+    size = horizontal_size(info)
+    length = wave_length(cfg, info)
+    r = info.particle_radius
+    blend = blend_distance(cfg, info)
+    layout = sea_layout(lo, hi, step=min(r, length / (2 * WAVE_SAMPLES)), extent=EXTENT * size,
+                        fine=length / (2 * WAVE_SAMPLES), fine_until=blend + 2 * length)
+    sea = Sea(obj=None, layout=layout, level=still_level(cfg, info, run_dir), blend=blend,
+              height=wave_height(cfg, info), length=length, direction=cfg.sea_wave_direction,
+              g=float(np.linalg.norm(info.gravity)) or 9.81, r=r, ripple_w=add_ripples(water, length))
+    xy = layout.xy()
+    verts = np.column_stack([xy, np.full(len(xy), sea.level)])
+    me = make_mesh("sea", verts, layout.faces)
+    me.attributes.new(RIPPLE_ATTR, "FLOAT", "POINT")
+    obj = bpy.data.objects.new("sea", me)
+    obj.data.materials.append(water)
+    sc.collection.objects.link(obj)
+    sea.obj = obj
+    update_sea(sea, np.zeros((0, 3)), 0.0)
+    return sea
+
+
+def update_sea(sea: Sea, fluid_verts: np.ndarray, t: float) -> None:
+    """Shape the sea for a frame at time ``t`` whose fluid mesh has vertices ``fluid_verts``."""
+    edge = edge_heights(sea.layout, fluid_verts, sea.r)
+    z, s = sea_heights(sea.layout, edge, sea.level, sea.blend, t, sea.height, sea.length, sea.direction, sea.g)
+    me = sea.obj.data
+    co = np.column_stack([sea.layout.xy(), z]).astype(np.float32)
+    me.vertices.foreach_set("co", co.ravel())
+    me.attributes[RIPPLE_ATTR].data.foreach_set("value", s.astype(np.float32))
+    me.update()
+    # the ripples change by about one noise feature per period of a deep-water wave of their size
+    period = math.sqrt(2 * math.pi * RIPPLE_SIZE * sea.length / sea.g)
+    sea.ripple_w.inputs["W"].default_value = float(t) / period

@@ -1,0 +1,268 @@
+"""Open sea around the domain (render/sea.py) and the follow camera (render/camera_follow.py).
+
+The camera paths and the sea's geometry are pure numpy; one test renders a
+small frame in Blender (a child process, as `whitecap render` runs it) to
+check that the sea meets the simulated water without a seam.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from whitecap.config import Render
+from whitecap.io.run import RunInfo
+from whitecap.render import camera_follow, sea, stage
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+LO, HI = np.array([0.0, 0.0, 0.0]), np.array([0.8, 0.4, 0.4])
+FPS = 30.0
+
+
+def run_info(positions=None, quaternions=None, translate=(0.5, 0.2, 0.1)) -> RunInfo:
+    """A run of len(positions) frames whose obstacle 0 (a missing mesh: its centre is its
+    translate) has the given recorded poses."""
+    n = len(positions) if positions is not None else 1
+    frames = []
+    for i in range(n):
+        f = {"index": i, "time": i / FPS, "files": {}, "made_from": {}}
+        if positions is not None:
+            q = quaternions[i] if quaternions is not None else [1.0, 0.0, 0.0, 0.0]
+            f["bodies"] = [{"position": list(map(float, positions[i])), "quaternion": list(q)}]
+        frames.append(f)
+    return RunInfo(particle_radius=0.01, rest_density=1000.0, particle_mass=0.008, gravity=[0.0, 0.0, -9.81],
+                   domain={"lower": LO.tolist(), "upper": HI.tolist()}, frame_rate=FPS, frames=frames,
+                   obstacles=[{"mesh": "no_such_mesh.obj", "translate": list(translate)}])
+
+
+# ============================================================================ follow camera
+def test_follow_camera_tracks_the_body_with_the_set_smoothing():
+    """A body that jumps 0.3 m in x at frame 10: the look-at point follows the critically damped
+    step response 1 − (1 + t/τ)·e^(−t/τ), never overshoots, and the camera keeps a fixed offset
+    from it. With smoothing 0 the camera is rigidly attached."""
+    n, tau = 60, 0.25
+    pos = np.zeros((n, 3))
+    pos[10:, 0] = 0.3
+    info = run_info(pos)
+    cfg = Render(camera_follow="body:0", camera_smoothing=tau)
+    keys, targets = camera_follow.follow_keys(cfg, info, None, 0, n - 1, 4 / 3)
+    x = np.array([targets[i][0] for i in range(n)]) - 0.5
+    assert np.allclose(x[:10], 0.0)
+    t = (np.arange(n) - 9) / FPS
+    want = 0.3 * (1 - (1 + t / tau) * np.exp(-t / tau))
+    assert np.allclose(x[10:], want[10:], atol=1e-9)
+    assert x.max() <= 0.3 + 1e-12 and 0.29 < x[-1]  # no overshoot, settled after 8 τ
+    offsets = np.array([np.subtract(keys[i], targets[i]) for i in range(n)])
+    assert np.allclose(offsets, offsets[0]) and np.linalg.norm(offsets[0]) > 0.01
+    rigid = camera_follow.follow_keys(Render(camera_follow="body:0", camera_smoothing=0), info, None, 0, n - 1, 4 / 3)[1]
+    assert np.allclose([rigid[i][0] - 0.5 for i in range(n)], pos[:, 0])
+
+
+def test_follow_camera_lags_a_steady_body_by_two_time_constants():
+    """A body moving at a steady 0.5 m/s: the smoothed point lags it by 2·τ·v (within a frame's
+    travel); the keys of a later frame range are those of the whole run (smoothing from frame 0)."""
+    n, tau, v = 90, 0.2, 0.5
+    pos = np.zeros((n, 3))
+    pos[:, 1] = v * np.arange(n) / FPS
+    info = run_info(pos)
+    cfg = Render(camera_follow="body:0", camera_smoothing=tau)
+    _, targets = camera_follow.follow_keys(cfg, info, None, 0, n - 1, 4 / 3)
+    lag = (0.2 + pos[-1, 1]) - targets[n - 1][1]
+    assert lag == pytest.approx(2 * tau * v, abs=v / FPS)
+    later = camera_follow.follow_keys(cfg, info, None, 50, n - 1, 4 / 3)
+    assert sorted(later[1]) == list(range(50, n)) and later[1][70] == targets[70]
+
+
+def test_follow_camera_turns_with_the_body():
+    """The followed point is the body's centre carried by the whole pose: a quarter turn about z
+    (about the world origin, as run.json's poses are) moves the centre (0.5, 0.2) to (−0.2, 0.5)."""
+    q = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
+    info = run_info(np.zeros((3, 3)), [q] * 3)
+    track = camera_follow.body_track(info, 0, [0.5, 0.2, 0.1], [0, 1, 2])
+    assert np.allclose(track, [[-0.2, 0.5, 0.1]] * 3)
+
+
+def test_follow_an_obstacle_that_is_not_there_is_a_one_line_error():
+    from whitecap.errors import InputError
+
+    with pytest.raises(InputError, match="camera_follow = 'body:3'.*1 obstacle"):
+        camera_follow.follow_keys(Render(camera_follow="body:3"), run_info(np.zeros((2, 3))), None, 0, 1, 4 / 3)
+    with pytest.raises(ValueError, match="body:K"):
+        Render(camera_follow="boat")
+
+
+@pytest.mark.parametrize("follow", [None, "body:0"])
+def test_over_water_preset_is_low_and_looks_across_the_water(follow):
+    """over_water: the camera stands its height (default 4 % of the framed width) above the sea
+    level, outside the framed region, and looks within 6° of the horizontal."""
+    info = run_info(np.zeros((3, 3)), translate=(0.5, 0.2, 0.12))  # a body floating at the level
+    cfg = Render(camera_preset="over_water", sea_level=0.12, camera_follow=follow)
+    keys, targets = camera_follow.follow_keys(cfg, info, (LO, HI), 0, 2, 16 / 9)
+    for i in range(3):
+        p, t = np.array(keys[i]), np.array(targets[i])
+        assert 0 < p[2] - 0.12 <= 0.04 * 0.8 + 1e-9
+        d = t - p
+        pitch = math.degrees(math.atan2(-d[2], np.linalg.norm(d[:2])))
+        assert -1 < pitch < 6, pitch
+    assert keys[0][1] < 0 if follow is None else keys[0][1] < 0.2  # in front (−y) of what it frames
+    cfg = Render(camera_preset="over_water", sea_level=0.12, camera_height=0.05)
+    assert camera_follow.follow_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0][0][2] == pytest.approx(0.17)
+    # stage.camera_keys (what the exports write) gives the same positions
+    assert stage.camera_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0] == camera_follow.follow_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0]
+
+
+# ============================================================================ sea geometry
+def water_slab(lo, hi, n: int, height) -> tuple[np.ndarray, np.ndarray]:
+    """A closed box of water over the footprint of [lo, hi]: a top grid of n×n cells at
+    ``height(x, y)``, the floor at lo z, the sides on the walls. Vertices and faces."""
+    xs, ys = np.linspace(lo[0], hi[0], n + 1), np.linspace(lo[1], hi[1], n + 1)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    top = np.column_stack([X.ravel(), Y.ravel(), height(X, Y).ravel()])
+    bot = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, lo[2])])
+    v = np.vstack([top, bot])
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    B = (n + 1) ** 2
+    f = []
+    for i in range(n):
+        for j in range(n):
+            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+            f += [[a, b, c], [a, c, d], [a + B, c + B, b + B], [a + B, d + B, c + B]]
+    ring = [idx[i, 0] for i in range(n)] + [idx[n, j] for j in range(n)] + \
+           [idx[i, n] for i in range(n, 0, -1)] + [idx[0, j] for j in range(n, 0, -1)]
+    for k in range(len(ring)):
+        a, b = ring[k], ring[(k + 1) % len(ring)]
+        f += [[a + B, b + B, b], [a + B, b, a]]
+    return v, np.array(f)
+
+
+def test_open_walls_keeps_only_the_free_surface():
+    v, f = water_slab(LO, HI, 8, lambda x, y: 0.1 + 0.01 * np.sin(8 * x))
+    kept = sea.open_walls(v, f, LO, HI, 0.01)
+    assert len(kept) == 2 * 8 * 8 and (v[kept][:, :, 2] > 0.05).all()
+
+
+def test_sea_meets_the_water_at_the_wall_and_settles_to_its_level():
+    """Ring 0 lies on the walls at the simulated water's height there, faces look up, and past
+    the blend the sea is at its level give or take half the wave height."""
+    h = lambda x, y: 0.1 + 0.02 * np.sin(6 * x + 3 * y)  # noqa: E731
+    v, _ = water_slab(LO, HI, 40, h)
+    layout = sea.sea_layout(LO, HI, 0.01, 50.0, fine=0.16 / 12, fine_until=0.5)
+    edge = sea.edge_heights(layout, v, 0.01)
+    walls = layout.wall >= 0
+    assert np.allclose(edge[walls], h(layout.base[walls, 0], layout.base[walls, 1]), atol=0.003)
+    z, s = sea.sea_heights(layout, edge, 0.08, 0.2, 1.0, 0.01, 0.16, 0.0, 9.81)
+    n = len(layout.base)
+    assert np.array_equal(z[:n], edge) and (s[:n] == 0).all()
+    zr = z.reshape(len(layout.d), n)
+    assert np.abs(zr[layout.d >= 0.2] - 0.08).max() <= 0.005 + 1e-9  # within half the wave height
+    assert zr[(layout.d >= 0.2) & (layout.d < 0.3)].std() > 1e-3  # waves where the mesh resolves them
+    xy = layout.xy()[layout.faces]
+    area = np.cross(xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0])
+    assert (area >= -1e-12).all() and layout.d[-1] >= 50.0
+
+
+def test_still_level_is_the_settled_water():
+    info = run_info()
+    assert sea.still_level(Render(sea_level=0.3), info, None) == 0.3
+    assert sea.still_level(Render(), info, None) == 0.0  # no frame to measure: the floor
+
+
+def test_sea_means_no_container_and_refuses_a_tank():
+    info = run_info()
+    assert stage.container_kind(Render(sea=True), info) == "none"
+    assert stage.container_kind(Render(), info) == "glass"  # a simulated run's walls held its water
+    with pytest.raises(ValueError, match="render.sea needs container = 'none'"):
+        Render(sea=True, container="glass")
+
+
+# ============================================================================ seam render
+SEAM = r"""
+import sys, json, bpy, numpy as np
+from pathlib import Path
+from mathutils import Vector
+from bpy_extras.object_utils import world_to_camera_view
+from whitecap.config import Render
+from whitecap.io.run import RunInfo
+from whitecap.render.scene import build_scene, load_frame
+run, out, variants, pts = Path(sys.argv[1]), Path(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
+info = RunInfo.load(run)
+res = {}
+for name, over in variants.items():
+    cfg = Render(**{"preview_resolution": [160, 120], "preview_samples": 16, "device": "cpu", "glare": 0.0,
+                    "motion_blur": False, **over})
+    h = build_scene(info, cfg, "preview", 0, 0, run_dir=run)
+    load_frame(h, run, info, 0)
+    sc = bpy.context.scene
+    sc.frame_set(0)
+    res[name] = {"uv": [list(world_to_camera_view(sc, sc.camera, Vector(p)))[:2] for p in pts],
+                 "objects": sorted(o.name for o in sc.objects)}
+    sc.render.filepath = str(out / f"{name}.png")
+    bpy.ops.render.render(write_still=True)
+print(json.dumps(res))
+"""
+
+
+def test_sea_shows_no_seam_at_the_domain_edge(tmp_path):
+    """A preview frame of water that fills the domain, with the sea around it: along the
+    domain's front and right edges, pixels just inside and just outside differ by less than
+    THRESHOLD (8-bit levels). Without the sea (container none) the water's side face shows
+    there as a wall, far above it. No container object is drawn with the sea."""
+    pytest.importorskip("bpy")
+    import imageio.v2 as imageio
+
+    from whitecap.io import write_mesh
+    from whitecap.io.mesh import SurfaceMesh
+
+    run = tmp_path / "run"
+    level = 0.1
+    v, f = water_slab(LO, HI, 48, lambda x, y: level + 0.004 * np.sin(14 * x) * np.cos(9 * y))
+    write_mesh(run / "mesh/fluid_00000.ply", SurfaceMesh(v, f))
+    info = run_info()
+    info.obstacles = []
+    info.set_file(0, "mesh", "mesh/fluid_00000.ply")
+    info.save(run)
+    # points just inside / just outside the front (y = 0) and right (x = 0.8) edges, at the water's level
+    d = 0.02
+    pts, pairs = [], []
+    for x in np.linspace(0.15, 0.7, 12):
+        pairs.append((len(pts), len(pts) + 1))
+        pts += [[x, d, level], [x, -d, level]]
+    for y in np.linspace(0.08, 0.35, 8):
+        pairs.append((len(pts), len(pts) + 1))
+        pts += [[HI[0] - d, y, level], [HI[0] + d, y, level]]
+    common = {"camera_start": [1.25, -0.55, 0.45], "camera_target": [0.55, 0.2, 0.08]}
+    variants = {"sea": {"sea": True, "sea_level": level, "ground": False, **common},
+                "nosea": {"container": "none", "ground": False, **common}}
+    out = subprocess.run([sys.executable, "-c", SEAM, run, tmp_path, json.dumps(variants), json.dumps(pts)],
+                         capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads([ln for ln in out.stdout.splitlines() if ln.startswith("{")][-1])
+    assert "container" not in res["sea"]["objects"] and "sea" in res["sea"]["objects"]
+
+    def across(name):
+        img = imageio.imread(tmp_path / f"{name}.png")[..., :3].astype(float)
+        hgt, wid = img.shape[:2]
+        diffs = []
+        for a, b in pairs:
+            (ua, va), (ub, vb) = res[name]["uv"][a], res[name]["uv"][b]
+            ya, xa, yb, xb = int((1 - va) * hgt), int(ua * wid), int((1 - vb) * hgt), int(ub * wid)
+            assert 1 <= ya < hgt - 1 and 1 <= xa < wid - 1 and 1 <= yb < hgt - 1 and 1 <= xb < wid - 1
+            diffs.append(np.abs(img[ya - 1:ya + 2, xa - 1:xa + 2].mean((0, 1))
+                                - img[yb - 1:yb + 2, xb - 1:xb + 2].mean((0, 1))).mean())
+        return np.array(diffs)
+
+    with_sea, without = across("sea"), across("nosea")
+    print("across the edge, 8-bit levels: sea", with_sea.round(1), "no sea", without.round(1))
+    assert np.median(with_sea) < THRESHOLD and with_sea.max() < 2 * THRESHOLD, with_sea
+    assert np.median(without) > 2 * THRESHOLD, without
+
+
+#: Median pixel difference across the domain's edge with the sea [8-bit levels], set by looking (see the test).
+THRESHOLD = 12.0
