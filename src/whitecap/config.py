@@ -264,6 +264,56 @@ class Obstacle(_Section):
         return self
 
 
+# --------------------------------------------------------------------------- terrain
+class Terrain(_Section):
+    """Ground that is part of the scene: a heightfield from a 16-bit heightmap or a surface mesh.
+
+    It collides as a static obstacle (whitecap/terrain.py turns it into a watertight solid that
+    is appended to ``obstacle`` with material "terrain") and renders finer, with a procedural
+    material (render/terrain.py)."""
+
+    heightmap: str | None = Field(
+        None, description="16-bit grayscale PNG, relative to the scene file; 0 = height[0], 65535 = height[1]; "
+        "the top row is the +y edge")
+    mesh: str | None = Field(None, description="a terrain surface mesh (OBJ/STL/PLY), open or closed, in world "
+                             "coordinates, instead of a heightmap: its highest surface is the ground")
+    lower: list[float] | None = Field(None, min_length=2, max_length=2,
+                                      description="heightmap: x, y of its lower corner [m]; unset = domain.lower")
+    size: list[float] | None = Field(None, min_length=2, max_length=2,
+                                     description="heightmap: extent in x, y [m]; unset = the domain's")
+    height: list[float] | None = Field(None, min_length=2, max_length=2, description="heightmap: heights of "
+                                       "pixel values 0 and 65535 [m]; unset = the domain floor to a quarter up")
+    resolution: float | None = Field(None, gt=0, description="collision mesh spacing [m]; unset = 2 particle radii")
+    render_resolution: float | None = Field(None, gt=0, description="render mesh spacing [m] (finer); "
+                                            "unset = resolution / 4")
+    base: float | None = Field(None, description="z of the collision solid's flat bottom [m]; unset = below the "
+                               "domain floor")
+    friction: float = Field(0.2, ge=0, le=1, description="tangential damping at contact, as obstacle.friction [-]")
+    sdf_resolution: float = Field(1.0, gt=0, le=4.0, description="SDF grid spacing as a multiple of r [-]")
+    material: Literal["sand", "rock", "grass", "concrete"] = Field(
+        "sand", description="render: the ground's procedural material; rock shows on steep slopes of any")
+    water_level: float | None = Field(None, description="render: the still water line [m]: below it (and a wet "
+                                      "band above) the ground is wet, darker and glossier; unset = the top of the "
+                                      "highest fluid block")
+    wet_band: float | None = Field(None, ge=0, description="render: height of wet ground above water_level [m]; "
+                                   "unset = a tenth of the terrain's relief")
+    rock_slope: float = Field(40.0, ge=0, le=90, description="render: slopes steeper than this are rock [deg]; "
+                              "90 = none")
+    grass_above: float | None = Field(None, description="render: grass grows above this height [m]; unset = none")
+    texture_scale: float | None = Field(None, gt=0, description="render: size of the texture's larger features [m]; "
+                                        "unset = from the terrain's size")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "Terrain":
+        if (self.heightmap is None) == (self.mesh is None):
+            raise ValueError("give exactly one of 'heightmap' and 'mesh'")
+        if self.size is not None and min(self.size) <= 0:
+            raise ValueError("terrain.size must be positive in x and y")
+        if self.height is not None and self.height[1] < self.height[0]:
+            raise ValueError("terrain.height must be [low, high] with low <= high")
+        return self
+
+
 # --------------------------------------------------------------------------- foam
 class Foam(_Section):
     """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
@@ -556,6 +606,7 @@ class Scene(_Section):
     solver: Solver = Field(default_factory=Solver)
     fluid: list[FluidBlock] = Field(default_factory=list, description="initial fluid blocks")
     obstacle: list[Obstacle] = Field(default_factory=list, description="obstacles, static or moving")
+    terrain: Terrain | None = Field(None, description="the ground as a heightmap or mesh; collides as an obstacle")
     foam: Foam = Field(default_factory=Foam)
     mesh: Mesh = Field(default_factory=Mesh)
     view: View = Field(default_factory=View)
@@ -663,6 +714,10 @@ def scene_from_dict(data: dict, source: str = "<scene>", base_dir: str | Path = 
     except ValidationError as exc:
         raise InputError(_format_error(exc.errors()[0], source)) from None
     scene.base_dir = str(base_dir)
+    if scene.terrain is not None:  # the terrain joins the obstacles (whitecap/terrain.py)
+        from .terrain import expand
+
+        expand(scene, source)
     return scene
 
 

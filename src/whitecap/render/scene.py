@@ -25,6 +25,7 @@ from ..errors import InputError
 from ..io import read, read_mesh
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.run import RunInfo
+from .terrain import dress_terrain
 from . import camera_follow, sea, stage
 
 
@@ -352,6 +353,7 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     diffuse = _add_diffuse_objects(sc, cfg, info)
     for k, entry in enumerate(info.obstacles):
         keyframe_body(_add_obstacle(entry, k, info, run_dir), k, info, first, last)
+    dress_terrain(sc, info, run_dir, quality == "preview")  # [terrain]: its material (render/terrain.py)
     cam = _add_camera(sc, cfg, info, first, last, run_dir)
     _compositing(sc, cfg)
     return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water, sea=open_sea)

@@ -1,0 +1,259 @@
+"""The terrain in Blender: its procedural material and its place in the render scene.
+
+A scene's ``[terrain]`` reaches the renderer as an obstacle with material
+"terrain" (whitecap/terrain.py) whose render mesh is the fine surface. After
+the obstacles are added (render/scene.build_scene), :func:`dress_terrain`
+gives that object the terrain material, smooth shading and the name
+``terrain_K`` (so the default camera frames the fluid, not the whole
+terrain), and removes the tiled ground plane it replaces.
+
+The material is procedural, built from Blender's Noise and Voronoi textures
+(nothing to download). Layers, each blended by a mask with a noisy edge:
+
+- the base preset (``terrain.material``): sand, rock, grass or concrete;
+- rock on slopes steeper than ``rock_slope`` (the shading normal's z);
+- grass above ``grass_above``;
+- wet ground below ``water_level`` + ``wet_band``: darker and glossier.
+
+Bump mapping gives grain, ripples and rock relief (left out in preview, as
+stage.surface_material does: a Bump node evaluates its height three times).
+Node names start with ``terrain_`` so tests and users can find them.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from ..config import Terrain
+from ..io.run import RunInfo
+from ..terrain import TERRAIN_MATERIAL
+
+#: Base colours (linear RGB, darker and lighter end), roughness and bump strength of the presets.
+PRESETS = {
+    "sand": ((0.36, 0.23, 0.1), (0.62, 0.43, 0.21), 0.95, 0.25),
+    "rock": ((0.09, 0.085, 0.08), (0.34, 0.32, 0.29), 0.75, 0.6),
+    "grass": ((0.035, 0.07, 0.015), (0.13, 0.2, 0.05), 0.85, 0.35),
+    "concrete": ((0.27, 0.265, 0.25), (0.5, 0.49, 0.46), 0.85, 0.2),
+}
+#: Wet ground: colour multiplied by this, roughness brought down to WET_ROUGHNESS.
+WET_DARKEN = (0.45, 0.43, 0.42)
+WET_ROUGHNESS = 0.35
+#: Specular IOR level of dry ground (0.5 is a plain dielectric of IOR 1.5).
+DRY_SPECULAR = 0.12
+
+
+def _mix_rgb(nt, name: str, fac, a, b, blend: str = "MIX"):
+    m = nt.nodes.new("ShaderNodeMix")
+    m.name = m.label = name
+    m.data_type = "RGBA"
+    m.blend_type = blend
+    m.clamp_result = True
+    nt.links.new(fac, m.inputs[0])
+    for sock, v in ((m.inputs[6], a), (m.inputs[7], b)):
+        if isinstance(v, tuple):
+            sock.default_value = (*v, 1.0)
+        else:
+            nt.links.new(v, sock)
+    return m.outputs[2]
+
+
+def _mix_float(nt, name: str, fac, a, b):
+    m = nt.nodes.new("ShaderNodeMix")
+    m.name = m.label = name
+    m.data_type = "FLOAT"
+    nt.links.new(fac, m.inputs[0])
+    for sock, v in ((m.inputs[2], a), (m.inputs[3], b)):
+        if isinstance(v, (int, float)):
+            sock.default_value = float(v)
+        else:
+            nt.links.new(v, sock)
+    return m.outputs[0]
+
+
+def _map(nt, name: str, value, lo: float, hi: float):
+    """0 at ``lo``, 1 at ``hi`` (either order), clamped, smooth in between."""
+    m = nt.nodes.new("ShaderNodeMapRange")
+    m.name = m.label = name
+    m.interpolation_type = "SMOOTHSTEP"
+    nt.links.new(value, m.inputs["Value"])
+    m.inputs["From Min"].default_value = lo
+    m.inputs["From Max"].default_value = hi
+    return m.outputs["Result"]
+
+
+def _math(nt, op: str, *args):
+    """A Math node ``op`` of its inputs (sockets or numbers): MULTIPLY_ADD is a·b + c."""
+    m = nt.nodes.new("ShaderNodeMath")
+    m.operation = op
+    for sock, v in zip(m.inputs, args):
+        if isinstance(v, (int, float)):
+            sock.default_value = float(v)
+        else:
+            nt.links.new(v, sock)
+    return m.outputs[0]
+
+
+def _noise(nt, name: str, coord, scale: float, detail: float = 4.0, roughness: float = 0.55):
+    n = nt.nodes.new("ShaderNodeTexNoise")
+    n.name = n.label = name
+    n.inputs["Scale"].default_value = scale
+    n.inputs["Detail"].default_value = detail
+    n.inputs["Roughness"].default_value = roughness
+    nt.links.new(coord, n.inputs["Vector"])
+    return n.outputs["Fac"]
+
+
+def _ramp(nt, name: str, fac, dark, light):
+    r = nt.nodes.new("ShaderNodeValToRGB")
+    r.name = r.label = name
+    r.color_ramp.elements[0].position = 0.3
+    r.color_ramp.elements[0].color = (*dark, 1.0)
+    r.color_ramp.elements[1].position = 0.7
+    r.color_ramp.elements[1].color = (*light, 1.0)
+    nt.links.new(fac, r.inputs["Fac"])
+    return r.outputs["Color"]
+
+
+def _layer(nt, preset: str, coord, feature: float):
+    """Colour, roughness and bump height of one preset, from noise and Voronoi textures."""
+    dark, light, rough, _ = PRESETS[preset]
+    big = _noise(nt, f"terrain_{preset}_noise", coord, 1.0 / feature, detail=6.0)
+    if preset == "rock":
+        cells = nt.nodes.new("ShaderNodeTexVoronoi")
+        cells.name = cells.label = "terrain_rock_cells"
+        cells.inputs["Scale"].default_value = 2.0 / feature
+        nt.links.new(coord, cells.inputs["Vector"])
+        fac = _math(nt, "MULTIPLY_ADD", cells.outputs["Distance"], 0.8, big)  # facets and cracks
+        height = _math(nt, "ADD", cells.outputs["Distance"], big)
+    elif preset == "sand":
+        grain = _noise(nt, "terrain_sand_grain", coord, 60.0 / feature, detail=2.0, roughness=0.7)
+        # Ripples: a wave texture along x, bent by the large noise.
+        wave = nt.nodes.new("ShaderNodeTexWave")
+        wave.name = wave.label = "terrain_sand_ripples"
+        wave.inputs["Scale"].default_value = 4.0 / feature
+        wave.inputs["Distortion"].default_value = 6.0
+        wave.inputs["Detail"].default_value = 1.0
+        nt.links.new(coord, wave.inputs["Vector"])
+        fac = _math(nt, "MULTIPLY_ADD", grain, 0.25, big)
+        height = _math(nt, "MULTIPLY_ADD", wave.outputs["Fac"], 0.6, grain)
+    elif preset == "concrete":
+        pores = nt.nodes.new("ShaderNodeTexVoronoi")
+        pores.name = pores.label = "terrain_concrete_pores"
+        pores.inputs["Scale"].default_value = 80.0 / feature
+        nt.links.new(coord, pores.inputs["Vector"])
+        fac = big
+        height = _math(nt, "MULTIPLY_ADD", pores.outputs["Distance"], 0.5, big)
+    else:  # grass: blades as fine noise over clumps
+        blades = _noise(nt, "terrain_grass_blades", coord, 80.0 / feature, detail=1.0)
+        fac = _math(nt, "MULTIPLY_ADD", blades, 0.5, big)
+        height = blades
+    return _ramp(nt, f"terrain_{preset}", fac, dark, light), rough, height
+
+
+def terrain_material(t: Terrain, relief: tuple[float, float], extent: float, preview: bool = False):
+    """The terrain's material. ``relief``: the render surface's lowest and highest z [m];
+    ``extent``: its larger side [m] (the texture's scale when ``texture_scale`` is unset)."""
+    import bpy
+
+    feature = t.texture_scale or max(extent / 40.0, 1e-3)
+    wet_band = t.wet_band if t.wet_band is not None else 0.1 * max(relief[1] - relief[0], 1e-3)
+    water = t.water_level if t.water_level is not None else relief[0]
+    mat = bpy.data.materials.new("whitecap_terrain")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    bsdf = nt.nodes.get("Principled BSDF")
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    coord.name = "terrain_coord"
+    co = coord.outputs["Object"]
+    geo = nt.nodes.new("ShaderNodeNewGeometry")
+    geo.name = "terrain_geometry"
+    pos = nt.nodes.new("ShaderNodeSeparateXYZ")
+    pos.name = "terrain_position"
+    nt.links.new(geo.outputs["Position"], pos.inputs[0])
+    nrm = nt.nodes.new("ShaderNodeSeparateXYZ")
+    nrm.name = "terrain_normal"
+    nt.links.new(geo.outputs["Normal"], nrm.inputs[0])
+    edge = _noise(nt, "terrain_edge_noise", co, 0.5 / feature, detail=3.0)  # wobbles the masks' edges
+    edge_c = _math(nt, "SUBTRACT", edge, 0.5)
+
+    colour, rough, height = _layer(nt, t.material, co, feature)
+    bump_strength = PRESETS[t.material][3]
+    if t.rock_slope < 89.9 and t.material != "rock":
+        c = math.cos(math.radians(t.rock_slope))
+        nz = _math(nt, "MULTIPLY_ADD", edge_c, 0.15, nrm.outputs["Z"])
+        rock = _map(nt, "terrain_rock_mask", nz, c + 0.04, c - 0.04)
+        rc, rr, rh = _layer(nt, "rock", co, feature)
+        colour = _mix_rgb(nt, "terrain_rock_mix", rock, colour, rc)
+        rough = _mix_float(nt, "terrain_rock_rough", rock, rough, rr)
+        height = _mix_float(nt, "terrain_rock_height", rock, height, rh)
+    else:
+        rock = None
+    if t.grass_above is not None and t.material != "grass":
+        z = _math(nt, "MULTIPLY_ADD", edge_c, 2.0 * wet_band, pos.outputs["Z"])
+        grass = _map(nt, "terrain_grass_mask", z, t.grass_above, t.grass_above + 0.5 * wet_band)
+        if rock is not None:
+            grass = _math(nt, "MULTIPLY", grass, _math(nt, "SUBTRACT", 1.0, rock))
+        gc, gr, gh = _layer(nt, "grass", co, feature)
+        colour = _mix_rgb(nt, "terrain_grass_mix", grass, colour, gc)
+        rough = _mix_float(nt, "terrain_grass_rough", grass, rough, gr)
+        height = _mix_float(nt, "terrain_grass_height", grass, height, gh)
+    # Wet below the water line and a band above it, where the swash reaches.
+    z = _math(nt, "MULTIPLY_ADD", edge_c, 0.6 * wet_band, pos.outputs["Z"])
+    wet = _map(nt, "terrain_wet", z, water + wet_band, water)
+    colour = _mix_rgb(nt, "terrain_wet_colour", wet, colour, WET_DARKEN, blend="MULTIPLY")
+    rough = _mix_float(nt, "terrain_wet_rough", wet, rough, WET_ROUGHNESS)
+    nt.links.new(colour, bsdf.inputs["Base Color"])
+    nt.links.new(rough, bsdf.inputs["Roughness"])
+    # Dry grains scatter rather than mirror: a weak specular layer, or the sky's grazing reflection
+    # greys the ground out; a water film makes it a smooth dielectric (full specular).
+    nt.links.new(_mix_float(nt, "terrain_wet_specular", wet, DRY_SPECULAR, 0.5), bsdf.inputs["Specular IOR Level"])
+    if not preview:
+        bump = nt.nodes.new("ShaderNodeBump")
+        bump.name = "terrain_bump"
+        bump.inputs["Strength"].default_value = bump_strength
+        bump.inputs["Distance"].default_value = 0.05 * feature
+        nt.links.new(height, bump.inputs["Height"])
+        nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    return mat
+
+
+def run_terrain(run_dir: Path | None) -> Terrain | None:
+    """The run's ``[terrain]`` from its scene.toml (read as TOML: its paths need not resolve here)."""
+    import tomllib
+
+    p = Path(run_dir) / "scene.toml" if run_dir is not None else None
+    if p is None or not p.is_file():
+        return None
+    t = tomllib.loads(p.read_text("utf-8")).get("terrain")
+    return Terrain.model_validate(t) if isinstance(t, dict) else None
+
+
+def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False) -> list:
+    """Give the obstacles that are terrain (material "terrain") the terrain material, smooth
+    shading and the name ``terrain_K``; remove the ground plane they replace. Returns them."""
+    import bpy
+    import numpy as np
+
+    out = []
+    t = None
+    for k, entry in enumerate(info.obstacles):
+        if not isinstance(entry, dict) or entry.get("material") != TERRAIN_MATERIAL:
+            continue
+        obj = sc.objects.get(f"obstacle_{k}")
+        if obj is None:
+            continue
+        if t is None:
+            t = run_terrain(run_dir) or Terrain(mesh="-")
+        v = np.array([tuple(p.co) for p in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
+        relief = (float(v[:, 2].min()), float(v[:, 2].max()))
+        extent = float(max(np.ptp(v[:, 0]), np.ptp(v[:, 1]), 1e-3))
+        obj.data.materials.clear()
+        obj.data.materials.append(terrain_material(t, relief, extent, preview))
+        obj.data.shade_smooth()
+        obj.name = obj.data.name = f"terrain_{k}"
+        out.append(obj)
+    ground = sc.objects.get("ground")
+    if out and ground is not None:
+        bpy.data.objects.remove(ground)
+    return out
