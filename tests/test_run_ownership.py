@@ -265,3 +265,25 @@ def test_an_import_that_fails_half_way_leaves_nothing(tmp_path, monkeypatch, cap
     calls.clear()
     assert main(["import", str(case), "--out", str(out)]) == 2
     assert list(out.iterdir()) == []
+
+
+def test_resume_without_a_checkpoint_never_replaces_frames(run_a, tmp_path, capsys):
+    """A run of this very scene with frames but no checkpoint (a `foam --out` copy of a run, or a
+    removed checkpoint) is not started over by --resume or `run` without --force."""
+    copy = tmp_path / "C"
+    assert main(["foam", str(run_a), "--out", str(copy)]) == 0
+    assert not (copy / "checkpoint.npz").exists()
+    before = snapshot(copy)
+    scene = scene_file(tmp_path, tiny_scene_dict())
+    capsys.readouterr()
+    assert main(["simulate", str(scene), "-o", str(copy), "--resume"]) == 2
+    assert "no checkpoint.npz to resume from" in one_line_error(capsys)
+    assert main(["run", str(scene), "-o", str(copy), "--until", "simulate"]) == 2
+    assert snapshot(copy) == before
+    # A simulate stopped before its first checkpoint (frame 0 only) starts over as before.
+    (run_a / "checkpoint.npz").unlink()
+    data = json.loads((run_a / "run.json").read_text())
+    data["frames"] = data["frames"][:1]
+    (run_a / "run.json").write_text(json.dumps(data))
+    assert main(["simulate", str(scene), "-o", str(run_a), "--resume"]) == 0
+    assert len(RunInfo.load(run_a).files("fluid")) == 4

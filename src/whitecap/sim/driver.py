@@ -212,6 +212,18 @@ def refuse_changed_scene(scene: Scene, out: Path) -> None:
         ) from None
 
 
+def _refuse_restart_without_checkpoint(out: Path) -> None:
+    """A resume finds no checkpoint: starting over is harmless only when the run holds no more than a
+    first frame (a simulate stopped before its first checkpoint). A run with later frames and none
+    (one written by `foam --out` from a run, or whose checkpoint was removed) is not replaced without
+    --force."""
+    later = [f["index"] for f in RunInfo.load(out).frames if f["files"] and f["index"] > 0]
+    if later:
+        raise InputError(f"{out}: holds {len(later)} frames after the first but no {CHECKPOINT} to resume from "
+                         "(a run converted by `foam --out`, or its checkpoint was removed); simulate with --force to "
+                         "start it over")
+
+
 def _made_from(out: Path) -> str:
     info = RunInfo.load(out)
     if info.extra.get("source"):
@@ -268,6 +280,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     for d in (out, out / "fluid", out / "diffuse"):  # temporary files of a writer killed mid-file (kill -9)
         sweep_temps(d)
     from_checkpoint = resume and same and (out / CHECKPOINT).exists()
+    if resume and same and not from_checkpoint and not force:
+        _refuse_restart_without_checkpoint(out)
     start_frame, data = _load_checkpoint(out) if from_checkpoint else (0, {})
 
     # Set up everything (particle count and memory, fluid, obstacles) before touching the old run.
