@@ -121,3 +121,13 @@ def test_mesh_during_the_first_frame_of_simulate_names_the_writer(tmp_path, caps
         holder.stdout.close()
     assert main(["mesh", str(run), *FAST]) == 2  # nobody writing: the run simply has no frames
     assert "the run has no fluid frames" in capsys.readouterr().err
+
+
+def test_mesh_never_writes_over_the_runs_own_frames(tiny_run, tmp_path, capsys):
+    run = tmp_path / "R"
+    shutil.copytree(tiny_run, run)
+    before = (run / "fluid" / "fluid_00001.ply").read_bytes()
+    assert main(["mesh", str(run), "-o", str(run / "fluid"), *FAST]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "is the run's fluid file" in err, err
+    assert (run / "fluid" / "fluid_00001.ply").read_bytes() == before

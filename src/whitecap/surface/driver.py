@@ -180,6 +180,11 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         keys = {i: _frame_key(p, job.params) for i, p, _, _ in job.frames}
         job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}
     todo = [f for f in job.frames if force or not _done(job, f)]
+    if job.run_dir is not None:  # inside the run: never over a file the run holds as something else
+        others = {rel: kind for f in info.frames for kind, rel in f["files"].items() if kind != "mesh"}
+        for _, _, o, rel in todo:
+            if rel in others:
+                raise InputError(f"{o}: is the run's {others[rel]} file; mesh would overwrite it: choose another --out")
     if manifest is not None:
         manifest.refuse_foreign([o.name for _, _, o, _ in todo], "mesh")
         manifest.plan([o.name for _, _, o, _ in todo])
