@@ -131,3 +131,36 @@ def test_mesh_never_writes_over_the_runs_own_frames(tiny_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "is the run's fluid file" in err, err
     assert (run / "fluid" / "fluid_00001.ply").read_bytes() == before
+
+
+def test_render_redoes_frames_whose_look_or_inputs_changed(tmp_path, capsys):
+    """A frame rendered with other [render] settings, or from a mesh made again since, is rendered
+    again rather than skipped beside frames of the new look (the same defect as item 12)."""
+    import pytest
+
+    pytest.importorskip("bpy")
+    from whitecap.config import scene_from_dict
+    from whitecap.pipeline import mesh, simulate
+
+    from .conftest import tiny_scene_dict
+
+    small = {"preview_resolution": [64, 48], "preview_samples": 2}
+    run = tmp_path / "R"
+    simulate(scene_from_dict(tiny_scene_dict(output={"frames": 1}, foam={"enabled": False}, render=small)),
+             out=run, show_progress=False)
+    mesh(run, jobs=1, show_progress=False, mesh_smoothing_iters=0)
+    png = run / "render" / "frame_00001.png"
+
+    def rendered() -> bool:
+        before = png.stat().st_ino if png.exists() else None
+        assert main(["render", str(run), "--frames", "1", "--no-movie"]) == 0
+        return png.stat().st_ino != before
+
+    assert rendered()
+    assert not rendered()  # nothing changed: skipped
+    scene = run / "scene.toml"
+    scene.write_text(scene.read_text().replace("preview_samples = 2", "preview_samples = 3"))
+    assert rendered()  # the look changed
+    assert not rendered()
+    mesh(run, jobs=1, show_progress=False, mesh_smoothing_iters=1)  # other settings: meshes remade
+    assert rendered()

@@ -304,10 +304,14 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
         cycles_device("gpu")
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
-    todo = [i for i in wanted if force or i not in current or not _done(frame_path(run_dir, i), size)]
+    keys = {i: frame_key(run_dir, info, cfg, quality, i) for i in wanted}
+    todo = [i for i in wanted if force or i not in current or info.frame(i).get("render_key") != keys[i]
+            or not _done(frame_path(run_dir, i), size)]
     blend = run_dir / "render" / "scene.blend"
     made = info.extra.get("blend")
-    need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation)
+    look = frame_key(run_dir, info, cfg, quality, None)
+    need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation
+                                                      and made.get("key") == look)
     jobs = max(1, min(int(jobs or 1), len(todo) or 1))
     bar = progress(disable=not show_progress)
     with bar:
@@ -320,12 +324,12 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                 from .cluster import render_on_cluster
 
                 blender = render_on_cluster(ex, run_dir, quality, cfg.device, todo, need_blend, bar, task,
-                                            lambda i: _record(run_dir, [i]), report=show_progress)
+                                            lambda i: _record(run_dir, [i], keys=keys), report=show_progress)
             finally:
                 bar.stop()
                 ex.close()
             if need_blend:
-                _record(run_dir, [], blend=True)
+                _record(run_dir, [], blend=look)
         elif todo or need_blend:
             import tempfile
 
@@ -344,7 +348,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
             for p in procs:
                 for line in p.stdout:  # one line per finished frame, recorded at once (resumable)
                     if line.startswith("rendered"):
-                        _record(run_dir, [int(line.split()[1])])
+                        _record(run_dir, [int(line.split()[1])], keys=keys)
                         bar.advance(task)
             errors, os_errors = [], []
             for p, log in zip(procs, logs):
@@ -363,7 +367,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
             if errors:
                 raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
             if need_blend:
-                _record(run_dir, [], blend=True)
+                _record(run_dir, [], blend=look)
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if cluster and (todo or need_blend):
         result["blender_processes"] = len(blender)  # one per Dask worker that rendered, not one per frame
@@ -373,13 +377,36 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     return result
 
 
-def _record(run_dir: Path, indices: list[int], blend: bool = False) -> None:
-    """Record rendered frames (and the saved scene) in run.json as made from the current simulation."""
+def frame_key(run_dir: Path, info: RunInfo, cfg, quality: str, index: int | None) -> str:
+    """What a rendered frame was made from, beyond the simulation: the render settings and quality
+    (not the device), and the frame's surface and diffuse files as they are now (name, size, time).
+    A frame whose key changed (new [render] settings, a mesh remade with other settings, foam made
+    again) is rendered again instead of being skipped beside frames of the new look."""
+    import hashlib
+    import json
+
+    files = info.frame(index)["files"] if index is not None else {}  # None: the look alone (scene.blend)
+    inputs = []
+    for kind in ("mesh", "diffuse"):
+        if kind in files:
+            st = (run_dir / files[kind]).stat()
+            inputs.append([kind, files[kind], st.st_size, st.st_mtime_ns])
+    look = {k: v for k, v in cfg.model_dump(mode="json").items() if k != "device"}
+    bodies = info.frame(index).get("bodies") if index is not None else None
+    text = json.dumps([look, quality, inputs, info.obstacles, bodies], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _record(run_dir: Path, indices: list[int], blend: str | None = None, keys: dict | None = None) -> None:
+    """Record rendered frames (and the saved scene) in run.json as made from the current simulation,
+    each with its :func:`frame_key`."""
     info = RunInfo.load(run_dir)
     for i in indices:
         info.set_file(i, "render", f"render/frame_{i:05d}.png")
+        if keys and i in keys:
+            info.frame(i)["render_key"] = keys[i]
     if blend:
-        info.extra["blend"] = {"file": "render/scene.blend", "made_from": info.simulation}
+        info.extra["blend"] = {"file": "render/scene.blend", "made_from": info.simulation, "key": blend}
     info.save(run_dir)
 
 
