@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import taichi as ti
+from taichi.lang.util import to_numpy_type
 
 from ..io import ParticleFrame
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
@@ -58,6 +59,9 @@ SPRAY_RESTITUTION = 0.5
 #   must not pass through a wall thinner than its flight (an imported tank's walls are one
 #   particle spacing thick, a frame's flight is often ten).
 PATH_SAMPLES = 64
+# The fluid neighbour grid, when the fluid outgrows it (inflow), is rebuilt this many times larger
+# (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
+GRID_GROWTH = 1.25
 
 
 @dataclass
@@ -135,6 +139,7 @@ def _history(d: dict) -> tuple:
 
 
 def _nd(a: np.ndarray, dtype, vec: bool = False):
+    """A new Taichi array holding ``a`` (tests; the generator keeps its arrays, see FoamGenerator._upload)."""
     n = max(len(a), 1)
     arr = ti.Vector.ndarray(3, ti.f32, n) if vec else ti.ndarray(dtype, n)
     if len(a):
@@ -185,7 +190,10 @@ class FoamGenerator:
         self.grid: NeighborGrid | None = None
         self._warned_capacity = False
         self._warned_budget = False
-        self._bufs: dict = {}  # Taichi arrays reused from frame to frame (see _buffer)
+        self._bufs: dict = {}  # Taichi arrays reused from frame to frame (see _buffer): the fluid's, the candidates'
+        # the live diffuse particles' Taichi arrays (_advect): made at the budget's count, grown only past it
+        self._resident: dict = {}
+        self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._candidates = None
         self._S = 0
         self.capacity: int | None = None
@@ -361,13 +369,16 @@ class FoamGenerator:
     # ------------------------------------------------------------------ one frame
     def _fluid_grid(self, n: int) -> NeighborGrid:
         if self.grid is None or self.grid.capacity < n:
-            self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), max(n, 1), MAX_FLUID_NEIGHBOURS, self.h)
+            rows = max(n, 1, int(GRID_GROWTH * self.grid.capacity) if self.grid is not None else 0)
+            self.grid = None  # the old grid's arrays go before the new ones are made
+            self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), rows, MAX_FLUID_NEIGHBOURS, self.h)
         return self.grid
 
     def _prepare(self, fluid: ParticleFrame, n: int):
-        fx = _nd(fluid.positions, ti.f32, vec=True)
-        fv = _nd(fluid.velocities, ti.f32, vec=True)
-        fid = _nd(fluid.ids.astype(np.uint32), ti.u32)
+        """The fluid frame in the kept Taichi arrays, and its neighbour lists."""
+        fx = self._upload("fluid_x", fluid.positions, vec=True)
+        fv = self._upload("fluid_v", fluid.velocities, vec=True)
+        fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n)
         return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
@@ -376,11 +387,10 @@ class FoamGenerator:
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots)."""
         fx, fv, fid, args = self._prepare(fluid, n)
         g = self.grid
-        m = max(n, 1)
-        normal, surface = ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.i32, m)
-        v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, m) for _ in range(4))
+        normal, surface = self._buffer("normal", n, vec=True), self._buffer("surface", n)
+        v_diff, e_k, vort, crest = (self._buffer(k, n, ti.f32) for k in ("v_diff", "e_k", "vort", "crest"))
         if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
-            v_diff, crest, e_k = SP.frame_potentials(self, fx, fv, n)
+            self._foamgenerator_potentials(fx, fv, n, normal, v_diff, crest, e_k)
             vort.fill(0.0)
             K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
         else:
@@ -388,6 +398,27 @@ class FoamGenerator:
             K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
         self._pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
         return args, fx, fv, fid, (v_diff, crest, e_k, vort)
+
+    def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
+        """SP.frame_potentials into this generator's kept arrays (v_diff, κ, E; ``normal`` as scratch)."""
+        g = self.grid
+        m = SP.particle_mass(self.r)
+        rho = self._buffer("sp_rho", n, ti.f32)
+        SP.sph_density(n, fx, g.nb_count, g.nb, self.h, m, rho)
+        SP.surface_normals(n, fx, g.nb_count, g.nb, self.h, m, rho, normal)
+        # SP.row_volumes, into a kept array: V̄_N = (1/N) Σ_{k<N} m/ρ_k for N = 0 … n
+        cum = np.concatenate([[0.0], np.cumsum(m / rho.to_numpy()[:n].astype(np.float64))])
+        vbar = cum / np.maximum(np.arange(len(cum)), 1)
+        vol = self._upload("sp_row_volume", vbar.astype(np.float32), ti.f32)
+        SP.potentials(n, fx, fv, g.nb_count, g.nb, self.h, m, vol, normal, v_diff, crest, e_k)
+
+    def nbytes(self) -> int:
+        """Bytes of the Taichi arrays this generator keeps (its buffers and the fluid neighbour grid)."""
+        total = self.grid.nbytes() if self.grid is not None else 0
+        for a in (*self._bufs.values(), *self._resident.values()):
+            vec = 3 if isinstance(a, ti.lang.matrix.VectorNdarray) else 1
+            total += int(np.prod(a.shape)) * vec * np.dtype(to_numpy_type(a.dtype)).itemsize
+        return total
 
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
@@ -446,9 +477,13 @@ class FoamGenerator:
         if not nd:
             return st.positions, st.velocities, st.lifetime, st.ids, np.zeros(0, np.uint8)
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
-        xd, vd = _nd(st.positions, ti.f32, True), _nd(st.velocities, ti.f32, True)
-        life, keep = _nd(st.lifetime, ti.f32), ti.ndarray(ti.i32, nd)
-        kind = ti.ndarray(ti.i32, nd)
+        # the live diffuse particles: arrays at the budget's count from the start, grown (geometrically,
+        # never past the capacity) only if more live
+        start = math.ceil(p.budget * self._sized_for)
+        up = {"start": start, "limit": self.capacity, "pool": self._resident}
+        xd, vd = self._upload("diffuse_x", st.positions, vec=True, **up), self._upload("diffuse_v", st.velocities, vec=True, **up)
+        life = self._upload("diffuse_life", st.lifetime, ti.f32, **up)
+        keep, kind = self._buffer("diffuse_keep", nd, **up), self._buffer("diffuse_kind", nd, **up)
         K.advect_diffuse(
             nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
             int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
@@ -554,17 +589,46 @@ class FoamGenerator:
         n = g.normal(p)
         return np.where(out[:, None], p, x - d[:, None] * n), n
 
-    def _buffer(self, name: str, size: int, dtype=ti.i32, vec: bool = False, cols: int = 0):
-        """A Taichi array of at least ``size`` rows kept from frame to frame, grown geometrically
-        (never allocated per frame once the run's largest frame has been seen)."""
-        a = self._bufs.get(name)
+    def _buffer(self, name: str, size: int, dtype=ti.i32, vec: bool = False, cols: int = 0, start: int = 0,
+                limit: int | None = None, pool: dict | None = None):
+        """A Taichi array of at least ``size`` rows kept from frame to frame (in ``pool``, by default
+        self._bufs), grown geometrically (never allocated per frame once the run's largest frame has
+        been seen): ``start`` rows at least when first made, and never grown past ``limit`` rows
+        unless ``size`` needs it. (Taichi does not give an array's memory back to the process when the
+        array goes: every array made per frame would grow the memory in use, on the CPU and on CUDA.)"""
+        bufs = self._bufs if pool is None else pool
+        a = bufs.get(name)
         if a is None or a.shape[0] < size:
-            rows = max(size, 2 * (a.shape[0] if a is not None else 0), 1)
+            rows = max(size, 2 * a.shape[0] if a is not None else start, 1)
+            if limit is not None:
+                rows = max(size, min(rows, limit), 1)
+            bufs.pop(name, None)  # the old array goes before the new one is made
+            self._host.pop(name, None)
+            a = None
             if vec:
                 a = ti.Vector.ndarray(3, ti.f32, rows)
             else:
                 a = ti.ndarray(dtype, (rows, cols) if cols else rows)
-            self._bufs[name] = a
+            bufs[name] = a
+        return a
+
+    def _staging(self, name: str, a) -> np.ndarray:
+        """The numpy array, shaped as kept array ``a``, through which ``name`` is uploaded (kept with it)."""
+        h = self._host.get(name)
+        if h is None:
+            shape = tuple(a.shape) + ((3,) if isinstance(a, ti.lang.matrix.VectorNdarray) else ())
+            h = self._host[name] = np.zeros(shape, to_numpy_type(a.dtype))
+        return h
+
+    def _upload(self, name: str, rows: np.ndarray, dtype=ti.f32, vec: bool = False, **kw):
+        """``rows`` into the kept Taichi array ``name`` (see _buffer), the rows after them zero,
+        through a kept numpy array: nothing allocated once the array is large enough."""
+        n = len(rows)
+        a = self._buffer(name, n, dtype, vec, **kw)
+        h = self._staging(name, a)
+        h[:n] = rows
+        h[n:] = 0
+        a.from_numpy(h)
         return a
 
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
@@ -581,7 +645,7 @@ class FoamGenerator:
             self._running_auto(n, index, dt, fluid)
         elif p.auto and self._scaled():
             self._replan(index, dt)
-        tau = _nd(self.thresholds(), ti.f32)
+        tau = self._upload("tau", self.thresholds(), ti.f32)
         mult = self.type_multipliers()
         most = float(mult.max())
         z = np.zeros((0, 3), np.float32)
@@ -600,10 +664,12 @@ class FoamGenerator:
         total = int(counts.sum())
         if not total:
             return none[:4] + (int(lost),)
-        offset = np.zeros(m, np.int32)
-        np.cumsum(counts[:-1], out=offset[1:n])
         off = self._buffer("offset", m)
-        off.from_numpy(np.pad(offset, (0, off.shape[0] - m)))
+        offset = self._staging("offset", off)
+        offset[0] = 0
+        np.cumsum(counts[:-1], out=offset[1:n])
+        offset[n:] = 0
+        off.from_numpy(offset)
         ox, ov, ol = (self._buffer("cand_x", total, vec=True), self._buffer("cand_v", total, vec=True),
                       self._buffer("cand_life", total, ti.f32))
         owner, kd = self._buffer("cand_owner", total), self._buffer("cand_kind", total, ti.i8)
@@ -626,7 +692,8 @@ class FoamGenerator:
             return np.floor(want) + (u0[:, None] < want - np.floor(want))
 
         lim = self._buffer("limit", m, cols=3)
-        table = np.zeros(lim.shape, np.int32)
+        table = self._staging("limit", lim)
+        table.fill(0)
         table[rows] = np.minimum(limits(want), np.float32(2**30))
         lim.from_numpy(table)
         g = self.grid
@@ -635,15 +702,15 @@ class FoamGenerator:
                               int(p.model == "foamgenerator" and p.wall_correction), kd)
         idx = np.flatnonzero(kd.to_numpy()[:total] >= 0).astype(np.int32)  # the kept, in candidate order
         nk = len(idx)
-        sel = self._buffer("kept_idx", nk)
-        sel.from_numpy(np.pad(idx, (0, sel.shape[0] - nk)))
+        sel = self._upload("kept_idx", idx, ti.i32)
         kx, kv, kl = (self._buffer("kept_x", nk, vec=True), self._buffer("kept_v", nk, vec=True),
                       self._buffer("kept_life", nk, ti.f32))
         kk, ko = self._buffer("kept_kind", nk, ti.i8), self._buffer("kept_owner", nk)
         K.gather_kept(nk, sel, ox, ov, ol, kd, owner, kx, kv, kl, kk, ko)
         x, v, life = kx.to_numpy()[:nk], kv.to_numpy()[:nk], kl.to_numpy()[:nk]
         kind, fowner = kk.to_numpy()[:nk].astype(np.uint8), ko.to_numpy()[:nk]
-        self._candidates = {"total": total, "kept": idx, "offset": offset[:n], "counts": counts}  # for tests
+        offset = offset[:n].copy()  # the kept array is the next frame's
+        self._candidates = {"total": total, "kept": idx, "offset": offset, "counts": counts}  # for tests
         row = np.searchsorted(rows, fowner)  # the generating particle's row in ``want``
         slot = idx - offset[fowner]
         pid = fluid.ids.astype(np.uint32)[fowner]
