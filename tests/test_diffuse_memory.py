@@ -1,0 +1,125 @@
+"""Memory of the foam stage that does not grow (issue 31, goal 2): once the run's largest frame has
+been seen, FoamGenerator.step makes no Taichi array, and the process's resident memory stays flat
+over many frames. (Taichi does not give an array's memory back when the array goes, so an array
+made per frame is a leak of its size every frame, on the CPU and on CUDA.)"""
+
+from __future__ import annotations
+
+import gc
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from whitecap import io
+from whitecap.diffuse.params import resolve
+
+R = 0.01
+DT = 1.0 / 120.0
+CYCLE = 10  # the splash repeats its fluid frames with this period
+
+
+def _splash(i: int, n: int = 14) -> io.ParticleFrame:
+    """Frame ``i`` of a small splashing sequence: a jittered block of water whose sheared, rising
+    velocity field turns with the frame, so that particles are born, move, change type and die."""
+    g = np.arange(n) * 2 * R
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3).astype(np.float32) + 0.3
+    x += np.random.default_rng(i).uniform(-0.05 * R, 0.05 * R, x.shape).astype(np.float32)
+    z = (x[:, 2] - x[:, 2].min()) / (2 * R * (n - 1))
+    ph = 0.4 * i
+    v = np.stack([1.5 * z * np.cos(ph), 0.3 * np.sin(9 * x[:, 0] + ph), 0.8 * z * z + 0.2], 1).astype(np.float32) * 3
+    return io.ParticleFrame(positions=x, velocities=v, ids=np.arange(len(x), dtype=np.uint32), time=i * DT)
+
+
+def _generator(preset: str, frames: list):
+    from whitecap.diffuse.generator import FoamGenerator
+
+    p = resolve(preset=preset)
+    lives = dict(lifetime_min=0.05, lifetime_max=0.2, spray_lifetime=(0.05, 0.2), bubble_lifetime=(0.05, 0.2))
+    if p.model == "foamgenerator":
+        p = replace(p, **lives)
+    else:  # low thresholds: thousands of particles alive, a few hundred born and as many gone each frame
+        p = replace(p, ta_min=0.0, ta_max=2.0, wc_min=0.0, wc_max=1.0, ke_min=0.0, ke_max=4.0, k_ta=50.0, k_wc=50.0,
+                    **lives)
+    gen = FoamGenerator(p, R, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=11)
+    if p.model == "foamgenerator":  # its limits from the sequence's maxima (pass 1), lowered to make some
+        from whitecap.diffuse import splishsplash as SP
+
+        gen.state.tau = SP.limits_from_maxima(np.array([SP.frame_maxima(gen, f) for f in frames]), R) * np.float32(0.3)
+    return gen
+
+
+class _ArrayCounter:
+    """Counts the Taichi arrays made (every ndarray, scalar or vector, goes through Ndarray.__init__)."""
+
+    def __init__(self, monkeypatch):
+        from taichi.lang import _ndarray
+
+        self.made = 0
+        init = _ndarray.Ndarray.__init__
+
+        def counted(arr, *a, **kw):
+            self.made += 1
+            init(arr, *a, **kw)
+
+        monkeypatch.setattr(_ndarray.Ndarray, "__init__", counted)
+
+
+@pytest.mark.parametrize("preset", ["ihmsen2012", "splishsplash"])
+def test_no_taichi_array_is_made_per_frame_once_the_largest_frame_was_seen(monkeypatch, preset):
+    frames = [_splash(i) for i in range(CYCLE)]
+    gen = _generator(preset, frames)
+    for i in range(3 * CYCLE):  # warm-up: every fluid frame seen, the births of the largest bursts
+        gen.step(frames[i % CYCLE], i, DT)
+    counter = _ArrayCounter(monkeypatch)
+    alive = []
+    for i in range(3 * CYCLE, 9 * CYCLE):
+        alive.append(len(gen.step(frames[i % CYCLE], i, DT)))
+    assert min(alive) > 1000 and max(alive) < gen.capacity  # a live foam stage, not a saturated or empty one
+    assert counter.made == 0, f"{counter.made} Taichi arrays made in {6 * CYCLE} frames"
+    # the counter sees an array made per frame (the way the generator made its arrays before)
+    from whitecap.diffuse.generator import _nd
+
+    _nd(frames[0].positions, None, vec=True)
+    assert counter.made == 1
+
+
+def _rss() -> int:
+    """Resident bytes of this process, after a collection."""
+    gc.collect()
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def test_resident_memory_does_not_grow_over_many_frames():
+    """60 frames of the splash: between frame 20 and frame 60 the resident memory grows by less than
+    ten frames' data (fluid frame and live diffuse particles). Before, the foam stage made its arrays
+    every frame and grew by about one frame's data a frame. Control: the same frames keeping half a
+    frame's data each (a leak of half the old one) grow past the bound."""
+    frames = [_splash(i) for i in range(CYCLE)]
+    gen = _generator("ihmsen2012", frames)
+    sizes = []
+
+    def run(first: int, last: int, leak: list | None = None):
+        for i in range(first, last):
+            d = gen.step(frames[i % CYCLE], i, DT)
+            f = frames[i % CYCLE]
+            # the frame's data: the fluid frame in, the diffuse frame out (with type, lifetime, radius)
+            sizes.append(f.positions.nbytes + f.velocities.nbytes + f.ids.nbytes + len(d) * (12 + 12 + 4 + 1 + 4 + 4))
+            if leak is not None:
+                leak.append(np.ones(sizes[-1] // 2, np.uint8))  # touched: resident
+
+    run(0, 20)
+    before = _rss()
+    run(20, 60)
+    grown = _rss() - before
+    per_frame = int(np.mean(sizes[20:]))
+    bound = 10 * per_frame
+    assert per_frame > 100_000  # enough data a frame for a leak to stand out of the noise
+    assert grown < bound, f"resident memory grew {grown:,} bytes over 40 frames (bound {bound:,}; {per_frame:,} a frame)"
+    leak: list = []
+    before = _rss()
+    run(60, 100, leak)
+    grown = _rss() - before
+    assert grown > bound, f"a leak of {per_frame // 2:,} bytes a frame grew {grown:,} bytes over 40 frames"
