@@ -20,13 +20,11 @@ import hashlib
 import logging
 import os
 import re
-import shutil
 import signal
 import socket
 import sys
 import threading
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +32,6 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-import tomli_w  # noqa: E402
 
 from whitecap import pipeline  # noqa: E402
 from whitecap.cli import main  # noqa: E402
@@ -42,19 +39,7 @@ from whitecap.io import ParticleFrame, read_mesh  # noqa: E402
 from whitecap.io import write as write_particles  # noqa: E402
 from whitecap.io.run import RunInfo  # noqa: E402
 
-
-def _run_copy(tiny_run: Path, dest: Path, **scene_extra) -> Path:
-    """A copy of the tiny run (fluid frames 0..3) with extra scene sections."""
-    shutil.copytree(tiny_run, dest)
-    scene = tomllib.loads((dest / "scene.toml").read_text())
-    for k, v in scene_extra.items():
-        scene.setdefault(k, {}).update(v)
-    (dest / "scene.toml").write_text(tomli_w.dumps(scene))
-    return dest
-
-
-def _files(d: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(d.iterdir()) if p.is_file()}
+from .test_cluster import _files, _small_run  # noqa: E402  (a copy of the tiny run with a quick preview)
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +202,7 @@ def _untouched(run: Path) -> None:
 @pytest.fixture
 def timed_run(tiny_run, tmp_path) -> Path:
     """A run whose [cluster] section waits 2 s for a scheduler."""
-    return _run_copy(tiny_run, tmp_path / "run", cluster={"connect_timeout": 2.0})
+    return _small_run(tiny_run, tmp_path / "run", cluster={"connect_timeout": 2.0})
 
 
 @pytest.mark.parametrize("spec", ["127.0.0.1", "lokal", "notaurl", "bogus://x"])
@@ -376,7 +361,7 @@ def test_a_dying_worker_prints_no_raw_dask_log_line(tiny_run, tmp_path, capfd, m
     handler.setFormatter(logging.Formatter("%(asctime)s - %(name)s - %(levelname)s - %(message)s"))
     monkeypatch.setattr(dask_log, "handlers", [handler])
     monkeypatch.setattr(dask_log, "propagate", False)
-    run = _run_copy(tiny_run, tmp_path / "run")
+    run = _small_run(tiny_run, tmp_path / "run")
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):  # the first death fails the frame
         rc = main(["mesh", str(run), "--cluster", "local", "--jobs", "2"])
     err = capfd.readouterr().err
@@ -455,10 +440,10 @@ def test_a_partly_done_cluster_run_resumes_with_each_result_recorded_as_its_own_
 
     rec = importlib.import_module("whitecap.surface.reconstruct")  # the module, not surface's function
     address = in_process_cluster.scheduler_address
-    reference = _run_copy(tiny_run, tmp_path / "serial")
+    reference = _small_run(tiny_run, tmp_path / "serial")
     pipeline.mesh(reference, jobs=1, show_progress=False)
 
-    run = _run_copy(tiny_run, tmp_path / "run")
+    run = _small_run(tiny_run, tmp_path / "run")
     inputs = dict(RunInfo.load(run).files("fluid"))
     assert sorted(inputs) == [0, 1, 2, 3]
     kept = {i: (run / inputs[i]).read_bytes() for i in (1, 2)}
@@ -503,7 +488,7 @@ def test_a_local_cluster_that_does_not_start_is_one_line_with_a_hint(tiny_run, t
         raise RuntimeError("Nanny failed to start.")
 
     monkeypatch.setattr(distributed, "LocalCluster", nanny_fails)
-    run = _run_copy(tiny_run, tmp_path / "run")
+    run = _small_run(tiny_run, tmp_path / "run")
     rc, _ = _cli_within(["mesh", str(run), "--cluster", "local"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err, err

@@ -58,6 +58,7 @@ class FoamStage:
         self.verbose = verbose
         self.last_frame: int | None = None  # the run's last frame index, where known (set by simulate)
         self.max_speed = 0.0  # the fastest fluid particle seen [m/s]: to say which threshold no flow reached
+        self.made_any = False  # a diffuse particle was alive at some frame (then max_speed is not needed)
         self.particle_mass: float | None = None
         self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
         self._unwritten: tuple | None = None  # (out, relative path, frame) made by on_frame, for write()
@@ -85,10 +86,11 @@ class FoamStage:
             first = index == 0
             g.at_frame(t, info.body_pose(index, g.index), 0.0 if first else dt,
                        None if first else info.body_pose(index - 1, g.index))
-        if frame.velocities is not None and len(frame):
-            v = frame.velocities
+        if not self.made_any and frame.velocities is not None and len(frame):
+            v = frame.velocities  # only while nothing was made: once something is, no warning needs it
             self.max_speed = max(self.max_speed, float(np.sqrt(np.einsum("ij,ij->i", v, v).max())))
         d = self.gen.step(frame, index, dt)
+        self.made_any = self.made_any or len(d) > 0
         rel = frame_name("diffuse", index)
         self._unwritten = (out, rel, d)
         if self.verbose:
