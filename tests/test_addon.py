@@ -382,7 +382,7 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     info = RunInfo.load(addon_run)
     assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
-    from whitecap.config import obstacle_transform
+    from whitecap.geometry import obstacle_transform
 
     import trimesh
     import trimesh.transformations as T
@@ -391,7 +391,7 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     want = (obstacle_transform(OBSTACLE) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
     assert np.allclose(np.sort(res["obstacle_world"], axis=0), np.sort(want, axis=0), atol=1e-5)
     assert res["obstacle_verts"] == 8
-    # the moving body at each frame: world = T(position) R(quaternion) placement (config.obstacle_matrix)
+    # the moving body at each frame: world = T(position) R(quaternion) placement (geometry.obstacle_matrix)
     place = obstacle_transform({**OBSTACLE, "translate": [0.1, 0.1, 0.1]})
     for f in (1, 2, 3):
         M = T.translation_matrix(BODY_POS[f]) @ T.quaternion_matrix(BODY_QUAT[f]) @ place

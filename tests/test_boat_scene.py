@@ -8,7 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 import trimesh
 
-from whitecap.config import load_scene, obstacle_transform
+from whitecap.config import load_scene
+from whitecap.geometry import obstacle_transform
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "boat.toml"

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from whitecap.config import obstacle_matrix, scene_from_dict
+from whitecap.config import scene_from_dict
+from whitecap import geometry
+from whitecap.geometry import obstacle_matrix
 from whitecap.errors import InputError
 from whitecap.io import read
 from whitecap.io.run import RunInfo
@@ -375,7 +377,7 @@ def wall_bound_body(tmp_path, gravity=(0.0, 0.0, 0.0)):
 
 
 def hull_world(body) -> np.ndarray:
-    return (body.hull - body.c0) @ bodies.quat_matrix(body.q).T + body.c
+    return (body.hull - body.c0) @ geometry.quat_matrix(body.q).T + body.c
 
 
 def test_walls_turn_back_a_body_jammed_between_them(tmp_path):
@@ -392,7 +394,7 @@ def test_walls_turn_back_a_body_jammed_between_them(tmp_path):
         assert np.linalg.norm(body.c - c) < 1e-3  # no jumps: at most a millimetre a step
         v = hull_world(body)
         assert (v >= body.lo - 1e-4).all() and (v <= body.hi + 1e-4).all()  # within a tenth of a millimetre
-    R = bodies.quat_matrix(body.q)
+    R = geometry.quat_matrix(body.q)
     assert math.degrees(math.acos(min(1.0, R[0, 0]))) < 0.5  # turned back between the walls
     assert abs(body.W[2]) < 0.05 and body.c[1] == pytest.approx(0.05, abs=1e-3)
 
@@ -403,7 +405,7 @@ def test_a_tilted_body_dropped_on_the_floor_lands_on_it_without_gaining_energy(t
     g, dt = 9.81, 1 / 300
 
     def energy():
-        I = bodies.quat_matrix(body.q) @ body.I0 @ bodies.quat_matrix(body.q).T
+        I = geometry.quat_matrix(body.q) @ body.I0 @ geometry.quat_matrix(body.q).T
         return 0.5 * body.mass * body.V @ body.V + 0.5 * body.W @ I @ body.W + body.mass * g * body.c[2]
 
     e0 = energy()

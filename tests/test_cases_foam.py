@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from whitecap.config import obstacle_matrix
+from whitecap.geometry import obstacle_matrix
 from whitecap.io import read, read_mesh
 from whitecap.io.run import RunInfo
 from whitecap.sim.obstacles import compute_sdf

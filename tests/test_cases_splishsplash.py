@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from whitecap.cases import splishsplash
-from whitecap.config import obstacle_matrix
+from whitecap.geometry import obstacle_matrix
 from whitecap.errors import InputError
 from whitecap.io import read, read_mesh
 from whitecap.io.axes import to_z_up

@@ -16,7 +16,7 @@ import pytest
 
 from whitecap import io as wio
 from whitecap.cli import main
-from whitecap.config import obstacle_matrix
+from whitecap.geometry import obstacle_matrix
 from whitecap.io.diffuse_types import TYPE_NAMES
 from whitecap.io.mesh import read_mesh
 from whitecap.io.run import RunInfo

@@ -12,6 +12,7 @@ import pytest
 import trimesh
 
 from whitecap.config import scene_from_dict
+from whitecap import geometry
 from whitecap.sim import bodies
 from whitecap.sim.driver import build_solver
 
@@ -32,7 +33,7 @@ def free_box(extents=(0.3, 0.2, 0.1)) -> bodies.RigidBody:
 
 
 def world_inertia(b) -> np.ndarray:
-    R = bodies.quat_matrix(b.q)
+    R = geometry.quat_matrix(b.q)
     return R @ b.I0 @ R.T
 
 
@@ -56,7 +57,7 @@ def test_a_body_spun_about_a_non_principal_axis_keeps_its_angular_momentum_and_e
         worst_L = max(worst_L, np.linalg.norm(L - L0) / np.linalg.norm(L0))
         worst_E = max(worst_E, abs(0.5 * b.W @ L / E0 - 1.0))
         wander = max(wander, np.linalg.norm(b.W - W0) / np.linalg.norm(W0))
-    R = bodies.quat_matrix(b.q)
+    R = geometry.quat_matrix(b.q)
     turned = math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
     # controls: the body really turned far, and Ω really moved (a spin about a principal axis keeps Ω
     # and would pass whatever the inertia tensor's frame)

@@ -177,7 +177,8 @@ def test_dualsphysics_sequence_plays_back(tmp_path):
 
 
 def test_obstacle_transform_rotates_x_then_y_then_z():
-    from whitecap.config import Obstacle, obstacle_transform
+    from whitecap.config import Obstacle
+    from whitecap.geometry import obstacle_transform
 
     m = obstacle_transform({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0})
     # The scene model and its run.json dict place an obstacle alike; missing keys are the defaults.

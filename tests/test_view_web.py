@@ -242,11 +242,11 @@ def test_timeline_moves_the_drawn_particles(tiny_run, page):
 
 def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
     """Without a browser: a moving obstacle is placed at each frame's pose from run.json
-    (config.obstacle_matrix); a run over the point limit draws a stable subsample and says so;
+    (geometry.obstacle_matrix); a run over the point limit draws a stable subsample and says so;
     the notebook view is an iframe of the viewer's page."""
     import trimesh
 
-    from whitecap.config import obstacle_matrix
+    from whitecap.geometry import obstacle_matrix
     from whitecap.view.web import WebViewer
 
     run = tmp_path / "run"

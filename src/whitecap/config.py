@@ -89,6 +89,9 @@ class Solver(_Section):
     max_speed: float = Field(
         100.0, gt=0, description="a particle faster than this is a blow-up and stops the run [m/s]"
     )
+    max_particles: int | None = Field(
+        None, ge=1, description="particle capacity with [[emitter]]s; unset = the initial fluid plus all that the "
+        "emitters add over the run [-]")
 
 
 # --------------------------------------------------------------------------- fluid blocks
@@ -120,36 +123,17 @@ class FluidBlock(_Section):
         c, r = self.center, self.radius
         return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]  # type: ignore[index,operator]
 
+    def lattice_count(self, r: float) -> int:
+        """About how many particles the block holds at spacing 2r (a sphere: by its volume share)."""
+        lo, hi = self.bounds()
+        cnt = 1.0
+        for a in range(3):
+            cnt *= max(0.0, math.floor((hi[a] - lo[a] - 2 * r) / (2 * r) + 1e-6) + 1)
+        return int(cnt * (math.pi / 6.0 if self.shape == "sphere" else 1.0))
+
 
 # --------------------------------------------------------------------------- obstacles
-def obstacle_transform(o) -> "np.ndarray":
-    """The 4×4 placement of an obstacle mesh: scale, then rotate about x, then y,
-    then z [deg], then translate. ``o`` is an :class:`Obstacle` or its dict (as
-    stored in ``run.json``); missing keys take the model's defaults. The one
-    definition the solver, the viewer and the renderer place obstacles with."""
-    import trimesh.transformations as T
-
-    def get(key: str):
-        if isinstance(o, dict):
-            return o.get(key, Obstacle.model_fields[key].default)
-        return getattr(o, key)
-
-    rx, ry, rz = (math.radians(a) for a in get("rotate"))
-    R = T.concatenate_matrices(T.rotation_matrix(rz, [0, 0, 1]), T.rotation_matrix(ry, [0, 1, 0]), T.rotation_matrix(rx, [1, 0, 0]))
-    return T.concatenate_matrices(T.translation_matrix(get("translate")), R, T.scale_matrix(get("scale")))
-
-
-def obstacle_matrix(o, body: dict | None = None) -> "np.ndarray":
-    """The 4×4 world matrix of an obstacle mesh: its rest placement
-    (:func:`obstacle_transform`), carried by the body's pose ``body`` =
-    ``{"position": [x, y, z], "quaternion": [w, x, y, z]}`` as ``run.json``
-    records it per frame (None: at rest). World = T(position)·R(quaternion)·placement."""
-    import trimesh.transformations as T
-
-    M = obstacle_transform(o)
-    if not body:
-        return M
-    return T.concatenate_matrices(T.translation_matrix(body["position"]), T.quaternion_matrix(body["quaternion"]), M)
+# (placement and pose matrices: whitecap.geometry)
 
 
 class Keyframe(_Section):
@@ -312,6 +296,120 @@ class Terrain(_Section):
         if self.height is not None and self.height[1] < self.height[0]:
             raise ValueError("terrain.height must be [low, high] with low <= high")
         return self
+
+
+# --------------------------------------------------------------------------- inflow and outflow
+class Emitter(_Section):
+    """An inflow: particles enter on a lattice of spacing 2r across a face, moving with ``velocity``.
+
+    ``box``: the face is the box's upstream side across the axis of the velocity's largest
+    component; ``disk``: a disk of ``radius`` about ``center``, facing the velocity. The rate is
+    ``rate`` (a volume flux, each particle standing for (2r)³ of water) or ``particles_per_second``."""
+
+    shape: Literal["box", "disk"] = Field("box", description="box or disk")
+    lower: Vec3 | None = Field(None, description="box: lower corner [m]")
+    upper: Vec3 | None = Field(None, description="box: upper corner [m]")
+    center: Vec3 | None = Field(None, description="disk: centre [m]")
+    radius: float | None = Field(None, gt=0, description="disk: radius [m]")
+    velocity: Vec3 = Field(..., description="velocity of the entering water [m/s]; not zero")
+    rate: float | None = Field(None, gt=0, description="volume flux [m³/s]")
+    particles_per_second: float | None = Field(None, gt=0, description="particles entering per second, "
+                                               "instead of rate [1/s]")
+    start: float = Field(0.0, ge=0, description="time the inflow starts [s]")
+    stop: float | None = Field(None, gt=0, description="time the inflow stops [s]; unset = never")
+
+    @model_validator(mode="after")
+    def _shape_fields(self) -> "Emitter":
+        if self.shape == "box":
+            if self.lower is None or self.upper is None:
+                raise ValueError("a box emitter needs 'lower' and 'upper'")
+            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
+                raise ValueError("box upper must be greater than lower on every axis")
+        elif self.center is None or self.radius is None:
+            raise ValueError("a disk emitter needs 'center' and 'radius'")
+        if math.sqrt(sum(x * x for x in self.velocity)) < 1e-9:
+            raise ValueError("'velocity' must not be zero: the water enters with it")
+        if (self.rate is None) == (self.particles_per_second is None):
+            raise ValueError("give exactly one of 'rate' [m³/s] and 'particles_per_second'")
+        if self.stop is not None and self.stop <= self.start:
+            raise ValueError("'stop' must be after 'start'")
+        return self
+
+    def bounds(self) -> tuple[list[float], list[float]]:
+        if self.shape == "box":
+            return list(self.lower), list(self.upper)  # type: ignore[arg-type]
+        c, r = self.center, self.radius
+        return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]  # type: ignore[index,operator]
+
+    def sites(self, r: float):
+        """(sites, direction, speed): the face's lattice sites (N×3 float64, spacing 2r, where the
+        particles appear), the unit direction they advance in through the face, and the speed
+        across the face [m/s] (the velocity's component along that direction). A box's face is its
+        upstream side across the axis of the velocity's largest component, one radius in."""
+        import numpy as np
+
+        v = np.asarray(self.velocity, np.float64)
+        if self.shape == "box":
+            lo, hi = np.asarray(self.lower, np.float64), np.asarray(self.upper, np.float64)
+            a = int(np.argmax(np.abs(v)))
+            axes = [np.arange(lo[b] + r, hi[b] - r + 1e-6 * r, 2 * r) for b in range(3)]
+            axes[a] = np.array([lo[a] + r if v[a] > 0 else hi[a] - r])
+            g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+            d = np.zeros(3)
+            d[a] = np.sign(v[a])
+            return g, d, float(abs(v[a]))
+        d = v / np.linalg.norm(v)
+        u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        w = np.cross(d, u)
+        m = int(self.radius / (2 * r)) + 1  # type: ignore[operator]
+        ij = np.stack(np.meshgrid(np.arange(-m, m + 1), np.arange(-m, m + 1), indexing="ij"), -1).reshape(-1, 2)
+        off = 2 * r * ij.astype(np.float64)
+        off = off[np.hypot(off[:, 0], off[:, 1]) <= self.radius - r + 1e-6 * r]  # type: ignore[operator]
+        g = np.asarray(self.center, np.float64) + off[:, :1] * u + off[:, 1:] * w
+        return g, d, float(np.linalg.norm(v))
+
+    def per_second(self, r: float) -> float:
+        """Particles entering per second: ``particles_per_second``, or ``rate`` / (2r)³."""
+        return float(self.particles_per_second) if self.rate is None else self.rate / (2 * r) ** 3
+
+    def emitted_by(self, r: float, t: float) -> int:
+        """How many particles the emitter has added by time ``t`` (those due at or before t)."""
+        end = t if self.stop is None else min(t, self.stop)
+        return 0 if end < self.start else math.floor(self.per_second(r) * (end - self.start) + 1e-9) + 1
+
+
+class Sink(_Section):
+    """An outflow: every particle that enters the region is removed at the end of the step.
+
+    ``box``: the box from ``lower`` to ``upper``; ``plane``: the half space beyond the plane
+    through ``point`` on the side ``normal`` points to."""
+
+    shape: Literal["box", "plane"] = Field("box", description="box or plane (a half space)")
+    lower: Vec3 | None = Field(None, description="box: lower corner [m]")
+    upper: Vec3 | None = Field(None, description="box: upper corner [m]")
+    point: Vec3 | None = Field(None, description="plane: a point on it [m]")
+    normal: Vec3 | None = Field(None, description="plane: its normal, pointing into the removed side [-]")
+
+    @model_validator(mode="after")
+    def _shape_fields(self) -> "Sink":
+        if self.shape == "box":
+            if self.lower is None or self.upper is None:
+                raise ValueError("a box sink needs 'lower' and 'upper'")
+            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
+                raise ValueError("box upper must be greater than lower on every axis")
+        else:
+            if self.point is None or self.normal is None:
+                raise ValueError("a plane sink needs 'point' and 'normal'")
+            if math.sqrt(sum(x * x for x in self.normal)) < 1e-9:
+                raise ValueError("'normal' must not be the zero vector")
+        return self
+
+    def contains(self, p: list[float]) -> bool:
+        """Whether the point ``p`` is in the removed region."""
+        if self.shape == "box":
+            return all(lo <= x <= hi for lo, x, hi in zip(self.lower, p, self.upper))  # type: ignore[arg-type]
+        return sum((x - q) * n for x, q, n in zip(p, self.point, self.normal)) >= 0  # type: ignore[arg-type]
 
 
 # --------------------------------------------------------------------------- foam
@@ -607,6 +705,8 @@ class Scene(_Section):
     fluid: list[FluidBlock] = Field(default_factory=list, description="initial fluid blocks")
     obstacle: list[Obstacle] = Field(default_factory=list, description="obstacles, static or moving")
     terrain: Terrain | None = Field(None, description="the ground as a heightmap or mesh; collides as an obstacle")
+    emitter: list[Emitter] = Field(default_factory=list, description="inflows: particles enter during the run")
+    sink: list[Sink] = Field(default_factory=list, description="outflows: particles entering them are removed")
     foam: Foam = Field(default_factory=Foam)
     mesh: Mesh = Field(default_factory=Mesh)
     view: View = Field(default_factory=View)
@@ -637,7 +737,45 @@ class Scene(_Section):
                     f"fluid[{k}]: the block spans {blo}..{bhi}, outside the domain {lo}..{hi} "
                     "(domain.lower, domain.upper)"
                 )
+        self._check_inflow()
         return self
+
+    def _check_inflow(self) -> None:
+        """Emitters inside the domain, each within what its face carries, within the capacity; no
+        initial fluid block wholly inside a sink. (Emitters inside obstacles: sim/emitters.py.)"""
+        lo, hi = self.domain.lower, self.domain.upper
+        r = self.solver.particle_radius
+        total = 0.0
+        for k, e in enumerate(self.emitter):
+            elo, ehi = e.bounds()
+            if any(elo[i] < lo[i] - 1e-9 or ehi[i] > hi[i] + 1e-9 for i in range(3)):
+                raise ValueError(f"emitter[{k}]: spans {[round(v, 6) for v in elo]}..{[round(v, 6) for v in ehi]}, "
+                                 f"outside the domain {lo}..{hi} (emitter[{k}].lower/upper/center)")
+            sites, _, speed = e.sites(r)
+            if len(sites) == 0:
+                raise ValueError(f"emitter[{k}]: its face holds no particle at spacing 2r = {2 * r:g} m; "
+                                 "enlarge it or lower solver.particle_radius")
+            pps, most = e.per_second(r), len(sites) * speed / (2 * r)
+            if pps > most * (1 + 1e-9):
+                field = "rate" if e.rate is not None else "particles_per_second"
+                raise ValueError(f"emitter[{k}].{field}: {pps:.4g} particles/s is more than its face carries at "
+                                 f"this speed without overlap ({most:.4g}/s = {len(sites)} sites x {speed:.3g} m/s "
+                                 f"/ 2r); raise the velocity or enlarge the emitter")
+            total += e.emitted_by(r, self.output.frames / self.solver.frame_rate)
+        cap = self.solver.max_particles
+        if cap is not None and self.emitter and not self.sink:
+            n0 = sum(b.lattice_count(r) for b in self.fluid)
+            if n0 + total > cap:
+                raise ValueError(f"emitter[*].rate: the emitters add {total:,.0f} particles over the run, "
+                                 f"{n0:,} are there at the start: more than solver.max_particles = {cap:,} "
+                                 "and no [[sink]] removes any; lower the rates or raise solver.max_particles")
+        for k, b in enumerate(self.fluid):
+            blo, bhi = b.bounds()
+            corners = [[(blo, bhi)[(c >> a) & 1][a] for a in range(3)] for c in range(8)]
+            for j, s in enumerate(self.sink):
+                if all(s.contains(c) for c in corners):
+                    raise ValueError(f"sink[{j}]: covers the whole of fluid[{k}], which would be removed at the "
+                                     "first step; move the sink or the block")
 
     def resolve(self, path: str) -> Path:
         """A path from the scene file, resolved against the scene's directory."""

@@ -32,7 +32,7 @@ class CaseShape:
     otherwise one pose per fluid frame, in frame order, each the rigid motion
     from the rest placement as ``run.json`` records it:
     ``{"position": [x, y, z], "quaternion": [w, x, y, z]}``
-    (world = T(position)·R(quaternion)·rest, see ``config.obstacle_matrix``).
+    (world = T(position)·R(quaternion)·rest, see ``geometry.obstacle_matrix``).
     """
 
     name: str

@@ -12,14 +12,15 @@ the same particle), the rotation ``R`` and translation ``t`` minimising
 ``d`` keeps ``R`` a proper rotation when noise would make the best orthogonal
 fit a reflection). The result is a pose as ``run.json`` records it,
 ``{"position": t, "quaternion": q(R) (w, x, y, z)}``: world = T(t)·R·rest,
-the form :func:`whitecap.config.obstacle_matrix` composes.
+the form :func:`whitecap.geometry.obstacle_matrix` composes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..sim.bodies import quaternion
+from ..geometry import apply_pose as _apply_pose
+from ..geometry import quaternion
 
 
 def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,8 +63,5 @@ def fit_poses(rest: np.ndarray, frames: list[np.ndarray]) -> list[dict]:
 
 
 def apply_pose(body: dict, points: np.ndarray) -> np.ndarray:
-    """Rest-placement points carried by a pose (``config.obstacle_matrix``'s pose part)."""
-    from ..config import obstacle_matrix
-
-    M = obstacle_matrix({"mesh": ""}, body)
-    return np.asarray(points, np.float64) @ M[:3, :3].T + M[:3, 3]
+    """Rest-placement points carried by a pose (``geometry.apply_pose``)."""
+    return _apply_pose(body, points)

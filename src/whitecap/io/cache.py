@@ -58,7 +58,7 @@ class CacheObstacle:
     """An obstacle's render mesh in its own coordinates, its rest ``placement`` (4×4, column
     vectors) and, for a moving body, its pose per frame index: (position [m], unit
     quaternion w x y z), as ``run.json`` records it. World = T(position)·R(quaternion)·placement
-    (:func:`whitecap.config.obstacle_matrix`); ``poses`` is empty when it never moves."""
+    (:func:`whitecap.geometry.obstacle_matrix`); ``poses`` is empty when it never moves."""
 
     name: str
     vertices: np.ndarray

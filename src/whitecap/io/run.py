@@ -14,7 +14,7 @@ and, per frame, its index, simulated time, the files written for it keyed by
 kind, (``made_from``) the identity of the simulation each file was made
 from, and, in runs with moving obstacles, (``bodies``) each obstacle's pose
 at that frame: position [m] and quaternion (w, x, y, z) of the rigid motion
-from its rest placement (``config.obstacle_matrix`` composes the two). The
+from its rest placement (``geometry.obstacle_matrix`` composes the two). The
 ``obstacles`` entries name each body's collision ``mesh`` and ``render_mesh``.
 
 The identity (:func:`simulation_identity`) is a hash of the resolved scene

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render, obstacle_transform
+from ..config import Render
+from ..geometry import obstacle_transform, unit_quat_matrix
 from ..errors import InputError
 from ..io.run import RunInfo, obstacle_path
 from . import stage
@@ -90,15 +91,6 @@ def body_rest_box(entry: dict, info: RunInfo, run_dir: Path | None) -> tuple[np.
     return v.min(0), v.max(0)
 
 
-def _quat_matrix(q) -> np.ndarray:
-    w, x, y, z = (float(a) for a in q)
-    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def body_track(info: RunInfo, k: int, centre, frames) -> np.ndarray:
     """Obstacle k's rest centre carried by its recorded pose at each of ``frames`` (at rest where none)."""
     c = np.asarray(centre, float)
@@ -108,7 +100,7 @@ def body_track(info: RunInfo, k: int, centre, frames) -> np.ndarray:
         if pose is None:
             out.append(c)
         else:
-            out.append(_quat_matrix(pose["quaternion"]) @ c + np.asarray(pose["position"], float))
+            out.append(unit_quat_matrix(pose["quaternion"]) @ c + np.asarray(pose["position"], float))
     return np.array(out)
 
 

@@ -12,7 +12,7 @@ The scene is the one the renderer builds (no Blender needed to describe it):
   (:func:`whitecap.render.scene.diffuse_radius`), at a quantile of that range
   fixed by the particle's id, so a particle keeps its size from frame to frame;
 - the obstacles' render meshes with their rest placement and, when they
-  move, ``run.json``'s pose per frame (together :func:`whitecap.config.obstacle_matrix`);
+  move, ``run.json``'s pose per frame (together :func:`whitecap.geometry.obstacle_matrix`);
 - the camera as the renderer places it (:func:`whitecap.render.stage.camera_keys`,
   framing at the final resolution's aspect).
 
@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render, obstacle_transform
+from ..config import Render
+from ..geometry import obstacle_transform
 from ..errors import InputError
 from ..io import read, read_mesh, write_scene
 from ..io.cache import CacheCamera, CacheObstacle, FrameGeometry, PointSet, SceneCache

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render, obstacle_transform
+from ..config import Render
+from ..geometry import obstacle_transform
 from ..errors import InputError
 from ..io import read, read_mesh
 from ..io.diffuse_types import COUNT_NAMES
@@ -538,7 +539,7 @@ def keyframe_body(obj, k: int, info: RunInfo, first: int, last: int) -> None:
 
     The mesh holds the rest placement; the object's location and quaternion are the
     body's pose (``frames[i].bodies[k]``, w x y z as Blender orders it), so the world
-    placement is ``config.obstacle_matrix`` and object motion blur comes from the keys."""
+    placement is ``geometry.obstacle_matrix`` and object motion blur comes from the keys."""
     if obj is None:
         return
     keyed = False

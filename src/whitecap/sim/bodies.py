@@ -29,7 +29,7 @@ exactly the displacement the position-based step sees, and exactly zero for a
 static body.
 
 Poses are recorded in ``run.json`` as position T and unit quaternion
-(w, x, y, z) of R; ``config.obstacle_matrix`` composes them with the rest
+(w, x, y, z) of R; ``geometry.obstacle_matrix`` composes them with the rest
 placement, the one definition every stage places a body with.
 """
 
@@ -42,20 +42,7 @@ import numpy as np
 
 from ..config import BODY_DENSITY, Motion, Obstacle, Scene
 from ..errors import InputError, SimulationError
-
-
-def axis_rotation(axis, angle: float) -> np.ndarray:
-    """3×3 rotation by ``angle`` [rad] about ``axis`` (right-hand rule), float64."""
-    a = np.asarray(axis, np.float64)
-    a = a / np.linalg.norm(a)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
-
-
-def euler_rotation(deg) -> np.ndarray:
-    """Rotation about x, then y, then z [deg], as the obstacles' ``rotate`` (R = Rz·Ry·Rx)."""
-    rx, ry, rz = (math.radians(v) for v in deg)
-    return axis_rotation([0, 0, 1], rz) @ axis_rotation([0, 1, 0], ry) @ axis_rotation([1, 0, 0], rx)
+from ..geometry import axis_rotation, euler_rotation, quat_matrix, quat_mul
 
 
 def smoothstep(u: float) -> float:
@@ -165,25 +152,8 @@ def step_velocity(R0, T0, R1, T1, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return (np.eye(3) - Q) / dt, (Q @ T1 - T0) / dt
 
 
-def quaternion(R: np.ndarray) -> list[float]:
-    """Unit quaternion (w, x, y, z) of a rotation matrix, w ≥ 0."""
-    import trimesh.transformations as tf
-
-    M = np.eye(4)
-    M[:3, :3] = R
-    q = tf.quaternion_from_matrix(M)
-    if q[0] < 0:
-        q = -q
-    return [float(v) for v in q]
-
-
 def motion_laws(scene: Scene) -> list[MotionLaw]:
     return [MotionLaw(o, scene.base_dir, k) for k, o in enumerate(scene.obstacle)]
-
-
-def pose_record(R: np.ndarray, T: np.ndarray) -> dict:
-    """A pose as run.json stores it: position [m] and quaternion (w, x, y, z)."""
-    return {"position": [float(v) for v in T], "quaternion": quaternion(R)}
 
 
 # ============================================================================ dynamic bodies
@@ -194,23 +164,6 @@ WALL_CONTACT_SWEEPS = 8
 #: Without it the last sweeps chase rounding-sized depths on a body resting on a wall
 #: (measured: 1.3 against 0.75 ms a step for a slab lying on the floor).
 WALL_CONTACT_SLOP = 1e-5
-
-
-def quat_matrix(q: np.ndarray) -> np.ndarray:
-    """3×3 rotation of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
 
 
 class RigidBody:

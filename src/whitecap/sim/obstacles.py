@@ -53,7 +53,8 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from ..config import Obstacle, Scene, obstacle_transform
+from ..config import Obstacle, Scene
+from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..errors import InputError
 from ..io.atomic import write_arrays
 from ..timing import timer
@@ -211,9 +212,7 @@ class PosedSDF:
 
     def _pose(self, time: float, body: dict | None) -> tuple[np.ndarray, np.ndarray]:
         if body is not None:
-            from ..config import obstacle_matrix
-
-            M = obstacle_matrix({"mesh": ""}, body)
+            M = pose_matrix(body)
             return M[:3, :3], M[:3, 3]
         return self.law.pose(time)
 
@@ -323,7 +322,7 @@ def run_obstacle_grids(info, run_dir: Path, fluid: np.ndarray | None = None) -> 
     """SDFs of the obstacles listed in run.json (``info.obstacles``: an imported case's tank,
     obstacles and bodies, cases/run_dir.py) for host-side users, each as a :class:`PosedSDF`
     whose pose comes per frame from run.json's ``bodies``. Meshes are found by
-    ``io.run.obstacle_path`` and placed by ``config.obstacle_transform``; the grid spacing is the
+    ``io.run.obstacle_path`` and placed by ``geometry.obstacle_transform``; the grid spacing is the
     entry's ``sdf_resolution`` × r (default 1).
 
     A ``container`` that holds most of ``fluid`` (the first frame's positions) inside its closed
@@ -644,7 +643,6 @@ class ObstacleCollider:
 
     def body_records(self) -> list[dict]:
         """Every obstacle's current pose as run.json records it (sim.bodies.pose_record)."""
-        from .bodies import pose_record
 
         return [pose_record(R, T) for R, T in self.poses]
 

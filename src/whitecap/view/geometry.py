@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import obstacle_matrix, obstacle_transform
+from ..geometry import obstacle_transform, pose_matrix
 
 log = logging.getLogger("whitecap.view")
 
@@ -46,8 +46,8 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
 
 def posed(vertices: np.ndarray, normals: np.ndarray, body: dict) -> tuple[np.ndarray, np.ndarray]:
     """Rest-placement vertices and normals carried by a body pose from run.json
-    (``{"position", "quaternion"}``): the pose part of ``config.obstacle_matrix``."""
-    M = obstacle_matrix({"mesh": ""}, body)
+    (``{"position", "quaternion"}``): ``geometry.pose_matrix``."""
+    M = pose_matrix(body)
     R, T = M[:3, :3], M[:3, 3]
     return (vertices @ R.T + T).astype(np.float32), (normals @ R.T).astype(np.float32)
 

@@ -35,6 +35,8 @@ import math
 import numpy as np
 import taichi as ti
 
+from ..geometry import unit_quat_matrix
+
 # GGUI's lights (view/draw.py: ambient 0.45, one point light 0.7 above the eye).
 AMBIENT = 0.45
 DIFFUSE = 0.7
@@ -134,10 +136,7 @@ def camera_rotation(wxyz) -> np.ndarray:
     """The camera-to-world rotation of viser's quaternion (w, x, y, z): columns are the
     camera's right, down and forward axes in world coordinates (the bodies' quaternion
     matrix, after normalising)."""
-    from ..sim.bodies import quat_matrix
-
-    q = np.asarray(wxyz, float)
-    return quat_matrix(q / (np.linalg.norm(q) or 1.0))
+    return unit_quat_matrix(wxyz)
 
 
 def focal_px(fov: float, height: int) -> float:

@@ -52,7 +52,7 @@ import time
 
 import numpy as np
 
-from ..config import obstacle_matrix
+from ..geometry import pose_matrix
 from ..errors import InputError, WhitecapError
 from ..io.diffuse_types import TYPE_NAMES
 from .app import FOAM_SLIDERS, _advance, _current, _new_state, open_source
@@ -608,7 +608,7 @@ class WebViewer:
                 if body == self._poses.get(k):  # at the pose already sent (static obstacles: always)
                     continue
                 self._poses[k] = body
-                M = obstacle_matrix({"mesh": ""}, body) if body else np.eye(4)
+                M = pose_matrix(body)
                 h.wxyz = self._so3.from_matrix(M[:3, :3]).wxyz
                 h.position = M[:3, 3]
             self.h_domain.visible = self.h_program_keeper.visible = self.show["domain"]

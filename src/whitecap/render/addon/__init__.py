@@ -471,7 +471,7 @@ def load_run(context, run, made):
 
 def add_obstacle(context, made, run, info, entry, k):
     """An obstacle's render mesh (else its collision mesh), placed as whitecap places it
-    (config.obstacle_transform: scale, rotate about x then y then z, translate)."""
+    (geometry.obstacle_transform: scale, rotate about x then y then z, translate)."""
     if not isinstance(entry, dict):
         return None
     base = info.get("extra", {}).get("scene_dir") or run
@@ -505,7 +505,7 @@ def add_obstacle(context, made, run, info, entry, k):
 def key_body(obj, poses):
     """A moving body: its rest placement goes into the mesh, and the object is keyed with the
     pose run.json records per frame (position, quaternion w x y z): world = T(p) R(q) placement,
-    as whitecap's config.obstacle_matrix. Linear keys: no overshoot between frames."""
+    as whitecap's geometry.obstacle_matrix. Linear keys: no overshoot between frames."""
     context_matrix = obj.matrix_basis.copy()
     obj.data.transform(context_matrix)
     obj.data.update()
