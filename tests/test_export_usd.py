@@ -21,7 +21,7 @@ from whitecap.io.diffuse_types import TYPE_NAMES
 from whitecap.io.mesh import read_mesh
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import export, mesh
-from whitecap.render.scene import DIFFUSE_RADIUS
+from whitecap.io.diffuse_types import DIFFUSE_RADIUS
 
 from .test_surface_export import synthetic_diffuse
 

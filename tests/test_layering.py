@@ -17,6 +17,7 @@ FLOORS = [
     {"diffuse"},  # foam
     {"view"},
     {"surface"},  # mesh / export
+    {"blender"},  # the bpy layer shared by render and the Blender add-on
     {"render"},
     {"pipeline"},
     {"cli"},

@@ -370,7 +370,8 @@ def test_motion_blur_follows_the_vertex_velocity_attribute(meshed_run, tmp_path)
 
 COPIES = r"""
 import sys, json, bpy, numpy as np
-from whitecap.render.scene import fill_mesh, sphere_nodes
+from whitecap.render.scene import fill_mesh
+from whitecap.blender.looks import sphere_nodes
 obj = bpy.data.objects.new("d", bpy.data.meshes.new("d"))
 bpy.context.scene.collection.objects.link(obj)
 mod = obj.modifiers.new("n", "NODES")

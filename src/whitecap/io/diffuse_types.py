@@ -11,3 +11,9 @@ SPRAY, FOAM, BUBBLE = 0, 1, 2
 TYPE_NAMES = ("spray", "foam", "bubble")
 # How many of each, by code: ``counts.csv`` columns, summaries, the Blender objects.
 COUNT_NAMES = ("spray", "foam", "bubbles")
+# Sphere radius range [min, max] of each type, by code, in fluid particle radii r, where
+# [render] sets none: spray small droplets, foam many small bubbles (not cotton balls),
+# air bubbles in between. A particle's radius within its range is drawn from its id, so it
+# keeps its size from frame to frame. The renderer, the USD/Alembic export and the Blender
+# add-on all draw diffuse particles at these sizes.
+DIFFUSE_RADIUS = ((0.1, 0.25), (0.15, 0.35), (0.1, 0.3))
