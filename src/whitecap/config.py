@@ -716,6 +716,7 @@ class Scene(_Section):
 
     # Where relative paths in the scene (meshes) are resolved; not part of the TOML.
     base_dir: str = Field(".", exclude=True, description="directory of the scene file (internal)")
+    source: str = Field("<scene>", exclude=True, description="the scene file, for messages (internal)")
 
     @field_validator("name")
     @classmethod
@@ -785,7 +786,7 @@ class Scene(_Section):
     def to_toml(self) -> str:
         import tomli_w
 
-        return tomli_w.dumps(_drop_none(self.model_dump(exclude={"base_dir"})))
+        return tomli_w.dumps(_drop_none(self.model_dump(exclude={"base_dir", "source"})))
 
 
 def choices(model: type[BaseModel], name: str) -> tuple[str, ...]:
@@ -852,6 +853,7 @@ def scene_from_dict(data: dict, source: str = "<scene>", base_dir: str | Path = 
     except ValidationError as exc:
         raise InputError(_format_error(exc.errors()[0], source)) from None
     scene.base_dir = str(base_dir)
+    scene.source = source
     if scene.terrain is not None:  # the terrain joins the obstacles (whitecap/terrain.py)
         from .terrain import expand
 

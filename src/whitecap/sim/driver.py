@@ -83,11 +83,13 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
     )
 
 
-def build_solver(scene: Scene, arch: str = "cpu"):
-    """Initialise Taichi and build the solver with obstacles from the scene."""
+def build_solver(scene: Scene, arch: str = "cpu", frames: int | None = None):
+    """Initialise Taichi and build the solver with obstacles, emitters and sinks from the scene
+    (its arrays sized for ``frames``, when more than the scene's, see sim.emitters.capacity)."""
+    from .emitters import Sources, capacity
     from .pbf import PBFSolver, estimate_particle_count, fits_in_memory, lattice_points
 
-    n_est = estimate_particle_count(scene)
+    n_est = capacity(scene, estimate_particle_count(scene), frames)
     fits, need = fits_in_memory(n_est, scene.solver.max_neighbors)
     if not fits:
         raise WhitecapError(
@@ -105,7 +107,13 @@ def build_solver(scene: Scene, arch: str = "cpu"):
     if obstacles:
         keep = obstacles.outside_mask(pos)
         pos, vel = pos[keep], vel[keep]
-    solver = PBFSolver(scene, pos, vel)
+    cap = capacity(scene, len(pos), frames)
+    if len(pos) > cap:
+        raise InputError(f"{scene.source}: solver.max_particles: {cap:,} is fewer than the {len(pos):,} particles "
+                         "of the initial fluid; raise it")
+    solver = PBFSolver(scene, pos, vel, capacity=cap)
+    if scene.emitter or scene.sink:
+        solver.sources = Sources(scene, solver, obstacles, where=f"{scene.source}: ")
     if obstacles:
         solver.colliders.append(obstacles.collider(solver))
     return solver
@@ -287,7 +295,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     # Set up everything (particle count and memory, fluid, obstacles) before touching the old run.
     if solver is None:
         with timer("setup"):
-            solver = build_solver(scene, arch)
+            solver = build_solver(scene, arch, nframes)
     info = run_info_for(scene, solver)
     if from_checkpoint:
         solver.restore(_sub(data, "solver"))
@@ -308,6 +316,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         with timer("output"):
             a = solver.arrays()  # fresh host copies (to_numpy): the writer may keep them while the solver goes on
             frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
+            info.frame(index)["particles"] = len(frame)  # the count varies with emitters and sinks
             for fmt in scene.output.formats:
                 rel = frame_name("fluid", index, fmt)
                 writer.submit(functools.partial(write, out / rel, frame), "fluid")

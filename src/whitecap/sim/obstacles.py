@@ -556,7 +556,7 @@ class ObstacleCollider:
         self.moving = any(law.moving for law in self.laws) or bool(self.bodies)
         # Two-way coupling: per particle, the momentum the dynamic bodies gave it this step, its
         # moment and which body (size 1 when there is no dynamic body).
-        nb = solver.n if self.bodies else 1
+        nb = getattr(solver, "capacity", solver.n) if self.bodies else 1
         self.dyn = arr([1 if j in self.bodies else 0 for j in range(k)], "i")
         self.imp = ti.Vector.ndarray(3, ti.f32, nb)
         self.mom = ti.Vector.ndarray(3, ti.f32, nb)

@@ -459,13 +459,17 @@ class PBFSolver:
     module plugs in there.
     """
 
-    def __init__(self, scene: Scene, positions: np.ndarray, velocities: np.ndarray, ids: np.ndarray | None = None):
+    def __init__(self, scene: Scene, positions: np.ndarray, velocities: np.ndarray, ids: np.ndarray | None = None,
+                 capacity: int | None = None):
         s = scene.solver
         self.scene = scene
         n = len(positions)
-        if n == 0:
-            raise WhitecapError("the scene has no fluid: add a [[fluid]] block")
-        fits, need = fits_in_memory(n, s.max_neighbors)
+        if n == 0 and not scene.emitter:
+            raise WhitecapError("the scene has no fluid: add a [[fluid]] block or an [[emitter]]")
+        # The arrays hold ``capacity`` particles, of which the first ``n`` live: emitters add at the
+        # end, sinks remove by compaction (sim/emitters.py).
+        self.capacity = max(n, 1, int(capacity or 0))
+        fits, need = fits_in_memory(self.capacity, s.max_neighbors)
         if not fits:
             raise WhitecapError(
                 f"{n} particles need about {need / 2**30:.1f} GiB, more than this machine has free; "
@@ -495,13 +499,14 @@ class PBFSolver:
         self.psi_table.from_numpy(psi)
         self.dpsi_table.from_numpy(dpsi)
 
-        self.state = FluidState.allocate(n)
+        self.state = FluidState.allocate(self.capacity)
         st = self.state
-        st.x.from_numpy(np.ascontiguousarray(positions, np.float32))
-        st.v.from_numpy(np.ascontiguousarray(velocities, np.float32))
-        st.ids.from_numpy(np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32))
+        ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
+        self._upload(positions, velocities, ids)
+        self.next_id = int(ids.max()) + 1 if n else 0  # the id the next emitted particle takes
+        self.sources = None  # emitters and sinks (sim/emitters.py), set by build_solver
         confine_to_domain(n, st.x, self.box)
-        self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), n, s.max_neighbors, self.h)
+        self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), self.capacity, s.max_neighbors, self.h)
         self.colliders: list = []
         # The step's phases run as Taichi compute graphs (sim/launch.py), one per phase and
         # structure; off, they launch kernel by kernel (the same launches, for comparison).
@@ -517,7 +522,16 @@ class PBFSolver:
         return self.scene.solver
 
     def memory_bytes(self) -> int:
-        return self.n * 4 * STATE_WORDS + self.grid.nbytes()
+        return self.capacity * 4 * STATE_WORDS + self.grid.nbytes()
+
+    def _upload(self, x, v, ids) -> None:
+        """The live particles' state, padded with zeros up to the capacity."""
+        st, n = self.state, len(x)
+        for arr, a, dt in ((st.x, x, np.float32), (st.v, v, np.float32), (st.ids, ids, np.int32)):
+            a = np.asarray(a, dt)
+            if self.capacity > n:
+                a = np.concatenate([a.reshape((n,) + a.shape[1:]), np.zeros((self.capacity - n,) + a.shape[1:], dt)])
+            arr.from_numpy(np.ascontiguousarray(a))
 
     # ---------------------------------------------------------------- one step
     def reorder(self) -> None:
@@ -665,6 +679,9 @@ class PBFSolver:
 
     def step(self, dt: float) -> None:
         s, st = self.params, self.state
+        if self.sources:
+            with timer("pbf.emit"):
+                self.sources.emit(self)  # the particles due by now enter at the emitters' faces
         if s.reorder_interval and self.step_count % s.reorder_interval == 0:
             with timer("pbf.reorder"):
                 self.reorder()
@@ -677,6 +694,9 @@ class PBFSolver:
         st.x, st.p, st.v, st.v_tmp = b["p"], b["x"], b["v"], b["t"]  # x ← x* (and the ping-pong's end)
         for c in self.colliders:
             c.finish_step(self)  # host work: the bodies' reactions
+        if self.sources:
+            with timer("pbf.sink"):
+                self.sources.drain(self)  # no particle ends a step inside a sink
         self.step_count += 1
         self.time += dt
 
@@ -736,30 +756,38 @@ class PBFSolver:
         st = self.state
         if with_density:
             self.update_density()
+        n = self.n
         return {
-            "positions": st.x.to_numpy(),
-            "velocities": st.v.to_numpy(),
-            "density": st.rho.to_numpy() if with_density else None,
-            "ids": st.ids.to_numpy().astype(np.uint32),
+            "positions": st.x.to_numpy()[:n],
+            "velocities": st.v.to_numpy()[:n],
+            "density": st.rho.to_numpy()[:n] if with_density else None,
+            "ids": st.ids.to_numpy()[:n].astype(np.uint32),
         }
 
     def checkpoint(self) -> dict[str, np.ndarray]:
-        st = self.state
+        st, n = self.state, self.n
         return {
-            "x": st.x.to_numpy(),
-            "v": st.v.to_numpy(),
-            "ids": st.ids.to_numpy(),
+            "x": st.x.to_numpy()[:n],
+            "v": st.v.to_numpy()[:n],
+            "ids": st.ids.to_numpy()[:n],
+            "next_id": np.int64(self.next_id),
             "step_count": np.int64(self.step_count),
             "time": np.float64(self.time),
+            **({f"sources_{k}": a for k, a in self.sources.checkpoint().items()} if self.sources else {}),
             **{f"collider{k}_{name}": a for k, c in enumerate(self.colliders) if hasattr(c, "checkpoint")
                for name, a in c.checkpoint().items()},
         }
 
     def restore(self, ck: dict) -> None:
-        st = self.state
-        st.x.from_numpy(np.asarray(ck["x"], np.float32))
-        st.v.from_numpy(np.asarray(ck["v"], np.float32))
-        st.ids.from_numpy(np.asarray(ck["ids"], np.int32))
+        ids = np.asarray(ck["ids"], np.int32)
+        if len(ids) > self.capacity:
+            raise WhitecapError(f"the checkpoint holds {len(ids):,} particles, more than the capacity "
+                                f"{self.capacity:,}; raise solver.max_particles")
+        self.n = len(ids)
+        self._upload(ck["x"], ck["v"], ids)
+        self.next_id = int(ck["next_id"]) if "next_id" in ck else (int(ids.max()) + 1 if len(ids) else 0)
+        if self.sources:
+            self.sources.restore({k[len("sources_"):]: a for k, a in ck.items() if k.startswith("sources_")})
         self.step_count = int(ck["step_count"])
         self.time = float(ck["time"])
         for k, c in enumerate(self.colliders):  # moving bodies: their state, then their pose at that time

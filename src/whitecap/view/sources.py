@@ -28,7 +28,8 @@ class DeviceFluid:
     n: int
 
     def host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.x.to_numpy(), self.v.to_numpy(), self.rho.to_numpy()
+        n = self.n  # the live particles: the arrays hold the solver's capacity (emitters)
+        return self.x.to_numpy()[:n], self.v.to_numpy()[:n], self.rho.to_numpy()[:n]
 
 
 @dataclass
