@@ -32,7 +32,7 @@ DAMBREAK = Path("/work/shared/data/dualsphysics_dambreak")
 
 
 def _formats():
-    spec = importlib.util.spec_from_file_location("whitecap_addon_formats", ADDON / "formats.py")
+    spec = importlib.util.spec_from_file_location("whitecap_addon_readers", ADDON / "readers.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -224,22 +224,33 @@ def test_addon_copies_of_the_array_names_match_whitecap():
 
     from whitecap.io import registry
 
-    tree = ast.parse((ADDON / "__init__.py").read_text())
+    tree = ast.parse((ADDON / "handlers.py").read_text())
     copies = {t.id: ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
               for t in n.targets if getattr(t, "id", "") in ("VELOCITY_NAMES", "DENSITY_NAMES", "ID_NAMES")}
     assert copies == {"VELOCITY_NAMES": registry.VELOCITY_NAMES, "DENSITY_NAMES": registry.DENSITY_NAMES,
                       "ID_NAMES": registry.ID_NAMES}
 
 
-def test_the_zip_carries_whitecaps_diffuse_type_module_and_the_files_permission(tmp_path):
+def test_the_zip_carries_the_shared_bpy_layer_and_passes_blenders_validator(tmp_path):
+    """Issue 33, defect 3: Blender's own extension validator (blender_ext.py validate, shipped in the
+    bpy wheel) passes the built zip: permissions is a table. The zip carries whitecap's bpy layer and
+    the modules it imports, byte for byte (one definition)."""
     import tomllib
 
     zp = tmp_path / "addon.zip"
     assert main(["blender-addon", "--out", str(zp)]) == 0
     z = zipfile.ZipFile(zp)
-    assert z.read("diffuse_types.py") == (SRC / "whitecap/io/diffuse_types.py").read_bytes()
-    assert {"__init__.py", "formats.py", "looks.py", "sequences.py", "blender_manifest.toml"} <= set(z.namelist())
-    assert tomllib.loads(z.read("blender_manifest.toml").decode())["permissions"] == ["files"]
+    assert z.read("whitecap/io/diffuse_types.py") == (SRC / "whitecap/io/diffuse_types.py").read_bytes()
+    assert z.read("whitecap/blender/looks.py") == (SRC / "whitecap/blender/looks.py").read_bytes()
+    assert {"__init__.py", "operators.py", "panels.py", "properties.py", "handlers.py", "readers.py",
+            "sequences.py", "blender_manifest.toml"} <= set(z.namelist())
+    assert tomllib.loads(z.read("blender_manifest.toml").decode())["permissions"] == {
+        "files": "Read simulation frames and runs from disk"}
+    bpy_dir = Path(importlib.util.find_spec("bpy").submodule_search_locations[0])  # the validator ships in bpy
+    validator = next(bpy_dir.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
+    out = subprocess.run([sys.executable, str(validator), "validate", str(zp)], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and "Success" in out.stdout, out.stdout + out.stderr
 
 
 # ----------------------------------------------------------------------------- in Blender
@@ -370,6 +381,9 @@ g = objs["foam"].evaluated_get(dg).evaluated_geometry()
 pc = g.pointcloud
 res["foam_radii"] = sorted({round(a.value, 6) for a in pc.attributes["radius"].data}) if pc else []
 res["foam_material"] = [m.name for m in pc.materials] if pc else []
+res["foam_ids"] = [a.value for a in objs["foam"].data.attributes["id"].data]
+res["stage"] = [sc.camera is not None and sc.camera.name, sc.world is not None,
+                sorted(o.type for o in sc.objects if o.type in ("LIGHT", "CAMERA"))]
 res["fluid_material"] = [m.name for m in objs["fluid"].data.materials]
 print(json.dumps(res))
 """
@@ -378,7 +392,10 @@ print(json.dumps(res))
 def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     res = run_blender(LOAD_RUN, addon_zip, tmp_path, addon_run)
     assert res["enabled"] and res["installed_in_user"]  # installed through the extension installer
-    assert res["objects"] == ["bubbles", "fluid", "foam", "spray"] and res["others"] == ["obstacle_0", "obstacle_1"]
+    assert res["objects"] == ["bubbles", "fluid", "foam", "spray"]
+    assert res["others"] == ["camera", "obstacle_0", "obstacle_1", "sun"]
+    # issue 33, defect 6: a run without render/scene.blend gets a camera, a sun and a world (F12 renders)
+    assert res["stage"] == ["camera", True, ["CAMERA", "LIGHT"]]
     info = RunInfo.load(addon_run)
     assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
@@ -411,7 +428,14 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     assert "whitecap:" not in res["stdout"]
     assert {"velocity", "id", "lifetime", "radius", "type"} <= set(res["frames"]["2"]["attrs"])
     assert "velocity" in res["frames"]["2"]["fluid_attrs"]
-    assert res["foam_radii"] == [0.004]  # the spheres take the particles' radius attribute
+    # issue 33, defect 1: foam spheres at the renderer's radius, DIFFUSE_RADIUS x r drawn per id (the
+    # files' constant 0.004 is not used), varied, and the same draw as whitecap render's
+    from whitecap.io.diffuse_types import DIFFUSE_RADIUS
+
+    r = info.particle_radius
+    lo, hi = DIFFUSE_RADIUS[1][0] * r, DIFFUSE_RADIUS[1][1] * r
+    assert 0.004 not in res["foam_radii"] and len(res["foam_radii"]) > 10
+    assert lo - 1e-7 <= min(res["foam_radii"]) and max(res["foam_radii"]) <= hi + 1e-7
     assert res["foam_material"] == ["whitecap_foam"] and res["fluid_material"] == ["whitecap_water"]
 
 
@@ -443,6 +467,7 @@ bpy.ops.whitecap.material()
 bpy.ops.whitecap.material()
 res["materials"] = sorted(m.name for m in bpy.data.materials if m.name.startswith("whitecap_foam"))
 bpy.context.view_layer.objects.active = None
+sc.whitecap_active = -1
 try:
     bpy.ops.whitecap.material()
     res["no_active"] = "ran"
@@ -537,8 +562,13 @@ for key, path in cases.items():
         err = str(exc)
     res[key] = {"error": err, "left": sorted(o.name for o in bpy.data.objects if o.name not in before),
                 "meshes": len(bpy.data.meshes)}
+    if key == "broken":
+        res[key]["errors"] = {o.name: o.whitecap_seq.error for o in seq_objects().values()}
+        res[key]["counts"] = {o.name: len(o.data.vertices) for o in seq_objects().values()}
+        for o in list(sc.objects):
+            bpy.data.objects.remove(o)
     if key == "folder":
-        res[key]["objects"] = {o.name: [len(o.data.vertices), o.whitecap_seq.radius, o.whitecap_seq.kind]
+        res[key]["objects"] = {o.name: [len(o.data.vertices), o.whitecap_seq.radius_min, o.whitecap_seq.kind]
                                for o in seq_objects().values()}
         for o in list(sc.objects):
             bpy.data.objects.remove(o)
@@ -566,8 +596,13 @@ def test_bad_paths_give_true_errors_and_leave_nothing_behind(addon_run, addon_zi
     res = run_blender(ERRORS, addon_zip, tmp_path, json.dumps(cases))
     assert f"{tmp_path / 'nope'}: no such file or folder" in res["missing"]["error"]
     assert "not a numbered" not in res["missing"]["error"]
-    assert str(broken / "diffuse" / "diffuse_00001.ply") in res["broken"]["error"] and "truncated" in res["broken"]["error"]
-    assert res["broken"]["left"] == [] and res["broken"]["meshes"] == 0  # a failed load leaves no objects
+    # issue 33, defect 2: one bad file at the current frame does not fail the load; its objects show
+    # nothing and say why, the others load
+    b = res["broken"]
+    assert b["error"] is None and sorted(b["errors"]) == ["bubbles", "fluid", "foam", "spray"]
+    bad = str(broken / "diffuse" / "diffuse_00001.ply")
+    assert all(bad in b["errors"][n] and "truncated" in b["errors"][n] for n in ("spray", "foam", "bubbles"))
+    assert b["errors"]["fluid"] == "" and b["counts"]["fluid"] > 0 and b["counts"]["foam"] == 0
     assert res["folder"]["error"] is None
     objs = res["folder"]["objects"]
     assert sorted(objs) == ["PartFluid", "Surface"]
@@ -590,7 +625,7 @@ def get(name, n, comps=1):
 n = len(me.vertices)
 res = {"names": sorted(a.name for a in me.attributes if not a.name.startswith(".")),
        "id": get("id", n), "Mk": get("Mk", n), "pressure": get("pressure", n), "velocity": get("velocity", n, 3),
-       "co": [list(v.co) for v in me.vertices], "radius": o.whitecap_seq.radius}
+       "co": [list(v.co) for v in me.vertices], "radius": o.whitecap_seq.radius_min}
 o.whitecap_seq.up = "Y"
 res["co_y_up"] = [list(v.co) for v in me.vertices]
 res["velocity_y_up"] = get("velocity", n, 3)
@@ -656,8 +691,8 @@ class Me:
     layout = Layout()
 bpy.context.view_layer.objects.active = o
 sc.whitecap_active = list(bpy.data.objects).index(o)
-addon.WHITECAP_PT_sequences.draw(Me(), bpy.context)
-addon.WHITECAP_PT_object.draw(Me(), bpy.context)
+addon.panels.WHITECAP_PT_sequences.draw(Me(), bpy.context)
+addon.panels.WHITECAP_PT_object.draw(Me(), bpy.context)
 res["drawn"] = True
 o.whitecap_seq.kind = "FOAM"  # a mesh turned into points gets the spheres, and back
 dg = bpy.context.evaluated_depsgraph_get()
@@ -724,3 +759,114 @@ def test_a_motion_blur_render_shows_the_frames_file_at_every_shutter_step(addon_
     steps = [s for s in res["seen"] if s[1] != 0]
     assert [s[:2] for s in steps] == [[1, 0.75], [2, 0.25]], res["seen"]  # Cycles' shutter steps (0.5 frames)
     assert all(s[2] == 2 for s in res["seen"]), res["seen"]
+
+
+# ----------------------------------------------------------------------------- issue 33's defects
+DEFECTS = r"""
+run, folder, png = sys.argv[3], sys.argv[4], sys.argv[5]
+res = {}
+# (5) Edit Mode: a frame change leaves the mesh being edited alone
+bpy.ops.whitecap.load(filepath=run)
+objs = seq_objects()
+fl = objs["fluid"]
+sc.frame_set(1)
+n1 = len(fl.data.vertices)
+bpy.context.view_layer.objects.active = fl
+bpy.ops.object.mode_set(mode="EDIT")
+sc.frame_set(2)
+bpy.ops.object.mode_set(mode="OBJECT")
+res["edit_mode"] = [n1, len(fl.data.vertices)]
+sc.frame_set(3)
+res["after_edit"] = len(fl.data.vertices)
+# (2) a bad frame: an empty mesh and the error on the object, never the previous frame
+sc.frame_set(1)
+res["good"] = len(objs["foam"].data.vertices)
+sc.frame_set(2)  # frame 2's diffuse file is cut short
+res["bad"] = [len(objs["foam"].data.vertices), objs["foam"].whitecap_seq.error]
+# ... and a render of it fails when the user asks for that
+cam = sc.camera
+sc.render.engine = "BLENDER_WORKBENCH"
+sc.render.resolution_x, sc.render.resolution_y = 8, 8
+sc.render.filepath = png
+sc.whitecap_fail_render = True
+try:
+    bpy.ops.render.render(write_still=True)
+    res["render"] = "rendered"
+except RuntimeError as exc:
+    res["render"] = str(exc)
+sc.whitecap_fail_render = False
+sc.frame_set(3)
+res["camera_back"] = sc.camera is not None and sc.camera == cam
+res["good_again"] = [len(objs["foam"].data.vertices), objs["foam"].whitecap_seq.error]
+bpy.ops.render.render(write_still=True)
+res["f12"] = os.path.isfile(png)
+# (6) Apply material acts on the list's selected row, not the context object
+foam = objs["foam"]
+red = bpy.data.materials.new("red")
+foam.whitecap_seq.material = red  # the material picker applies at once
+foam.data.materials.clear()
+bpy.context.view_layer.objects.active = fl
+sc.whitecap_active = list(bpy.data.objects).index(foam)
+bpy.ops.whitecap.material()
+res["material"] = [[m.name for m in foam.data.materials], [m.name for m in fl.data.materials]]
+# (6) changing a sequence's type (or drawing) does not leak node groups
+before = len(bpy.data.node_groups)
+for kind in ("FLUID", "PARTICLES", "FLUID", "FOAM"):
+    foam.whitecap_seq.kind = kind
+res["node_groups"] = [before, len(bpy.data.node_groups)]
+# (6) a plain folder sets the timeline and frame rate
+for o in list(sc.objects):
+    bpy.data.objects.remove(o)
+sc.frame_start, sc.frame_end, sc.render.fps = 1, 250, 30
+bpy.ops.whitecap.load(filepath=folder, fps=50.0)
+res["folder_timeline"] = [sc.frame_start, sc.frame_end, sc.render.fps / sc.render.fps_base]
+print(json.dumps(res))
+"""
+
+
+def test_issue_33_defects_in_blender(addon_run, addon_zip, tmp_path):
+    """Each assertion fails on 8b5132d: Edit Mode emptied the mesh; a bad frame kept the previous
+    one; Apply material took the context object; a type change left its node group behind; a
+    folder set neither the timeline nor the frame rate; a run had no camera, so F12 failed."""
+    run = tmp_path / "run"
+    shutil.copytree(addon_run, run)
+    good = (run / "diffuse" / "diffuse_00002.ply").read_bytes()
+    (run / "diffuse" / "diffuse_00002.ply").write_bytes(good[: len(good) // 2])
+    folder = tmp_path / "folder"
+    for k in (5, 6, 7, 8):
+        write_mesh_ply(folder / f"surf_{k:04d}.ply", np.random.default_rng(k).random((4, 3)),
+                       np.array([[0, 1, 2]]), np.zeros((4, 3)))
+    res = run_blender(DEFECTS, addon_zip, tmp_path, run, folder, tmp_path / "f12.png")
+    counts = json.loads((addon_run / "counts.json").read_text())
+    assert res["edit_mode"] == [counts["1"]["mesh"][0]] * 2  # not emptied by the frame change
+    assert res["after_edit"] == counts["3"]["mesh"][0]
+    assert res["good"] == counts["1"]["types"][1] > 0
+    assert res["bad"][0] == 0 and "diffuse_00002.ply" in res["bad"][1] and "truncated" in res["bad"][1]
+    assert "Cannot render" in res["render"] and res["camera_back"]
+    assert res["good_again"] == [counts["3"]["types"][1], ""] and res["f12"]
+    assert res["material"] == [["red"], ["whitecap_water"]]
+    assert res["node_groups"][1] == res["node_groups"][0]
+    assert res["folder_timeline"] == [1, 4, pytest.approx(50.0)]
+
+
+OBSTACLE_ASSETS = r"""
+run = sys.argv[3]
+bpy.ops.whitecap.load(filepath=run)
+print(json.dumps({"obstacles": sorted(o.name for o in sc.objects if o.name.startswith("obstacle_"))}))
+"""
+
+
+def test_obstacle_found_in_the_runs_own_folder_when_scene_dir_is_gone(addon_run, addon_zip, tmp_path):
+    """Issue 33, defect 4: run.json's scene_dir names a folder that is not there (the run was moved);
+    the obstacle's mesh lies in the run's own assets/, where whitecap (io/run.obstacle_path) finds it."""
+    run = tmp_path / "run"
+    shutil.copytree(addon_run, run)
+    (run / "assets").mkdir()
+    shutil.move(str(run / "box.obj"), run / "assets" / "box.obj")
+    data = json.loads((run / "run.json").read_text())
+    data["extra"]["scene_dir"] = str(tmp_path / "gone")
+    for o in data["obstacles"]:
+        o["mesh"] = "assets/box.obj"
+    (run / "run.json").write_text(json.dumps(data))
+    res = run_blender(OBSTACLE_ASSETS, addon_zip, tmp_path, run)
+    assert res["obstacles"] == ["obstacle_0", "obstacle_1"]

@@ -22,7 +22,6 @@ from whitecap import io
 from whitecap.cli import main
 from whitecap.errors import InputError, MissingDependency
 from whitecap.io.run import RunInfo
-from .conftest import ADDON_LOAD_SCRIPT
 
 pytest.importorskip("bpy")
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -164,35 +163,6 @@ def test_no_meshes_says_run_mesh_first(tiny_run, capsys):
     assert main(["render", str(tiny_run)]) != 0
     err = capsys.readouterr().err
     assert "whitecap mesh" in err and str(tiny_run) in err and len(err.strip().splitlines()) == 1
-
-
-TRUNCATED = ADDON_LOAD_SCRIPT + r"""
-obj = [o for o in sc.objects if o.whitecap_seq.enabled][-1]
-sc.frame_set(sc.frame_start)
-n0 = len(obj.data.vertices)
-sc.frame_set(sc.frame_start + 1)  # the truncated frame: the handler must return, not spin
-try:
-    addon.read_vtk_legacy(sys.argv[3]); err = None
-except ValueError as exc:
-    err = str(exc)
-print(json.dumps({"n0": n0, "n1": len(obj.data.vertices), "error": err}))
-"""
-
-
-def test_blender_addon_reports_a_truncated_vtk_instead_of_hanging(tmp_path):
-    head = "# vtk DataFile Version 4.2\nwhitecap test\nASCII\nDATASET POLYDATA\nPOINTS 4 float\n"
-    full = head + "0 0 0\n1 0 0\n0 1 0\n0 0 1\nPOLYGONS 1 4\n3 0 1 2\n"
-    (tmp_path / "surf_0000.vtk").write_text(full)
-    (tmp_path / "surf_0001.vtk").write_text(head + "0 0 0\n1 0 0\n")  # cut off after two of four points
-    addon = SRC / "whitecap" / "render" / "addon" / "__init__.py"
-    out = subprocess.run([sys.executable, "-c", TRUNCATED, str(addon), str(tmp_path / "surf_0000.vtk"),
-                          str(tmp_path / "surf_0001.vtk")], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONPATH": str(SRC)})
-    assert out.returncode == 0, out.stderr[-2000:]
-    res = json.loads([ln for ln in out.stdout.splitlines() if ln.startswith("{")][-1])
-    msg = f"{tmp_path / 'surf_0001.vtk'}: the file ends after 6 of 12 values (truncated?)"
-    assert res == {"n0": 4, "n1": 4, "error": msg}  # the object keeps its last good frame
-    assert msg in out.stdout  # and the frame-change handler said why
 
 
 def test_render_workers_die_with_a_killed_parent(meshed_run, tmp_path):
@@ -402,18 +372,6 @@ def test_render_copies_are_jittered_and_keep_their_place():
     # Frame b: every particle moved by 0.5 and listed in another order; its copies went along.
     key = lambda p: p[np.lexsort(np.round(p, 6).T)]
     assert np.allclose(key(b - 0.5), key(a), atol=1e-5)
-
-
-def test_addon_copy_of_the_velocity_names_matches_whitecap():
-    # The add-on ships alone (no whitecap inside Blender), so it carries a copy.
-    import ast
-
-    from whitecap.io.registry import VELOCITY_NAMES
-
-    src = (Path(__file__).parents[1] / "src/whitecap/render/addon/__init__.py").read_text()
-    copies = [ast.literal_eval(n.value) for n in ast.parse(src).body
-              if isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "VELOCITY_NAMES" for t in n.targets)]
-    assert copies == [VELOCITY_NAMES]
 
 
 # ---------------------------------------------------------------------------- the stage

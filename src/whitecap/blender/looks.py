@@ -160,13 +160,15 @@ def obstacle_material(entry: dict):
 
 # ---------------------------------------------------------------------------- spheres
 def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int, copies: int = 1, jitter: float = 0.0,
-                 file_radius: bool = False):
+                 file_radius: bool = False, instances: bool = False):
     """A Geometry Nodes group that draws a mesh's vertices as spheres: Mesh to Points with a
     radius from Random Value in [Radius min, Radius max] seeded by the point's ``id`` (a particle
     keeps its size from frame to frame), or, with the File radius input on, the file's ``radius``
     attribute where the points carry one; then the material. With ``copies`` > 1 each point is
     duplicated and the copies moved by a random offset in [-jitter, jitter]^3 seeded by
-    (id, copy). The radius inputs are the modifier's, so a panel can change them."""
+    (id, copy). The radius inputs are the modifier's, so a panel can change them. With
+    ``instances`` each point carries an instanced ico sphere of its radius instead (EEVEE draws
+    instances; it does not draw point clouds)."""
     import bpy
 
     ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
@@ -209,6 +211,20 @@ def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int, copie
     points = m2p.outputs["Points"]
     if copies > 1:
         points = _jittered_copies(ng, points, pid.outputs["Attribute"], copies, jitter, seed)
+    if instances:
+        ico = ng.nodes.new("GeometryNodeMeshIcoSphere")
+        ico.inputs["Radius"].default_value = 1.0
+        ico.inputs["Subdivisions"].default_value = 2
+        smooth = ng.nodes.new("GeometryNodeSetShadeSmooth")
+        ng.links.new(ico.outputs["Mesh"], smooth.inputs["Geometry"])
+        ng.links.new(smooth.outputs["Geometry"], setm.inputs["Geometry"])
+        inst = ng.nodes.new("GeometryNodeInstanceOnPoints")
+        ng.links.new(points, inst.inputs["Points"])
+        ng.links.new(setm.outputs["Geometry"], inst.inputs["Instance"])
+        radius = ng.nodes.new("GeometryNodeInputRadius")
+        ng.links.new(radius.outputs[0], inst.inputs["Scale"])
+        ng.links.new(inst.outputs["Instances"], gout.inputs[0])
+        return ng
     ng.links.new(points, setm.inputs["Geometry"])
     ng.links.new(setm.outputs["Geometry"], gout.inputs[0])
     return ng

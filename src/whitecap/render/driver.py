@@ -422,14 +422,14 @@ def _is_addon_zip(path: Path) -> bool:
 
 
 def build_addon(out: str | Path | None = None) -> Path:
-    """Zip the Blender extension (blender_manifest.toml + add-on package)."""
+    """Zip the Blender extension: blender_manifest.toml, the add-on's modules, and in its
+    ``whitecap`` folder the whitecap modules it shares with ``whitecap render`` (the bpy layer
+    whitecap/blender and what it imports: errors, io/diffuse_types, io/run, io/atomic)."""
     import zipfile
 
     from ..io.atomic import atomic_path
 
     src = Path(__file__).parent / "addon"
-    # whitecap modules the add-on imports as its own (pure Python, no imports): one definition
-    shared = {"diffuse_types.py": Path(__file__).parents[1] / "io" / "diffuse_types.py"}
     out = Path(out) if out else Path("whitecap_blender_addon.zip")
     if out.is_dir():
         out = out / "whitecap_blender_addon.zip"
@@ -440,6 +440,22 @@ def build_addon(out: str | Path | None = None) -> Path:
             for f in sorted(src.iterdir()):
                 if f.is_file() and f.suffix in (".py", ".toml"):
                     z.write(f, f.name)
-            for name, f in shared.items():
-                z.write(f, name)
+            for name, text in addon_shared_files().items():
+                z.writestr(name, text)
     return out
+
+
+#: whitecap modules the extension carries (below the package), beside the whole bpy layer
+ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/run.py", "io/atomic.py")
+
+
+def addon_shared_files() -> dict[str, bytes]:
+    """{path in the zip: bytes} of the whitecap modules the add-on imports, with package files that
+    import nothing (whitecap's own ``__init__`` files load the whole pipeline, which Blender lacks)."""
+    pkg = Path(__file__).parents[1]
+    files = {f"whitecap/{rel}": (pkg / rel).read_bytes() for rel in ADDON_SHARED}
+    files.update({f"whitecap/blender/{f.name}": f.read_bytes() for f in sorted((pkg / "blender").glob("*.py"))})
+    stub = b'"""whitecap modules shared with the Blender add-on (copied by `whitecap blender-addon`)."""\n'
+    files["whitecap/__init__.py"] = stub
+    files["whitecap/io/__init__.py"] = stub
+    return files

@@ -1,7 +1,11 @@
-"""Readers for the particle and mesh files whitecap reads, in Python and numpy only.
+"""The add-on's readers: numpy readers for the files simulations write, and meshio for the rest.
 
-Blender bundles numpy but not whitecap, vtk, meshio or plyfile, so the add-on
-reads the files itself. Each reader returns a :class:`Geometry`: points,
+Blender bundles numpy; the extension carries meshio as a wheel. The formats
+whitecap's solvers write are read here in numpy, keeping every point array by its
+own name (whitecap's io registry keeps only the fluid's standard arrays), and
+checked against whitecap's readers by tests/test_addon.py. Every other format
+meshio reads goes through meshio (:func:`read_meshio`), volume meshes as their
+boundary surface. Each reader returns a :class:`Geometry`: points,
 polygons (flat vertex indices plus the start of each polygon) and every point
 array by the name the file gives it. :func:`read` picks the reader from the
 extension. Errors are ``ValueError`` with one line that starts with the file.
@@ -33,10 +37,24 @@ class Geometry:
         self.points = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
         self.loops = np.zeros(0, np.int32) if loops is None else np.ascontiguousarray(loops, np.int32).ravel()
         self.starts = np.zeros(0, np.int32) if starts is None else np.ascontiguousarray(starts, np.int32).ravel()
-        self.arrays = {k: v for k, v in (arrays or {}).items() if len(v) == len(self.points)}
+        self.arrays = dict(arrays or {})
+        self.normals = None  # (N, 3) where the file has point normals
 
     def __len__(self):
         return len(self.points)
+
+    def check(self, path):
+        """Every array has one value per point and every corner names a point, else a one-line
+        ValueError naming the file and saying truncated."""
+        n = len(self.points)
+        for k, v in self.arrays.items():
+            if len(v) != n:
+                raise ValueError(f"{path}: array '{k}' has {len(v)} values for {n} points (truncated?)")
+        if len(self.loops) and (self.loops.max() >= n or self.loops.min() < 0):
+            raise ValueError(f"{path}: a polygon names point {int(self.loops.max())} of {n} (truncated?)")
+        if len(self.starts) and self.starts.max() >= max(len(self.loops), 1):
+            raise ValueError(f"{path}: polygons start past the {len(self.loops)} corners listed (truncated?)")
+        return self
 
 
 def _polygons(offsets, conn, keep=None):
@@ -447,8 +465,8 @@ def read_ply(path):
     pts = np.stack([verts.pop("x"), verts.pop("y"), verts.pop("z")], axis=1)
     if all(k in verts for k in ("vx", "vy", "vz")):
         verts["velocity"] = np.stack([verts.pop("vx"), verts.pop("vy"), verts.pop("vz")], axis=1)
-    for k in ("nx", "ny", "nz"):  # Blender computes its own normals
-        verts.pop(k, None)
+    if all(k in verts for k in ("nx", "ny", "nz")):  # the file's normals: custom split normals
+        verts["normals"] = np.stack([verts.pop("nx"), verts.pop("ny"), verts.pop("nz")], axis=1)
     return Geometry(pts, loops, starts, verts)
 
 
@@ -542,18 +560,83 @@ def read_bgeo(path):
 
 READERS = {".vtk": read_vtk_legacy, ".vtu": read_vtk_xml, ".vtp": read_vtk_xml, ".ply": read_ply,
            ".obj": read_obj, ".stl": read_stl, ".bgeo": read_bgeo}
+NORMAL_NAMES = ("normals", "normal", "n")  # point arrays read as the file's normals
+
+
+def meshio_extensions():
+    """The extensions meshio reads (none when the wheel is missing)."""
+    try:
+        import meshio
+    except ImportError:
+        return ()
+    return tuple(sorted(e for e in meshio.extension_to_filetypes if e not in READERS))
+
+
+# meshio cell types -> their boundary faces (corner indices): volume meshes show their surface
+_BOUNDARY = {
+    "tetra": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2)),
+    "hexahedron": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
+    "wedge": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
+    "pyramid": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
+}
+
+
+def read_meshio(path):
+    """Any format meshio reads: triangles, quads and polygons as faces, tetrahedra, hexahedra,
+    wedges and pyramids as their boundary (faces that only one cell has), point data by name."""
+    try:
+        import meshio
+    except ImportError:
+        raise ValueError(f"{path}: this format needs meshio, which is not installed with the add-on") from None
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises many kinds; one line naming the file
+        raise ValueError(f"{path}: not readable by meshio ({type(exc).__name__}: {exc})".replace("\n", " ")) from None
+    faces = []
+    for block in m.cells:
+        data = np.asarray(block.data)
+        if block.type in ("triangle", "quad") or block.type.startswith("polygon"):
+            faces += [tuple(c) for c in data.tolist()]
+        elif block.type in _BOUNDARY:
+            seen = {}
+            for cell in data.tolist():
+                for f in _BOUNDARY[block.type]:
+                    face = tuple(cell[i] for i in f)
+                    key = tuple(sorted(face))
+                    seen[key] = None if key in seen else face
+            faces += [f for f in seen.values() if f is not None]
+    pts = np.asarray(m.points, np.float64)
+    if pts.shape[1] == 2:
+        pts = np.c_[pts, np.zeros(len(pts))]
+    loops = np.array([i for f in faces for i in f], np.int64)
+    starts = np.cumsum([0] + [len(f) for f in faces[:-1]]) if faces else np.zeros(0)
+    g = Geometry(pts, loops, starts, {k: np.asarray(v) for k, v in m.point_data.items()})
+    return g
 
 
 def read(path):
-    """The geometry of one file, by its extension."""
+    """The geometry of one file, by its extension, checked (:meth:`Geometry.check`); the file's
+    point normals, where it has them, as ``normals``."""
     ext = os.path.splitext(path)[1].lower()
-    if ext not in READERS:
-        raise ValueError(f"{path}: no reader for '{ext}' files (known: {', '.join(sorted(READERS))})")
+    reader = READERS.get(ext)
+    if reader is None and ext in meshio_extensions():
+        reader = read_meshio
+    if reader is None:
+        raise ValueError(f"{path}: no reader for '{ext}' files (known: {', '.join(sorted(READERS))} and meshio's)")
     if not os.path.isfile(path):
         raise ValueError(f"{path}: file not found")
     try:
-        return READERS[ext](path)
+        g = reader(path)
     except ValueError:
         raise
-    except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError) as exc:
+    except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError,
+            EOFError, zlib.error, OSError) as exc:
         raise ValueError(f"{path}: not a readable {ext[1:].upper()} file ({type(exc).__name__}: {exc})") from None
+    g.check(path)
+    low = {k.lower(): k for k in g.arrays}
+    nk = next((low[n] for n in NORMAL_NAMES if n in low), None)
+    if nk is not None and np.ndim(g.arrays[nk]) == 2 and np.shape(g.arrays[nk])[1] == 3:
+        g.normals = np.asarray(g.arrays.pop(nk), np.float32)
+    elif all(k in g.arrays for k in ("nx", "ny", "nz")):
+        g.normals = np.stack([g.arrays.pop(k) for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+    return g
