@@ -47,7 +47,7 @@ def _reference_keep(gen, frame, index):
     from whitecap.diffuse import kernels as K
     from whitecap.diffuse.generator import ROUNDING_SLOT, _nd, uniform
 
-    p, c, n = gen.p, gen._candidates, len(frame)
+    p, c, n = gen.p, gen.candidates(), len(frame)
     total, counts, offset = c["total"], c["counts"], c["offset"]
     x = gen._bufs["cand_x"].to_numpy()[:total]
     _, _, _, args = gen._prepare(frame, n)
@@ -76,7 +76,7 @@ def test_the_kept_candidates_are_those_the_full_classification_keeps(multipliers
     gen = _generator(multipliers)
     frame = _splash()
     d = gen.step(frame, 0, DT)
-    c = gen._candidates
+    c = gen.candidates()
     keep, kind, x = _reference_keep(gen, frame, 0)
     assert c["total"] > 3_000 and c["total"] >= thinned * keep.sum()  # many candidates (with spray first: most not kept)
     np.testing.assert_array_equal(c["kept"], np.flatnonzero(keep))
@@ -90,17 +90,21 @@ def test_the_kept_candidates_are_those_the_full_classification_keeps(multipliers
 def test_compaction_keeps_each_kept_candidate_once_in_candidate_order():
     gen = _generator((30.0, 1.0, 1.0))
     frame = _splash()
-    gen.step(frame, 0, DT)
-    c, b = gen._candidates, gen._bufs
+    d = gen.step(frame, 0, DT)
+    c, b = gen.candidates(), gen._bufs
     kept, total, m = c["kept"], c["total"], len(c["kept"])
     assert m > 100 and np.all(np.diff(kept) > 0) and kept[-1] < total  # once each, in candidate order
-    np.testing.assert_array_equal(b["kept_x"].to_numpy()[:m], b["cand_x"].to_numpy()[kept])
-    np.testing.assert_array_equal(b["kept_v"].to_numpy()[:m], b["cand_v"].to_numpy()[kept])
-    np.testing.assert_array_equal(b["kept_life"].to_numpy()[:m], b["cand_life"].to_numpy()[kept])
-    np.testing.assert_array_equal(b["kept_owner"].to_numpy()[:m], b["cand_owner"].to_numpy()[kept])
+    # the first frame's particles (none alive before it, none outside the domain) are the kept candidates,
+    # in candidate order, with ids 0, 1, 2, ...
+    np.testing.assert_array_equal(d.positions, b["cand_x"].to_numpy()[kept])
+    np.testing.assert_array_equal(d.velocities, b["cand_v"].to_numpy()[kept])
+    np.testing.assert_array_equal(d.arrays["lifetime"], b["cand_life"].to_numpy()[kept])
+    np.testing.assert_array_equal(d.ids, np.arange(m, dtype=np.uint32))
+    assert gen.state.next_id == m
     # every candidate's owner is the fluid particle whose run [offset, offset + count) holds it
     owner = b["cand_owner"].to_numpy()[:total]
     np.testing.assert_array_equal(owner, np.repeat(np.arange(len(frame)), c["counts"]))
+    np.testing.assert_array_equal(c["offset"], np.concatenate([[0], np.cumsum(c["counts"])[:-1]]))
 
 
 def test_the_candidate_buffers_are_reused_from_frame_to_frame():
@@ -123,7 +127,7 @@ def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_partic
     gen = _generator((30.0, 1.0, 1.0))
     frame = _splash()
     gen.step(frame, 0, DT)
-    b, c, n = gen._bufs, gen._candidates, len(frame)
+    b, c, n = gen._bufs, gen.candidates(), len(frame)
     total = c["total"]
     fx, fv, fid, _ = gen._prepare(frame, n)
     e_k = ti.ndarray(ti.f32, n)

@@ -13,6 +13,20 @@ escapees are removed; (2) each fluid particle generates into its own run of the 
 and thinned by their type's multiplier; (3) survivors and the new particles
 are compacted in a fixed order (survivors first, then the new ones in fluid
 order), so no global counter is needed. 'auto' thresholds and multipliers: :mod:`.budget`.
+
+The live particles stay on the device (issue 31): positions, velocities, lifetimes, ids and types
+live in Taichi arrays made once at the capacity (budget.capacity_for), two sets that compaction
+writes one from the other. Advection, expiry, foam aging and dissipation, the obstacles, the keep
+rule, lifetimes and compaction (exclusive prefix sums of keep flags, kernels.scan_sums/scan_offsets)
+all run in kernels; the host reads back counts only, and the live particles once a frame, for the
+frame's output (they are also ``state``'s host view, for checkpoints; a state set on the host, as a
+resume does, is uploaded at the next step, see FoamGenerator._sync_in).
+Output against the host version before it (main at 80c2fce): byte-identical without obstacles (the
+same float operations in the same order, the same counter-based draws). With obstacles it differs in
+the last bits and, rarely, more: the SDFs are now sampled by sim.obstacles.sdf_sample in f32 (the
+fluid's own collisions) instead of SciPy in f64, the normal is that sampler's analytic gradient
+instead of central differences, and a path is sampled at most half a cell apart for each particle
+(the host version used one sample count for all, from the longest path).
 """
 
 from __future__ import annotations
@@ -25,7 +39,7 @@ import taichi as ti
 from taichi.lang.util import to_numpy_type
 
 from ..io import ParticleFrame
-from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
+from ..io.diffuse_types import BUBBLE, FOAM, SPRAY  # noqa: F401 (the codes, for the generator's users)
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
@@ -33,32 +47,15 @@ from ..timing import timer
 from . import budget as B
 from . import kernels as K
 from . import splishsplash as SP
+# the draw numbers, the rounding slot and the obstacle constants: one definition, in .kernels
+from .kernels import (BODY_CONTACT, DRAW_DISSIPATE, DRAW_LIFE, PATH_SAMPLES, ROUNDING_SLOT,  # noqa: F401
+                      SPRAY_RESTITUTION, SURFACE_OFFSET)
 from .params import FoamParams
 
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
 # Neighbour-list length per fluid particle: a lattice of spacing 2r has 4/3·π·(h/2r)³ ≈ 34
 # neighbours within h = 4r; 96 leaves ~3× room for water compressed in a splash.
 MAX_FLUID_NEIGHBOURS = 96
-# Draw numbers of the per-particle random streams used outside the kernels
-# (the kernels use draws 0-4 of the (seed, frame, id, slot) counter).
-DRAW_LIFE, DRAW_DISSIPATE = 6, 7
-ROUNDING_SLOT = 0xFFFF  # the slot number of kernels.generate's stochastic-rounding draw
-# Diffuse particles and obstacles (static or moving), see FoamGenerator._obstacles:
-# - a foam particle within BODY_CONTACT·r of a moving body at the start of a frame rides on it:
-#   one fluid-particle diameter, the fluid's own contact with a body (its centres keep r from it);
-# - a particle pushed out of an obstacle is put SURFACE_OFFSET·r outside it, where the fluid's
-#   centres rest (sim/obstacles.py projects them to sdf = r);
-# - spray bouncing off keeps SPRAY_RESTITUTION of its normal speed relative to the body: our
-#   choice for the look of droplets glancing off a wet hull, not a measured value (0 makes them
-#   slide along it).
-BODY_CONTACT = 2.0
-SURFACE_OFFSET = 1.0
-SPRAY_RESTITUTION = 0.5
-# - a particle that moved farther than half an obstacle's SDF cell over the frame is also tested
-#   along its path, at most PATH_SAMPLES points (half a cell apart up to 32 cells): a spray drop
-#   must not pass through a wall thinner than its flight (an imported tank's walls are one
-#   particle spacing thick, a frame's flight is often ten).
-PATH_SAMPLES = 64
 # The fluid neighbour grid, when the fluid outgrows it (inflow), is rebuilt this many times larger
 # (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
 GRID_GROWTH = 1.25
@@ -191,8 +188,14 @@ class FoamGenerator:
         self._warned_capacity = False
         self._warned_budget = False
         self._bufs: dict = {}  # Taichi arrays reused from frame to frame (see _buffer): the fluid's, the candidates'
-        # the live diffuse particles' Taichi arrays (_advect): made at the budget's count, grown only past it
-        self._resident: dict = {}
+        # the live diffuse particles on the device (_allocate_live): two sets of arrays at the capacity, the
+        # current one self._live[self._cur] holding self._nd particles; self._mirror: the host arrays last
+        # handed out (the state's host view), see _sync_in
+        self._live: list = []
+        self._cur = 0
+        self._nd = 0
+        self._mirror: tuple | None = None
+        self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._candidates = None
         self._S = 0
@@ -413,10 +416,13 @@ class FoamGenerator:
         SP.potentials(n, fx, fv, g.nb_count, g.nb, self.h, m, vol, normal, v_diff, crest, e_k)
 
     def nbytes(self) -> int:
-        """Bytes of the Taichi arrays this generator keeps (its buffers and the fluid neighbour grid)."""
+        """Bytes of the Taichi arrays this generator keeps (its buffers, the live particles' two sets,
+        the obstacles' SDFs and the fluid neighbour grid)."""
         total = self.grid.nbytes() if self.grid is not None else 0
-        for a in (*self._bufs.values(), *self._resident.values()):
-            vec = 3 if isinstance(a, ti.lang.matrix.VectorNdarray) else 1
+        arrays = [*self._bufs.values(), *self._geo.values()] + [a for live in self._live for a in live.values()]
+        for a in arrays:
+            vec = a.n * a.m if isinstance(a, ti.lang.matrix.MatrixNdarray) else (
+                a.n if isinstance(a, ti.lang.matrix.VectorNdarray) else 1)
             total += int(np.prod(a.shape)) * vec * np.dtype(to_numpy_type(a.dtype)).itemsize
         return total
 
@@ -431,25 +437,24 @@ class FoamGenerator:
             args, fx, fv, fid, pots = self._potential_arrays(fluid, n)
         with timer("foam.advect"):
             self._age(n)
-            old = self._advect(fx, fv, args, dt, index)
+            self._sync_in()
+            self._advect(args, dt, index)
         with timer("foam.generate"):
-            new = self._generate(fluid, fx, fv, fid, args, pots, n, index, dt)
+            nk, born, lost = self._generate(fluid, fx, fv, fid, args, pots, n, index, dt)
         with timer("foam.compact"):
-            kind = self._compact(old, new, index)
-        nd = len(st.positions)
-        c = [int(x) for x in np.bincount(kind, minlength=3)[:3]]
+            c = self._compact(nk, lost, index)
+            frame = self._download()
         time_ = fluid.time if fluid.time is not None else index * dt
+        frame.time = time_
         if self._scaled():
-            st.born = B.born_add(st.born, [time_, *np.bincount(new[3], minlength=3)[:3], *st.type_scale], self.p, dt)
+            st.born = B.born_add(st.born, [time_, *born, *st.type_scale], self.p, dt)
         st.counts.append((index, time_, *c))
         self._track_peak(c, n, index)
-        return ParticleFrame(
-            positions=st.positions, velocities=st.velocities, ids=st.ids, time=time_,
-            arrays={"type": kind, "lifetime": st.lifetime, "radius": np.full(nd, self.p.radius * self.r, np.float32)},
-        )
+        return frame
 
     def _size(self, n: int) -> None:
-        """Capacity from the budget (unless set); warn when a set capacity is below the budget."""
+        """Capacity from the budget (unless set); warn when a set capacity is below the budget. The live
+        particles' arrays are made at the capacity, once (again only if the fluid grows past it)."""
         p = self.p
         self.capacity = B.capacity_for(p, n)
         self._sized_for = n
@@ -461,6 +466,72 @@ class FoamGenerator:
                 f"peak ({n:,} fluid particles), beyond foam.max_particles = {p.max_particles:,}; the excess will be "
                 "dropped (raise max_particles or leave it unset)."
             )
+        self._allocate_live(self.capacity)
+
+    # ------------------------------------------------------------------ the live particles, on the device
+    def _allocate_live(self, rows: int) -> None:
+        """The live particles' two sets of arrays (positions, velocities, lifetimes, ids, types; compaction
+        writes one from the other) and their keep flags and places, ``rows`` each; the live ones copied
+        over when they are made again larger."""
+        rows = max(int(rows), 1)
+        if self._live and self._live[0]["x"].shape[0] >= rows:
+            return
+        keep = self._download() if self._live and self._nd else None
+        self._live = []  # the old arrays go before the new ones are made
+        for k in ("live_keep", "live_pos"):
+            self._bufs.pop(k, None)
+        for _ in range(2):
+            self._live.append({"x": ti.Vector.ndarray(3, ti.f32, rows), "v": ti.Vector.ndarray(3, ti.f32, rows),
+                               "life": ti.ndarray(ti.f32, rows), "ids": ti.ndarray(ti.u32, rows),
+                               "kind": ti.ndarray(ti.i32, rows)})
+        self._cur = 0
+        self._buffer("live_keep", rows)
+        self._buffer("live_pos", rows)
+        if keep is not None:
+            self._mirror = None
+            self._sync_in()
+
+    def _sync_in(self) -> None:
+        """The host's state into the live arrays where it is not the one this generator last handed out
+        (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home."""
+        st = self.state
+        host = (st.positions, st.velocities, st.lifetime, st.ids)
+        if self._mirror is not None and all(a is b for a, b in zip(host, self._mirror)):
+            return
+        n = len(st.positions)
+        if not self._live or self._live[0]["x"].shape[0] < n:
+            self._allocate_live(max(n, self.capacity or 0))
+        live = self._live[self._cur]
+        if n:
+            K.upload_state(n, np.ascontiguousarray(st.positions, np.float32), np.ascontiguousarray(st.velocities, np.float32),
+                           np.ascontiguousarray(st.lifetime, np.float32), np.ascontiguousarray(st.ids, np.uint32),
+                           live["x"], live["v"], live["life"], live["ids"])
+        self._nd = n
+        self._mirror = host
+
+    def _download(self) -> ParticleFrame:
+        """The live particles as this frame's ParticleFrame (one copy from the device, new host arrays, so a
+        frame handed out is never changed by a later step); they are also the state's host view."""
+        st, n = self.state, self._nd
+        x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        life, ids, kind = np.empty(n, np.float32), np.empty(n, np.uint32), np.empty(n, np.uint8)
+        if n:
+            live = self._live[self._cur]
+            K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids, kind)
+        st.positions, st.velocities, st.lifetime, st.ids = x, v, life, ids
+        self._mirror = (x, v, life, ids)
+        return ParticleFrame(positions=x, velocities=v, ids=ids, time=None,
+                             arrays={"type": kind, "lifetime": life,
+                                     "radius": np.full(n, self.p.radius * self.r, np.float32)})
+
+    def _scan(self, n: int, a, out) -> int:
+        """out[0..n) = the exclusive prefix sum of the integers a[0..n) (K.scan_sums, K.scan_offsets); returns Σ a."""
+        if n <= 0:
+            return 0
+        sums = self._buffer("scan_sums", K.SCAN_BLOCKS + 1)
+        block = K.scan_block(n)
+        K.scan_sums(n, block, a, sums)
+        return int(K.scan_offsets(n, block, a, sums, out))
 
     def _track_peak(self, c: list, n: int, index: int) -> None:
         pk = self.state.peaks
@@ -469,134 +540,117 @@ class FoamGenerator:
             pk[0], pk[1] = ratios.sum(), index
         pk[2:] = np.maximum(pk[2:], ratios)
 
-    def _advect(self, fx, fv, args, dt, index):
-        """(1) classify the existing diffuse particles by their fluid neighbours and advect by type;
-        remove the expired, the dissipated foam and those leaving the domain."""
-        p, st = self.p, self.state
-        nd = len(st.positions)
+    def _advect(self, args, dt, index) -> None:
+        """(1) classify the live diffuse particles by their fluid neighbours and advect by type (K.advect_diffuse),
+        count lifetimes down, age and dissipate foam (K.expire_diffuse), meet the obstacles
+        (K.obstacles_diffuse): keep flags in live_keep, the type each moved as in the live 'kind'."""
+        p, st, nd = self.p, self.state, self._nd
         if not nd:
-            return st.positions, st.velocities, st.lifetime, st.ids, np.zeros(0, np.uint8)
-        lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
-        # the live diffuse particles: arrays at the budget's count from the start, grown (geometrically,
-        # never past the capacity) only if more live
-        start = math.ceil(p.budget * self._sized_for)
-        up = {"start": start, "limit": self.capacity, "pool": self._resident}
-        xd, vd = self._upload("diffuse_x", st.positions, vec=True, **up), self._upload("diffuse_v", st.velocities, vec=True, **up)
-        life = self._upload("diffuse_life", st.lifetime, ti.f32, **up)
-        keep, kind = self._buffer("diffuse_keep", nd, **up), self._buffer("diffuse_kind", nd, **up)
+            return
+        src, dst = self._live[self._cur], self._live[1 - self._cur]
+        keep = self._bufs["live_keep"]
+        if self.obstacles:
+            K.copy_vec3(nd, src["x"], dst["x"])  # the frame's start, for the obstacles (dst is free until compaction)
         K.advect_diffuse(
-            nd, xd, vd, life, *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above, lo, hi, keep, kind,
+            nd, src["x"], src["v"], src["life"], *args, self.g, p.buoyancy, p.drag, dt, p.spray_below, p.bubble_above,
+            ti.math.vec3(*self.lo), ti.math.vec3(*self.hi), keep, src["kind"],
             int(p.model == "foamgenerator"),  # FoamGenerator's foam keeps its own velocity
             int(p.model == "foamgenerator" and p.wall_correction),  # foam near the box's faces counted up
         )
-        k = keep.to_numpy()[:nd].astype(bool)
-        kd = kind.to_numpy()[:nd]
-        lf = life.to_numpy()[:nd]
-        # Spray and bubbles count down too where their type has a lifetime range.
-        for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
-            if rng is not None:
-                sel = kd == t
-                lf[sel] -= dt
-                k &= ~(sel & (lf <= 0.0))
-        # Foam beyond its share under 'auto' ages faster (budget.foam_aging).
-        if st.foam_aging > 1.0:
-            sel = kd == 1
-            lf[sel] -= (st.foam_aging - 1.0) * dt
-            k &= ~(sel & (lf <= 0.0))
-        # Foam dissipation: each foam particle survives a frame with probability exp(−λ Δt).
-        if p.foam_dissipation > 0:
-            foam = kd == 1
-            gone = uniform(self.seed, index, st.ids, 0, DRAW_DISSIPATE) >= math.exp(-p.foam_dissipation * dt)
-            k &= ~(foam & gone)
-        x, v, lf, ids, kd = xd.to_numpy()[:nd][k], vd.to_numpy()[:nd][k], lf[k], st.ids[k], kd[k].astype(np.uint8)
+        # Spray and bubbles count down where their type has a lifetime range; foam beyond its share under
+        # 'auto' ages faster (budget.foam_aging); each foam particle survives a frame with probability exp(−λ Δt).
+        extra = (st.foam_aging - 1.0) * dt if st.foam_aging > 1.0 else 0.0
+        K.expire_diffuse(nd, src["life"], src["ids"], src["kind"], keep, dt, int(p.spray_lifetime is not None),
+                         int(p.bubble_lifetime is not None), extra, int(p.foam_dissipation > 0),
+                         math.exp(-p.foam_dissipation * dt), self.seed, index & 0xFFFFFFFF)
         if self.obstacles:
-            x, v, alive = self._obstacles(st.positions[k], x, v, kd)
-            x, v, lf, ids, kd = x[alive], v[alive], lf[alive], ids[alive], kd[alive]
-        return x, v, lf, ids, kd
+            geo = self._obstacle_arrays()
+            K.obstacles_diffuse(nd, dst["x"], src["x"], src["v"], src["kind"], keep, *self._geometry(geo),
+                                geo["rot0"], geo["trans0"], geo["rot1"], geo["trans1"], geo["carry_a"], geo["carry_b"],
+                                geo["vel_a"], geo["vel_b"], geo["moved"], self.r)
+
+    # ------------------------------------------------------------------ obstacles
+    def _obstacle_arrays(self) -> dict:
+        """The obstacles' SDF grids packed as sim.obstacles.ObstacleCollider packs them (made once), and their
+        poses of this frame and the last (uploaded each call): what K.obstacles_diffuse reads."""
+        geo = self.__dict__.get("_geo") or {}
+        k = len(self.obstacles)
+        if not geo:
+            grids = [g.grid for g in self.obstacles]
+            sizes = [g.values.size for g in grids]
+
+            def arr(data, dtype, shape=None):
+                data = np.asarray(data, to_numpy_type(dtype))
+                a = (ti.Vector.ndarray(shape[0], dtype, k) if shape and len(shape) == 1 else
+                     ti.Matrix.ndarray(3, 3, dtype, k) if shape else ti.ndarray(dtype, len(data)))
+                a.from_numpy(data)
+                return a
+
+            geo["values"] = arr(np.concatenate([g.values.ravel() for g in grids]), ti.f32)
+            geo["off"] = arr(np.concatenate([[0], np.cumsum(sizes)[:-1]]), ti.i32)
+            geo["origin"] = arr([g.origin for g in grids], ti.f32, (3,))
+            geo["inv_dx"] = arr([1.0 / g.spacing for g in grids], ti.f32)
+            geo["dims"] = arr([g.values.shape for g in grids], ti.i32, (3,))
+            geo["beyond"] = arr([g.beyond for g in grids], ti.f32)
+            for name in ("rot0", "rot1", "carry_a", "vel_a"):
+                geo[name] = ti.Matrix.ndarray(3, 3, ti.f32, k)
+            for name in ("trans0", "trans1", "carry_b", "vel_b"):
+                geo[name] = ti.Vector.ndarray(3, ti.f32, k)
+            geo["moved"] = ti.ndarray(ti.i32, k)
+            self._geo = geo
+        from ..sim.bodies import step_velocity
+
+        R0, T0 = np.array([g.R0 for g in self.obstacles], np.float64), np.array([g.T0 for g in self.obstacles], np.float64)
+        R1, T1 = np.array([g.R1 for g in self.obstacles], np.float64), np.array([g.T1 for g in self.obstacles], np.float64)
+        C = R1 @ R0.transpose(0, 2, 1)  # carry: x ← R1 R0ᵀ (x − T0) + T1 = C x + c
+        c = T1 - np.einsum("kij,kj->ki", C, T0)
+        A, b = np.zeros((k, 3, 3)), np.zeros((k, 3))
+        for j, g in enumerate(self.obstacles):
+            if g.dt > 0:
+                A[j], b[j] = step_velocity(g.R0, g.T0, g.R1, g.T1, g.dt)
+        for name, a in (("rot0", R0), ("trans0", T0), ("rot1", R1), ("trans1", T1), ("carry_a", C), ("carry_b", c),
+                        ("vel_a", A), ("vel_b", b)):
+            geo[name].from_numpy(a.astype(np.float32))
+        geo["moved"].from_numpy(np.array([int(g.moved) for g in self.obstacles], np.int32))
+        return geo
+
+    @staticmethod
+    def _geometry(geo: dict) -> tuple:
+        return tuple(geo[k] for k in ("values", "off", "origin", "inv_dx", "dims", "beyond"))
+
+    def _free(self, n: int, x, flag) -> None:
+        """flag[p] = 0 for the particles inside an obstacle at this frame's pose (poses set by _advect/_obstacle_arrays)."""
+        if self.obstacles and n:
+            geo = self.__dict__.get("_geo") or self._obstacle_arrays()
+            K.outside_obstacles(n, x, flag, *self._geometry(geo), geo["rot1"], geo["trans1"])
 
     def _obstacles(self, x0: np.ndarray, x: np.ndarray, v: np.ndarray, kind: np.ndarray):
-        """Diffuse particles against the obstacles (sim.obstacles.PosedSDF, at this frame's pose and
-        the last one's), after advection from x0 to x: foam touching a moving body at the frame's start
-        rides on it, carried rigidly over the frame with the body's velocity there; spray that ends the
-        frame inside bounces (its normal velocity relative to the body reflected, times
-        SPRAY_RESTITUTION) and foam inside moves with the body, both put back outside; a bubble inside,
-        or a particle that cannot be put outside (a crease), is removed. Returns (x, v, alive)."""
-        x, v = x.astype(np.float64), v.astype(np.float64)
-        alive = np.ones(len(x), bool)
-        for g in self.obstacles:
-            ride = np.zeros(len(x), bool)
-            if g.moved:
-                ride = (kind == FOAM) & (g.sample(x0, before=True) < BODY_CONTACT * self.r)
-                if ride.any():
-                    x[ride] = g.carry(x0[ride])
-                    v[ride] = g.velocity(x[ride])
-            d = g.sample(x)
-            self._through(g, x0, x, d, alive & ~ride)  # riders went with the body, not through it
-            hit = alive & (d <= 0.0)
-            alive &= ~(hit & (kind == BUBBLE))
-            hit &= kind != BUBBLE
-            if not hit.any():
-                continue
-            xh, n = self._entry(g, x0[hit], x[hit], d[hit])
-            xh = xh + SURFACE_OFFSET * self.r * n
-            u = g.velocity(xh)
-            vr = v[hit] - u
-            vn = np.minimum((vr * n).sum(1), 0.0)
-            spray = kind[hit] == SPRAY
-            vh = np.where(spray[:, None], u + vr - (1.0 + SPRAY_RESTITUTION) * vn[:, None] * n, u)
-            x[hit], v[hit] = xh, vh
-            alive[hit] = g.sample(xh) > 0.0
-        return x.astype(np.float32), v.astype(np.float32), alive
+        """Diffuse particles against the obstacles (sim.obstacles.PosedSDF, at this frame's pose and the
+        last one's), after advection from x0 to x, on host arrays (K.obstacles_diffuse; the generator runs
+        it on its live arrays): foam touching a moving body at the frame's start rides on it, carried
+        rigidly over the frame with the body's velocity there; spray that ends the frame inside bounces
+        (its normal velocity relative to the body reflected, times SPRAY_RESTITUTION) and foam inside
+        moves with the body, both put back outside; a bubble inside, or a particle that cannot be put
+        outside (a crease), is removed. Returns (x, v, alive). New arrays each call: for tests."""
+        runtime.init(runtime.current() or "cpu")
+        n = len(x)
+        geo = self._obstacle_arrays()
+        a0, a, av = (_nd(np.asarray(q, np.float32), ti.f32, vec=True) for q in (x0, x, v))
+        kd, keep = _nd(np.asarray(kind, np.int32), ti.i32), _nd(np.ones(n, np.int32), ti.i32)
+        K.obstacles_diffuse(n, a0, a, av, kd, keep, *self._geometry(geo), geo["rot0"], geo["trans0"], geo["rot1"],
+                            geo["trans1"], geo["carry_a"], geo["carry_b"], geo["vel_a"], geo["vel_b"], geo["moved"],
+                            self.r)
+        return a.to_numpy()[:n], av.to_numpy()[:n], keep.to_numpy()[:n].astype(bool)
 
-    @staticmethod
-    def _through(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, alive: np.ndarray) -> None:
-        """Particles whose path x0 → x passes through obstacle g but ends outside it: their end
-        point ``x`` (and ``d``) is moved, in place, to the first point of the path found inside,
-        so that they hit the face they met first (see PATH_SAMPLES)."""
-        step = 0.5 * g.grid.spacing
-        seg = x - x0
-        length = np.linalg.norm(seg, axis=1)
-        far = np.flatnonzero(alive & (d > 0.0) & (length > step))
-        if not len(far):
-            return
-        n = int(min(PATH_SAMPLES, np.ceil(length[far].max() / step)))
-        first = np.full(len(far), np.inf)
-        for j in range(n - 1, 0, -1):  # backwards: the last found is the first along the path
-            t = j / n
-            inside = g.sample(x0[far] + t * seg[far]) <= 0.0
-            first[inside] = t
-        hit = np.isfinite(first)
-        if hit.any():
-            k = far[hit]
-            x[k] = x0[k] + first[hit, None] * seg[k]
-            d[k] = g.sample(x[k])
-
-    @staticmethod
-    def _entry(g, x0: np.ndarray, x: np.ndarray, d: np.ndarray, steps: int = 16):
-        """Where particles that moved from x0 to x (inside obstacle g) crossed its surface, and the
-        normal there: the crossing on the segment, by bisection on the SDF at this frame's pose, for
-        those that started outside it (so a fast drop bounces off the face it came through, not the
-        nearest one); the nearest surface point for those the body moved onto."""
-        x0 = np.asarray(x0, np.float64)
-        out = g.sample(x0) > 0.0
-        lo, hi = np.zeros(len(x)), np.ones(len(x))
-        for _ in range(steps):
-            mid = 0.5 * (lo + hi)
-            outside = g.sample(x0 + mid[:, None] * (x - x0)) > 0.0
-            lo, hi = np.where(outside, mid, lo), np.where(outside, hi, mid)
-        crossing = x0 + lo[:, None] * (x - x0)  # the last point found outside
-        p = np.where(out[:, None], crossing, x)
-        n = g.normal(p)
-        return np.where(out[:, None], p, x - d[:, None] * n), n
-
+    # ------------------------------------------------------------------ Taichi arrays kept from frame to frame
     def _buffer(self, name: str, size: int, dtype=ti.i32, vec: bool = False, cols: int = 0, start: int = 0,
-                limit: int | None = None, pool: dict | None = None):
-        """A Taichi array of at least ``size`` rows kept from frame to frame (in ``pool``, by default
-        self._bufs), grown geometrically (never allocated per frame once the run's largest frame has
-        been seen): ``start`` rows at least when first made, and never grown past ``limit`` rows
-        unless ``size`` needs it. (Taichi does not give an array's memory back to the process when the
-        array goes: every array made per frame would grow the memory in use, on the CPU and on CUDA.)"""
-        bufs = self._bufs if pool is None else pool
+                limit: int | None = None):
+        """A Taichi array of at least ``size`` rows kept from frame to frame (in self._bufs), grown
+        geometrically (never allocated per frame once the run's largest frame has been seen): ``start`` rows
+        at least when first made, and never grown past ``limit`` rows unless ``size`` needs it. (Taichi does
+        not give an array's memory back to the process when the array goes: every array made per frame would
+        grow the memory in use, on the CPU and on CUDA.)"""
+        bufs = self._bufs
         a = bufs.get(name)
         if a is None or a.shape[0] < size:
             rows = max(size, 2 * a.shape[0] if a is not None else start, 1)
@@ -631,12 +685,15 @@ class FoamGenerator:
         a.from_numpy(h)
         return a
 
+    # ------------------------------------------------------------------ (2) generation
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
-        """(2) generation: each fluid particle's number of candidates, each its own run of them (offsets
-        from a prefix sum of the numbers); the candidates sampled in parallel over them
-        (K.generate_candidates), typed only as far as the keep rule needs and thinned by their type's
-        multiplier (K.classify_candidates), and the kept compacted in candidate order (K.gather_kept).
-        Only the kept candidates come to the host."""
+        """(2) generation, in kernels: each fluid particle's number of candidates (K.birth_counts), each its
+        own run of them (offsets: the exclusive prefix sum of the numbers, _scan); the candidates sampled in
+        parallel over them (K.generate_candidates), typed only as far as the keep rule needs and thinned by
+        their type's multiplier (K.candidate_limits, K.classify_candidates). Under 'auto' with the budget, the
+        kept are thinned again (K.thin_kept) so that no type passes its share and the frame not the budget:
+        that reads back three counts. Returns (kept, kept by type, beyond slots_per_particle); the kept are
+        the candidates whose 'cand_kind' is a type."""
         p = self.p
         v_diff, crest, e_k, vort = pots
         self._dt = dt
@@ -648,28 +705,22 @@ class FoamGenerator:
         tau = self._upload("tau", self.thresholds(), ti.f32)
         mult = self.type_multipliers()
         most = float(mult.max())
-        z = np.zeros((0, 3), np.float32)
-        none = (z, z, np.zeros(0, np.float32), np.zeros(0, np.uint8), 0)
-        self._candidates = None
+        self._candidates = {"total": 0, "n": n}
         if most <= 0:
-            return none
+            return 0, [0, 0, 0], 0
         k = [x * most for x in self.multipliers()]  # candidates for the most generous type; cut below
         cap = self._S = p.slots_per_particle or 0
         m = max(n, 1)
         cnt, rate = self._buffer("count", m), self._buffer("rate", m, ti.f32)
         frame = index & 0xFFFFFFFF
-        lost = K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap, cnt, rate,
-                              int(p.model == "foamgenerator"))
-        counts = cnt.to_numpy()[:n]
-        total = int(counts.sum())
-        if not total:
-            return none[:4] + (int(lost),)
+        half_up = int(p.model == "foamgenerator")  # FoamGenerator rounds half up
+        lost = int(K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap,
+                                  cnt, rate, half_up))
         off = self._buffer("offset", m)
-        offset = self._staging("offset", off)
-        offset[0] = 0
-        np.cumsum(counts[:-1], out=offset[1:n])
-        offset[n:] = 0
-        off.from_numpy(offset)
+        total = self._scan(n, cnt, off)
+        self._candidates["total"] = total
+        if not total:
+            return 0, [0, 0, 0], lost
         ox, ov, ol = (self._buffer("cand_x", total, vec=True), self._buffer("cand_v", total, vec=True),
                       self._buffer("cand_life", total, ti.f32))
         owner, kd = self._buffer("cand_owner", total), self._buffer("cand_kind", total, ti.i8)
@@ -681,50 +732,18 @@ class FoamGenerator:
         # particles of a type whose multiplier is unchanged stay exactly the same. The limits
         # (per fluid particle and type) are known before the types, so the classification does
         # only the work that decides whether a candidate is kept.
-        rows = np.flatnonzero(counts)
-        nd0 = rate.to_numpy()[:n][rows].astype(np.float32) / np.float32(most)
-        u0 = uniform(self.seed, index, fluid.ids.astype(np.uint32)[rows], ROUNDING_SLOT, 0)
-        want = nd0[:, None] * mult.astype(np.float32)[None, :]  # (generating particle, type)
-
-        def limits(want):
-            if p.model == "foamgenerator":  # rounded half up, as kernels.birth_counts does for it
-                return np.floor(want + np.float32(0.5))
-            return np.floor(want) + (u0[:, None] < want - np.floor(want))
-
+        mult32 = self._upload("mult", mult.astype(np.float32), ti.f32)
+        most32 = np.float32(most)
         lim = self._buffer("limit", m, cols=3)
-        table = self._staging("limit", lim)
-        table.fill(0)
-        table[rows] = np.minimum(limits(want), np.float32(2**30))
-        lim.from_numpy(table)
+        K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, lim)
         g = self.grid
         K.classify_candidates(total, ox, owner, off, lim, fx, g.nb_count, g.nb, *args[:7],
                               p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
                               int(p.model == "foamgenerator" and p.wall_correction), kd)
-        idx = np.flatnonzero(kd.to_numpy()[:total] >= 0).astype(np.int32)  # the kept, in candidate order
-        nk = len(idx)
-        sel = self._upload("kept_idx", idx, ti.i32)
-        kx, kv, kl = (self._buffer("kept_x", nk, vec=True), self._buffer("kept_v", nk, vec=True),
-                      self._buffer("kept_life", nk, ti.f32))
-        kk, ko = self._buffer("kept_kind", nk, ti.i8), self._buffer("kept_owner", nk)
-        K.gather_kept(nk, sel, ox, ov, ol, kd, owner, kx, kv, kl, kk, ko)
-        x, v, life = kx.to_numpy()[:nk], kv.to_numpy()[:nk], kl.to_numpy()[:nk]
-        kind, fowner = kk.to_numpy()[:nk].astype(np.uint8), ko.to_numpy()[:nk]
-        offset = offset[:n].copy()  # the kept array is the next frame's
-        self._candidates = {"total": total, "kept": idx, "offset": offset, "counts": counts}  # for tests
-        row = np.searchsorted(rows, fowner)  # the generating particle's row in ``want``
-        slot = idx - offset[fowner]
-        pid = fluid.ids.astype(np.uint32)[fowner]
-        if p.model == "foamgenerator":  # FoamGenerator's lifetime: l_min + (I_k/τmax_k) X (l_max − l_min)
-            tau_ = self.thresholds()
-            e = e_k.to_numpy()[:n][fowner].astype(np.float64)
-            i_k = (np.minimum(e, tau_[5]) - np.minimum(e, tau_[4])) / (tau_[5] - tau_[4])
-            x01 = (life - p.lifetime_min) / max(p.lifetime_max - p.lifetime_min, 1e-30)
-            life = SP.lifetimes(x01, i_k, float(tau_[5]), p.lifetime_min, p.lifetime_max)
-
-        def kept(want):  # the keep rule, on the candidates the first limits kept (lower limits keep fewer)
-            return slot < limits(want)[row, kind]
-
-        keep = kept(want)
+        tally = self._buffer("tally", 3)
+        tally.fill(0)
+        K.tally_kinds(total, kd, tally)
+        made = tally.to_numpy()[:3].astype(np.float64)
         if self._scaled():
             # The type scales can make one frame's births far more than the birth rate foretold
             # (a burst of the type scaled furthest up): never past the budget in one frame, and
@@ -734,56 +753,89 @@ class FoamGenerator:
             live = np.asarray(self.state.counts[-1][2:] if self.state.counts else (0, 0, 0), np.float64)
             share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
             room = np.maximum(p.budget * n * share - live, 0.0)
-            made = np.bincount(kind[keep], minlength=3)[:3].astype(np.float64)
-            cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0)
-            if (cut < 1).any():
-                want = want * cut.astype(np.float32)[None, :]
-                keep = kept(want)
-            room = p.budget * n - live.sum()
-            if keep.sum() > max(room, 0):
-                keep = kept(want * np.float32(max(room, 0) / keep.sum()))
-        # Spray and bubbles with their own lifetime range draw it here.
-        for t, rng in ((0, p.spray_lifetime), (2, p.bubble_lifetime)):
-            if rng is not None:
-                sel = kind == t
-                u = uniform(self.seed, index, pid[sel], slot[sel], DRAW_LIFE)
-                life[sel] = rng[0] + (rng[1] - rng[0]) * u
-        return x[keep], v[keep], life[keep], kind[keep], int(lost)
+            cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0).astype(np.float32)
 
-    def _compact(self, old, new, index) -> np.ndarray:
-        """(3) survivors first, then the new particles in fluid order: a fixed order, no global counter.
-        Returns the type of every particle."""
+            def thin(s2) -> np.ndarray:
+                tally.fill(0)
+                K.thin_kept(total, kd, owner, off, rate, fid, most32, mult32, self._upload("cut", cut, ti.f32),
+                            np.float32(s2), self.seed, frame, half_up, tally)
+                return tally.to_numpy()[:3].astype(np.float64)
+
+            if (cut < 1).any():
+                made = thin(1.0)
+            room = p.budget * n - live.sum()
+            if made.sum() > max(room, 0):
+                made = thin(np.float32(max(room, 0) / made.sum()))
+        return int(made.sum()), [int(x) for x in made], lost
+
+    def candidates(self) -> dict:
+        """The last frame's candidates, downloaded (tests): total, kept (their indices, in candidate order),
+        each fluid particle's count and offset."""
+        c, n = self._candidates, self._candidates["n"]
+        total = c["total"]
+        kind = self._bufs["cand_kind"].to_numpy()[:total] if total else np.zeros(0, np.int8)
+        return {"total": total, "kept": np.flatnonzero(kind >= 0), "counts": self._bufs["count"].to_numpy()[:n],
+                "offset": self._bufs["offset"].to_numpy()[:n]}
+
+    # ------------------------------------------------------------------ (3) compaction
+    def _compact(self, nk: int, lost: int, index: int) -> list[int]:
+        """(3) survivors first, in their order, then the new particles in candidate order (their ids
+        next_id + their rank among the kept, as many as fit the capacity): a fixed order, no global counter.
+        Places are exclusive prefix sums of keep flags (_scan); particles outside the domain or inside an
+        obstacle go. Returns the count of each type."""
         p, st = self.p, self.state
-        new_x, new_v, new_l, new_k, lost = new
-        room = self.capacity - len(old[0])
-        if len(new_x) > room or lost:
+        src, dst = self._live[self._cur], self._live[1 - self._cur]
+        keep, pos = self._bufs["live_keep"], self._bufs["live_pos"]
+        lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
+        nd = self._nd
+        ns = self._scan(nd, keep, pos)  # the survivors of advection, expiry and the obstacles
+        room = self.capacity - ns
+        if nk > room or lost:
             if not self._warned_capacity:
                 slots = f"{lost:,} beyond foam.slots_per_particle = {self._S} per fluid particle, " if lost else ""
                 console.print(
-                    f"[yellow]warning:[/] foam capacity saturated at frame {index}: {len(new_x) + lost:,} new particles "
-                    f"wanted, {slots}{max(len(new_x) - max(room, 0), 0):,} beyond foam.max_particles = {self.capacity:,} "
-                    f"({len(old[0]):,} alive); the excess is dropped (raise these to keep it). Said once per run."
+                    f"[yellow]warning:[/] foam capacity saturated at frame {index}: {nk + lost:,} new particles "
+                    f"wanted, {slots}{max(nk - max(room, 0), 0):,} beyond foam.max_particles = {self.capacity:,} "
+                    f"({ns:,} alive); the excess is dropped (raise these to keep it). Said once per run."
                 )
                 self._warned_capacity = True
             room = max(room, 0)
-            new_x, new_v, new_l, new_k = new_x[:room], new_v[:room], new_l[:room], new_k[:room]
-        new_ids = (st.next_id + np.arange(len(new_x))).astype(np.uint32)
-        st.next_id += len(new_x)
-        st.positions = np.concatenate([old[0], new_x], dtype=np.float32)
-        st.velocities = np.concatenate([old[1], new_v], dtype=np.float32)
-        st.lifetime = np.concatenate([old[2], new_l], dtype=np.float32)
-        st.ids = np.concatenate([old[3], new_ids], dtype=np.uint32)
-        kind = np.concatenate([old[4], new_k], dtype=np.uint8)
-        if len(st.positions):
-            # Inside the domain and outside every obstacle; new particles born outside
-            # the domain go at once, as moved ones do in _advect.
-            keep = ((st.positions >= self.lo) & (st.positions <= self.hi)).all(axis=1)
-            for g in self.obstacles:
-                keep &= g.sample(st.positions) > 0.0
-            if not keep.all():
-                st.positions, st.velocities = st.positions[keep], st.velocities[keep]
-                st.lifetime, st.ids, kind = st.lifetime[keep], st.ids[keep], kind[keep]
-        return kind
+        if self.obstacles and ns:  # moved out of the domain or into another obstacle by the obstacle pass
+            K.outside_box(nd, src["x"], keep, lo, hi)
+            self._free(nd, src["x"], keep)
+            ns = self._scan(nd, keep, pos)
+        if ns:
+            K.scatter_survivors(nd, keep, pos, src["x"], src["v"], src["life"], src["ids"], src["kind"],
+                                dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
+        nnew = 0
+        total = self._candidates["total"]
+        if nk and room:
+            kd = self._bufs["cand_kind"]
+            flag, rank = self._buffer("cand_flag", total), self._buffer("cand_rank", total)
+            K.kept_flags(total, kd, flag)
+            self._scan(total, flag, rank)
+            fid, e_k, tau = self._bufs["fluid_id"], self._bufs["e_k"], self._bufs["tau"]
+            rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
+                   for r in (p.spray_lifetime, p.bubble_lifetime)]
+            cx, cl = self._bufs["cand_x"], self._bufs["cand_life"]
+            K.place_new(total, kd, rank, room, self._bufs["cand_owner"], self._bufs["offset"], cx, cl, fid, e_k, tau,
+                        rng[0], rng[1], int(p.model == "foamgenerator"), p.lifetime_min,
+                        max(p.lifetime_max - p.lifetime_min, 1e-30), p.lifetime_min, p.lifetime_max - p.lifetime_min,
+                        self.seed, index & 0xFFFFFFFF, lo, hi, flag)
+            self._free(total, cx, flag)  # nothing is born inside an obstacle
+            at = self._buffer("cand_pos", total)
+            nnew = self._scan(total, flag, at)
+            if nnew:
+                K.scatter_new(total, flag, at, rank, ns, st.next_id & 0xFFFFFFFF, cx, self._bufs["cand_v"], cl, kd,
+                              dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
+            st.next_id += min(nk, room)
+        self._cur = 1 - self._cur
+        self._nd = ns + nnew
+        tally = self._buffer("tally", 3)
+        tally.fill(0)
+        if self._nd:
+            K.tally_kinds(self._nd, dst["kind"], tally)
+        return [int(x) for x in tally.to_numpy()[:3]]
 
     def with_params(self, **kw) -> None:
         self.p = replace(self.p, **kw)

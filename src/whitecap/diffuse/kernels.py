@@ -16,6 +16,7 @@ import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
+from ..sim.obstacles import FAR, sdf_sample
 from . import splishsplash as SP
 
 vec3 = ti.math.vec3
@@ -531,3 +532,372 @@ def gather_kept(
         out_life[j] = life[k]
         out_kind[j] = kind[k]
         out_owner[j] = owner[k]
+
+
+# ---------------------------------------------------------------- stream compaction on the device
+#: The exclusive prefix sum runs in at most SCAN_BLOCKS blocks of at least SCAN_MIN_BLOCK elements
+#: each: a block is summed and scanned by one thread, the block sums by one thread. 4096 blocks keep
+#: every core of a CPU and thousands of GPU threads busy, and the serial scan of the sums short.
+SCAN_BLOCKS = 4096
+SCAN_MIN_BLOCK = 256
+
+
+def scan_block(n: int) -> int:
+    """Elements per block of :func:`scan_sums` / :func:`scan_offsets` for ``n`` elements."""
+    return max(SCAN_MIN_BLOCK, -(-int(n) // SCAN_BLOCKS))
+
+
+@ti.kernel
+def scan_sums(n: ti.i32, block: ti.i32, a: I1, sums: I1):
+    """First half of the exclusive prefix sum of a[0..n) (non-negative integers: counts or keep
+    flags): sums[b] = Σ a over block b (``block`` elements each, see scan_block)."""
+    for b in range((n + block - 1) // block):
+        s = 0
+        for j in range(b * block, ti.min(n, (b + 1) * block)):
+            s += a[j]
+        sums[b] = s
+
+
+@ti.kernel
+def scan_offsets(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
+    """Second half: out[j] = Σ_{k<j} a[k]; returns Σ a. The block sums are scanned by one thread,
+    then each block by its own: integer sums in a fixed order, the same whatever the thread count."""
+    nb = (n + block - 1) // block
+    for _ in range(1):
+        t = 0
+        for b in range(nb):
+            c = sums[b]
+            sums[b] = t
+            t += c
+        sums[nb] = t
+    for b in range(nb):
+        s = sums[b]
+        for j in range(b * block, ti.min(n, (b + 1) * block)):
+            c = a[j]
+            out[j] = s
+            s += c
+    return sums[nb]
+
+
+# ---------------------------------------------------------------- the live diffuse particles
+#: Draw numbers of the (seed, frame, id, slot) counter outside generate (which uses 0-4).
+DRAW_LIFE, DRAW_DISSIPATE = 6, 7
+#: Slot of birth_counts' stochastic-rounding draw (the keep rule rounds with the same number).
+ROUNDING_SLOT = 0xFFFF
+#: kernels read a type's lifetime range only where it has one (``has_range``)
+
+
+@ti.kernel
+def expire_diffuse(
+    nd: ti.i32, life: F1, ids: U1, kind: I1, keep: I1, dt: ti.f32, spray_range: ti.i32, bubble_range: ti.i32,
+    foam_extra: ti.f32, dissipate: ti.i32, survive: ti.f32, seed: ti.u32, frame: ti.u32,
+):
+    """After advect_diffuse: spray and bubbles count their lifetime down where their type has a range
+    (``spray_range``, ``bubble_range``); foam ages faster by ``foam_extra`` = (aging − 1)·Δt under 'auto'
+    (budget.foam_aging); each foam particle survives the frame with probability ``survive`` = exp(−λΔt)
+    when ``dissipate`` (draw DRAW_DISSIPATE of slot 0). A particle whose lifetime ran out goes."""
+    for p in range(nd):
+        t = kind[p]
+        k = keep[p]
+        if (t == SPRAY and spray_range) or (t == BUBBLE and bubble_range):
+            life[p] -= dt
+            if life[p] <= 0.0:
+                k = 0
+        if t == FOAM:
+            if foam_extra > 0.0:
+                life[p] -= foam_extra
+                if life[p] <= 0.0:
+                    k = 0
+            if dissipate and rand01(seed, frame, ids[p], ti.u32(0), ti.u32(DRAW_DISSIPATE)) >= survive:
+                k = 0
+        keep[p] = k
+
+
+@ti.func
+def inside_box(q: vec3, lo: vec3, hi: vec3) -> ti.i32:
+    return q.x >= lo.x and q.y >= lo.y and q.z >= lo.z and q.x <= hi.x and q.y <= hi.y and q.z <= hi.z
+
+
+@ti.kernel
+def copy_vec3(n: ti.i32, src: F3, dst: F3):
+    for i in range(n):
+        dst[i] = src[i]
+
+
+@ti.kernel
+def scatter_survivors(
+    nd: ti.i32, keep: I1, pos: I1, x: F3, v: F3, life: F1, ids: U1, kind: I1,
+    ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
+):
+    """Compaction of the live particles: those kept to their place pos[p] (the exclusive prefix sum of
+    ``keep``), in their order."""
+    for p in range(nd):
+        if keep[p]:
+            q = pos[p]
+            ox[q], ov[q], olife[q], oids[q], okind[q] = x[p], v[p], life[p], ids[p], kind[p]
+
+
+# ---------------------------------------------------------------- the keep rule of the new particles
+@ti.func
+def kept_limit(rate: ti.f32, most: ti.f32, m: ti.f32, cut: ti.f32, s2: ti.f32, u0: ti.f32, round_half_up: ti.i32) -> ti.f32:
+    """How many of its candidates a fluid particle keeps for a type: n_d·m_t (n_d = rate/most, the rate
+    of the most generous type), times the budget's cuts (``cut`` of the type, then ``s2`` of all; 1
+    without), rounded with the particle's own draw u0 (or half up, FoamGenerator's)."""
+    want = rate / most * m * cut * s2
+    f = ti.floor(want)
+    lim = f + ti.cast(u0 < want - f, ti.f32)
+    if round_half_up:
+        lim = ti.floor(want + 0.5)
+    return lim
+
+
+@ti.kernel
+def candidate_limits(
+    n: ti.i32, count: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, seed: ti.u32, frame: ti.u32,
+    round_half_up: ti.i32, limit: I2,
+):
+    """limit[i, t]: the slots of fluid particle i that type t may keep (see kept_limit); zero without candidates."""
+    for i in range(n):
+        u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
+        for t in ti.static(range(3)):
+            lim = 0.0
+            if count[i] > 0:
+                lim = ti.min(kept_limit(rate[i], most, mult[t], 1.0, 1.0, u0, round_half_up), 2.0**30)
+            limit[i, t] = ti.cast(lim, ti.i32)
+
+
+@ti.kernel
+def kept_flags(total: ti.i32, kind: B1, flag: I1):
+    for k in range(total):
+        flag[k] = ti.cast(kind[k] >= 0, ti.i32)
+
+
+@ti.kernel
+def thin_kept(
+    total: ti.i32, kind: B1, owner: I1, offset: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, cut: F1, s2: ti.f32,
+    seed: ti.u32, frame: ti.u32, round_half_up: ti.i32, tally: I1,
+):
+    """The keep rule again with lower limits (each type's ``cut`` and the common ``s2`` for the budget): a kept
+    candidate whose slot reaches its type's new limit is no longer kept. Counts the kept by type in
+    tally[0..3) (integer atomics: the same whatever the order)."""
+    for k in range(total):
+        t = ti.cast(kind[k], ti.i32)
+        if t >= 0:
+            i = owner[k]
+            u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
+            if k - offset[i] >= kept_limit(rate[i], most, mult[t], cut[t], s2, u0, round_half_up):
+                kind[k] = ti.cast(NOT_KEPT, ti.i8)
+            else:
+                ti.atomic_add(tally[t], 1)
+
+
+@ti.kernel
+def tally_kinds(n: ti.i32, kind: ti.types.ndarray(ndim=1), tally: I1):
+    """tally[t] += the number of entries of ``kind`` equal to t (t = 0, 1, 2; others not counted)."""
+    for k in range(n):
+        t = ti.cast(kind[k], ti.i32)
+        if 0 <= t < 3:
+            ti.atomic_add(tally[t], 1)
+
+
+@ti.kernel
+def place_new(
+    total: ti.i32, kind: B1, rank: I1, room: ti.i32, owner: I1, offset: I1, cx: F3, life: F1, ids: U1, e_k: F1,
+    tau: F1, spray_range: vec3, bubble_range: vec3, foamgenerator: ti.i32, life_min: ti.f32, span: ti.f32,
+    life_min64: ti.f64, span64: ti.f64, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, flag: I1,
+):
+    """The kept candidates that fit (their rank among the kept, in candidate order, below ``room``) and
+    lie in the domain get flag 1. Their lifetimes are set: FoamGenerator's where ``foamgenerator``,
+    l_min + (I_k/τmax_k) X (l_max − l_min) with X = (l − l_min)/``span`` (f32) and the rest in f64, as
+    SP.lifetimes; a draw (DRAW_LIFE) in the type's own range for spray and bubbles that have one
+    (range = (min, max − min, 1); z = 0: none)."""
+    for k in range(total):
+        f = 0
+        t = ti.cast(kind[k], ti.i32)
+        if t >= 0 and rank[k] < room:
+            i = owner[k]
+            s = ti.cast(k - offset[i], ti.u32)
+            if foamgenerator:
+                x01 = (life[k] - life_min) / span
+                e = ti.cast(e_k[i], ti.f64)
+                t4, t5 = ti.cast(tau[4], ti.f64), ti.cast(tau[5], ti.f64)
+                i_k = (ti.min(e, t5) - ti.min(e, t4)) / ti.cast(tau[5] - tau[4], ti.f64)
+                life[k] = ti.cast(life_min64 + i_k / t5 * ti.cast(x01, ti.f64) * span64, ti.f32)
+            if t == SPRAY and spray_range.z > 0.0:
+                life[k] = spray_range.x + spray_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
+            if t == BUBBLE and bubble_range.z > 0.0:
+                life[k] = bubble_range.x + bubble_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
+            f = inside_box(cx[k], lo, hi)
+        flag[k] = f
+
+
+@ti.kernel
+def outside_box(n: ti.i32, x: F3, flag: I1, lo: vec3, hi: vec3):
+    """flag[p] = 0 where particle p has left the domain [lo, hi]."""
+    for p in range(n):
+        if not inside_box(x[p], lo, hi):
+            flag[p] = 0
+
+
+@ti.kernel
+def scatter_new(
+    total: ti.i32, flag: I1, pos: I1, rank: I1, base: ti.i32, next_id: ti.u32, cx: F3, cv: F3, clife: F1, kind: B1,
+    ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
+):
+    """The new particles after the survivors (from ``base``), in candidate order; ids next_id + their
+    rank among the kept (so a new particle born outside the domain still takes its id, as before)."""
+    for k in range(total):
+        if flag[k]:
+            q = base + pos[k]
+            ox[q], ov[q], olife[q] = cx[k], cv[k], clife[k]
+            oids[q] = next_id + ti.cast(rank[k], ti.u32)
+            okind[q] = ti.cast(kind[k], ti.i32)
+
+
+@ti.kernel
+def download_state(
+    n: ti.i32, x: F3, v: F3, life: F1, ids: U1, kind: I1, ox: ti.types.ndarray(dtype=vec3, ndim=1),
+    ov: ti.types.ndarray(dtype=vec3, ndim=1), olife: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    oids: ti.types.ndarray(dtype=ti.u32, ndim=1), okind: ti.types.ndarray(dtype=ti.u8, ndim=1),
+):
+    """The first n live particles into host arrays (one copy a frame, for its output)."""
+    for p in range(n):
+        ox[p], ov[p], olife[p], oids[p], okind[p] = x[p], v[p], life[p], ids[p], ti.cast(kind[p], ti.u8)
+
+
+@ti.kernel
+def upload_state(
+    n: ti.i32, hx: ti.types.ndarray(dtype=vec3, ndim=1), hv: ti.types.ndarray(dtype=vec3, ndim=1),
+    hlife: ti.types.ndarray(dtype=ti.f32, ndim=1), hids: ti.types.ndarray(dtype=ti.u32, ndim=1), x: F3, v: F3,
+    life: F1, ids: U1,
+):
+    """Host state (a resumed checkpoint, a state set by hand) into the live particles' arrays."""
+    for p in range(n):
+        x[p], v[p], life[p], ids[p] = hx[p], hv[p], hlife[p], hids[p]
+
+
+# ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)
+# Diffuse particles and obstacles, static or moving (FoamGenerator._obstacles says what and why):
+# - a foam particle within BODY_CONTACT·r of a moving body at the start of a frame rides on it:
+#   one fluid-particle diameter, the fluid's own contact with a body (its centres keep r from it);
+# - a particle pushed out of an obstacle is put SURFACE_OFFSET·r outside it, where the fluid's
+#   centres rest (sim/obstacles.py projects them to sdf = r);
+# - spray bouncing off keeps SPRAY_RESTITUTION of its normal speed relative to the body: our
+#   choice for the look of droplets glancing off a wet hull, not a measured value (0 makes them
+#   slide along it).
+BODY_CONTACT = 2.0
+SURFACE_OFFSET = 1.0
+SPRAY_RESTITUTION = 0.5
+# - a particle that moved farther than half an obstacle's SDF cell over the frame is also tested
+#   along its path, at most PATH_SAMPLES points (half a cell apart up to 32 cells): a spray drop
+#   must not pass through a wall thinner than its flight (an imported tank's walls are one
+#   particle spacing thick, a frame's flight is often ten).
+PATH_SAMPLES = 64
+#: Bisection steps of the crossing of a particle's path with an obstacle's surface (2⁻¹⁶ of the path).
+ENTRY_STEPS = 16
+M3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
+IV3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
+
+
+@ti.func
+def obstacle_sdf(values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1, rot: M3, trans: F3, o, x: vec3):
+    """Signed distance of obstacle o at world point x, the body at the pose (rot[o], trans[o]), and the
+    world gradient: sim.obstacles.sdf_sample at x_rest = Rᵀ(x − T), ``beyond[o]`` outside its grid
+    (FAR; −FAR for a wall around the fluid, whose SDF is inverted)."""
+    xl = rot[o].transpose() @ (x - trans[o])
+    d, g = sdf_sample(values, off[o], origin[o], inv_dx[o], dims[o], xl)
+    if d >= FAR:
+        d = beyond[o]
+    return d, rot[o] @ g
+
+
+@ti.kernel
+def obstacles_diffuse(
+    nd: ti.i32, x0: F3, x: F3, v: F3, kind: I1, keep: I1,
+    values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1,
+    rot0: M3, trans0: F3, rot1: M3, trans1: F3, carry_a: M3, carry_b: F3, vel_a: M3, vel_b: F3, moved: I1,
+    r: ti.f32,
+):
+    """The live particles (keep[p] = 1) against every obstacle in turn, after advection from x0 to x
+    (see FoamGenerator._obstacles): riders carried x ← C x0 + c with the body's velocity u = A x + b;
+    a path that ends outside but crossed the obstacle ends at its first sample inside (PATH_SAMPLES, at
+    most half a cell apart); a bubble inside goes; spray and foam inside are put SURFACE_OFFSET·r out
+    from where they crossed the surface (bisection, ENTRY_STEPS) or, if the body came over them, from
+    the nearest surface point, spray bouncing (SPRAY_RESTITUTION), foam moving with the body; one that
+    is still inside (a crease) goes."""
+    for p in range(nd):
+        if keep[p]:
+            alive = 1
+            xp, vp, xs = x[p], v[p], x0[p]
+            t = kind[p]
+            for o in range(off.shape[0]):
+                if alive:
+                    ride = 0
+                    if moved[o] and t == FOAM:
+                        d0, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot0, trans0, o, xs)
+                        if d0 < BODY_CONTACT * r:
+                            ride = 1
+                            xp = carry_a[o] @ xs + carry_b[o]
+                            vp = vel_a[o] @ xp + vel_b[o]
+                    d, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o, xp)
+                    seg = xp - xs
+                    step = 0.5 / inv_dx[o]
+                    length = seg.norm()
+                    if not ride and d > 0.0 and length > step:  # the path, first point inside
+                        m = ti.min(PATH_SAMPLES, ti.cast(ti.ceil(length / step), ti.i32))
+                        for j in range(1, m):
+                            q = xs + (j / m) * seg
+                            dq, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o, q)
+                            if dq <= 0.0:
+                                xp, d = q, dq
+                                break
+                    if d <= 0.0:
+                        if t == BUBBLE:
+                            alive = 0
+                        else:
+                            d_start, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o, xs)
+                            xh = xp
+                            if d_start > 0.0:  # came through the surface: where, by bisection
+                                lo, hi = 0.0, 1.0
+                                for _step in range(ENTRY_STEPS):
+                                    mid = 0.5 * (lo + hi)
+                                    dm, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o,
+                                                         xs + mid * (xp - xs))
+                                    if dm > 0.0:
+                                        lo = mid
+                                    else:
+                                        hi = mid
+                                xh = xs + lo * (xp - xs)
+                            _, g = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o, xh)
+                            nrm = vec3(0.0, 0.0, 1.0)
+                            if g.norm() > 1e-12:
+                                nrm = g.normalized()
+                            if d_start <= 0.0:  # the body came over it: the nearest surface point
+                                xh = xp - d * nrm
+                            xh += SURFACE_OFFSET * r * nrm
+                            u = vel_a[o] @ xh + vel_b[o]
+                            vr = vp - u
+                            vn = ti.min(vr.dot(nrm), 0.0)
+                            vp = u
+                            if t == SPRAY:
+                                vp = u + vr - (1.0 + SPRAY_RESTITUTION) * vn * nrm
+                            xp = xh
+                            d_out, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot1, trans1, o, xp)
+                            if d_out <= 0.0:
+                                alive = 0
+            x[p], v[p] = xp, vp
+            keep[p] = alive
+
+
+@ti.kernel
+def outside_obstacles(
+    n: ti.i32, x: F3, flag: I1, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1, rot: M3,
+    trans: F3,
+):
+    """flag[p] = 0 where particle p is inside (sdf ≤ 0) an obstacle at this frame's pose."""
+    for p in range(n):
+        if flag[p]:
+            for o in range(off.shape[0]):
+                d, _ = obstacle_sdf(values, off, origin, inv_dx, dims, beyond, rot, trans, o, x[p])
+                if d <= 0.0:
+                    flag[p] = 0
