@@ -2,7 +2,9 @@
 # Issue 20's and issue 31's GPU figures in one run, on a machine with an NVIDIA GPU and CUDA
 # (each step has its own time limit, so the whole run stays under about 8 minutes on an H100):
 #   1. the solver at 1 M (target >= 100 steps/s), 10 M and 50 M particles, with bytes per particle
-#      (the dense cell grid refuses sizes whose domain needs too many cells: the refusal is printed);
+#      (the neighbour grid's memory is set by the particles: dense cell table in the benchmark's tank,
+#      5 cells a particle, hashed where the domain is much larger); list building with the dense and the
+#      hashed cell table at 1 M and 10 M, and in a domain 1000x the fluid's volume (bench_grid.py);
 #   2. `simulate --profile` of the H = 2a dam break with foam on and off, at r = 2 mm and r = 0.8 mm
 #      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
@@ -25,7 +27,9 @@ step() {  # step SECONDS TITLE COMMAND...: run with a time limit; a failure is r
 }
 
 step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py --arch cuda --sizes 1000000 --steps 100
-step 120 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
+step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
+step 90  "neighbour grid, CUDA, dense vs hashed cell table, 1 M and 10 M" \
+    "$PY" benchmarks/bench_grid.py --arch cuda --sizes 1000000,10000000 --repeats 5
 step 120 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.002 --frames 40
 step 120 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
