@@ -92,6 +92,9 @@ def _stage_from_blend(sc, blend: Path) -> list:
     sc.render.filepath = "//render/"
     if getattr(saved, "compositing_node_group", None) is not None:
         sc.compositing_node_group = saved.compositing_node_group
+        for node in sc.compositing_node_group.nodes:  # its Render Layers read the saved scene, which goes
+            if node.bl_idname == "CompositorNodeRLayers":
+                node.scene = sc
     leftovers = [o for o in saved.objects if o not in made]
     bpy.data.scenes.remove(saved)
     for o in leftovers:

@@ -44,10 +44,10 @@ class SceneHandles:
 
 # ---------------------------------------------------------------------------- meshes
 def read_surface(path: Path):
-    """Vertices (N,3), faces (M,3), velocities (N,3) or None, from a mesh in any
-    registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
+    """Vertices (N,3), faces (M,3), velocities (N,3) or None and normals (N,3) or None, from a
+    mesh in any registered mesh format (PLY or OBJ, chosen by the io registry from the extension)."""
     m = read_mesh(path)
-    return m.vertices, m.faces, m.arrays.get("velocity")
+    return m.vertices, m.faces, m.arrays.get("velocity"), m.normals
 
 
 def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):
@@ -57,12 +57,14 @@ def make_mesh(name: str, verts: np.ndarray, faces: np.ndarray, velocity: np.ndar
     return fill_mesh(bpy.data.meshes.new(name), verts, faces, velocity, ids)
 
 
-def fill_mesh(me, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None):
+def fill_mesh(me, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | None = None, ids=None,
+              normals: np.ndarray | None = None):
     """Replace a mesh's geometry in place with triangles (its materials and identity stay):
-    the shared mesh fill (blender/mesh.py) with the ``velocity`` and ``id`` attributes."""
+    the shared mesh fill (blender/mesh.py) with the ``velocity`` and ``id`` attributes and the
+    file's normals (splashsurf's smoothed ones) as custom split normals, as the add-on shows them."""
     loops, starts = polygons_of(faces)
     arrays = [("velocity", velocity), ("id", None if ids is None else np.asarray(ids, np.int64))]
-    return blender_mesh.fill_mesh(me, verts, loops, starts, arrays)
+    return blender_mesh.fill_mesh(me, verts, loops, starts, arrays, normals)
 
 
 def diffuse_radius(cfg: Render, t: int, r: float) -> tuple[float, float]:
@@ -289,10 +291,10 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     files = frame["files"]
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
-        verts, faces, vel = read_surface(run_dir / files["mesh"])
+        verts, faces, vel, normals = read_surface(run_dir / files["mesh"])
         if h.sea is not None:  # one open sheet with the sea: the faces on the walls and floor go
             faces = sea.open_walls(verts, faces, info.domain["lower"], info.domain["upper"], info.particle_radius)
-        fill_mesh(h.fluid.data, verts, faces, vel)
+        fill_mesh(h.fluid.data, verts, faces, vel, normals=normals)
         stats["triangles"] = len(faces)
     if h.sea is not None:
         sea.update_sea(h.sea, verts if "mesh" in files else np.zeros((0, 3)), frame["time"])
