@@ -100,3 +100,25 @@ def test_compaction_keeps_every_live_particle_once_with_its_id_in_a_fixed_order(
     again, _, _ = _compact(d, room)
     for a, b in ((out.positions, again.positions), (out.ids, again.ids), (out.arrays["type"], again.arrays["type"])):
         assert a.tobytes() == b.tobytes()
+
+
+def test_the_live_particles_survive_the_capacity_growing_with_the_fluid():
+    """Inflow: when the fluid outgrows the count the capacity was sized for, the live arrays are made
+    again larger (once) and the live particles carried over unchanged."""
+    from dataclasses import replace
+
+    from whitecap.diffuse.generator import FoamGenerator
+
+    gen = FoamGenerator(replace(resolve(preset="auto"), budget=2.0), R, ([0, 0, 0], [1, 1, 1]), (0, 0, -9.81), seed=3)
+    gen._size(100)
+    d = _data(600, 1)
+    st = gen.state
+    st.positions, st.velocities, st.lifetime, st.ids = d["x"], d["v"], d["life"], d["ids"]
+    gen._sync_in()
+    small = gen._live[0]["x"].shape[0]
+    assert 600 <= small < 2000
+    gen._size(10_000)
+    assert gen._live[0]["x"].shape[0] == gen.capacity > 20_000
+    out = gen._download()
+    for a, b in ((out.positions, d["x"]), (out.velocities, d["v"]), (out.arrays["lifetime"], d["life"]), (out.ids, d["ids"])):
+        assert a.tobytes() == b.tobytes()
