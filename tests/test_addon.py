@@ -921,3 +921,173 @@ def test_frame_20_of_the_demo_renders_the_same_from_the_addon(bunny_run, addon_z
     assert a.std() > 20  # a picture, not a blank
     d = np.abs(a - b)
     assert d.mean() < PARITY_MEAN and np.percentile(d, 99) < PARITY_P99, (d.mean(), np.percentile(d, 99))
+
+
+# ----------------------------------------------------------------------------- finding files, retiming, timings
+FEATURES = r"""
+folder, log, png = sys.argv[3], sys.argv[4], sys.argv[5]
+res = {}
+def clear():
+    for o in list(sc.objects):
+        bpy.data.objects.remove(o)
+def load(path, **kw):
+    clear()
+    bpy.ops.whitecap.load(filepath=path, **kw)
+    return sorted(seq_objects())
+res["pattern"] = load(os.path.join(folder, "PartFluid_@.vtk"))
+res["filter"] = load(folder, filter_text="Surface")
+res["glob"] = load(folder, filter_text="*.vtk")
+res["flat"] = load(folder)
+res["recursive"] = load(folder, recursive=True)
+deep = bpy.data.objects["Deep"]
+res["deep"] = [len(deep.data.vertices), len(deep.data.polygons), sorted(len(p.vertices) for p in deep.data.polygons)]
+res["deep_file"] = deep.whitecap_seq.shown_file
+# retiming: PartFluid's file k has k + 5 points; files 0..3 show at scene frames 1..4
+load(os.path.join(folder, "PartFluid_0000.vtk"))
+o = bpy.data.objects["PartFluid"]
+seq = o.whitecap_seq
+def shown(frames):
+    out = []
+    for f in frames:
+        sc.frame_set(f)
+        out.append(len(o.data.vertices))
+    return out
+res["plain"] = shown(range(1, 5))
+seq.use_frame = True
+for value, f in ((0.0, 1), (3.0, 7)):  # slow motion: half speed, keyed
+    seq.frame = value
+    o.keyframe_insert('whitecap_seq.frame', frame=f)
+for c in [c for layer in o.animation_data.action.layers for s in layer.strips for b in s.channelbags for c in b.fcurves]:
+    for k in c.keyframe_points:
+        k.interpolation = "LINEAR"
+res["slow"] = shown(range(1, 8))
+o.animation_data_clear()
+for f in (1, 7):  # a freeze frame: file 2 held
+    seq.frame = 2.0
+    o.keyframe_insert('whitecap_seq.frame', frame=f)
+res["freeze"] = shown(range(1, 8))
+o.animation_data_clear()
+fc = o.driver_add('whitecap_seq.frame')  # a driver: played backwards
+fc.driver.type = "SCRIPTED"
+fc.driver.expression = "4 - frame"
+res["driven"] = shown(range(1, 5))
+o.driver_remove('whitecap_seq.frame')
+seq.use_frame = False
+for mode in ("HOLD", "LOOP", "BLANK"):
+    seq.out_of_range = mode
+    res[mode] = shown([0, 2, 6])
+seq.out_of_range = "HOLD"
+# the load time, in the object's panel and its list row
+labels = []
+class Layout:
+    def __getattr__(self, name):
+        return lambda *a, **k: self
+    def label(self, text="", **k):
+        labels.append(text)
+        return self
+class Me:
+    layout = Layout()
+bpy.context.view_layer.objects.active = o
+sc.whitecap_active = list(bpy.data.objects).index(o)
+sc.frame_set(3)
+addon.panels.WHITECAP_PT_object.draw(Me(), bpy.context)
+res["load_ms"] = seq.load_ms
+res["labels"] = labels
+# the render log: which file each sequence showed at each frame of an animation render
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+sc.collection.objects.link(cam)
+sc.camera = cam
+sc.render.engine = "BLENDER_WORKBENCH"
+sc.render.resolution_x = sc.render.resolution_y = 8
+sc.frame_start, sc.frame_end = 1, 3
+sc.render.filepath = png
+sc.whitecap_log = log
+bpy.ops.render.render(animation=True)
+sc.frame_set(2)  # not rendering: not logged
+print(json.dumps(res))
+"""
+
+
+def _points_vtk(path, n):
+    pts = np.random.default_rng(n).random((n, 3))
+    _vtk_polydata(path, pts, {"Vel": np.zeros((n, 3))})
+
+
+def test_patterns_filter_subfolders_retiming_load_time_and_render_log(addon_zip, tmp_path):
+    """Files found by an @ pattern, a filter (text or * ?), with or without subfolders; the own Frame
+    property keyed (slow motion, freeze) and driven; hold, loop or nothing outside the files; the
+    load time shown; a render's log of the file each frame used. A meshio format's tetrahedra
+    (a format the add-on has no reader of its own for) show their boundary."""
+    import meshio
+
+    folder = tmp_path / "feat"
+    (folder / "sub").mkdir(parents=True)
+    for k in range(4):
+        _points_vtk(folder / f"PartFluid_{k:04d}.vtk", k + 5)
+        write_mesh_ply(folder / f"Surface_{k:04d}.ply", np.eye(3), np.array([[0, 1, 2]]), np.zeros((3, 3)))
+    # two tetrahedra sharing the face (1, 2, 3): a boundary of 6 triangles
+    tets = np.array([[0, 1, 2, 3], [4, 1, 3, 2]])
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
+    for k in range(2):
+        meshio.write(folder / "sub" / f"Deep_{k:04d}.mesh", meshio.Mesh(pts, [("tetra", tets)]))
+    log = tmp_path / "render.log"
+    res = run_blender(FEATURES, addon_zip, tmp_path, folder, log, tmp_path / "anim_")
+    assert res["pattern"] == ["PartFluid"]
+    assert res["filter"] == ["Surface"] and res["glob"] == ["PartFluid"]
+    assert res["flat"] == ["PartFluid", "Surface"] and res["recursive"] == ["Deep", "PartFluid", "Surface"]
+    assert res["deep"] == [5, 6, [3] * 6] and res["deep_file"].endswith("Deep_0000.mesh")
+    assert res["plain"] == [5, 6, 7, 8]
+    assert res["slow"] == [5, 5, 6, 6, 7, 7, 8]  # file = floor(frame value), half speed
+    assert res["freeze"] == [7] * 7
+    assert res["driven"] == [8, 7, 6, 5]
+    # scene frames 0 (before file 0), 2 (file 1), 6 (file 5, past the last file 3)
+    assert res["HOLD"] == [5, 6, 8] and res["LOOP"] == [8, 6, 6] and res["BLANK"] == [0, 6, 0]
+    assert res["load_ms"] > 0
+    assert any(f"{res['load_ms']:.1f} ms to load" in t for t in res["labels"]), res["labels"]
+    rows = [ln.split("\t") for ln in log.read_text().splitlines()]
+    assert {(int(r[0]), r[1], Path(r[2]).name) for r in rows} == {
+        (f, "PartFluid", f"PartFluid_{f - 1:04d}.vtk") for f in (1, 2, 3)}
+    assert all(r[3].endswith(" ms") for r in rows)
+
+
+def test_every_reader_says_truncated_in_one_line_on_a_cut_file(tmp_path):
+    """Each format the add-on reads (its own readers and the meshio fallback), cut at 60 % of its
+    bytes: one line that starts with the file and says truncated."""
+    import meshio
+    import trimesh
+
+    from whitecap.io.mesh import SurfaceMesh
+    from whitecap.io.vtk_xml import write_vtp
+
+    rng = np.random.default_rng(6)
+    n = 60
+    fr = io.ParticleFrame(rng.random((n, 3)), rng.random((n, 3)), np.arange(n), rng.random(n))
+    faces = rng.integers(0, n, (40, 3))
+    full = tmp_path / "full"
+    full.mkdir()
+    io.write(full / "p.ply", fr)
+    io.write(full / "p.vtu", fr)
+    write_vtp(full / "m.vtp", fr.positions, {"velocity": fr.velocities}, faces)
+    io.write_mesh(full / "m.obj", SurfaceMesh(fr.positions, faces))
+    io.write_mesh(full / "m.ply", SurfaceMesh(fr.positions, faces))
+    tm = trimesh.Trimesh(fr.positions, faces, process=False)
+    tm.export(full / "b.stl")
+    (full / "a.stl").write_bytes(trimesh.exchange.stl.export_stl_ascii(tm).encode())
+    (full / "a.ply").write_bytes(trimesh.exchange.ply.export_ply(tm, encoding="ascii"))
+    write_partio_bgeo(full / "z.bgeo", fr.positions, {"velocity": fr.velocities})
+    write_partio_bgeo(full / "r.bgeo", fr.positions, {"velocity": fr.velocities}, compress=False)
+    for version in (42, 51):
+        for binary in (True, False):
+            _vtk_polydata(full / f"v{version}{'b' if binary else 'a'}.vtk", fr.positions, {"Vel": fr.velocities},
+                          [tuple(f) for f in faces], version, binary)
+    meshio.write(full / "t.mesh", meshio.Mesh(fr.positions, [("tetra", rng.integers(0, n, (30, 4)))]))
+    meshio.write(full / "t.off", meshio.Mesh(fr.positions, [("triangle", faces)]))
+    for src in sorted(full.iterdir()):
+        F.read(str(src))  # whole: reads
+        cut = tmp_path / f"cut_{src.name}"
+        data = src.read_bytes()
+        cut.write_bytes(data[: int(len(data) * 0.6)])
+        with pytest.raises(ValueError) as exc:
+            F.read(str(cut))
+        msg = str(exc.value)
+        assert msg.startswith(f"{cut}: ") and "truncated" in msg and "\n" not in msg, (src.name, msg)

@@ -255,6 +255,8 @@ def read_vtk_xml(path):
     try:
         root = ET.fromstring(data)
     except ET.ParseError as exc:
+        if b"</VTKFile>" not in data:
+            raise ValueError(f"{path}: the file ends before </VTKFile> (truncated?)") from None
         raise ValueError(f"{path}: not a readable VTK XML file ({exc})") from None
     little = root.get("byte_order", "LittleEndian") == "LittleEndian"
     header = _XML_TYPES[root.get("header_type", "UInt32")]
@@ -483,19 +485,32 @@ def read_obj(path):
     """Vertices and faces of a Wavefront OBJ (``v``/``f`` statements; other statements ignored)."""
     verts, loops, starts = [], [], []
     with open(path, "rb") as fh:
-        for raw in fh:
-            if raw.startswith(b"v "):
-                verts.append(raw.split()[1:4])
-            elif raw.startswith(b"f "):
-                ids = [int(t.split(b"/")[0]) for t in raw.split()[1:]]
-                starts.append(len(loops))
-                loops += [i - 1 if i > 0 else len(verts) + i for i in ids]
+        lines = fh.read().split(b"\n")
+    # OBJ declares no counts: a cut file shows as a last statement without its line end (every
+    # writer ends its lines; a file cut inside a number could not be told from a whole one otherwise)
+    cut = " (truncated?)" if lines and lines[-1].strip() else ""
+    if cut and len(lines) > 1 and lines[-1].split()[0] in (b"v", b"vn", b"vt", b"f"):
+        raise ValueError(f"{path}: line {len(lines)}: the last statement has no line end: the file is cut short "
+                         "(truncated?)")
+    for k, raw in enumerate(lines):
+        if raw.startswith(b"v "):
+            if len(raw.split()) < 4:
+                raise ValueError(f"{path}: line {k + 1}: a 'v' statement without three numbers"
+                                 f"{cut if k == len(lines) - 1 else ''}")
+            verts.append(raw.split()[1:4])
+        elif raw.startswith(b"f "):
+            ids = [int(t.split(b"/")[0]) for t in raw.split()[1:]]
+            if len(ids) < 3:
+                raise ValueError(f"{path}: line {k + 1}: a face of {len(ids)} corners"
+                                 f"{cut if k == len(lines) - 1 else ''}")
+            starts.append(len(loops))
+            loops += [i - 1 if i > 0 else len(verts) + i for i in ids]
     try:
         pts = np.array(verts, np.float64).reshape(-1, 3)
     except ValueError:
         raise ValueError(f"{path}: a 'v' statement without three numbers") from None
     if loops and (min(loops) < 0 or max(loops) >= len(pts)):
-        raise ValueError(f"{path}: a face refers to a vertex that does not exist")
+        raise ValueError(f"{path}: a face refers to a vertex that does not exist{cut}")
     return Geometry(pts, loops, starts)
 
 
@@ -507,7 +522,13 @@ def read_stl(path):
     if n >= 0 and len(data) == 84 + 50 * n:
         rec = np.frombuffer(data, np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]), n, 84)
         tri = rec["v"].reshape(-1, 3)
+    elif not data.lstrip().startswith(b"solid"):  # binary: 80 bytes, a count, 50 bytes a triangle
+        if n >= 0 and len(data) < 84 + 50 * n:
+            raise ValueError(f"{path}: the file ends after {(len(data) - 84) // 50} of {n} triangles (truncated?)")
+        raise ValueError(f"{path}: not an STL file (binary size {len(data)} does not match {n} triangles)")
     else:
+        if b"endsolid" not in data:
+            raise ValueError(f"{path}: the file ends before 'endsolid' (truncated?)")
         tri = np.array(re.findall(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", data), np.float64).reshape(-1, 3)
     pts, inv = np.unique(tri, axis=0, return_inverse=True)
     return Geometry(pts, inv.ravel(), np.arange(0, len(tri), 3))
@@ -524,7 +545,9 @@ def read_bgeo(path):
     if data[:2] == b"\x1f\x8b":
         try:
             data = gzip.decompress(data)
-        except (OSError, EOFError) as exc:
+        except EOFError:
+            raise ValueError(f"{path}: the gzip stream ends early (truncated?)") from None
+        except OSError as exc:
             raise ValueError(f"{path}: damaged gzip data ({exc})") from None
     if data[:5] != b"BgeoV":
         raise ValueError(f"{path}: not a BGEO version 5 particle file (Houdini's newer JSON BGEO is not supported)")
@@ -591,7 +614,9 @@ def read_meshio(path):
     try:
         m = meshio.read(path)
     except Exception as exc:  # meshio raises many kinds; one line naming the file
-        raise ValueError(f"{path}: not readable by meshio ({type(exc).__name__}: {exc})".replace("\n", " ")) from None
+        # meshio's readers do not say why a file fails; a cut file is the common cause
+        raise ValueError(f"{path}: not readable by meshio, truncated or damaged? ({type(exc).__name__}: {exc})"
+                         .replace("\n", " ")) from None
     faces = []
     for block in m.cells:
         data = np.asarray(block.data)
