@@ -1050,6 +1050,94 @@ def test_patterns_filter_subfolders_retiming_load_time_and_render_log(addon_zip,
     assert all(r[3].endswith(" ms") for r in rows)
 
 
+# ----------------------------------------------------------------------------- Geometry Nodes templates
+TEMPLATES = r"""
+folder, png = sys.argv[3], sys.argv[4]
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "particles_0000.ply"))
+o = seq_objects()["particles"]
+seq = o.whitecap_seq
+res = {"kind": seq.kind, "radius": seq.radius_max}
+def emission(name, color):
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    b = m.node_tree.nodes["Principled BSDF"]
+    b.inputs["Base Color"].default_value = (0, 0, 0, 1)
+    b.inputs["Emission Color"].default_value = color
+    b.inputs["Emission Strength"].default_value = 5.0
+    return m
+for display, color in (("POINTS", (0, 0, 1, 1)), ("INSTANCES", (1, 0, 0, 1)), ("MESH", (0, 1, 0, 1))):
+    seq.display = display
+    seq.material = emission(display, color)  # the picker
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = o.evaluated_get(dg)
+    geom = ev.evaluated_geometry()
+    r = {"modifiers": [m.name for m in o.modifiers]}
+    if geom.pointcloud is not None:
+        r["points"] = len(geom.pointcloud.points)
+        r["materials"] = [m.name for m in geom.pointcloud.materials]
+    inst = [sorted(m.name for m in i.object.data.materials if m) for i in dg.object_instances
+            if i.is_instance and i.parent and i.parent.original == o]  # read while iterating
+    r["instances"] = len(inst)
+    if inst:
+        r["materials"] = sorted({m for ms in inst for m in ms})
+    if geom.mesh is not None and display == "MESH":
+        me = geom.mesh
+        co = np.array([tuple(v.co) for v in me.vertices])
+        r["mesh"] = [len(me.vertices), len(me.polygons), co.min(0).tolist(), co.max(0).tolist()]
+        idx = np.zeros(len(me.polygons), np.int32)
+        me.polygons.foreach_get("material_index", idx)
+        r["materials"] = sorted({me.materials[int(i)].name for i in np.unique(idx)})  # what the faces use
+    res[display] = r
+# the instances in EEVEE: a black world, a camera looking down at the points
+seq.display = "INSTANCES"
+seq.material = bpy.data.materials["INSTANCES"]
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+cam.location = (0.02, 0.02, 0.5)
+sc.collection.objects.link(cam)
+sc.camera = cam
+sc.world = bpy.data.worlds.new("black")
+sc.render.engine = "BLENDER_EEVEE"
+sc.render.resolution_x = sc.render.resolution_y = 24
+sc.render.filepath = png
+bpy.ops.render.render(write_still=True)
+# the mesh template follows the radius slider
+seq.display = "MESH"
+seq.radius_max = 2 * seq.radius_max
+dg = bpy.context.evaluated_depsgraph_get()
+geom = o.evaluated_get(dg).evaluated_geometry()
+co = np.array([tuple(v.co) for v in geom.mesh.vertices])
+res["wider"] = [co.min(0).tolist(), co.max(0).tolist()]
+print(json.dumps(res))
+"""
+
+
+def test_templates_point_cloud_instances_in_eevee_and_mesh_each_with_a_material(addon_zip, tmp_path):
+    """Three Geometry Nodes templates for points, each drawing with the material picked: a point
+    cloud, instances (an EEVEE render shows them in the picked colour) and a mesh, the surface
+    around the particles (Points to Volume, Volume to Mesh), which grows with the radius."""
+    import imageio.v2 as imageio
+
+    folder = tmp_path / "pts"
+    folder.mkdir()
+    g = np.stack(np.meshgrid(*[np.arange(3) * 0.02] * 3), -1).reshape(-1, 3)  # 27 points, spacing 0.02
+    for k in range(2):
+        io.write(folder / f"particles_{k:04d}.ply", io.ParticleFrame(g, np.zeros((27, 3))))
+    png = tmp_path / "eevee.png"
+    res = run_blender(TEMPLATES, addon_zip, tmp_path, folder, png)
+    assert res["kind"] == "PARTICLES" and res["radius"] == pytest.approx(0.01, rel=1e-3)
+    assert res["POINTS"]["points"] == 27 and res["POINTS"]["materials"] == ["POINTS"]
+    assert res["INSTANCES"]["instances"] == 27 and res["INSTANCES"]["materials"] == ["INSTANCES"]
+    verts, faces, lo, hi = res["MESH"]["mesh"]
+    assert faces > 50 and verts != 27 and res["MESH"]["materials"] == ["MESH"]
+    # the surface wraps the lattice [0, 0.04]^3 about one radius (0.01) out
+    assert np.allclose(lo, -0.01, atol=0.006) and np.allclose(hi, 0.05, atol=0.006), (lo, hi)
+    assert np.all(np.array(res["wider"][0]) < np.array(lo) - 0.005)
+    assert all(res[d]["modifiers"] == ["whitecap_nodes"] for d in ("POINTS", "INSTANCES", "MESH"))
+    img = imageio.imread(png)[..., :3].astype(float)
+    red = (img[..., 0] > 100) & (img[..., 0] > img[..., 1] + 40) & (img[..., 0] > img[..., 2] + 40)
+    assert red.sum() > 20, img.max((0, 1))  # the instances, in the picked red
+
+
 def test_every_reader_says_truncated_in_one_line_on_a_cut_file(tmp_path):
     """Each format the add-on reads (its own readers and the meshio fallback), cut at 60 % of its
     bytes: one line that starts with the file and says truncated."""

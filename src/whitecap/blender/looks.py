@@ -230,6 +230,53 @@ def sphere_nodes(name: str, rmin: float, rmax: float, material, seed: int, copie
     return ng
 
 
+#: The mesh template's voxel size, in particle radii: fine enough that two touching particles
+#: merge into one surface and a lone one stays a rounded blob.
+MESH_VOXEL = 0.5
+
+
+def mesh_nodes(name: str, radius: float, material, voxel: float | None = None):
+    """A Geometry Nodes group that shows a sequence as a mesh: a file's faces as they are; points
+    without faces (particles) as the surface around them, Points to Volume (spheres of ``Radius``)
+    then Volume to Mesh at ``Voxel size`` (default :data:`MESH_VOXEL` x radius); smooth shading,
+    then the material. Radius and voxel size are the modifier's inputs, so a panel can change them."""
+    import bpy
+
+    ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    for sock_name, value in (("Radius", radius), ("Voxel size", voxel or MESH_VOXEL * radius)):
+        s = ng.interface.new_socket(sock_name, in_out="INPUT", socket_type="NodeSocketFloat")
+        s.min_value, s.default_value, s.subtype = 0.0, float(value), "DISTANCE"
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gin, gout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
+    size = ng.nodes.new("GeometryNodeAttributeDomainSize")
+    size.component = "MESH"
+    ng.links.new(gin.outputs["Geometry"], size.inputs["Geometry"])
+    m2p = ng.nodes.new("GeometryNodeMeshToPoints")
+    m2p.mode = "VERTICES"
+    ng.links.new(gin.outputs["Geometry"], m2p.inputs["Mesh"])
+    p2v = ng.nodes.new("GeometryNodePointsToVolume")
+    v2m = ng.nodes.new("GeometryNodeVolumeToMesh")
+    for node in (p2v, v2m):
+        node.inputs["Resolution Mode"].default_value = "Size"
+        ng.links.new(gin.outputs["Voxel size"], node.inputs["Voxel Size"])
+    ng.links.new(m2p.outputs["Points"], p2v.inputs["Points"])
+    ng.links.new(gin.outputs["Radius"], p2v.inputs["Radius"])
+    ng.links.new(p2v.outputs["Volume"], v2m.inputs["Volume"])
+    switch = ng.nodes.new("GeometryNodeSwitch")
+    switch.input_type = "GEOMETRY"
+    ng.links.new(size.outputs["Face Count"], switch.inputs["Switch"])  # faces: the file's own mesh
+    ng.links.new(v2m.outputs["Mesh"], switch.inputs["False"])
+    ng.links.new(gin.outputs["Geometry"], switch.inputs["True"])
+    smooth = ng.nodes.new("GeometryNodeSetShadeSmooth")
+    ng.links.new(switch.outputs[0], smooth.inputs["Mesh"])
+    setm = ng.nodes.new("GeometryNodeSetMaterial")
+    setm.inputs["Material"].default_value = material
+    ng.links.new(smooth.outputs["Mesh"], setm.inputs["Geometry"])
+    ng.links.new(setm.outputs["Geometry"], gout.inputs[0])
+    return ng
+
+
 def _jittered_copies(ng, points, pid, copies: int, jitter: float, seed: int):
     """Duplicate Elements (copies - 1 more per point), then Set Position by a Random Value
     vector whose ID is id*copies + copy index + 1: the same offsets every frame."""

@@ -9,7 +9,7 @@ import bpy
 import numpy as np
 
 from . import handlers, paths, readers, sequences
-from .properties import KINDS, POINT_KINDS, add_spheres
+from .properties import KINDS, POINT_KINDS, add_template
 from .shared import COUNT_NAMES, RunInfo, looks, mesh, place, run
 
 SPACING_SAMPLES = 256  # points whose nearest-neighbour distance estimates the particle spacing
@@ -60,7 +60,7 @@ def new_sequence(context, made, name, directory, prefix, suffix, kind, *, run_ki
                     radius = 0.01
             seq["radius_min"] = seq["radius_max"] = radius
             seq["file_radius"] = True
-        made.append(add_spheres(obj, seq))
+        made.append(add_template(obj, seq))
     elif kind == "FLUID":
         me.materials.append(looks.material("FLUID"))
     seq["enabled"] = True

@@ -10,7 +10,7 @@ KINDS = [("FLUID", "Fluid", "a surface mesh (water material)"), ("PARTICLES", "P
          ("FOAM", "Foam", "diffuse foam"), ("SPRAY", "Spray", "diffuse spray"),
          ("BUBBLES", "Bubbles", "diffuse air bubbles"), ("OTHER", "Other", "")]
 POINT_KINDS = ("PARTICLES", "FOAM", "SPRAY", "BUBBLES")
-SPHERES = "whitecap_spheres"  # the sphere modifier's name
+TEMPLATE = "whitecap_nodes"  # the Geometry Nodes template modifier's name (spheres or mesh)
 
 
 def _reload(seq, context):
@@ -39,14 +39,14 @@ def _on_motion_blur(seq, context):
         context.scene.render.use_motion_blur = True
 
 
-def sphere_group(obj):
-    mod = obj.modifiers.get(SPHERES)
+def template_group(obj):
+    mod = obj.modifiers.get(TEMPLATE)
     return mod.node_group if mod is not None else None
 
 
-def remove_spheres(obj):
-    """Remove the sphere modifier and its node group when nothing else uses it (no leak)."""
-    mod = obj.modifiers.get(SPHERES)
+def remove_template(obj):
+    """Remove the template modifier and its node group when nothing else uses it (no leak)."""
+    mod = obj.modifiers.get(TEMPLATE)
     if mod is None:
         return
     ng = mod.node_group
@@ -55,32 +55,38 @@ def remove_spheres(obj):
         bpy.data.node_groups.remove(ng)
 
 
-def add_spheres(obj, seq):
-    """The sphere modifier of a point kind: the shared spheres (blender/looks.sphere_nodes) at the
-    object's radius range, the file's radius where asked, as points or EEVEE instances."""
-    remove_spheres(obj)
+def add_template(obj, seq):
+    """The Geometry Nodes template of a point kind, each with the picked material (else the
+    kind's): the shared spheres (blender/looks.sphere_nodes) at the object's radius range, the
+    file's radius where asked, as a point cloud or as instances (EEVEE), or the mesh template
+    (blender/looks.mesh_nodes: the surface around the points, at the largest radius)."""
+    remove_template(obj)
     mat = seq.material or looks.material(seq.kind)
-    ng = looks.sphere_nodes(f"{obj.name}_spheres", seq.radius_min, seq.radius_max, mat, seq.seed,
-                            file_radius=seq.file_radius, instances=seq.display == "INSTANCES")
-    obj.modifiers.new(SPHERES, "NODES").node_group = ng
+    if seq.display == "MESH":
+        ng = looks.mesh_nodes(f"{obj.name}_mesh", seq.radius_max, mat)
+    else:
+        ng = looks.sphere_nodes(f"{obj.name}_spheres", seq.radius_min, seq.radius_max, mat, seq.seed,
+                                file_radius=seq.file_radius, instances=seq.display == "INSTANCES")
+    obj.modifiers.new(TEMPLATE, "NODES").node_group = ng
     return ng
 
 
 def _on_kind(seq, context):
     obj = seq.id_data
-    if seq.kind in POINT_KINDS and seq.display != "MESH":
-        add_spheres(obj, seq)
+    if seq.kind in POINT_KINDS:
+        add_template(obj, seq)
     else:
-        remove_spheres(obj)
+        remove_template(obj)
 
 
 def _on_radius(seq, context):
-    mod = seq.id_data.modifiers.get(SPHERES)
+    mod = seq.id_data.modifiers.get(TEMPLATE)
     if mod is None or mod.node_group is None:
         return
     items = mod.node_group.interface.items_tree
     for name, value in (("Radius min", seq.radius_min), ("Radius max", seq.radius_max),
-                        ("File radius", seq.file_radius)):
+                        ("File radius", seq.file_radius), ("Radius", seq.radius_max),
+                        ("Voxel size", looks.MESH_VOXEL * seq.radius_max)):
         if name in items:
             mod[items[name].identifier] = value
     seq.id_data.update_tag()
@@ -93,7 +99,7 @@ def _on_material(seq, context):
 
 def apply_material(obj, mat):
     """``mat`` on the object's mesh and in its sphere group."""
-    ng = sphere_group(obj)
+    ng = template_group(obj)
     if ng is not None:
         for node in ng.nodes:
             if node.bl_idname == "GeometryNodeSetMaterial":
@@ -115,7 +121,8 @@ class WhitecapSequence(bpy.types.PropertyGroup):
     display: EnumProperty(name="Draw as", items=[
         ("POINTS", "Point cloud", "spheres as a point cloud (Cycles)"),
         ("INSTANCES", "Instances", "an ico sphere instanced on each point (renders in EEVEE too)"),
-        ("MESH", "Mesh", "the file's mesh or vertices as they are")], default="POINTS", update=_on_kind)
+        ("MESH", "Mesh", "the surface around the points (Points to Volume, Volume to Mesh at half the largest "
+                         "radius); a file's faces as they are")], default="POINTS", update=_on_kind)
     material: PointerProperty(name="Material", type=bpy.types.Material, update=_on_material,
                               description="the material of the mesh or spheres (empty: the type's own)")
     frame_offset: IntProperty(name="Frame offset", default=0, update=_reload,
