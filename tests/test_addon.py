@@ -234,7 +234,8 @@ def test_addon_copies_of_the_array_names_match_whitecap():
 def test_the_zip_carries_the_shared_bpy_layer_and_passes_blenders_validator(tmp_path):
     """Issue 33, defect 3: Blender's own extension validator (blender_ext.py validate, shipped in the
     bpy wheel) passes the built zip: permissions is a table. The zip carries whitecap's bpy layer and
-    the modules it imports, byte for byte (one definition)."""
+    the modules it imports, byte for byte (one definition), and meshio as wheels made from the
+    installed distributions (no network; under 2 MB in all)."""
     import tomllib
 
     zp = tmp_path / "addon.zip"
@@ -246,6 +247,14 @@ def test_the_zip_carries_the_shared_bpy_layer_and_passes_blenders_validator(tmp_
             "sequences.py", "blender_manifest.toml"} <= set(z.namelist())
     assert tomllib.loads(z.read("blender_manifest.toml").decode())["permissions"] == {
         "files": "Read simulation frames and runs from disk"}
+    # meshio and its pure-Python requirements as wheels, listed in the manifest; numpy is Blender's own
+    wheels = sorted(n for n in z.namelist() if n.startswith("wheels/"))
+    assert [w.split("/")[1].split("-")[0] for w in wheels] == ["markdown_it_py", "mdurl", "meshio", "pygments", "rich"]
+    assert "wheels/meshio-5.3.5-py3-none-any.whl" in wheels
+    assert sorted(tomllib.loads(z.read("blender_manifest.toml").decode())["wheels"]) == [f"./{w}" for w in wheels]
+    meshio_whl = zipfile.ZipFile(__import__("io").BytesIO(z.read("wheels/meshio-5.3.5-py3-none-any.whl")))
+    assert "meshio/__init__.py" in meshio_whl.namelist() and "meshio-5.3.5.dist-info/RECORD" in meshio_whl.namelist()
+    assert zp.stat().st_size < 2_000_000
     bpy_dir = Path(importlib.util.find_spec("bpy").submodule_search_locations[0])  # the validator ships in bpy
     validator = next(bpy_dir.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
     out = subprocess.run([sys.executable, str(validator), "validate", str(zp)], capture_output=True, text=True,
@@ -1179,3 +1188,17 @@ def test_every_reader_says_truncated_in_one_line_on_a_cut_file(tmp_path):
             F.read(str(cut))
         msg = str(exc.value)
         assert msg.startswith(f"{cut}: ") and "truncated" in msg and "\n" not in msg, (src.name, msg)
+
+
+WHEELS = r"""
+site = [p for p in sys.path if ".local" in p and p.endswith("site-packages")]
+print(json.dumps({"site": site, "meshio": [os.path.isfile(os.path.join(p, "meshio", "__init__.py")) for p in site],
+                  "rich": [os.path.isdir(os.path.join(p, "rich")) for p in site]}))
+"""
+
+
+def test_installing_the_extension_installs_its_meshio_wheels(addon_zip, tmp_path):
+    """Blender's extension installer unpacks the zip's wheels into the user's extension site-packages."""
+    res = run_blender(WHEELS, addon_zip, tmp_path)
+    assert len(res["site"]) == 1 and res["site"][0].startswith(str(tmp_path / "blender_user"))
+    assert res["meshio"] == [True] and res["rich"] == [True]

@@ -437,12 +437,94 @@ def build_addon(out: str | Path | None = None) -> Path:
         raise InputError(f"{out}: exists and is not a whitecap add-on zip; choose another --out")
     with atomic_path(out) as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+            wheels = addon_wheels()
             for f in sorted(src.iterdir()):
-                if f.is_file() and f.suffix in (".py", ".toml"):
+                if f.is_file() and f.suffix == ".py":
                     z.write(f, f.name)
+            z.writestr("blender_manifest.toml", manifest_with_wheels((src / "blender_manifest.toml").read_text(),
+                                                                     sorted(wheels)))
+            for name, data in wheels.items():
+                z.writestr(name, data)
             for name, text in addon_shared_files().items():
                 z.writestr(name, text)
     return out
+
+
+#: The Python packages the extension carries as wheels (with their requirements): meshio reads
+#: every other mesh format. Blender bundles numpy, so it is left out.
+ADDON_PACKAGES = ("meshio",)
+BLENDER_BUNDLES = ("numpy",)
+
+
+def _requirements(dist) -> list[str]:
+    """The names a distribution needs in Blender's Python (no extras; other markers evaluated where
+    the packaging module is there, else left out)."""
+    out = []
+    for text in dist.requires or []:
+        name, _, marker = text.partition(";")
+        if marker.strip():
+            try:
+                from packaging.markers import Marker
+
+                if not Marker(marker).evaluate({"extra": ""}):
+                    continue
+            except ImportError:
+                continue
+        out.append(re.match(r"\s*([A-Za-z0-9._-]+)", name).group(1))
+    return out
+
+
+def addon_wheels() -> dict[str, bytes]:
+    """{"wheels/<file>.whl": bytes} of :data:`ADDON_PACKAGES` and their pure-Python requirements,
+    each made from the installed distribution (no network: whitecap itself depends on meshio,
+    so pip installed them). The wheel holds the package's files as installed, its dist-info
+    with a fresh RECORD (file, sha256, size). Pure-Python only: a compiled requirement would need
+    a wheel per platform, and is refused."""
+    import base64
+    import hashlib
+    import io as _io
+    import zipfile
+    from importlib.metadata import PackageNotFoundError, distribution
+
+    todo, seen, out = list(ADDON_PACKAGES), set(), {}
+    while todo:
+        name = todo.pop(0).lower().replace("_", "-")
+        if name in seen or name in BLENDER_BUNDLES:
+            continue
+        seen.add(name)
+        try:
+            dist = distribution(name)
+        except PackageNotFoundError:
+            raise MissingDependency(f"blender-addon: {name} is not installed (pip install {name}); "
+                                    "the extension carries it as a wheel") from None
+        todo += _requirements(dist)
+        wheel_meta = dist.read_text("WHEEL") or ""
+        tags = [ln.split(":", 1)[1].strip() for ln in wheel_meta.splitlines() if ln.startswith("Tag:")]
+        if "Root-Is-Purelib: true" not in wheel_meta or not tags or not tags[0].endswith("-none-any"):
+            raise InputError(f"blender-addon: {name} is not a pure-Python package; the extension cannot carry it")
+        base = dist.locate_file("")
+        files = sorted(str(f) for f in dist.files or [] if not str(f).startswith("..") and "__pycache__" not in str(f)
+                       and not str(f).endswith((".pyc", "RECORD", "INSTALLER", "REQUESTED", "direct_url.json")))
+        info_dir = next(f.split("/")[0] for f in files if f.split("/")[0].endswith(".dist-info"))
+        buf, record = _io.BytesIO(), []
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as w:
+            for rel in files:
+                data = (Path(base) / rel).read_bytes()
+                w.writestr(rel, data)
+                digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+                record.append(f"{rel},sha256={digest},{len(data)}")
+            record.append(f"{info_dir}/RECORD,,")
+            w.writestr(f"{info_dir}/RECORD", "\n".join(record) + "\n")
+        stem = re.sub(r"[-_.]+", "_", dist.metadata["Name"]).lower()
+        out[f"wheels/{stem}-{dist.version}-{tags[0]}.whl"] = buf.getvalue()
+    return out
+
+
+def manifest_with_wheels(text: str, wheels: list[str]) -> str:
+    """The manifest with ``wheels = [...]`` (paths in the zip) before its first table or comment."""
+    line = "wheels = [" + ", ".join(f'"./{w}"' for w in wheels) + "]\n"
+    ends = [k for k in (text.find("\n["), text.find("\n#")) if k >= 0]
+    return text + "\n" + line if not ends else text[:min(ends) + 1] + line + text[min(ends) + 1:]
 
 
 #: whitecap modules the extension carries (below the package), beside the whole bpy layer
