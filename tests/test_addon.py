@@ -1202,3 +1202,44 @@ def test_installing_the_extension_installs_its_meshio_wheels(addon_zip, tmp_path
     res = run_blender(WHEELS, addon_zip, tmp_path)
     assert len(res["site"]) == 1 and res["site"][0].startswith(str(tmp_path / "blender_user"))
     assert res["meshio"] == [True] and res["rich"] == [True]
+
+
+RIGID = r"""
+path = sys.argv[3]
+bpy.ops.whitecap.load(filepath=path)
+res = {"timeline": [sc.frame_start, sc.frame_end], "bodies": {}}
+for o in sc.objects:
+    if o.type != "MESH":
+        continue
+    res["bodies"][o.name] = {}
+    for f in (1, 29, 30):
+        sc.frame_set(f)
+        res["bodies"][o.name][f] = {"matrix": [list(r) for r in o.matrix_world],
+                                    "world": [list(o.matrix_world @ v.co) for v in o.data.vertices]}
+print(json.dumps(res))
+"""
+
+
+def test_splishsplash_rigid_body_bin_poses_as_whitecap_import_records_them(addon_zip, tmp_path):
+    """rigid_bodies/rb_data_<k>.bin loaded in the add-on through cases/rigid_bin.py, the code of
+    `whitecap import`: each body's world transform at the files' frames 1, 29 and 30 is the pose
+    import records (T(position) R(quaternion)), over its first-frame mesh, z up."""
+    import trimesh.transformations as T
+
+    from whitecap.cases import splishsplash
+
+    tiny = Path(__file__).resolve().parent / "data" / "splishsplash_rigid"
+    case = splishsplash.read_case(tiny)
+    res = run_blender(RIGID, addon_zip, tmp_path, tiny / "rigid_bodies" / "rb_data_1.bin")
+    assert res["timeline"] == [1, 30]
+    assert sorted(res["bodies"]) == sorted(s.name for s in case.shapes) == ["UnitBox", "sphere"]
+    for shape in case.shapes:
+        got = res["bodies"][shape.name]
+        w1 = np.array(got["1"]["world"])
+        # the first frame's mesh, as import writes it (import welds OBJ vertices: compare the point sets)
+        assert np.allclose(np.unique(np.round(w1, 5), axis=0), np.unique(np.round(shape.vertices, 5), axis=0), atol=2e-5)
+        for j, f in enumerate(("1", "29", "30")):
+            want = np.eye(4) if shape.poses is None else (
+                T.translation_matrix(shape.poses[j]["position"]) @ T.quaternion_matrix(shape.poses[j]["quaternion"]))
+            assert np.allclose(got[f]["matrix"], want, atol=1e-5), (shape.name, f)
+    assert case.shapes[1].poses is not None  # the sphere moves

@@ -44,7 +44,6 @@ import difflib
 import json
 import math
 import re
-import struct
 import warnings
 from pathlib import Path
 
@@ -55,7 +54,8 @@ from ..io import read_mesh
 from ..io.axes import to_z_up
 from ..io.registry import check
 from . import Case, CaseShape
-from .rigid_fit import fit_poses, pose
+from .rigid_bin import bin_files, first_world, read_bin_run, relative_poses
+from .rigid_fit import fit_poses
 
 SOLVER = "splishsplash"
 
@@ -72,13 +72,10 @@ PARTICLE_VOLUME_FACTOR = 0.8
 FLUID_FORMS = (("vtk", re.compile(r"^ParticleData_(?P<model>.+)_(?P<k>\d+)\.vtk$")),
                ("partio", re.compile(r"^ParticleData_(?P<model>.+)_(?P<k>\d+)\.bgeo$")))
 BIN_FOLDER = "rigid_bodies"
-_BIN_FILE = re.compile(r"^rb_data_(?P<k>\d+)\.bin$")
 #: per-frame world-space mesh exports, in order of preference after the BIN (folder = extension)
 MESH_FORMS = ("vtk", "ply", "obj")
 _MESH_FILE = {f: re.compile(rf"^rb_data_(?P<i>\d+)_(?P<k>\d+)\.{f}$") for f in MESH_FORMS}
 
-_POSE_BYTES = 12 * 4  # 3 + 9 float32 per body and frame
-_ROTATION_TOL = 1e-3  # |RᵀR − I| above this: not a rotation (float32 poses are ~1e-7 off)
 _MOVING_TOL = 1e-6  # [m] a body whose vertices move less than this in every frame is static
 
 # Fields read from the scene, per block; a field spelled close to one of these is a typo.
@@ -303,7 +300,7 @@ def _axes(up: str) -> np.ndarray:
 
 # ============================================================================ rigid bodies
 def _rigid_shapes(folder: Path, scene: _Scene, frames: list[int], M: np.ndarray) -> list[CaseShape]:
-    bins = _numbered(folder / BIN_FOLDER, _BIN_FILE)
+    bins = bin_files(folder / BIN_FOLDER)
     if bins:
         return _from_bin(folder / BIN_FOLDER, bins, scene, frames, M)
     for form in MESH_FORMS:
@@ -385,37 +382,19 @@ def _span(ks: list[int]) -> str:
     return ", ".join(map(str, ks[:5])) + (", ..." if len(ks) > 5 else "")
 
 
-def _relative_poses(Rs: list[np.ndarray], ts: list[np.ndarray], M: np.ndarray) -> list[dict]:
-    """Poses from the first frame's placement, z up: world_k = R'·rest + t' with
-    R' = M R_k R_1ᵀ Mᵀ and t' = M (t_k − R_k R_1ᵀ t_1)."""
-    poses: list[dict] = []
-    R1, t1 = Rs[0], ts[0]
-    for R, t in zip(Rs, ts):
-        D = R @ R1.T
-        poses.append(pose(M @ D @ M.T, M @ (t - D @ t1), poses[-1] if poses else None))
-    return poses
-
-
 # ---------------------------------------------------------------------------- BIN form
 def _from_bin(d: Path, bins: dict[int, Path], scene: _Scene, frames: list[int], M: np.ndarray) -> list[CaseShape]:
     first = min(frames)
     if first not in bins:
         raise InputError(f"{d / f'rb_data_{first}.bin'}: missing; its header lists the bodies "
                          f"(found {len(bins)} other rb_data_*.bin)")
-    header, offset = _read_bin_header(bins[first])
-    n = len(header)
-    _check_bodies_match(bins[first], n, scene)
     if len(bins) > 1:
         _check_frames(d, list(bins), frames, "rigid-body poses (rb_data_<k>.bin)")
         ks = frames
     else:
         ks = [first]  # a scene of static bodies only: the solver writes the first file alone
-    Rs: list[list[np.ndarray]] = [[] for _ in range(n)]
-    ts: list[list[np.ndarray]] = [[] for _ in range(n)]
-    for k in ks:
-        for i, (R, t) in enumerate(_read_bin_poses(bins[k], offset if k == first else 0, n)):
-            Rs[i].append(R)
-            ts[i].append(t)
+    header, Rs, ts = read_bin_run(bins, ks)
+    _check_bodies_match(bins[first], len(header), scene)
     names = _names([Path(name).stem for name, _, _ in header])
     shapes = []
     for i, (name, scale, wall) in enumerate(header):
@@ -423,15 +402,15 @@ def _from_bin(d: Path, bins: dict[int, Path], scene: _Scene, frames: list[int], 
         if not mesh.is_file():
             raise InputError(f"{bins[first]}: body {i}: mesh file {name} not found beside it")
         v, f = _welded(mesh)
-        world = (v * scale) @ Rs[i][0].T + ts[i][0]  # R·(s ∘ v) + t at the first frame
         moves = len(ks) > 1 and _moves(v * scale, Rs[i], ts[i])
         dynamic = scene.body_flags(i)[1] if scene.bodies else False
         if dynamic and len(ks) == 1 and len(frames) > 1:
             raise InputError(f"{d}: only rb_data_{first}.bin, but {scene.path}: RigidBodies[{i}].isDynamic "
                              "is true: the poses of later frames are missing")
         shapes.append(CaseShape(
-            name=names[i], vertices=world @ M.T, faces=f, role=_role(wall, moves or dynamic),
-            poses=_relative_poses(Rs[i], ts[i], M) if (moves or dynamic) and len(ks) > 1 else None,
+            name=names[i], vertices=first_world(v, scale, Rs[i][0], ts[i][0], M), faces=f,
+            role=_role(wall, moves or dynamic),
+            poses=relative_poses(Rs[i], ts[i], M) if (moves or dynamic) and len(ks) > 1 else None,
             source=f"rigid body {i} ({d.name}/rb_data_<k>.bin, {name})", look=_look(wall, v, f),
         ))
     return shapes
@@ -440,77 +419,6 @@ def _from_bin(d: Path, bins: dict[int, Path], scene: _Scene, frames: list[int], 
 def _moves(v: np.ndarray, Rs: list[np.ndarray], ts: list[np.ndarray]) -> bool:
     p0 = v @ Rs[0].T + ts[0]
     return any(np.abs(v @ R.T + t - p0).max() > _MOVING_TOL for R, t in zip(Rs[1:], ts[1:]))
-
-
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
-
-
-def _read_bin_header(path: Path) -> tuple[list[tuple[str, np.ndarray, bool]], int]:
-    """The body list of the first BIN file and the offset of its pose block:
-    uint32 N, then per body uint32 L, L bytes of mesh file name, 3 float32 scale,
-    1 byte isWall, 4 float32 colour (all little-endian)."""
-    buf = _read_bytes(path)
-
-    def take(fmt: str, at: int, field: str):
-        size = struct.calcsize(fmt)
-        if at + size > len(buf):
-            raise InputError(f"{path}: {field}: truncated: the file ends at byte {len(buf)}, {at + size} needed")
-        return struct.unpack_from(fmt, buf, at), at + size
-
-    (n,), at = take("<I", 0, "number of bodies")
-    if n == 0 or n * (4 + 1 + 12 + 1 + 16 + _POSE_BYTES) > len(buf):
-        raise InputError(f"{path}: number of bodies: {n} does not fit a file of {len(buf)} bytes (not an rb_data BIN?)")
-    bodies = []
-    for i in range(n):
-        (length,), at = take("<I", at, f"body {i} mesh name length")
-        if at + length > len(buf):
-            raise InputError(f"{path}: body {i} mesh name: truncated: {length} bytes, past the end of the file")
-        try:
-            name = buf[at:at + length].decode("utf-8")
-        except UnicodeDecodeError:
-            raise InputError(f"{path}: body {i} mesh name: not text (not an rb_data BIN?)") from None
-        at += length
-        if not name or "/" in name or "\\" in name:
-            raise InputError(f"{path}: body {i} mesh name: {name!r} is not a file name")
-        scale, at = take("<3f", at, f"body {i} scale")
-        (wall,), at = take("<B", at, f"body {i} isWall")
-        _, at = take("<4f", at, f"body {i} colour")
-        if not all(math.isfinite(s) and s > 0 for s in scale):
-            raise InputError(f"{path}: body {i} scale: {scale} is not positive")
-        if wall > 1:
-            raise InputError(f"{path}: body {i} isWall: byte {wall} is not 0 or 1 (not an rb_data BIN?)")
-        bodies.append((name, np.asarray(scale, np.float64), bool(wall)))
-    if len(buf) - at != n * _POSE_BYTES:
-        raise InputError(f"{path}: pose block: {len(buf) - at} bytes after the header, {n * _POSE_BYTES} "
-                         f"expected for {n} bodies{_cut(len(buf) - at, n * _POSE_BYTES)}")
-    return bodies, at
-
-
-def _cut(held: int, declared: int) -> str:
-    """The words that say a block is short because the file was cut."""
-    return " (truncated)" if held < declared else ""
-
-
-def _read_bin_poses(path: Path, offset: int, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per body (R, t): 3 float32 translation, then 9 float32 rotation stored column by column."""
-    buf = _read_bytes(path)
-    if len(buf) - offset != n * _POSE_BYTES:
-        raise InputError(f"{path}: pose block: {len(buf) - offset} bytes, {n * _POSE_BYTES} expected "
-                         f"for the {n} bodies of the first file{_cut(len(buf) - offset, n * _POSE_BYTES)}")
-    a = np.frombuffer(buf, "<f4", n * 12, offset).astype(np.float64).reshape(n, 12)
-    out = []
-    for i in range(n):
-        t, R = a[i, :3], a[i, 3:].reshape(3, 3).T  # column-major storage
-        if not np.isfinite(a[i]).all():
-            raise InputError(f"{path}: body {i} pose: not finite")
-        if np.abs(R.T @ R - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(R) < 0:
-            raise InputError(f"{path}: body {i} rotation: not a rotation matrix")
-        out.append((R, t))
-    return out
 
 
 # ---------------------------------------------------------------------------- per-frame mesh forms

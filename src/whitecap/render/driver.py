@@ -528,7 +528,8 @@ def manifest_with_wheels(text: str, wheels: list[str]) -> str:
 
 
 #: whitecap modules the extension carries (below the package), beside the whole bpy layer
-ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/run.py", "io/atomic.py")
+ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/run.py", "io/atomic.py", "geometry.py",
+                "cases/rigid_bin.py", "cases/rigid_fit.py")
 
 
 def addon_shared_files() -> dict[str, bytes]:
@@ -540,4 +541,5 @@ def addon_shared_files() -> dict[str, bytes]:
     stub = b'"""whitecap modules shared with the Blender add-on (copied by `whitecap blender-addon`)."""\n'
     files["whitecap/__init__.py"] = stub
     files["whitecap/io/__init__.py"] = stub
+    files["whitecap/cases/__init__.py"] = stub
     return files

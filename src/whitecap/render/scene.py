@@ -26,7 +26,7 @@ from ..io import read, read_mesh
 from ..blender import looks, mesh as blender_mesh, place
 from ..blender.mesh import polygons_of
 from ..io.run import RunInfo
-from .terrain import dress_terrain
+from .terrain import dress_terrain, scene_terrain
 from . import camera_follow, sea, stage
 
 
@@ -142,9 +142,10 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     sc.collection.objects.link(fluid)
     open_sea = sea.add_sea(sc, cfg, info, water, run_dir) if cfg.sea else None
     diffuse = _add_diffuse_objects(sc, cfg, info)
-    for k, entry in enumerate(info.obstacles):
+    extra = scene_terrain(info, run_dir)  # an imported run's scene.toml [terrain]
+    for k, entry in enumerate([*info.obstacles, *extra]):
         _add_obstacle(entry, k, info, run_dir, first, last)
-    dress_terrain(sc, info, run_dir, quality == "preview")  # [terrain]: its material (render/terrain.py)
+    dress_terrain(sc, info, run_dir, quality == "preview", extra)  # [terrain]: its material (render/terrain.py)
     cam = _add_camera(sc, cfg, info, first, last, run_dir)
     _compositing(sc, cfg)
     return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water, sea=open_sea)

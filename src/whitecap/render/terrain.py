@@ -229,16 +229,42 @@ def run_terrain(run_dir: Path | None) -> Terrain | None:
     return Terrain.model_validate(t) if isinstance(t, dict) else None
 
 
-def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False) -> list:
+def scene_terrain(info: RunInfo, run_dir: Path | None) -> list[dict]:
+    """The run's scene.toml ``[terrain]`` as an obstacle entry, where run.json holds no terrain: a run
+    whitecap did not simulate (``whitecap import``) set in a landscape at render time. Without a
+    ``[domain]`` the terrain's collision solid (unused here) is cut to the run's domain. [] otherwise."""
+    import tomllib
+
+    from ..config import scene_from_dict
+
+    p = Path(run_dir) / "scene.toml" if run_dir is not None else None
+    if p is None or not p.is_file() or any(
+            isinstance(e, dict) and e.get("material") == TERRAIN_MATERIAL for e in info.obstacles):
+        return []
+    raw = tomllib.loads(p.read_text("utf-8"))
+    if "terrain" not in raw:
+        return []
+    raw.setdefault("domain", {"lower": list(info.domain["lower"]), "upper": list(info.domain["upper"])})
+    scene = scene_from_dict(raw, str(p), p.parent)
+    return [o.model_dump() for o in scene.obstacle if o.material == TERRAIN_MATERIAL]
+
+
+def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False, extra: list[dict] = ()) -> list:
     """Give the obstacles that are terrain (material "terrain") the terrain material, smooth
-    shading and the name ``terrain_K``; remove the ground plane they replace. Returns them."""
+    shading and the name ``terrain_K``; remove the ground plane they replace. Returns them.
+
+    An obstacle whose material names a terrain preset (sand, rock, grass, concrete: a breakwater's
+    concrete units, boulders) gets that preset's procedural material and smooth shading too, wet
+    below the run's ``[terrain] water_level`` (none without a terrain), without the slope and height
+    layers."""
     import bpy
     import numpy as np
 
     out = []
     t = None
-    for k, entry in enumerate(info.obstacles):
-        if not isinstance(entry, dict) or entry.get("material") != TERRAIN_MATERIAL:
+    for k, entry in enumerate([*info.obstacles, *extra]):  # extra: scene_terrain's, after the run's own
+        material = entry.get("material") if isinstance(entry, dict) else None
+        if material != TERRAIN_MATERIAL and material not in PRESETS:
             continue
         obj = sc.objects.get(f"obstacle_{k}")
         if obj is None:
@@ -248,9 +274,14 @@ def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False
         v = np.array([tuple(p.co) for p in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
         relief = (float(v[:, 2].min()), float(v[:, 2].max()))
         extent = float(max(np.ptp(v[:, 0]), np.ptp(v[:, 1]), 1e-3))
+        own = t if material == TERRAIN_MATERIAL else Terrain(
+            mesh="-", material=material, rock_slope=90.0, water_level=t.water_level if t.water_level is not None
+            else relief[0])
         obj.data.materials.clear()
-        obj.data.materials.append(terrain_material(t, relief, extent, preview))
+        obj.data.materials.append(terrain_material(own, relief, extent, preview))
         obj.data.shade_smooth()
+        if material != TERRAIN_MATERIAL:
+            continue
         obj.name = obj.data.name = f"terrain_{k}"
         out.append(obj)
     ground = sc.objects.get("ground")

@@ -10,10 +10,11 @@ import numpy as np
 
 from . import handlers, paths, readers, sequences
 from .properties import KINDS, POINT_KINDS, add_template
-from .shared import COUNT_NAMES, RunInfo, looks, mesh, place, run
+from .shared import COUNT_NAMES, RunInfo, looks, mesh, place, rigid_bin, run
 
 SPACING_SAMPLES = 256  # points whose nearest-neighbour distance estimates the particle spacing
 DEFAULT_FPS = 24.0  # a plain folder's frame rate when the operator is given none
+RIGID_FOLDER = "rigid_bodies"  # SPlisHSPlasH's folder of rb_data_<k>.bin (cases/splishsplash.BIN_FOLDER)
 
 
 def spacing(geom):
@@ -113,6 +114,9 @@ def _load(context, path, made, filter_text, recursive, fps):
     if os.path.isfile(os.path.join(rd, "run.json")) and (os.path.isdir(p) or os.path.basename(p) == "run.json"):
         return load_run(context, rd, made)
     sc = context.scene
+    bins = rigid_bin.bin_files(p if os.path.isdir(p) else os.path.dirname(p))
+    if bins and (p.lower().endswith(".bin") or os.path.basename(p) == RIGID_FOLDER):
+        return load_rigid_bodies(context, rd, bins, made, fps)
     if os.path.isdir(p):
         found = [(d, prefix, suffix, sequences.frames_of(d, prefix, suffix))
                  for d, prefix, suffix in sequences.sequences_in(p, filter_text, recursive)]
@@ -179,3 +183,39 @@ def add_obstacle(context, made, rd, info, entry, k):
     obj = place.obstacle_object(f"obstacle_{k}", me, entry, info.frames, k, context.scene.collection)
     made.append(obj)
     return obj
+
+
+#: SPlisHSPlasH is y up: its (x, y, z) shows as (x, -z, y), z up (whitecap.io.axes.to_z_up)
+Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def load_rigid_bodies(context, d, bins, made, fps):
+    """SPlisHSPlasH's rigid bodies from ``rigid_bodies/rb_data_<k>.bin``, read and posed by the code
+    ``whitecap import`` uses (cases/rigid_bin.py): one object per body over its mesh at the first
+    frame, z up, keyed per file with the pose relative to it (blender/place.key_body); file k
+    shows at scene frame start + k - first."""
+    from .shared import WhitecapError
+
+    ks = sorted(bins)
+    try:
+        header, Rs, ts = rigid_bin.read_bin_run(bins, ks)
+    except WhitecapError as exc:
+        raise ValueError(str(exc)) from None
+    sc = context.scene
+    set_timeline(sc, sc.frame_start, sc.frame_start + ks[-1] - ks[0], fps)
+    objs = []
+    for i, (name, scale, wall) in enumerate(header):
+        geom = readers.read(os.path.join(d, name))
+        me = bpy.data.meshes.new(os.path.splitext(name)[0])
+        made.append(me)
+        pts = rigid_bin.first_world(geom.points, scale, Rs[i][0], ts[i][0], Y_UP)
+        mesh.fill_mesh(me, pts, geom.loops, geom.starts)
+        me.materials.append(looks.obstacle_material({"material": "glass" if wall else "stone"}))
+        obj = bpy.data.objects.new(me.name, me)
+        made.append(obj)
+        sc.collection.objects.link(obj)
+        if len(ks) > 1:
+            poses = rigid_bin.relative_poses(Rs[i], ts[i], Y_UP)
+            place.key_body(obj, [(sc.frame_start + k - ks[0], p) for k, p in zip(ks, poses)])
+        objs.append(obj)
+    return objs
