@@ -1243,3 +1243,48 @@ def test_splishsplash_rigid_body_bin_poses_as_whitecap_import_records_them(addon
                 T.translation_matrix(shape.poses[j]["position"]) @ T.quaternion_matrix(shape.poses[j]["quaternion"]))
             assert np.allclose(got[f]["matrix"], want, atol=1e-5), (shape.name, f)
     assert case.shapes[1].poses is not None  # the sphere moves
+
+
+FAIL_MID = r"""
+folder, out = sys.argv[3], sys.argv[4]
+sc.frame_start = 1
+bpy.ops.whitecap.load(filepath=os.path.join(folder, "surf_0001.ply"))
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+sc.collection.objects.link(cam)
+sc.camera = cam
+sc.render.engine = "BLENDER_WORKBENCH"
+sc.render.resolution_x = sc.render.resolution_y = 8
+sc.frame_start, sc.frame_end = 1, 4
+sc.render.filepath = out
+sc.whitecap_fail_render = bool(int(sys.argv[5]))
+bpy.ops.render.render(animation=True)
+print(json.dumps({"finished": True}))
+"""
+
+
+def test_a_bad_frame_in_the_middle_of_an_animation_fails_the_render(addon_zip, tmp_path):
+    """With Fail renders on a bad frame, a background animation render stops at the frame whose file
+    is cut short: non-zero exit naming the object, the frame and the file; the frames before it
+    written, none from it on. Without the option the render goes on (the frame shows nothing)."""
+    folder = tmp_path / "seq"
+    for k in (1, 2, 3, 4):
+        write_mesh_ply(folder / f"surf_{k:04d}.ply", np.random.default_rng(k).random((4, 3)), np.array([[0, 1, 2]]),
+                       np.zeros((4, 3)))
+    good = (folder / "surf_0003.ply").read_bytes()
+    (folder / "surf_0003.ply").write_bytes(good[: len(good) // 2])
+    user = tmp_path / "blender_user"
+    user.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(SRC), "BLENDER_USER_RESOURCES": str(user)}
+    for fail in (1, 0):
+        out = tmp_path / f"fail{fail}" / "f_"
+        p = subprocess.run([sys.executable, "-c", PRELUDE + FAIL_MID, str(addon_zip), str(user), str(folder), str(out),
+                            str(fail)], capture_output=True, text=True, timeout=300, env=env)
+        written = sorted(f.name for f in out.parent.glob("f_*.png"))
+        if fail:
+            assert p.returncode == 3, p.stdout[-2000:] + p.stderr[-2000:]
+            assert "render stopped at frame 3: surf: " in p.stderr and "surf_0003.ply" in p.stderr
+            assert "truncated" in p.stderr and '"finished"' not in p.stdout
+            assert written == ["f_0001.png", "f_0002.png"]
+        else:
+            assert p.returncode == 0 and '"finished"' in p.stdout, p.stderr[-2000:]
+            assert written == ["f_0001.png", "f_0002.png", "f_0003.png", "f_0004.png"]

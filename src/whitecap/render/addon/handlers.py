@@ -192,10 +192,39 @@ def _errors(scene):
     return [f"{o.name}: {o.whitecap_seq.error}" for o in sequence_objects(scene) if o.whitecap_seq.error]
 
 
+#: Exit status of a background render stopped by a bad frame.
+FAILED_RENDER_STATUS = 3
+
+
 @persistent
 def on_frame_change(scene, depsgraph=None):
     update_all(scene)
     _log(scene)
+    if _RENDER["on"] and scene.whitecap_fail_render:
+        stop_bad_render(scene)
+
+
+def stop_bad_render(scene):
+    """Fail a render that reached a frame a sequence cannot show (Fail renders on a bad frame).
+
+    Blender's Python cannot cancel a render once it runs: an exception in a handler is printed and
+    the render goes on, and taking the camera away mid-animation crashes Blender 5.0 (it is only
+    safe at render_init, where :func:`on_render_init` does it). So a background render (``blender
+    -b ... -a``, or bpy as a module) exits at once with status :data:`FAILED_RENDER_STATUS` and the
+    reason, before the bad frame is written; in the interface, where exiting would close the
+    artist's Blender, the frame renders with the empty mesh, and the error stays on the object,
+    in the panel and in the render log."""
+    bad = _errors(scene)
+    if not bad:
+        return
+    msg = f"whitecap: render stopped at frame {scene.frame_current}: " + "; ".join(bad)
+    print(msg)
+    if bpy.app.background:
+        import sys
+
+        sys.stderr.write(msg + "\n")
+        sys.stderr.flush()
+        raise SystemExit(FAILED_RENDER_STATUS)
 
 
 @persistent

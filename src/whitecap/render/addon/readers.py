@@ -370,6 +370,8 @@ def read_ply(path):
     with open(path, "rb") as fh:
         data = fh.read()
     end = data.find(b"end_header")
+    if data.startswith(b"ply") and end < 0:
+        raise ValueError(f"{path}: the file ends inside its header (truncated?)")
     if not data.startswith(b"ply") or end < 0:
         raise ValueError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
     body = data.index(b"\n", end) + 1
