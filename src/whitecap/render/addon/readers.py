@@ -10,6 +10,18 @@ polygons (flat vertex indices plus the start of each polygon) and every point
 array by the name the file gives it. :func:`read` picks the reader from the
 extension. Errors are ``ValueError`` with one line that starts with the file.
 
+Why the add-on keeps its own parsers rather than whitecap's io registry (checked for issue 33):
+importing ``whitecap.io`` registers every format, which imports plyfile (PLY), the USD and
+Alembic writers' modules and trimesh paths for meshes, none of which Blender's Python has; and
+the registry's readers return what the pipeline needs, not what a viewer shows: a
+``ParticleFrame`` of the fluid only (DualSPHysics' boundary particles dropped, vector arrays
+other than velocity dropped, y up turned) and a ``SurfaceMesh`` of triangles. The add-on shows
+every particle, every point array by its file's name and any polygon. So each of these formats is
+parsed twice, here and in whitecap/io; tests/test_addon.py reads the same files with both and
+compares them. Joining them means moving these numpy-only parsers into whitecap/io (as
+``io/vtk_legacy.read_points`` already is for legacy VTK) and having the registry's readers
+build their frames from them, so the extension could carry them like the bpy layer; not done yet.
+
 Formats: legacy VTK 3.0 to 5.1 (ASCII or binary; POLYDATA and
 UNSTRUCTURED_GRID), VTK XML ``.vtu``/``.vtp`` (ascii, base64 or appended
 data, zlib-compressed or not), PLY (ascii and binary), OBJ, STL (obstacles)
