@@ -224,7 +224,8 @@ class Obstacle(_Section):
     stiffness: float = Field(5.0e4, ge=0, description="penalty stiffness k in F = k·n·(−sdf) [1/s²]")
     sdf_resolution: float = Field(1.0, gt=0, le=4.0, description="SDF grid spacing as a multiple of r [-]")
     material: str = Field("stone", description="render material preset: stone, clay, metal, plastic, glass "
-                          "(a thin pane: seen through without refraction, as a closed tank's walls)")
+                          "(a thin pane: seen through without refraction, as a closed tank's walls), or a terrain "
+                          "preset: concrete, rock, sand, grass (procedural, wet below [terrain] water_level)")
     color: Vec3 = Field([0.8, 0.78, 0.72], description="render base colour, linear RGB [0-1]")
     texture: str | None = Field(
         None, description="image texture (PNG, JPEG...) mapped by the render mesh's UVs, relative to the scene file; "
