@@ -38,6 +38,21 @@ def _generator(multipliers):
     return FoamGenerator(p, R, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=11)
 
 
+def _all_candidates(gen, frame, index):
+    """Every candidate of the frame, written by kernels.generate (per fluid particle, into stored arrays)."""
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+
+    p, c, n = gen.p, gen.candidates(), len(frame)
+    total = c["total"]
+    fx, fv, fid, args = gen._prepare(frame, n)
+    out = [ti.Vector.ndarray(3, ti.f32, total), ti.Vector.ndarray(3, ti.f32, total), ti.ndarray(ti.f32, total)]
+    K.generate(n, fx, fv, fid, gen._bufs["e_k"], gen._bufs["tau"], gen._bufs["count"], gen._bufs["offset"],
+               p.lifetime_min, p.lifetime_max, p.lifetime_multiplier, gen.r, DT, gen.seed, index, *out)
+    return [a.to_numpy()[:total] for a in out], args
+
+
 def _reference_keep(gen, frame, index):
     """The kept candidates the old way: every candidate's type from its full fluid count
     (kernels.classify), then a candidate at slot s of fluid particle i, of type t, is kept when
@@ -49,8 +64,7 @@ def _reference_keep(gen, frame, index):
 
     p, c, n = gen.p, gen.candidates(), len(frame)
     total, counts, offset = c["total"], c["counts"], c["offset"]
-    x = gen._bufs["cand_x"].to_numpy()[:total]
-    _, _, _, args = gen._prepare(frame, n)
+    (x, v, life), args = _all_candidates(gen, frame, index)
     kd = ti.ndarray(ti.i32, total)
     K.classify(total, _nd(x, ti.f32, True), *args, p.spray_below, p.bubble_above, ti.math.vec3(*gen.lo),
                ti.math.vec3(*gen.hi), 0, kd)
@@ -91,20 +105,33 @@ def test_compaction_keeps_each_kept_candidate_once_in_candidate_order():
     gen = _generator((30.0, 1.0, 1.0))
     frame = _splash()
     d = gen.step(frame, 0, DT)
-    c, b = gen.candidates(), gen._bufs
+    c = gen.candidates()
     kept, total, m = c["kept"], c["total"], len(c["kept"])
     assert m > 100 and np.all(np.diff(kept) > 0) and kept[-1] < total  # once each, in candidate order
-    # the first frame's particles (none alive before it, none outside the domain) are the kept candidates,
-    # in candidate order, with ids 0, 1, 2, ...
-    np.testing.assert_array_equal(d.positions, b["cand_x"].to_numpy()[kept])
-    np.testing.assert_array_equal(d.velocities, b["cand_v"].to_numpy()[kept])
-    np.testing.assert_array_equal(d.arrays["lifetime"], b["cand_life"].to_numpy()[kept])
+    # the first frame's particles (none alive before it, none outside the domain) are the kept candidates
+    # as kernels.generate writes them, bit for bit, in candidate order, with ids 0, 1, 2, ...
+    (x, v, life), _ = _all_candidates(gen, frame, 0)
+    np.testing.assert_array_equal(d.positions, x[kept])
+    np.testing.assert_array_equal(d.velocities, v[kept])
+    np.testing.assert_array_equal(d.arrays["lifetime"], life[kept])
     np.testing.assert_array_equal(d.ids, np.arange(m, dtype=np.uint32))
     assert gen.state.next_id == m
-    # every candidate's owner is the fluid particle whose run [offset, offset + count) holds it
-    owner = b["cand_owner"].to_numpy()[:total]
-    np.testing.assert_array_equal(owner, np.repeat(np.arange(len(frame)), c["counts"]))
+    # each fluid particle's run [offset, offset + count) follows the one before
     np.testing.assert_array_equal(c["offset"], np.concatenate([[0], np.cumsum(c["counts"])[:-1]]))
+
+
+def test_new_particles_beyond_the_capacity_are_dropped_in_candidate_order():
+    """With room for 50 new particles, the first 50 kept candidates (in candidate order) are born."""
+    full = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    everything = full.step(frame, 0, DT)
+    gen = _generator((30.0, 1.0, 1.0))
+    gen._size(len(frame))
+    gen.capacity = 50
+    d = gen.step(frame, 0, DT)
+    assert len(everything) > 1000 and len(d) == 50 and gen.state.next_id == 50
+    assert d.positions.tobytes() == everything.positions[:50].tobytes()
+    assert d.ids.tobytes() == everything.ids[:50].tobytes()
 
 
 def test_the_candidate_buffers_are_reused_from_frame_to_frame():
@@ -118,27 +145,40 @@ def test_the_candidate_buffers_are_reused_from_frame_to_frame():
     assert not grown, grown
 
 
-def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
-    """kernels.generate_candidates (what the generator runs) and kernels.generate write the same bits."""
-    import taichi as ti
+@pytest.mark.parametrize("preset", ["ihmsen2012", "auto"])
+def test_candidates_a_chunk_at_a_time_give_the_same_bytes(monkeypatch, preset):
+    """A frame's candidates classified and placed in chunks of 700 (the splash makes thousands) give the
+    frames one chunk gives, byte for byte, and the candidate arrays stay at the chunk's size."""
+    from whitecap.diffuse import generator as G
 
-    from whitecap.diffuse import kernels as K
+    thinned = []
+    thin = G.K.thin_kept
+    monkeypatch.setattr(G.K, "thin_kept", lambda *a: thinned.append(1) or thin(*a))
 
-    gen = _generator((30.0, 1.0, 1.0))
-    frame = _splash()
-    gen.step(frame, 0, DT)
-    b, c, n = gen._bufs, gen.candidates(), len(frame)
-    total = c["total"]
-    fx, fv, fid, _ = gen._prepare(frame, n)
-    e_k = ti.ndarray(ti.f32, n)
-    e_k.from_numpy(np.random.default_rng(1).uniform(0, 8, n).astype(np.float32))
-    tau = ti.ndarray(ti.f32, 8)
-    tau.from_numpy(gen.thresholds())
-    out = [ti.Vector.ndarray(3, ti.f32, total), ti.Vector.ndarray(3, ti.f32, total), ti.ndarray(ti.f32, total)]
-    for life_mult in (0.0, 10.0):
-        args = (gen.p.lifetime_min, gen.p.lifetime_max, life_mult, gen.r, DT, gen.seed, 0)
-        K.generate(n, fx, fv, fid, e_k, tau, b["count"], b["offset"], *args, *out)
-        K.generate_candidates(total, b["cand_owner"], b["offset"], fx, fv, fid, e_k, tau, *args,
-                              b["cand_x"], b["cand_v"], b["cand_life"])
-        for ref, got in zip(out, (b["cand_x"], b["cand_v"], b["cand_life"])):
-            assert ref.to_numpy()[:total].tobytes() == got.to_numpy()[:total].tobytes()
+    def run():
+        gen = _generator((30.0, 1.0, 1.0))
+        if preset == "auto":  # the budget's multipliers on the low thresholds: each type cut to its share
+            gen.p = replace(gen.p, auto=True, budget=0.5)
+            gen.looked_ahead, gen.state.tau = True, gen.base_thresholds()
+        frames = [_splash()]
+        for k in range(1, 4):  # the splash moved on: some die, some change type, new ones are born
+            f = _splash()
+            f.positions = f.positions + k * DT * f.velocities
+            frames.append(f)
+        out, most = [], 0
+        for k, f in enumerate(frames):
+            out.append(gen.step(f, k, DT))
+            most = max(most, gen._candidates["total"])
+        return out, gen, most
+
+    whole, g1, _ = run()
+    monkeypatch.setattr(G, "CANDIDATE_CHUNK", 700)
+    chunked, g2, most = run()
+    assert most > 3 * 700 and g2._bufs["cand_kind"].shape[0] == 700
+    assert sum(len(d) for d in whole) > 1000
+    for a, b in zip(whole, chunked):
+        for x, y in ((a.positions, b.positions), (a.velocities, b.velocities), (a.ids, b.ids),
+                     (a.arrays["type"], b.arrays["type"]), (a.arrays["lifetime"], b.arrays["lifetime"])):
+            assert x.tobytes() == y.tobytes()
+    assert g1.state.counts == g2.state.counts and g1.state.next_id == g2.state.next_id
+    assert bool(thinned) == (preset == "auto")

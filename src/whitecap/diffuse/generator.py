@@ -59,6 +59,11 @@ MAX_FLUID_NEIGHBOURS = 96
 # The fluid neighbour grid, when the fluid outgrows it (inflow), is rebuilt this many times larger
 # (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
 GRID_GROWTH = 1.25
+# A frame's candidates are classified and placed this many at a time, in arrays of this size made once
+# (25 bytes a candidate: 52 MB): a splash makes ~86 a fluid particle (800k from the r = 4 mm dam break's
+# 71k), which stored whole would grow with the fluid (3.9 kB a fluid particle at 45 bytes each). A frame
+# with more is classified again when it is placed (and once more where the budget thins it).
+CANDIDATE_CHUNK = 1 << 21
 
 
 @dataclass
@@ -688,12 +693,12 @@ class FoamGenerator:
     # ------------------------------------------------------------------ (2) generation
     def _generate(self, fluid, fx, fv, fid, args, pots, n, index, dt):
         """(2) generation, in kernels: each fluid particle's number of candidates (K.birth_counts), each its
-        own run of them (offsets: the exclusive prefix sum of the numbers, _scan); the candidates sampled in
-        parallel over them (K.generate_candidates), typed only as far as the keep rule needs and thinned by
-        their type's multiplier (K.candidate_limits, K.classify_candidates). Under 'auto' with the budget, the
-        kept are thinned again (K.thin_kept) so that no type passes its share and the frame not the budget:
-        that reads back three counts. Returns (kept, kept by type, beyond slots_per_particle); the kept are
-        the candidates whose 'cand_kind' is a type."""
+        own run of them (offsets: the exclusive prefix sum of the numbers, _scan); the candidates, computed
+        where they are needed and never stored (K.candidate), typed only as far as the keep rule needs and
+        thinned by their type's multiplier (K.candidate_limits, K.classify_candidates), CANDIDATE_CHUNK at a
+        time. Under 'auto' with the budget, the kept are thinned again (K.thin_kept) so that no type passes its
+        share and the frame not the budget: that reads back three counts. Returns (kept, kept by type, beyond
+        slots_per_particle); _compact places the kept (self._rule: the thinning they were kept with)."""
         p = self.p
         v_diff, crest, e_k, vort = pots
         self._dt = dt
@@ -721,12 +726,6 @@ class FoamGenerator:
         self._candidates["total"] = total
         if not total:
             return 0, [0, 0, 0], lost
-        ox, ov, ol = (self._buffer("cand_x", total, vec=True), self._buffer("cand_v", total, vec=True),
-                      self._buffer("cand_life", total, ti.f32))
-        owner, kd = self._buffer("cand_owner", total), self._buffer("cand_kind", total, ti.i8)
-        K.candidate_owners(n, cnt, off, owner)
-        K.generate_candidates(total, owner, off, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
-                              p.lifetime_multiplier, self.r, dt, self.seed, frame, ox, ov, ol)
         # The type each new particle is born as; a particle of type t is kept when its slot is
         # below its fluid particle's n_d·m_t, rounded with the kernel's own random number: the
         # particles of a type whose multiplier is unchanged stay exactly the same. The limits
@@ -736,13 +735,29 @@ class FoamGenerator:
         most32 = np.float32(most)
         lim = self._buffer("limit", m, cols=3)
         K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, lim)
+        chunk = min(total, CANDIDATE_CHUNK)
+        kd = self._buffer("cand_kind", chunk, ti.i8)
         g = self.grid
-        K.classify_candidates(total, ox, owner, off, lim, fx, g.nb_count, g.nb, *args[:7],
-                              p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
-                              int(p.model == "foamgenerator" and p.wall_correction), kd)
+        box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
+               int(p.model == "foamgenerator" and p.wall_correction))
+        cut = np.ones(3, np.float32)
+        self._rule = (cut, np.float32(1.0), False)  # no thinning beyond the limits yet
+
+        def classify(base: int, size: int) -> None:
+            K.classify_candidates(size, base, n, off, lim, fx, fv, fid, self.r, dt, self.seed, frame, g.nb_count,
+                                  g.nb, *args[:7], *box, kd)
+
+        def thin(base: int, size: int, tally) -> None:
+            c, s2, _ = self._rule
+            K.thin_kept(size, base, kd, n, off, rate, fid, most32, mult32, self._upload("cut", c, ti.f32), s2,
+                        self.seed, frame, half_up, tally)
+
+        self._chunks = (total, chunk, classify, thin)
         tally = self._buffer("tally", 3)
         tally.fill(0)
-        K.tally_kinds(total, kd, tally)
+        for base in range(0, total, chunk):
+            classify(base, min(chunk, total - base))
+            K.tally_kinds(min(chunk, total - base), kd, tally)
         made = tally.to_numpy()[:3].astype(np.float64)
         if self._scaled():
             # The type scales can make one frame's births far more than the birth rate foretold
@@ -754,35 +769,44 @@ class FoamGenerator:
             share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
             room = np.maximum(p.budget * n * share - live, 0.0)
             cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0).astype(np.float32)
-
-            def thin(s2) -> np.ndarray:
-                tally.fill(0)
-                K.thin_kept(total, kd, owner, off, rate, fid, most32, mult32, self._upload("cut", cut, ti.f32),
-                            np.float32(s2), self.seed, frame, half_up, tally)
-                return tally.to_numpy()[:3].astype(np.float64)
-
             if (cut < 1).any():
-                made = thin(1.0)
+                self._rule = (cut, np.float32(1.0), True)
+                made = self._thinned()
             room = p.budget * n - live.sum()
             if made.sum() > max(room, 0):
-                made = thin(np.float32(max(room, 0) / made.sum()))
+                self._rule = (cut, np.float32(max(room, 0) / made.sum()), True)
+                made = self._thinned()
         return int(made.sum()), [int(x) for x in made], lost
 
+    def _thinned(self) -> np.ndarray:
+        """The kept candidates by type under self._rule (K.thin_kept: in place where one chunk holds them all,
+        thinner limits keep a subset; chunk by chunk, classified again, otherwise)."""
+        total, chunk, classify, thin = self._chunks
+        tally = self._buffer("tally", 3)
+        tally.fill(0)
+        for base in range(0, total, chunk):
+            if total > chunk:
+                classify(base, min(chunk, total - base))
+            thin(base, min(chunk, total - base), tally)
+        return tally.to_numpy()[:3].astype(np.float64)
+
     def candidates(self) -> dict:
-        """The last frame's candidates, downloaded (tests): total, kept (their indices, in candidate order),
-        each fluid particle's count and offset."""
+        """The last frame's candidates (tests): total, each fluid particle's count and offset, and the kept
+        (their indices, in candidate order) where one chunk held them all."""
         c, n = self._candidates, self._candidates["n"]
         total = c["total"]
-        kind = self._bufs["cand_kind"].to_numpy()[:total] if total else np.zeros(0, np.int8)
-        return {"total": total, "kept": np.flatnonzero(kind >= 0), "counts": self._bufs["count"].to_numpy()[:n],
-                "offset": self._bufs["offset"].to_numpy()[:n]}
+        out = {"total": total, "counts": self._bufs["count"].to_numpy()[:n], "offset": self._bufs["offset"].to_numpy()[:n]}
+        if 0 < total <= CANDIDATE_CHUNK:
+            out["kept"] = np.flatnonzero(self._bufs["cand_kind"].to_numpy()[:total] >= 0)
+        return out
 
     # ------------------------------------------------------------------ (3) compaction
     def _compact(self, nk: int, lost: int, index: int) -> list[int]:
         """(3) survivors first, in their order, then the new particles in candidate order (their ids
         next_id + their rank among the kept, as many as fit the capacity): a fixed order, no global counter.
         Places are exclusive prefix sums of keep flags (_scan); particles outside the domain or inside an
-        obstacle go. Returns the count of each type."""
+        obstacle go. The new particles are placed a chunk of candidates at a time (classified and thinned
+        again where the frame had more than one chunk). Returns the count of each type."""
         p, st = self.p, self.state
         src, dst = self._live[self._cur], self._live[1 - self._cur]
         keep, pos = self._bufs["live_keep"], self._bufs["live_pos"]
@@ -807,35 +831,58 @@ class FoamGenerator:
         if ns:
             K.scatter_survivors(nd, keep, pos, src["x"], src["v"], src["life"], src["ids"], src["kind"],
                                 dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
-        nnew = 0
-        total = self._candidates["total"]
+        placed = 0
         if nk and room:
-            kd = self._bufs["cand_kind"]
-            flag, rank = self._buffer("cand_flag", total), self._buffer("cand_rank", total)
-            K.kept_flags(total, kd, flag)
-            self._scan(total, flag, rank)
-            fid, e_k, tau = self._bufs["fluid_id"], self._bufs["e_k"], self._bufs["tau"]
-            rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
-                   for r in (p.spray_lifetime, p.bubble_lifetime)]
-            cx, cl = self._bufs["cand_x"], self._bufs["cand_life"]
-            K.place_new(total, kd, rank, room, self._bufs["cand_owner"], self._bufs["offset"], cx, cl, fid, e_k, tau,
-                        rng[0], rng[1], int(p.model == "foamgenerator"), p.lifetime_min,
-                        max(p.lifetime_max - p.lifetime_min, 1e-30), p.lifetime_min, p.lifetime_max - p.lifetime_min,
-                        self.seed, index & 0xFFFFFFFF, lo, hi, flag)
-            self._free(total, cx, flag)  # nothing is born inside an obstacle
-            at = self._buffer("cand_pos", total)
-            nnew = self._scan(total, flag, at)
-            if nnew:
-                K.scatter_new(total, flag, at, rank, ns, st.next_id & 0xFFFFFFFF, cx, self._bufs["cand_v"], cl, kd,
-                              dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
+            placed = self._place_new(room, ns, index, dst)
             st.next_id += min(nk, room)
         self._cur = 1 - self._cur
-        self._nd = ns + nnew
+        self._nd = ns + placed
         tally = self._buffer("tally", 3)
         tally.fill(0)
         if self._nd:
             K.tally_kinds(self._nd, dst["kind"], tally)
         return [int(x) for x in tally.to_numpy()[:3]]
+
+    def _place_new(self, room: int, ns: int, index: int, dst: dict) -> int:
+        """The kept candidates that fit ``room``, in the domain and outside the obstacles, into ``dst`` after
+        the ``ns`` survivors, chunk by chunk; returns how many."""
+        p, st, b = self.p, self.state, self._bufs
+        total, chunk, classify, thin = self._chunks
+        n = self._candidates["n"]
+        kd, off, fx, fv, fid = b["cand_kind"], b["offset"], b["fluid_x"], b["fluid_v"], b["fluid_id"]
+        flag, rank = self._buffer("cand_flag", chunk), self._buffer("cand_rank", chunk)
+        at, cx = self._buffer("cand_pos", chunk), self._buffer("cand_x", chunk, vec=True)
+        frame, dt = index & 0xFFFFFFFF, self._dt
+        lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
+        rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
+               for r in (p.spray_lifetime, p.bubble_lifetime)]
+        life = (p.lifetime_min, p.lifetime_max, p.lifetime_multiplier, self.r, dt, self.seed, frame)
+        scratch = self._buffer("tally_scratch", 3)
+        kept_before, placed = 0, 0
+        for base in range(0, total, chunk):
+            size = min(chunk, total - base)
+            if total > chunk:  # the chunk's types again, thinned as _generate thinned them
+                classify(base, size)
+                if self._rule[2]:
+                    thin(base, size, scratch)
+            K.kept_flags(size, kd, flag)
+            kept = self._scan(size, flag, rank)
+            if kept:
+                K.place_new(size, base, kd, rank, kept_before, room, n, off, fx, fv, fid, self.r, dt, self.seed, frame,
+                            lo, hi, cx, flag)
+                self._free(size, cx, flag)  # nothing is born inside an obstacle
+                here = self._scan(size, flag, at)
+                if here:
+                    K.scatter_new(size, base, flag, at, rank, kept_before, ns + placed, st.next_id & 0xFFFFFFFF, kd, n,
+                                  off, fx, fv, fid, b["e_k"], b["tau"], *life, cx, rng[0], rng[1],
+                                  int(p.model == "foamgenerator"), max(p.lifetime_max - p.lifetime_min, 1e-30),
+                                  p.lifetime_min, p.lifetime_max - p.lifetime_min,
+                                  dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
+                placed += here
+            kept_before += kept
+            if kept_before >= room:
+                break  # no later candidate fits
+        return placed
 
     def with_params(self, **kw) -> None:
         self.p = replace(self.p, **kw)

@@ -238,35 +238,31 @@ def generate(
                                                            r_v, dt, seed, frame)
 
 
-@ti.kernel
-def generate_candidates(
-    total: ti.i32,
-    owner: I1,
-    offset: I1,
-    x: F3,
-    v: F3,
-    ids: U1,
-    e_k: F1,
-    tau: F1,
-    life_min: ti.f32,
-    life_max: ti.f32,
-    life_mult: ti.f32,
-    r_v: ti.f32,
-    dt: ti.f32,
-    seed: ti.u32,
-    frame: ti.u32,
-    out_x: F3,
-    out_v: F3,
-    out_life: F1,
-):
-    """:func:`generate`'s particles, in parallel over them (candidate k is slot k − offset[i] of fluid
-    particle i = owner[k], see candidate_owners): a splash crowds its candidates into a few fluid
-    particles (800k from 3.6k in the r = 4 mm dam break), which one thread each would share badly."""
-    for k in range(total):
-        i = owner[k]
-        i_k = clamp_phi(e_k[i], tau[4], tau[5])
-        out_x[k], out_v[k], out_life[k] = new_particle(x[i], v[i], ids[i], k - offset[i], i_k, life_min, life_max,
-                                                       life_mult, r_v, dt, seed, frame)
+@ti.func
+def owner_of(k, n, offset: I1) -> ti.i32:
+    """The fluid particle whose run of candidates [offset[i], offset[i] + count[i]) holds candidate k: the
+    last i with offset[i] ≤ k (a particle with no candidates shares its offset with the next one), by
+    bisection over the non-decreasing offsets."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if offset[mid] <= k:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@ti.func
+def candidate(k, n, offset: I1, x: F3, v: F3, ids: U1, e_k: F1, tau: F1, life_min, life_max, life_mult, r_v, dt,
+              seed, frame):
+    """Candidate k of a frame: (its fluid particle i, its slot s, x_d, v_d, lifetime), as :func:`generate`
+    writes it; computed where it is needed instead of stored (a splash has ~86 a fluid particle)."""
+    i = owner_of(k, n, offset)
+    s = k - offset[i]
+    i_k = clamp_phi(e_k[i], tau[4], tau[5])
+    xd, vd, life = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult, r_v, dt, seed, frame)
+    return i, s, xd, vd, life
 
 
 @ti.kernel
@@ -426,14 +422,6 @@ NOT_KEPT = -1
 OWNER_SLACK = 1e-4
 
 
-@ti.kernel
-def candidate_owners(n: ti.i32, count: I1, offset: I1, owner: I1):
-    """owner[k] = i for the candidates k ∈ [offset[i], offset[i] + count[i]) of fluid particle i (see generate)."""
-    for i in range(n):
-        for s in range(count[i]):
-            owner[offset[i] + s] = i
-
-
 @ti.func
 def _count_fluid(g, s, r2, h2, cnt: ti.template()):
     """Counts a fluid particle met by the scan where r² < h² (every candidate of the scanned cells is
@@ -467,12 +455,18 @@ def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32) -
 
 @ti.kernel
 def classify_candidates(
-    total: ti.i32,
-    xd: F3,
-    owner: I1,
+    m: ti.i32,
+    base: ti.i32,
+    n: ti.i32,
     offset: I1,
     limit: I2,
     x: F3,
+    v: F3,
+    ids: U1,
+    r_v: ti.f32,
+    dt: ti.f32,
+    seed: ti.u32,
+    frame: ti.u32,
     nb_count: I1,
     nb: I2,
     lower: vec3,
@@ -489,49 +483,35 @@ def classify_candidates(
     wall_correction: ti.i32,
     kind: B1,
 ):
-    """Which of a frame's candidates are kept: candidate k, at slot s = k − offset[i] of fluid particle
-    i = owner[k], is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t], the
-    particle's n_d·m_t rounded (see FoamGenerator._generate). The type is found with the least work
-    that decides this:
+    """Which of the candidates k = base + j (j < m, a chunk of the frame's) are kept: candidate k, at slot s of
+    fluid particle i (see candidate), is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t],
+    the particle's n_d·m_t rounded (see kept_limit). The type is found with the least work that decides this:
     - s at or above every type's limit: never kept, no count;
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
     - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. The owner's own
       neighbours within h of the candidate are some of its fluid neighbours: when spray_below of them
       are, it is not spray (this settles, without the grid's search, most candidates: they are born
       inside the water, near their fluid particle); else the full count decides.
-    kind[k] is the type of a kept candidate and NOT_KEPT for the others."""
+    kind[j] is the type of a kept candidate and NOT_KEPT for the others."""
     r2_owner = (h * (1.0 - OWNER_SLACK)) ** 2
-    for k in range(total):
-        i = owner[k]
-        s = k - offset[i]
-        p = xd[k]
-        full = 0
-        if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
-            full = 1
-        elif s < limit[i, SPRAY]:
-            full = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
-        t = NOT_KEPT
-        if full:  # one search in the kernel's code (it is inlined where it is called)
-            cnt = fluid_count(p, lower, inv_cell, dims, xs, start, reach, h)
-            t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
-            if s >= limit[i, t]:
-                t = NOT_KEPT
-        kind[k] = ti.cast(t, ti.i8)
-
-
-@ti.kernel
-def gather_kept(
-    m: ti.i32, idx: I1, xd: F3, vd: F3, life: F1, kind: B1, owner: I1, out_x: F3, out_v: F3, out_life: F1,
-    out_kind: B1, out_owner: I1,
-):
-    """Compaction: the kept candidates idx[0..m) (ascending, so in candidate order) to the front of the outputs."""
     for j in range(m):
-        k = idx[j]
-        out_x[j] = xd[k]
-        out_v[j] = vd[k]
-        out_life[j] = life[k]
-        out_kind[j] = kind[k]
-        out_owner[j] = owner[k]
+        k = base + j
+        i = owner_of(k, n, offset)
+        s = k - offset[i]
+        t = NOT_KEPT
+        if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+            p, _, _ = new_particle(x[i], v[i], ids[i], s, 0.0, 0.0, 0.0, 0.0, r_v, dt, seed, frame)
+            full = 0
+            if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+                full = 1
+            else:
+                full = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
+            if full:  # one search in the kernel's code (it is inlined where it is called)
+                cnt = fluid_count(p, lower, inv_cell, dims, xs, start, reach, h)
+                t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
+                if s >= limit[i, t]:
+                    t = NOT_KEPT
+        kind[j] = ti.cast(t, ti.i8)
 
 
 # ---------------------------------------------------------------- stream compaction on the device
@@ -674,19 +654,21 @@ def kept_flags(total: ti.i32, kind: B1, flag: I1):
 
 @ti.kernel
 def thin_kept(
-    total: ti.i32, kind: B1, owner: I1, offset: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, cut: F1, s2: ti.f32,
-    seed: ti.u32, frame: ti.u32, round_half_up: ti.i32, tally: I1,
+    m: ti.i32, base: ti.i32, kind: B1, n: ti.i32, offset: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, cut: F1,
+    s2: ti.f32, seed: ti.u32, frame: ti.u32, round_half_up: ti.i32, tally: I1,
 ):
-    """The keep rule again with lower limits (each type's ``cut`` and the common ``s2`` for the budget): a kept
-    candidate whose slot reaches its type's new limit is no longer kept. Counts the kept by type in
-    tally[0..3) (integer atomics: the same whatever the order)."""
-    for k in range(total):
-        t = ti.cast(kind[k], ti.i32)
+    """The keep rule again with lower limits (each type's ``cut`` and the common ``s2`` for the budget) on the
+    chunk of candidates base + j (j < m; their types in kind[j]): a kept candidate whose slot reaches its
+    type's new limit is no longer kept. Counts the kept by type in tally[0..3) (integer atomics: the same
+    whatever the order)."""
+    for j in range(m):
+        t = ti.cast(kind[j], ti.i32)
         if t >= 0:
-            i = owner[k]
+            k = base + j
+            i = owner_of(k, n, offset)
             u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
             if k - offset[i] >= kept_limit(rate[i], most, mult[t], cut[t], s2, u0, round_half_up):
-                kind[k] = ti.cast(NOT_KEPT, ti.i8)
+                kind[j] = ti.cast(NOT_KEPT, ti.i8)
             else:
                 ti.atomic_add(tally[t], 1)
 
@@ -702,33 +684,21 @@ def tally_kinds(n: ti.i32, kind: ti.types.ndarray(ndim=1), tally: I1):
 
 @ti.kernel
 def place_new(
-    total: ti.i32, kind: B1, rank: I1, room: ti.i32, owner: I1, offset: I1, cx: F3, life: F1, ids: U1, e_k: F1,
-    tau: F1, spray_range: vec3, bubble_range: vec3, foamgenerator: ti.i32, life_min: ti.f32, span: ti.f32,
-    life_min64: ti.f64, span64: ti.f64, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, flag: I1,
+    m: ti.i32, base: ti.i32, kind: B1, rank: I1, rank_base: ti.i32, room: ti.i32, n: ti.i32, offset: I1, x: F3,
+    v: F3, ids: U1, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, cx: F3, flag: I1,
 ):
-    """The kept candidates that fit (their rank among the kept, in candidate order, below ``room``) and
-    lie in the domain get flag 1. Their lifetimes are set: FoamGenerator's where ``foamgenerator``,
-    l_min + (I_k/τmax_k) X (l_max − l_min) with X = (l − l_min)/``span`` (f32) and the rest in f64, as
-    SP.lifetimes; a draw (DRAW_LIFE) in the type's own range for spray and bubbles that have one
-    (range = (min, max − min, 1); z = 0: none)."""
-    for k in range(total):
+    """The kept candidates of the chunk base + j (j < m) that fit (their rank among the frame's kept,
+    rank_base + rank[j], in candidate order, below ``room``) and lie in the domain get flag 1, and their
+    position in cx[j]."""
+    for j in range(m):
         f = 0
-        t = ti.cast(kind[k], ti.i32)
-        if t >= 0 and rank[k] < room:
-            i = owner[k]
-            s = ti.cast(k - offset[i], ti.u32)
-            if foamgenerator:
-                x01 = (life[k] - life_min) / span
-                e = ti.cast(e_k[i], ti.f64)
-                t4, t5 = ti.cast(tau[4], ti.f64), ti.cast(tau[5], ti.f64)
-                i_k = (ti.min(e, t5) - ti.min(e, t4)) / ti.cast(tau[5] - tau[4], ti.f64)
-                life[k] = ti.cast(life_min64 + i_k / t5 * ti.cast(x01, ti.f64) * span64, ti.f32)
-            if t == SPRAY and spray_range.z > 0.0:
-                life[k] = spray_range.x + spray_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
-            if t == BUBBLE and bubble_range.z > 0.0:
-                life[k] = bubble_range.x + bubble_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
-            f = inside_box(cx[k], lo, hi)
-        flag[k] = f
+        if kind[j] >= 0 and rank_base + rank[j] < room:
+            k = base + j
+            i = owner_of(k, n, offset)
+            p, _, _ = new_particle(x[i], v[i], ids[i], k - offset[i], 0.0, 0.0, 0.0, 0.0, r_v, dt, seed, frame)
+            cx[j] = p
+            f = inside_box(p, lo, hi)
+        flag[j] = f
 
 
 @ti.kernel
@@ -741,17 +711,38 @@ def outside_box(n: ti.i32, x: F3, flag: I1, lo: vec3, hi: vec3):
 
 @ti.kernel
 def scatter_new(
-    total: ti.i32, flag: I1, pos: I1, rank: I1, base: ti.i32, next_id: ti.u32, cx: F3, cv: F3, clife: F1, kind: B1,
+    m: ti.i32, base: ti.i32, flag: I1, pos: I1, rank: I1, rank_base: ti.i32, out_base: ti.i32, next_id: ti.u32,
+    kind: B1, n: ti.i32, offset: I1, x: F3, v: F3, ids: U1, e_k: F1, tau: F1, life_min: ti.f32, life_max: ti.f32,
+    life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, cx: F3, spray_range: vec3,
+    bubble_range: vec3, foamgenerator: ti.i32, span: ti.f32, life_min64: ti.f64, span64: ti.f64,
     ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
 ):
-    """The new particles after the survivors (from ``base``), in candidate order; ids next_id + their
-    rank among the kept (so a new particle born outside the domain still takes its id, as before)."""
-    for k in range(total):
-        if flag[k]:
-            q = base + pos[k]
-            ox[q], ov[q], olife[q] = cx[k], cv[k], clife[k]
-            oids[q] = next_id + ti.cast(rank[k], ti.u32)
-            okind[q] = ti.cast(kind[k], ti.i32)
+    """The placed new particles of the chunk (flag[j]) to out_base + pos[j], after the survivors, in candidate
+    order; ids next_id + their rank among the frame's kept (so one born outside the domain still takes its id,
+    as before). Their lifetimes: FoamGenerator's where ``foamgenerator``, l_min + (I_k/τmax_k) X (l_max − l_min)
+    with X = (l − l_min)/``span`` (f32) and the rest in f64, as SP.lifetimes; a draw (DRAW_LIFE) in the type's
+    own range for spray and bubbles that have one (range = (min, max − min, 1); z = 0: none)."""
+    for j in range(m):
+        if flag[j]:
+            k = base + j
+            i, s, xd, vd, life = candidate(k, n, offset, x, v, ids, e_k, tau, life_min, life_max, life_mult, r_v, dt,
+                                           seed, frame)
+            t = ti.cast(kind[j], ti.i32)
+            if foamgenerator:
+                x01 = (life - life_min) / span
+                e = ti.cast(e_k[i], ti.f64)
+                t4, t5 = ti.cast(tau[4], ti.f64), ti.cast(tau[5], ti.f64)
+                i_k = (ti.min(e, t5) - ti.min(e, t4)) / ti.cast(tau[5] - tau[4], ti.f64)
+                life = ti.cast(life_min64 + i_k / t5 * ti.cast(x01, ti.f64) * span64, ti.f32)
+            su = ti.cast(s, ti.u32)
+            if t == SPRAY and spray_range.z > 0.0:
+                life = spray_range.x + spray_range.y * rand01(seed, frame, ids[i], su, ti.u32(DRAW_LIFE))
+            if t == BUBBLE and bubble_range.z > 0.0:
+                life = bubble_range.x + bubble_range.y * rand01(seed, frame, ids[i], su, ti.u32(DRAW_LIFE))
+            q = out_base + pos[j]
+            ox[q], ov[q], olife[q] = xd, vd, life
+            oids[q] = next_id + ti.cast(rank_base + rank[j], ti.u32)
+            okind[q] = t
 
 
 @ti.kernel
