@@ -107,11 +107,11 @@ def dualsphysics(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
     """The DualSPHysics PartFluid sequence: converted to y-up BGEO; whitecap reads it as it is."""
     from whitecap import io
     from whitecap.diffuse import postprocess
-    from whitecap.io.dualsphysics import read_case
+    from whitecap.cases.dualsphysics_xml import read_xml
     from whitecap.io.sequence import find_sequence
 
     src = Path(a.input)
-    case = read_case(sorted(src.glob("*.xml"))[0])
+    case = read_xml(sorted(src.glob("*.xml"))[0])
     files = find_sequence(src / "PartFluid_*.vtk")
     for k, (_, p) in enumerate(files, 1):  # FoamGenerator counts frames from 1, y up
         f = io.read(p)
@@ -137,13 +137,13 @@ def splishsplash(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
     the case (`whitecap import`) and runs on its fluid without obstacles, the tank's inside as the
     domain (FoamGenerator knows no obstacles), and, for reference, with the tank and bodies."""
     from whitecap import io
-    from whitecap.cases.splishsplash import _axes, read_case
+    from whitecap.cases.splishsplash import _axes, read_output
     from whitecap.diffuse import postprocess
     from whitecap.io.run import RunInfo
     from whitecap.pipeline import import_case
 
     src = Path(a.input)
-    case = read_case(src)
+    case = read_output(src)
     to_y = _axes(case.up)  # rows: z-up vectors -> the solver's y-up ones (v_z @ M)
     for k, p in case.fluid:  # SPlisHSPlasH numbers frames from 1, as FoamGenerator reads them
         f = io.read(p, up=case.up)  # the file's own row order (SPlisHSPlasH z-sorts its particles)

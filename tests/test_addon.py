@@ -1229,7 +1229,7 @@ def test_splishsplash_rigid_body_bin_poses_as_whitecap_import_records_them(addon
     from whitecap.cases import splishsplash
 
     tiny = Path(__file__).resolve().parent / "data" / "splishsplash_rigid"
-    case = splishsplash.read_case(tiny)
+    case = splishsplash.read_output(tiny)
     res = run_blender(RIGID, addon_zip, tmp_path, tiny / "rigid_bodies" / "rb_data_1.bin")
     assert res["timeline"] == [1, 30]
     assert sorted(res["bodies"]) == sorted(s.name for s in case.shapes) == ["UnitBox", "sphere"]

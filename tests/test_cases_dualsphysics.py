@@ -217,7 +217,7 @@ def test_floating_csv_places_the_body(tmp_path):
         rows.append(f"{0.05 * k:.6f};0;{c[0]:.9f};{c[1]:.9f};{c[2]:.9f};{roll:.9f};{pitch:.9f};{yaw:.9f}")
     csv = tmp_path / "FloatingMotion_mk50.csv"
     csv.write_text("\n".join(rows) + "\n")
-    c = D.read_case(case, floating_csv=csv)
+    c = D.read_output(case, floating_csv=csv)
     body = next(x for x in c.shapes if x.name == "mk50")
     for k, p in enumerate(body.poses):
         assert np.abs(apply_pose(p, s["cube"]) - s["moved"][k]).max() < 1e-4 * DP

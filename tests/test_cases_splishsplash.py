@@ -127,21 +127,21 @@ def _check_poses_reproduce_obj(case, obj_dir: Path, frames) -> float:
 # ============================================================================ the committed cut
 def test_tiny_case_finds_tank_as_container_and_sphere_as_moving_body():
     assert splishsplash.is_case(TINY)
-    case = splishsplash.read_case(TINY)
+    case = splishsplash.read_output(TINY)
     assert [k for k, _ in case.fluid] == [1, 29, 30]
     _check_tank_and_sphere(case, 3)
     _check_constants(case)
 
 
 def test_tiny_bin_poses_reproduce_exported_obj_meshes():
-    case = splishsplash.read_case(TINY)
+    case = splishsplash.read_output(TINY)
     assert _check_poses_reproduce_obj(case, TINY / "obj", (1, 29, 30)) < TOL
 
 
 def test_tiny_fluid_follows_id_across_the_solver_resort():
     """SPlisHSPlasH re-sorts its particles between frames 29 and 30: read as the case says,
     row i is the same particle in both (it moves at most v_max·Δt); in file order it is not."""
-    case = splishsplash.read_case(TINY)
+    case = splishsplash.read_output(TINY)
     files = dict(case.fluid)
     a, b = (read(files[k], up=case.up, **case.fluid_reader_options) for k in (29, 30))
     np.testing.assert_array_equal(a.ids, b.ids)
@@ -156,13 +156,13 @@ def test_tiny_obj_export_alone_gives_the_bin_motion(tmp_path):
     """Without the BIN, the per-frame OBJ meshes are read and each pose is fitted (Kabsch)."""
     d = _copy(tmp_path)
     shutil.rmtree(d / "rigid_bodies")
-    case = splishsplash.read_case(d)
+    case = splishsplash.read_output(d)
     _check_tank_and_sphere(case, 3)
     (sphere,) = _by_role(case, "body")
     assert "obj" in sphere.source
     # OBJ text keeps 6 digits, so the fit is as good as the file
     assert _check_poses_reproduce_obj(case, d / "obj", (1, 29, 30)) < TOL
-    ref = _by_role(splishsplash.read_case(TINY), "body")[0]
+    ref = _by_role(splishsplash.read_output(TINY), "body")[0]
     for p, q in zip(sphere.poses, ref.poses):
         assert np.abs(_posed(p, sphere.vertices) - _posed(q, sphere.vertices)).max() < TOL
 
@@ -172,7 +172,7 @@ def test_scene_json_alone_gives_the_static_boundaries_with_their_placement(tmp_p
     shutil.rmtree(d / "rigid_bodies")
     shutil.rmtree(d / "obj")
     with pytest.warns(UserWarning, match=r"RigidBodies\[1\] is dynamic"):
-        case = splishsplash.read_case(d)
+        case = splishsplash.read_output(d)
     (tank,) = case.shapes  # the dynamic sphere's motion is unknown: left out
     assert tank.role == "container" and tank.poses is None
     np.testing.assert_allclose(tank.vertices.min(0), [-1.55, -1.55, -0.05], atol=1e-6)
@@ -184,7 +184,7 @@ def test_scene_json_alone_gives_the_static_boundaries_with_their_placement(tmp_p
                                    translation=[0, 5, 0], isWall=False)
     scene["RigidBodies"].pop()
     scene_file.write_text(json.dumps(scene))
-    (box,) = splishsplash.read_case(d).shapes
+    (box,) = splishsplash.read_output(d).shapes
     assert box.role == "obstacle"
     # y up: x ±0.5, y ±1.5 (was z), z ±1 (was y), then +5 in y; z up: (x, −z, y)
     np.testing.assert_allclose(box.vertices.min(0), [-0.5, -1.0, 3.5], atol=1e-6)
@@ -254,14 +254,14 @@ def test_bad_input_is_one_line_naming_file_and_field(tmp_path, name):
     d = _copy(tmp_path)
     spoil(d)
     with pytest.raises(InputError, match=message) as err:
-        splishsplash.read_case(d)
+        splishsplash.read_output(d)
     assert "\n" not in str(err.value)
 
 
 def test_fluid_without_ids_is_refused_when_read_for_the_case(tmp_path):
     d = _copy(tmp_path)
     _no_ids(d)
-    case = splishsplash.read_case(d)
+    case = splishsplash.read_output(d)
     path = dict(case.fluid)[29]
     with pytest.raises(InputError, match=r"ParticleData_Fluid_29\.vtk: missing array 'id'") as err:
         read(path, up=case.up, **case.fluid_reader_options)
@@ -279,7 +279,7 @@ def test_duplicate_ids_are_refused(tmp_path):
 @needs_real
 def test_real_case_finds_tank_as_container_and_sphere_as_moving_body():
     assert splishsplash.is_case(REAL)
-    case = splishsplash.read_case(REAL)
+    case = splishsplash.read_output(REAL)
     assert [k for k, _ in case.fluid] == list(range(1, 52))
     assert case.times[-1] == pytest.approx(2.0)
     _check_tank_and_sphere(case, 51)
@@ -293,13 +293,13 @@ def test_real_case_finds_tank_as_container_and_sphere_as_moving_body():
 
 @needs_real
 def test_real_bin_poses_reproduce_every_exported_obj_mesh():
-    case = splishsplash.read_case(REAL)
+    case = splishsplash.read_output(REAL)
     assert _check_poses_reproduce_obj(case, REAL / "obj", range(1, 52)) < TOL
 
 
 @needs_real
 def test_real_fluid_follows_id_in_every_frame():
-    case = splishsplash.read_case(REAL)
+    case = splishsplash.read_output(REAL)
     frames = [read(p, up=case.up, **case.fluid_reader_options) for _, p in case.fluid]
     raw = [read(p, up=case.up) for _, p in case.fluid]
     resorted = 0
@@ -321,11 +321,11 @@ def test_real_per_frame_mesh_forms_give_the_bin_motion(tmp_path, form):
     for p in (REAL / "vtk").iterdir():
         if p.name.startswith("ParticleData_") or form == "vtk":
             (d / "vtk" / p.name).symlink_to(p)
-    case = splishsplash.read_case(d)
+    case = splishsplash.read_output(d)
     _check_tank_and_sphere(case, 51)
     (sphere,) = _by_role(case, "body")
     assert f"{form}/rb_data_1_<k>.{form}" in sphere.source
-    ref = _by_role(splishsplash.read_case(REAL), "body")[0]
+    ref = _by_role(splishsplash.read_output(REAL), "body")[0]
     worst = max(np.abs(_posed(p, sphere.vertices) - _posed(q, sphere.vertices)).max()
                 for p, q in zip(sphere.poses, ref.poses))
     assert worst < TOL
@@ -444,9 +444,9 @@ def test_an_open_wall_keeps_the_container_look(tmp_path):
     scene["RigidBodies"][0]["geometryFile"] = "../models/OpenBox.obj"
     scene["RigidBodies"].pop()
     scene_file.write_text(json.dumps(scene))
-    (tank,) = splishsplash.read_case(d).shapes
+    (tank,) = splishsplash.read_output(d).shapes
     assert tank.role == "container" and tank.look is None
-    (closed,) = _by_role(splishsplash.read_case(TINY), "container")
+    (closed,) = _by_role(splishsplash.read_output(TINY), "container")
     assert closed.look["material"] == "glass"
 
 
@@ -490,7 +490,7 @@ def test_partio_export_alone_is_read_in_id_order_too(tmp_path):
         write_partio_bgeo(d / "partio" / p.with_suffix(".bgeo").name, f.positions,
                           {"id": f.ids.astype(np.int32), "velocity": f.velocities, "density": f.density})
         p.unlink()
-    case = splishsplash.read_case(d)
+    case = splishsplash.read_output(d)
     assert [p.suffix for _, p in case.fluid] == [".bgeo"] * 3
     files = dict(case.fluid)
     a, b = (read(files[k], up=case.up, **case.fluid_reader_options) for k in (29, 30))
@@ -505,11 +505,11 @@ def test_several_fluid_models_need_a_choice(tmp_path):
     for p in sorted((d / "vtk").glob("ParticleData_Fluid_*.vtk")):
         shutil.copyfile(p, p.with_name(p.name.replace("_Fluid_", "_Oil_")))
     with pytest.raises(InputError, match=r"vtk: several fluid models \(Fluid, Oil\); choose one"):
-        splishsplash.read_case(d)
-    case = splishsplash.read_case(d, model="Oil")
+        splishsplash.read_output(d)
+    case = splishsplash.read_output(d, model="Oil")
     assert [p.name for _, p in case.fluid] == [f"ParticleData_Oil_{k}.vtk" for k in (1, 29, 30)]
     with pytest.raises(InputError, match=r"vtk: no fluid model 'Water' \(found Fluid, Oil\)"):
-        splishsplash.read_case(d, model="Water")
+        splishsplash.read_output(d, model="Water")
 
 
 def test_the_camera_looks_at_a_glass_tank_from_the_side_and_over_an_opaque_one(tmp_path):
@@ -567,7 +567,7 @@ def test_a_scene_of_static_bodies_writes_the_first_bin_alone(tmp_path):
     for k in (29, 30):
         (d / "rigid_bodies" / f"rb_data_{k}.bin").unlink()
     _json_edit(lambda s: s["RigidBodies"][1].update(isDynamic=False))(d)
-    case = splishsplash.read_case(d)
+    case = splishsplash.read_output(d)
     assert [(s.name, s.role, s.poses) for s in case.shapes] == [("UnitBox", "container", None),
                                                                   ("sphere", "obstacle", None)]
     centre = case.shapes[1].vertices.mean(0)

@@ -48,7 +48,7 @@ def test_foam_domain_holds_every_frame_of_a_travelling_flow(tmp_path, capsys):
 
 
 def test_import_uses_the_same_rule_over_all_frames(tmp_path):
-    from whitecap.pipeline import read_case
+    from whitecap.cases import read_case
 
     from .test_cases_dualsphysics import synthetic_case
 
@@ -113,3 +113,31 @@ def test_foam_arch_cuda_without_a_gpu_is_one_line(tiny_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--arch cuda: no CUDA device found" in err, err
     assert main(["foam", str(tmp_path / "R"), "--arch", "auto"]) == 0  # falls back to the CPU
+
+
+def test_foam_of_a_foreign_sequence_is_import_then_foam_of_the_run(tmp_path):
+    """`foam SEQ --out RUN` imports SEQ as a bare sequence, then makes foam over RUN: the same
+    run.json and the same diffuse bytes as `import SEQ --out RUN` followed by `foam RUN`."""
+    from .test_diffuse import _gentle_then_violent
+
+    pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
+    opts = ["--dt", str(1 / 30), "--radius", "0.01"]
+    assert main(["foam", pattern, "--out", str(tmp_path / "A"), *opts]) == 0
+    assert main(["import", pattern, "--out", str(tmp_path / "B"), *opts]) == 0
+    assert RunInfo.load(tmp_path / "B").extra["solver"] == "sequence"
+    assert main(["foam", str(tmp_path / "B"), "--dt", str(1 / 30)]) == 0
+    a, b = RunInfo.load(tmp_path / "A"), RunInfo.load(tmp_path / "B")
+    assert a.simulation == b.simulation and a.domain == b.domain and a.extra == b.extra
+    made = sorted(p.name for p in (tmp_path / "A" / "diffuse").iterdir())
+    assert len(made) == 7 and sum((tmp_path / "A" / "diffuse" / n).stat().st_size for n in made) > 7 * 1000
+    for name in made:
+        assert (tmp_path / "A" / "diffuse" / name).read_bytes() == (tmp_path / "B" / "diffuse" / name).read_bytes()
+
+
+def test_import_refuses_an_option_of_another_kind_of_input(tmp_path, capsys):
+    travelling_block(tmp_path / "seq", frames=2)
+    assert main(["import", str(tmp_path / "seq"), "--out", str(tmp_path / "R"), "--dt", "0.03", "--radius", "0.01",
+                 "--scene", "s.json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--scene is for SPlisHSPlasH cases; this is a bare sequence" in err, err
+    assert not (tmp_path / "R").exists()

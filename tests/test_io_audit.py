@@ -118,7 +118,7 @@ def test_a_floating_body_the_xml_does_not_declare_is_fitted_from_its_type(tmp_pa
     case = tmp_path / "case"
     s = synthetic_case(case)
     (case / "Case.xml").write_text(_xml_without_bodies())
-    c = D.read_case(case)
+    c = D.read_output(case)
     roles = {sh.name: sh.role for sh in c.shapes}
     assert roles["mk50"] == "body" and roles["mk60"] == "body", roles
     assert roles["mk10"] in ("obstacle", "container")
@@ -158,7 +158,7 @@ def test_the_fit_matches_particles_by_idp_when_their_order_changes(tmp_path):
         arrays = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)) for i in range(pd.GetNumberOfArrays())}
         order = rng.permutation(len(pos)) if k > 0 else np.arange(len(pos))  # frame 0 keeps its order
         write_part_vtk(path, pos[order], {n: a[order] for n, a in arrays.items()})
-    c = D.read_case(case)
+    c = D.read_output(case)
     cube = next(sh for sh in c.shapes if sh.name == "mk50")
     for k, p in enumerate(cube.poses):
         err = np.linalg.norm(apply_pose(p, s["cube"]) - s["moved"][k], axis=1).max()

@@ -296,7 +296,7 @@ def test_splishsplash_bin_cut_short_says_truncated(tmp_path):
     d = _splishsplash_copy(tmp_path)
     cut(d / "rigid_bodies" / "rb_data_30.bin", d / "rigid_bodies" / "rb_data_30.bin", 90)
     with pytest.raises(InputError, match=r"rb_data_30\.bin: pose block: 90 bytes, 96 expected .*truncated") as err:
-        splishsplash.read_case(d)
+        splishsplash.read_output(d)
     one_line(err)
 
 
@@ -327,7 +327,7 @@ def test_import_refuses_two_case_xml_files_and_takes_the_one_named(tmp_path, cap
 
 
 def test_find_case_xml(tmp_path):
-    from whitecap.io.dualsphysics import find_case_xml
+    from whitecap.cases.dualsphysics_xml import find_case_xml
 
     assert find_case_xml(tmp_path) is None
     (tmp_path / "B.xml").write_text("<case/>")
@@ -363,5 +363,5 @@ def test_a_dualsphysics_case_in_a_folder_named_with_brackets_imports(tmp_path):
 
     case = tmp_path / "dam[break]"
     shutil.copytree(DSPH, case)
-    c = dualsphysics.read_case(case)
+    c = dualsphysics.read_output(case)
     assert [i for i, _ in c.fluid] == [12, 13, 14] and c.frame_dt == pytest.approx(0.02)

@@ -112,6 +112,7 @@ def _add_import(sub) -> None:
         description="Convert CASE_OUTPUT, a DualSPHysics output folder (PartFluid_/PartAll_ VTK and the case XML) "
         "or a SPlisHSPlasH output folder, into the run directory OUT: the fluid frames, one mesh per "
         "boundary shape under OUT/geometry (the tank as the container) and the poses of moving bodies. "
+        "Any other folder or glob of numbered frames is a bare sequence (fluid only; --dt and --radius). "
         "Then `whitecap foam OUT`, `mesh OUT` and `render OUT` continue from there. Resumable.",
     )
     p.add_argument("case_output", help="the solver's output folder")
@@ -124,6 +125,8 @@ def _add_import(sub) -> None:
     p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
                    "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
     p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
+    p.add_argument("--dt", type=float, help="a bare sequence's time between frames [s] (when no case XML says)")
+    p.add_argument("--radius", type=float, help="a bare sequence's particle radius [m] (half the spacing)")
     p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
     p.set_defaults(func=_cmd_import)
 
@@ -132,7 +135,8 @@ def _cmd_import(a) -> int:
     from . import pipeline
 
     info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
-                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force)
+                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force, dt=a.dt,
+                                radius=a.radius)
     roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
     print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
     return 0

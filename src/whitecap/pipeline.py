@@ -300,31 +300,6 @@ def foam(
 
 
 # ============================================================================ import a foreign case
-def read_case(case_output: str | Path, up: str | None = None, xml: str | Path | None = None,
-              floating_csv: str | Path | None = None, scene_json: str | Path | None = None,
-              fluid_model: str | None = None):
-    """A DualSPHysics or SPlisHSPlasH output folder as a :class:`whitecap.cases.Case`.
-    ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH ones."""
-    from .cases import dualsphysics, splishsplash
-    from .errors import InputError
-
-    src = Path(case_output)
-    if not src.exists():
-        raise InputError(f"{src}: no such file or directory")
-    if dualsphysics.is_case(src):
-        for opt, val in (("--scene", scene_json), ("--fluid-model", fluid_model)):
-            if val is not None:
-                raise InputError(f"{src}: {opt} is for SPlisHSPlasH cases; this is DualSPHysics output")
-        return dualsphysics.read_case(src, xml=xml, up=up or "z", floating_csv=floating_csv)
-    if splishsplash.is_case(src):
-        for opt, val in (("--xml", xml), ("--floating-csv", floating_csv)):
-            if val is not None:
-                raise InputError(f"{src}: {opt} is for DualSPHysics cases; this is SPlisHSPlasH output")
-        return splishsplash.read_case(src, up=up or "y", scene_json=scene_json, model=fluid_model)
-    raise InputError(f"{src}: neither a DualSPHysics output folder (PartFluid_*.vtk / PartAll_*.vtk) nor "
-                     "SPlisHSPlasH output")
-
-
 def import_case(
     case_output: str | Path,
     out: str | Path,
@@ -335,14 +310,18 @@ def import_case(
     fluid_model: str | None = None,
     force: bool = False,
     show_progress: bool = True,
+    dt: float | None = None,
+    radius: float | None = None,
 ) -> RunInfo:
-    """A whole case from another solver (fluid, tank, obstacles, moving bodies) -> a run directory
-    that ``foam``, ``mesh``, ``view`` and ``render`` continue from. Resumable. The case is read and
-    checked in full before anything is written."""
+    """A whole case from another solver (fluid, tank, obstacles, moving bodies), or a bare sequence of
+    frames, -> a run directory that ``foam``, ``mesh``, ``view`` and ``render`` continue from
+    (:func:`whitecap.cases.read_case`). Resumable. The case is read and checked in full before
+    anything is written."""
+    from .cases import read_case
     from .cases.run_dir import write_case
 
     case = read_case(case_output, up=up, xml=xml, floating_csv=floating_csv, scene_json=scene_json,
-                     fluid_model=fluid_model)
+                     fluid_model=fluid_model, dt=dt, radius=radius)
     return write_case(case, out, show_progress=show_progress, force=force)
 
 

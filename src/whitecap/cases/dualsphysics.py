@@ -6,9 +6,9 @@ Files read (PartVTK legacy VTK, z up):
 - the boundaries: ``PartAll_NNNN.vtk`` (else ``PartBound_NNNN.vtk``), with the
   point arrays ``Type`` and ``Mk`` (and ``Idp`` for moving bodies);
 - the case XML beside them (the only ``*.xml`` there; with several, ``xml=`` must
-  choose, :func:`whitecap.io.dualsphysics.find_case_xml`): the spacing dp, output interval,
+  choose, :func:`whitecap.cases.dualsphysics_xml.find_case_xml`): the spacing dp, output interval,
   constants, which Mks are one shape, and which are fixed, moving or floating
-  (:mod:`whitecap.io.dualsphysics`).
+  (:mod:`whitecap.cases.dualsphysics_xml`).
 
 PartVTK's ``Type``: 0 fixed, 1 moving, 2 floating, 3 fluid
 (:data:`TYPE_NAMES`; 0 and 3 as in the shared dam-break output). An Mk is
@@ -39,12 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.dualsphysics import CaseInfo, find_case_xml, read_case as read_case_xml
 from ..io.registry import find_array
 from ..io.registry import check
 from ..io.sequence import frame_number
 from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
 from . import Case, CaseShape
+from .dualsphysics_xml import CaseInfo, find_case_xml, read_xml
 from .particle_surface import cell_surface
 from .rigid_fit import fit_pose, pose
 
@@ -88,13 +88,10 @@ def is_case(folder: str | Path) -> bool:
 
 def _boundary_particles(path: Path) -> dict[str, np.ndarray]:
     """Positions, Type, Mk and Idp of the boundary (non-fluid) particles of one file."""
-    from vtk.util.numpy_support import vtk_to_numpy
+    from ..io.vtk_legacy import read_points
 
-    from ..io.vtk_legacy import _read_dataset, point_arrays
-
-    ds = _read_dataset(path)
-    pos = vtk_to_numpy(ds.GetPoints().GetData()).astype(np.float64).reshape(-1, 3)
-    arrays = point_arrays(ds)
+    pos, arrays = read_points(path)
+    pos = pos.astype(np.float64)
     out = {"pos": pos}
     for name in ("Type", "Mk"):
         k = find_array(arrays, (name.lower(),))
@@ -110,7 +107,7 @@ def _boundary_particles(path: Path) -> dict[str, np.ndarray]:
 
 def _xml(folder: Path, xml: str | Path | None) -> tuple[CaseInfo | None, Path | None]:
     p = find_case_xml(folder, xml, option="--xml")
-    return (read_case_xml(p), p) if p is not None else (None, None)
+    return (read_xml(p), p) if p is not None else (None, None)
 
 
 def _groups(info: CaseInfo | None, mks: list[int]) -> list[tuple[str, list[int]]]:
@@ -125,7 +122,7 @@ def _groups(info: CaseInfo | None, mks: list[int]) -> list[tuple[str, list[int]]
     return groups
 
 
-def read_case(folder: str | Path, xml: str | Path | None = None, up: str = "z",
+def read_output(folder: str | Path, xml: str | Path | None = None, up: str = "z",
               floating_csv: str | Path | None = None) -> Case:
     """Read a DualSPHysics output folder (see the module docstring). Every check is made
     here, before anything is written: a bad input leaves the output untouched."""

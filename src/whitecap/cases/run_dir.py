@@ -1,4 +1,5 @@
-"""One writer for every foreign case: a :class:`~whitecap.cases.Case` -> a whitecap run directory.
+"""One writer for every foreign case: a :class:`~whitecap.cases.Case` -> a whitecap run directory
+(``import``, and ``foam`` over a foreign sequence, which imports it as a bare sequence first).
 
     RUN/run.json                 obstacles (one per shape, with its role) and per-frame body poses
     RUN/fluid/fluid_NNNNN.ply    the fluid frames, converted (z up)
@@ -90,32 +91,34 @@ def case_identity(case: Case) -> str:
                            {"solver": case.solver, "shapes": shapes, "options": case.fluid_reader_options})
 
 
-def _domain(case: Case, opts: dict) -> dict[str, list[float]]:
+def _domain(case: Case, opts: dict) -> tuple[dict[str, list[float]], str]:
     """The case's own domain when it states one; else :func:`whitecap.io.run.flow_domain` of the
-    fluid over all frames and the shapes (the rule ``foam`` applies to a bare sequence too)."""
+    fluid over all frames and the shapes. With the rule it follows, printed."""
     if case.domain is not None:
         lo, hi = case.domain
-        return {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}
-    boxes = [(np.asarray(s.vertices, np.float64).min(0), np.asarray(s.vertices, np.float64).max(0))
-             for s in case.shapes]
-    flow = sequence_bounds([p for _, p in case.fluid], **opts)
-    boxes += [flow] if flow is not None else []
-    if not boxes:
-        raise InputError(f"{case.source}: no particles and no shapes: the domain is unknown")
-    lo, hi = np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)
-    domain = flow_domain((lo, hi), case.particle_radius)
-    console.print(f"domain: {domain_text(domain)} ({DOMAIN_RULE})", soft_wrap=True)
-    return domain
+        domain, rule = {"lower": [float(x) for x in lo], "upper": [float(x) for x in hi]}, case.domain_rule
+    else:
+        boxes = [(np.asarray(s.vertices, np.float64).min(0), np.asarray(s.vertices, np.float64).max(0))
+                 for s in case.shapes]
+        flow = sequence_bounds([p for _, p in case.fluid], **opts)
+        boxes += [flow] if flow is not None else []
+        if not boxes:  # (a bare sequence: foam's input)
+            raise InputError(f"{case.source}: all {len(case.fluid)} frames are empty (no particles), so there is "
+                             "nothing to make diffuse particles from")
+        lo, hi = np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)
+        domain, rule = flow_domain((lo, hi), case.particle_radius), DOMAIN_RULE
+    console.print(f"domain: {domain_text(domain)} ({rule})", soft_wrap=True)
+    return domain, rule
 
 
 def _new_info(case: Case, identity: str, opts: dict) -> RunInfo:
     r = case.particle_radius
     mass = case.particle_mass if case.particle_mass else case.rest_density * (2 * r) ** 3
+    domain, rule = _domain(case, opts)
     info = RunInfo(
         particle_radius=float(r), rest_density=float(case.rest_density), particle_mass=float(mass),
-        gravity=[float(g) for g in case.gravity], domain=_domain(case, opts),
-        frame_rate=1.0 / case.frame_dt, extra={"source": str(case.source), "solver": case.solver, "seed": 0,
-                                               "domain_rule": "the case's" if case.domain is not None else DOMAIN_RULE},
+        gravity=[float(g) for g in case.gravity], domain=domain, frame_rate=1.0 / case.frame_dt,
+        extra={"source": str(case.source), "solver": case.solver, "seed": 0, "domain_rule": rule, **case.notes},
     )
     info.simulation = identity
     return info

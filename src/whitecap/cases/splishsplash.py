@@ -102,7 +102,7 @@ def _fluid_files(d: Path, pattern: re.Pattern) -> dict[str, dict[int, Path]]:
     return out
 
 
-def read_case(folder: str | Path, up: str = "y", scene_json: str | Path | None = None,
+def read_output(folder: str | Path, up: str = "y", scene_json: str | Path | None = None,
               model: str | None = None) -> Case:
     """Read a SPlisHSPlasH output folder as a :class:`Case` (see the module doc).
 

@@ -4,9 +4,10 @@ Two ways in, one code path (:class:`~whitecap.diffuse.generator.FoamGenerator`):
 
 - inside ``simulate``: :func:`simulation_hook` gives the frame hook the
   simulation driver calls after every frame;
-- as post-processing: :func:`postprocess` runs over a whitecap run, a
-  DualSPHysics PartVTK sequence, SPlisHSPlasH VTK or partio BGEO output or PLY/VTU/NPZ
-  sequences, and writes a run directory the later stages can read.
+- as post-processing: :func:`postprocess` runs over a whitecap run; a DualSPHysics
+  PartVTK sequence, SPlisHSPlasH VTK or partio BGEO output or PLY/VTU/NPZ sequences
+  are imported first into a run directory the later stages can read (as a bare
+  sequence, :mod:`whitecap.cases.sequence`).
 
 Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 0 spray / 1 foam / 2 bubble, lifetime, radius, id) and ``diffuse/counts.csv``.
@@ -25,8 +26,7 @@ from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.lock import run_lock
-from ..io.run import (DOMAIN_RULE, RunInfo, claim_run_dir, domain_text, flow_domain, frame_name, remove_run,
-                      sequence_bounds, source_identity)
+from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
 from ..progress import console, progress
 from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
@@ -177,7 +177,7 @@ def simulation_hook(scene: Scene) -> FoamStage:
 FOAMGENERATOR_CAPACITY = 100  # diffuse particles per fluid particle the 'splishsplash' preset makes room for
 
 
-def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: str | None, show_progress: bool):
+def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, show_progress: bool):
     """FoamGenerator's pass 1: the clamping limits from the per-frame maxima over the whole input."""
     from . import splishsplash as SP
 
@@ -186,7 +186,7 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: s
     with bar:
         task = bar.add_task("foam limits", total=len(files), info="")
         for _, path in files:
-            fr = first if path == files[0][1] else read(path, **({"up": up} if up else {}))
+            fr = first if path == files[0][1] else read(path)
             if fr.velocities is None:
                 raise InputError(f"{path}: missing array 'velocity'")
             maxima.append(SP.frame_maxima(gen, fr))
@@ -197,30 +197,6 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, up: s
         f"{tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest {tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J"
     )
     return tau
-
-
-def _input_frames(src: Path, frames: list | None = None, case: str | Path | None = None
-                  ) -> tuple[list[tuple[int, Path]], RunInfo | None, dict]:
-    """Frames of the input (``frames`` when given) plus what is known about the run (radius, dt, domain...):
-    from the DualSPHysics case XML ``case``, else the one beside the files (several: refused)."""
-    from ..io.sequence import find_sequence
-
-    if frames is None and src.is_dir() and (src / "run.json").exists():
-        info = RunInfo.load(src)
-        files = [(i, src / rel) for i, rel in info.files("fluid")]
-        if not files:
-            raise InputError(f"{src}/run.json: no fluid frames listed")
-        return files, info, {}
-    if not src.exists() and not any(c in str(src) for c in "*?["):
-        raise InputError(f"{src}: no such file or directory")
-    files = list(frames) if frames is not None else find_sequence(src)
-    known: dict = {}
-    from ..io.dualsphysics import find_case_xml
-
-    xml = find_case_xml(src if src.is_dir() else src.parent, case, option="--case")
-    if xml is not None:
-        known.update(_case_values(xml))
-    return files, None, known
 
 
 def postprocess(
@@ -243,45 +219,60 @@ def postprocess(
 ) -> RunInfo:
     """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
 
-    ``frames`` ((index, path) pairs) replaces the files found at ``src``, and
-    ``domain`` ((lower, upper) [m]) the domain of a foreign sequence: diffuse
-    particles outside it are removed.
-
     For a whitecap run, the run's own [foam] settings and seed are used unless
     overridden, and results land in the run itself (``out`` defaults to it).
-    For other sequences the fluid frames are converted into ``out/fluid`` so
-    that `whitecap mesh`, `view` and `render` can continue from there.
+    Any other sequence is first imported into the run directory ``out`` as a bare
+    sequence (:func:`whitecap.cases.sequence.read_sequence`, then
+    :func:`whitecap.cases.run_dir.write_case`, as ``whitecap import``), so that
+    `whitecap mesh`, `view` and `render` can continue from there; ``frames``
+    ((index, path) pairs) replaces the files found at ``src``, ``case`` is its
+    DualSPHysics case XML, ``domain`` ((lower, upper) [m]) its domain: diffuse
+    particles outside it are removed.
     'auto' reads frames sampled across the whole sequence first (``look_ahead``);
     without it, it keeps the simulation's running estimate, as inside ``simulate``.
     An ``out`` other than the input follows :func:`whitecap.io.run.claim_run_dir`: a run
     of another simulation there is refused unless ``force``, which replaces it whole.
     """
     src = Path(src)
-    files, info, known = _input_frames(src, frames, case)
-    if domain is not None:
-        known.update(lower=list(map(float, domain[0])), upper=list(map(float, domain[1])))
-    foam_cfg, run_seed, grids, out = _run_settings(src, info, out)
-    p = params or resolve(foam_cfg, ini=ini, preset=preset,
-                          particle_mass=info.particle_mass if info is not None else known.get("mass"))
+    if frames is not None or not (src.is_dir() and (src / "run.json").exists()):
+        return _postprocess_foreign(src, out, params, ini, preset, up, dt, radius, seed, case, show_progress,
+                                    frames, domain, look_ahead, force, arch)
+    info = RunInfo.load(src)
+    if not info.files("fluid"):
+        raise InputError(f"{src}/run.json: no fluid frames listed")
+    foam_cfg, run_seed, grids = _run_settings(src, info)
+    out = Path(out) if out is not None else src
+    p = params or resolve(foam_cfg, ini=ini, preset=preset, particle_mass=info.particle_mass)
     seed = run_seed if seed is None else seed
-    frame_dt, r = _frame_dt_and_radius(src, info, known, dt, radius)
+    frame_dt = _frame_dt(info, dt, radius)
     state = "same"
-    if out.resolve() != src.resolve():  # converted into a run of its own: never over another simulation
-        state = claim_run_dir(out, info.simulation if info is not None else _source_identity(files, up), force)
+    if out.resolve() != src.resolve():  # copied into a run of its own: never over another simulation
+        state = claim_run_dir(out, info.simulation, force)
     out.mkdir(parents=True, exist_ok=True)
     with run_lock(out, "foam"):
         if state == "replace":
             remove_run(out)
-        return _postprocess(src, out, files, info, known, p, seed, frame_dt, r, up, grids, show_progress, look_ahead,
-                            _threshold_names(ini), arch)
+        return _postprocess(src, out, p, seed, frame_dt, grids, show_progress, look_ahead, _threshold_names(ini),
+                            arch)
 
 
-def _case_values(case: str | Path) -> dict:
-    from ..io.dualsphysics import read_case
+def _postprocess_foreign(src: Path, out, params, ini, preset, up, dt, radius, seed, case, show_progress, frames,
+                         domain, look_ahead, force, arch) -> RunInfo:
+    """A foreign sequence: imported into ``out`` as a bare sequence, then :func:`postprocess` of that run
+    (with the sequence's time step, so the foam is that of the frames as given)."""
+    from ..cases.run_dir import write_case
+    from ..cases.sequence import read_sequence
 
-    c = read_case(case)
-    return dict(radius=c.particle_radius, mass=c.mass, dt=c.time_out, rest_density=c.rho0, gravity=c.gravity,
-                lower=c.lower, upper=c.upper, case=str(case))
+    seq = read_sequence(src, frames=frames, xml=case, up=up, dt=dt, radius=radius, domain=domain)
+    if out is None:
+        raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
+    # Resolved before anything is written: a setting the sequence cannot satisfy leaves no run behind.
+    p = params or resolve(Foam(), ini=ini, preset=preset, particle_mass=seq.particle_mass)
+    if seed is not None:
+        seq.notes["seed"] = seed  # the run's seed, so that `foam RUN` again makes the same foam
+    write_case(seq, out, show_progress=show_progress, force=force)
+    return postprocess(out, params=p, ini=ini, dt=seq.frame_dt, seed=seed, show_progress=show_progress,
+                       look_ahead=look_ahead, arch=arch)
 
 
 def run_obstacles(src: Path, info: RunInfo) -> list:
@@ -297,44 +288,30 @@ def run_obstacles(src: Path, info: RunInfo) -> list:
     return run_obstacle_grids(info, src, first)
 
 
-def _run_settings(src: Path, info: RunInfo | None, out) -> tuple[Foam, int, list, Path]:
+def _run_settings(src: Path, info: RunInfo) -> tuple[Foam, int, list]:
     """A whitecap run's own [foam] section, seed and obstacles (its scene's, else those run.json
-    lists, as an imported case's); where the results go."""
-    foam_cfg, run_seed, grids = Foam(), 0, []
-    if info is not None:
-        scene_file = src / "scene.toml"
-        run_scene = None
-        if scene_file.is_file():
-            run_scene = load_scene(scene_file)
-            run_scene.base_dir = info.extra.get("scene_dir", run_scene.base_dir)
-            foam_cfg = run_scene.foam
-            grids = obstacle_grids(run_scene)
-        if run_scene is None or not run_scene.obstacle:
-            grids = run_obstacles(src, info)
-        run_seed = int(info.extra.get("seed", 0))
-        out = Path(out) if out is not None else src
-    elif out is None:
-        raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
-    return foam_cfg, run_seed, grids, Path(out)
+    lists, as an imported case's)."""
+    foam_cfg, grids = Foam(), []
+    scene_file = src / "scene.toml"
+    run_scene = None
+    if scene_file.is_file():
+        run_scene = load_scene(scene_file)
+        run_scene.base_dir = info.extra.get("scene_dir", run_scene.base_dir)
+        foam_cfg = run_scene.foam
+        grids = obstacle_grids(run_scene)
+    if run_scene is None or not run_scene.obstacle:
+        grids = run_obstacles(src, info)
+    return foam_cfg, int(info.extra.get("seed", 0)), grids
 
 
-def _frame_dt_and_radius(src: Path, info: RunInfo | None, known: dict, dt, radius) -> tuple[float, float]:
+def _frame_dt(info: RunInfo, dt, radius) -> float:
+    """The time between frames: ``dt`` when given, else the run's; ``radius`` is only checked (the
+    run's particle radius is the one used)."""
     for opt, v in (("--dt", dt), ("--radius", radius)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"{opt}: must be a positive number of {'seconds' if opt == '--dt' else 'metres'} "
                              f"(got {v:g})")
-    frame_dt = dt or (1.0 / info.frame_rate if info else known.get("dt"))
-    if not frame_dt or frame_dt <= 0:
-        raise InputError(f"{src}: the time between frames is unknown; pass --dt SECONDS")
-    r = radius or (info.particle_radius if info else known.get("radius"))
-    if not r or r <= 0:
-        raise InputError(f"{src}: the particle radius is unknown; pass --radius METRES (half the spacing)")
-    return frame_dt, r
-
-
-def _source_identity(files: list[tuple[int, Path]], up: str) -> str:
-    """Identity of a foreign sequence: its files' names, sizes and modification times."""
-    return source_identity([path for _, path in files], up)
+    return dt or 1.0 / info.frame_rate
 
 
 def _threshold_names(ini) -> dict[str, str]:
@@ -347,19 +324,14 @@ def _threshold_names(ini) -> dict[str, str]:
     return {ours: where for ours, (where, _) in f.joules.items()}
 
 
-def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known: dict, p: FoamParams, seed: int,
-                 frame_dt: float, r: float, up: str, grids: list, show_progress: bool, look_ahead: bool,
-                 names: dict[str, str], arch: str = "cpu") -> RunInfo:
-    src_is_run = info is not None
-    if src_is_run:  # read again under the lock: what is current cannot change from here on
-        info = RunInfo.load(src)
-        files = [(i, src / rel) for i, rel in info.files("fluid")]
-    reader = _Reader(files, None if src_is_run else up)
+def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float, grids: list, show_progress: bool,
+                 look_ahead: bool, names: dict[str, str], arch: str = "cpu") -> RunInfo:
+    info = RunInfo.load(src)  # read again under the lock: what is current cannot change from here on
+    files = [(i, src / rel) for i, rel in info.files("fluid")]
+    reader = _Reader(files)
     first = reader.first()
-    if info is None:
-        info = _foreign_run_info(src, files, known, r, frame_dt, up, seed)
-    # Results for a whitecap run go into that run; anywhere else the fluid
-    # frames are copied along so the output is a complete run directory.
+    # Results go into the run; into another folder, the fluid frames are copied along so the
+    # output is a complete run directory.
     convert = out.resolve() != src.resolve()
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
@@ -368,12 +340,12 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
     stage.last_frame = files[-1][0] if files else None
     stage.start(info)
     if p.model == "foamgenerator":
-        tau = _foamgenerator_limits(stage.gen, files, first, up if not src_is_run else None, show_progress)
+        tau = _foamgenerator_limits(stage.gen, files, first, show_progress)
         stage.gen.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     elif p.auto and look_ahead:
-        _calibrate(stage, reader, info, frame_dt, src_is_run)
-    _run_frames(stage, reader, info, out, frame_dt, src_is_run, convert, show_progress)
+        _calibrate(stage, reader, info, frame_dt)
+    _run_frames(stage, reader, info, out, frame_dt, convert, show_progress)
     info.save(out)
     info.extra["out"] = str(out)  # for the caller's message; not saved
     _report(stage)
@@ -381,18 +353,17 @@ def _postprocess(src: Path, out: Path, files: list, info: RunInfo | None, known:
 
 
 class _Reader:
-    """The input's frames, each checked for velocities; the first and the sampled ones are kept."""
+    """The run's fluid frames, each checked for velocities; the first and the sampled ones are kept."""
 
-    def __init__(self, files: list[tuple[int, Path]], up: str | None):
+    def __init__(self, files: list[tuple[int, Path]]):
         self.files = files
-        self.kw = {"up": up} if up is not None else {}
         self.cache: dict[int, ParticleFrame] = {}
 
     def read(self, k: int, keep: bool = False) -> ParticleFrame:
         if k in self.cache:
             return self.cache.pop(k) if not keep else self.cache[k]
         path = self.files[k][1]
-        fr = read(path, **self.kw)
+        fr = read(path)
         if fr.velocities is None:
             raise InputError(f"{path}: missing array 'velocity'")
         if keep:
@@ -403,36 +374,7 @@ class _Reader:
         return self.read(0, keep=True)
 
 
-def _foreign_run_info(src: Path, files: list, known: dict, r: float, frame_dt: float, up: str,
-                      seed: int) -> RunInfo:
-    """A run.json for a sequence from another solver: the domain from its case file (or the
-    caller), else :func:`whitecap.io.run.flow_domain` of the fluid over all frames (as ``import``)."""
-    if "lower" in known and "upper" in known:
-        domain = {"lower": list(map(float, known["lower"])), "upper": list(map(float, known["upper"]))}
-        rule = f"the case's ({known['case']})" if "case" in known else "given"
-    else:
-        bounds = sequence_bounds([path for _, path in files], up=up)
-        if bounds is None:
-            raise InputError(f"{src}: all {len(files)} frames are empty (no particles), so there is nothing to "
-                             "make diffuse particles from")
-        domain, rule = flow_domain(bounds, r), DOMAIN_RULE
-    console.print(f"domain: {domain_text(domain)} ({rule})", soft_wrap=True)
-    info = RunInfo(
-        particle_radius=float(r), rest_density=float(known.get("rest_density", 1000.0)),
-        particle_mass=float(known.get("mass", 1000.0 * (2 * r) ** 3)), gravity=list(known.get("gravity", [0, 0, -9.81])),
-        domain=domain, frame_rate=1.0 / frame_dt,
-        extra={"source": str(src), "seed": seed, "domain_rule": rule,
-               **({"case": known["case"]} if "case" in known else {})},
-    )
-    info.simulation = _source_identity(files, up)
-    return info
-
-
-def _frame_time(info: RunInfo, index: int, frame_dt: float, src_is_run: bool) -> float:
-    return info.frame(index)["time"] if src_is_run else index * frame_dt
-
-
-def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float, src_is_run: bool) -> None:
+def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float) -> None:
     """'auto' from the whole sequence: potentials of frames sampled evenly across it."""
     from .budget import sample_count
 
@@ -441,17 +383,17 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
     samples = []
     for k in picks:
         fr = reader.read(k, keep=k == 0)
-        fr.time = _frame_time(info, reader.files[k][0], frame_dt, src_is_run)
+        fr.time = info.frame(reader.files[k][0])["time"]
         samples.append(fr)
-    times = np.array([_frame_time(info, i, frame_dt, src_is_run) for i, _ in reader.files], np.float64)
+    times = np.array([info.frame(i)["time"] for i, _ in reader.files], np.float64)
     # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
     n_s = np.array([len(f) for f in samples], np.float64)
     n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
     stage.gen.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files])
 
 
-def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, src_is_run: bool,
-                convert: bool, show_progress: bool) -> None:
+def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, convert: bool,
+                show_progress: bool) -> None:
     """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
     bar = progress(disable=not show_progress)
     with bar:
@@ -459,7 +401,7 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
         for k, (index, _) in enumerate(reader.files):
             fr = reader.read(k)
             fr.check_finite()
-            fr.time = _frame_time(info, index, frame_dt, src_is_run)
+            fr.time = info.frame(index)["time"]
             if convert:
                 rel = frame_name("fluid", index)
                 write(out / rel, fr)

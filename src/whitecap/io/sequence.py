@@ -31,6 +31,11 @@ def _readable(p: Path) -> bool:
     return any(name.endswith(ext) for f in formats(PARTICLES).values() if f.reader for ext in f.extensions)
 
 
+def particle_files(folder: Path) -> list[Path]:
+    """The files of ``folder`` the io registry reads as particles, sorted (hidden ones left out)."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and _readable(p))
+
+
 def glob_paths(spec: str | Path) -> list[Path]:
     """The files a glob pattern matches, sorted. Its leading folders that exist are taken
     literally, so a folder whose name holds ``[`` ``]`` (``run[1]/*.vtk``) is that folder,
@@ -63,7 +68,7 @@ def find_sequence(spec: str | Path) -> list[tuple[int, Path]]:
         if d.is_file():
             paths = [d]
         else:
-            paths = sorted(p for p in d.iterdir() if p.is_file() and not p.name.startswith(".") and _readable(p))
+            paths = particle_files(d)
             exts = {p.suffix.lower() for p in paths}
             if len(exts) > 1:
                 raise InputError(f"{d}: mixed file types {sorted(exts)}; pass a glob such as "

@@ -76,12 +76,18 @@ def point_arrays(ds) -> dict[str, np.ndarray]:
     return arrays
 
 
-def read_vtk(path: Path, up: str = "z", require_velocity: bool = True, by_id: bool = False) -> ParticleFrame:
+def read_points(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The points of a legacy VTK point data set, (N, 3) as stored, and its point arrays by name
+    (every particle, whatever its Type: DualSPHysics boundary particles too)."""
     from vtk.util.numpy_support import vtk_to_numpy
 
-    ds = _read_dataset(path)
-    pos = vtk_to_numpy(ds.GetPoints().GetData()).astype(np.float32)
-    arrays = point_arrays(ds)
+    ds = _read_dataset(Path(path))
+    return vtk_to_numpy(ds.GetPoints().GetData()).reshape(-1, 3), point_arrays(ds)
+
+
+def read_vtk(path: Path, up: str = "z", require_velocity: bool = True, by_id: bool = False) -> ParticleFrame:
+    pos, arrays = read_points(path)
+    pos = pos.astype(np.float32)
     vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing array 'Vel' (particle velocities); found {sorted(arrays) or 'no arrays'}")

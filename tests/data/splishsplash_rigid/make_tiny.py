@@ -27,15 +27,12 @@ sys.path.insert(0, str(ROOT))
 
 def main() -> None:
     from tests.test_cases_splishsplash import write_splishsplash_vtk
-    from whitecap.io.vtk_legacy import _read_dataset, point_arrays
-    from vtk.util.numpy_support import vtk_to_numpy
+    from whitecap.io.vtk_legacy import read_points
 
     for sub in ("vtk", "rigid_bodies", "obj", "Scenes", "models"):
         (HERE / sub).mkdir(exist_ok=True)
     for k in FRAMES:
-        ds = _read_dataset(SRC / "vtk" / f"ParticleData_Fluid_{k}.vtk")
-        a = point_arrays(ds)
-        pos = vtk_to_numpy(ds.GetPoints().GetData())
+        pos, a = read_points(SRC / "vtk" / f"ParticleData_Fluid_{k}.vtk")
         keep = a["id"].reshape(-1) % EVERY == 0
         write_splishsplash_vtk(HERE / "vtk" / f"ParticleData_Fluid_{k}.vtk", pos[keep], a["id"].reshape(-1)[keep],
                                a["velocity"].reshape(-1, 3)[keep], a["density"].reshape(-1)[keep])

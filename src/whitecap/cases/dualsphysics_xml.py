@@ -1,4 +1,5 @@
-"""DualSPHysics case XML: the spacing, mass, output time step and domain of a run, and its boundary shapes.
+"""The DualSPHysics case XML: the spacing, mass, output time step and domain of a run, and its
+boundary shapes (read by ``import`` and by ``foam`` over PartVTK frames).
 
 GenCase writes, besides the drawing commands, what it made of them:
 
@@ -63,7 +64,8 @@ def find_case_xml(folder: str | Path, xml: str | Path | None = None, option: str
     return found[0] if found else None
 
 
-def read_case(path: str | Path) -> CaseInfo:
+def read_xml(path: str | Path) -> CaseInfo:
+    """The case XML at ``path``: spacing, constants, output interval, domain and boundary shapes."""
     p = Path(path)
     try:
         root = ET.parse(p).getroot()
