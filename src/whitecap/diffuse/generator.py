@@ -60,10 +60,11 @@ MAX_FLUID_NEIGHBOURS = 96
 # (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
 GRID_GROWTH = 1.25
 # A frame's candidates are classified and placed this many at a time, in arrays of this size made once
-# (25 bytes a candidate: 52 MB): a splash makes ~86 a fluid particle (800k from the r = 4 mm dam break's
-# 71k), which stored whole would grow with the fluid (3.9 kB a fluid particle at 45 bytes each). A frame
-# with more is classified again when it is placed (and once more where the budget thins it).
-CANDIDATE_CHUNK = 1 << 21
+# (13 bytes a candidate, 25 with obstacles: 110 or 210 MB): a splash makes up to ~86 a fluid particle
+# (2.4M from the r = 4 mm dam break's 125k), which stored whole would grow with the fluid (3.9 kB a
+# fluid particle at the 45 bytes each they took before). A frame with more is classified again when it
+# is placed (and where the budget thins it): a cost only past ~100k fluid particles.
+CANDIDATE_CHUNK = 1 << 23
 
 
 @dataclass
@@ -851,7 +852,7 @@ class FoamGenerator:
         n = self._candidates["n"]
         kd, off, fx, fv, fid = b["cand_kind"], b["offset"], b["fluid_x"], b["fluid_v"], b["fluid_id"]
         flag, rank = self._buffer("cand_flag", chunk), self._buffer("cand_rank", chunk)
-        at, cx = self._buffer("cand_pos", chunk), self._buffer("cand_x", chunk, vec=True)
+        at, cx = self._buffer("cand_pos", chunk), self._buffer("cand_x", chunk if self.obstacles else 1, vec=True)
         frame, dt = index & 0xFFFFFFFF, self._dt
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
@@ -869,12 +870,12 @@ class FoamGenerator:
             kept = self._scan(size, flag, rank)
             if kept:
                 K.place_new(size, base, kd, rank, kept_before, room, n, off, fx, fv, fid, self.r, dt, self.seed, frame,
-                            lo, hi, cx, flag)
+                            lo, hi, int(bool(self.obstacles)), cx, flag)
                 self._free(size, cx, flag)  # nothing is born inside an obstacle
                 here = self._scan(size, flag, at)
                 if here:
                     K.scatter_new(size, base, flag, at, rank, kept_before, ns + placed, st.next_id & 0xFFFFFFFF, kd, n,
-                                  off, fx, fv, fid, b["e_k"], b["tau"], *life, cx, rng[0], rng[1],
+                                  off, fx, fv, fid, b["e_k"], b["tau"], *life, rng[0], rng[1],
                                   int(p.model == "foamgenerator"), max(p.lifetime_max - p.lifetime_min, 1e-30),
                                   p.lifetime_min, p.lifetime_max - p.lifetime_min,
                                   dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])

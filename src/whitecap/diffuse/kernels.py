@@ -685,18 +685,20 @@ def tally_kinds(n: ti.i32, kind: ti.types.ndarray(ndim=1), tally: I1):
 @ti.kernel
 def place_new(
     m: ti.i32, base: ti.i32, kind: B1, rank: I1, rank_base: ti.i32, room: ti.i32, n: ti.i32, offset: I1, x: F3,
-    v: F3, ids: U1, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, cx: F3, flag: I1,
+    v: F3, ids: U1, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, store_x: ti.i32,
+    cx: F3, flag: I1,
 ):
     """The kept candidates of the chunk base + j (j < m) that fit (their rank among the frame's kept,
-    rank_base + rank[j], in candidate order, below ``room``) and lie in the domain get flag 1, and their
-    position in cx[j]."""
+    rank_base + rank[j], in candidate order, below ``room``) and lie in the domain get flag 1, and, with
+    ``store_x`` (for the obstacles' test), their position in cx[j]."""
     for j in range(m):
         f = 0
         if kind[j] >= 0 and rank_base + rank[j] < room:
             k = base + j
             i = owner_of(k, n, offset)
             p, _, _ = new_particle(x[i], v[i], ids[i], k - offset[i], 0.0, 0.0, 0.0, 0.0, r_v, dt, seed, frame)
-            cx[j] = p
+            if store_x:
+                cx[j] = p
             f = inside_box(p, lo, hi)
         flag[j] = f
 
@@ -713,7 +715,7 @@ def outside_box(n: ti.i32, x: F3, flag: I1, lo: vec3, hi: vec3):
 def scatter_new(
     m: ti.i32, base: ti.i32, flag: I1, pos: I1, rank: I1, rank_base: ti.i32, out_base: ti.i32, next_id: ti.u32,
     kind: B1, n: ti.i32, offset: I1, x: F3, v: F3, ids: U1, e_k: F1, tau: F1, life_min: ti.f32, life_max: ti.f32,
-    life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, cx: F3, spray_range: vec3,
+    life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, spray_range: vec3,
     bubble_range: vec3, foamgenerator: ti.i32, span: ti.f32, life_min64: ti.f64, span64: ti.f64,
     ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
 ):
