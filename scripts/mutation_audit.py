@@ -197,10 +197,10 @@ MUTATIONS: list[Mutation] = [
       "g.at_frame(t, info.body_pose(max(index - 1, 0), g.index), 0.0 if first else dt,",
       ["tests/test_bodies.py"], "diffuse particles tested against the body where it was a frame before"),
     # ------------------------------------------------------------------ io/
-    M("usd-fps", "io/usd.py",
+    M("usd-fps", "export/usd.py",
       "    stage.SetFramesPerSecond(cache.frame_rate)\n", "",
       [IOA, "tests/test_export_usd.py"], "the USD stage's framesPerSecond not set"),
-    M("usd-body-op-order", "io/usd.py",
+    M("usd-body-op-order", "export/usd.py",
       "move, turn = m.AddTranslateOp(), m.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)",
       "turn, move = m.AddOrientOp(UsdGeom.XformOp.PrecisionDouble), m.AddTranslateOp()",
       ["tests/test_export_usd.py"], "a body's pose composed R·T instead of T·R"),

@@ -103,7 +103,7 @@ def test_an_interrupted_usd_export_is_cleaned_up_by_the_next(tiny_run, tmp_path,
     """Frame layers written by an export that stopped half-way are listed in export.json
     before they are written, so the next export removes those it does not use."""
     pytest.importorskip("pxr")
-    import whitecap.io.usd as usd
+    import whitecap.export.usd as usd
 
     run = _copy(tiny_run, tmp_path / "run")
     out = tmp_path / "out"
@@ -132,7 +132,7 @@ def test_an_interrupted_usd_export_is_cleaned_up_by_the_next(tiny_run, tmp_path,
 def test_an_interrupted_vtk_export_is_cleaned_up_by_the_next(tiny_run, tmp_path, monkeypatch):
     """An export with --split-types that stops half-way leaves per-type series; the next
     export (without the split) removes them, and leaves the user's file alone."""
-    import whitecap.surface.export as export
+    import whitecap.export.series as export
 
     run = _copy(tiny_run, tmp_path / "run")
     out = tmp_path / "out"
@@ -302,7 +302,7 @@ def test_jobs_below_one_are_refused_by_export_and_render(tiny_run, tmp_path, job
     assert main(["render", str(run), "--jobs", jobs]) == 2
     assert _one_line(capsys.readouterr().err) == f"error: render: --jobs must be at least 1 (got {jobs})\n"
     from whitecap.errors import InputError
-    from whitecap.render.exchange import export_scene
+    from whitecap.export.scene import export_scene
 
     with pytest.raises(InputError, match=rf"^export: --jobs must be at least 1 \(got {jobs}\)$"):
         export_scene(run, to="usd", out=tmp_path / "out", show_progress=False, jobs=int(jobs))

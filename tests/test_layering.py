@@ -10,15 +10,16 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "whitecap"
 # (the viewer draws the solver's and the foam's frames) but never a later one.
 FLOORS = [
     {"errors", "timing", "progress", "resources", "workers", "__init__"},
-    {"io", "config", "executor"},
+    {"io", "config", "executor", "stage_frames"},
     {"geometry", "terrain"},
     {"cases"},   # import: foreign cases into run directories
     {"sim"},     # simulate
     {"diffuse"},  # foam
     {"view"},
-    {"surface"},  # mesh / export
+    {"surface"},  # mesh
     {"blender"},  # the bpy layer shared by render and the Blender add-on
     {"render"},
+    {"export"},  # export: series and scenes (the scene's camera and looks are the renderer's)
     {"pipeline"},
     {"cli"},
 ]

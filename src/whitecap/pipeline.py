@@ -222,12 +222,12 @@ def export(
     from .errors import InputError
 
     if to in ("usd", "abc"):
-        from .render.exchange import export_scene
+        from .export.scene import export_scene
 
         return export_scene(run, to=to, out=out, show_progress=show_progress, jobs=jobs)
     if to not in EXPORT_TARGETS:
         raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
-    from .surface.export import export_run
+    from .export.series import export_run
 
     return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress, jobs=jobs,
                       cluster=cluster)

@@ -2,13 +2,13 @@
 
 Formats register themselves on import (one module per format) in the one
 registry, :mod:`whitecap.io.registry`, as particle, mesh or scene formats. Importing
-``whitecap.io`` loads all built-in formats.
+``whitecap.io`` loads the built-in particle and mesh formats; the scene formats (USD,
+Alembic) register from :mod:`whitecap.export`, their one user.
 """
 
 from . import bgeo, npz, ply, vtk_legacy, vtu  # noqa: F401  (registers the formats)
 from . import mesh_ply  # noqa: F401  (registers the PLY surface-mesh format)
 from . import mesh_obj  # noqa: F401  (registers the OBJ surface-mesh format)
-from . import alembic, usd  # noqa: F401  (register the scene formats; pxr and bpy load only when used)
 from .atomic import atomic_path, write_bytes, write_text
 from .frame import ParticleFrame
 from .registry import FORMATS, find_array, read, read_mesh, register, write, write_mesh, write_scene

@@ -39,6 +39,7 @@ from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
+from ..stage_frames import check_jobs, todo as stage_todo
 from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
@@ -260,8 +261,6 @@ def render_run(
     scheduler address, or local, slurm, pbs) renders the frames on Dask, one
     Blender process per Dask worker (:mod:`whitecap.render.cluster`).
     """
-    from ..surface.export import check_jobs
-
     check_jobs("render", jobs)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -305,8 +304,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
     keys = {i: frame_key(run_dir, info, cfg, quality, i) for i in wanted}
-    todo = [i for i in wanted if force or i not in current or info.frame(i).get("render_key") != keys[i]
-            or not _done(frame_path(run_dir, i), size)]
+    todo = stage_todo(wanted, lambda i: i in current and info.frame(i).get("render_key") == keys[i]
+                      and _done(frame_path(run_dir, i), size), force)
     blend = run_dir / "render" / "scene.blend"
     made = info.extra.get("blend")
     look = frame_key(run_dir, info, cfg, quality, None)

@@ -23,13 +23,12 @@ from pydantic import ValidationError
 
 from ..config import Cluster, Mesh, load_scene
 from ..errors import InputError
-from ..executor import executor, map_frames
 from ..io.atomic import sweep_temps
 from ..io.lock import read_lock, run_lock
 from ..io.manifest import Manifest
 from ..io.run import RUN_JSON, RunInfo, refuse_inside_other_run, source_identity
 from ..io.sequence import find_sequence
-from ..progress import progress
+from ..stage_frames import map_over_frames, todo as stage_todo
 from ..timing import timer
 from .reconstruct import MeshParams, mesh_frame, params_from_config, walls_from_run
 
@@ -179,7 +178,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         manifest = Manifest(job.frames[0][2].parent, MESH_MANIFEST)
         keys = {i: _frame_key(p, job.params) for i, p, _, _ in job.frames}
         job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}
-    todo = [f for f in job.frames if force or not _done(job, f)]
+    todo = stage_todo(job.frames, lambda f: _done(job, f), force)
     if job.run_dir is not None:  # inside the run: never over a file the run holds as something else
         others = {rel: kind for f in info.frames for kind, rel in f["files"].items() if kind != "mesh"}
         for _, _, o, rel in todo:
@@ -208,26 +207,21 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
                 cluster_config: Cluster | None = None) -> None:
     if not todo:
         return
-    shared = job.run_dir if job.run_dir is not None else todo[0][2].parent
-    ex = executor(cluster, shared, jobs=min(jobs, len(todo)), cfg=cluster_config)
-    try:
-        with progress(disable=None if show_progress else True) as bar, timer("mesh"):
-            task = bar.add_task("mesh", total=len(job.frames), completed=len(stats), info="")
 
-            def done(r) -> str:
-                s = r.value
-                stats[r.index] = {"index": r.index, "skipped": False, **s}
-                if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
-                    job.stats = [stats[r.index]]
-                    record(job)
-                elif job.on_done is not None:
-                    job.on_done(r.index)
-                return f"{s['particles']} particles -> {s['faces']} triangles"
+    def done(r) -> str:
+        s = r.value
+        stats[r.index] = {"index": r.index, "skipped": False, **s}
+        if job.run_dir is not None:  # recorded at once, so a killed mesh resumes after its last frame
+            job.stats = [stats[r.index]]
+            record(job)
+        elif job.on_done is not None:
+            job.on_done(r.index)
+        return f"{s['particles']} particles -> {s['faces']} triangles"
 
-            map_frames(ex, "mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], bar, task, done,
-                       report=show_progress)
-    finally:
-        ex.close()
+    map_over_frames("mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], done,
+                    shared=job.run_dir if job.run_dir is not None else todo[0][2].parent, jobs=jobs, cluster=cluster,
+                    cfg=cluster_config, total=len(job.frames), completed=len(stats), show_progress=show_progress,
+                    around=lambda: timer("mesh"))
 
 
 def record(job: MeshJob) -> RunInfo:

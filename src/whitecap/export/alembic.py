@@ -1,7 +1,7 @@
 """Alembic: a whole run as one ``.abc`` archive, through Blender's own Alembic exporter (``bpy``).
 
 No maintained Alembic package is on the package registry, and bpy is
-already a dependency. The content is the USD stage's (:mod:`whitecap.io.usd`):
+already a dependency. The content is the USD stage's (:mod:`whitecap.export.usd`):
 the stage is written to a temporary directory, Blender imports it (its
 importer reads the per-frame layers through USD's value clips, so the fluid
 mesh, its ``velocity`` attribute and the particles follow the frame), and
@@ -34,9 +34,9 @@ from pathlib import Path
 from typing import Callable
 
 from ..errors import InputError, MissingDependency
-from .atomic import atomic_path
-from .cache import SceneCache
-from .registry import SCENE, register
+from ..io.atomic import atomic_path
+from ..io.cache import SceneCache
+from ..io.registry import SCENE, register
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
 
@@ -69,7 +69,7 @@ def write_abc(path: str | Path, cache: SceneCache, advance: Callable[[str], None
         job = {"usd": str(usd), "first": cache.first, "last": cache.last, "fps": cache.frame_rate, "radii": radii}
         with atomic_path(path) as tmp:
             job["abc"] = str(tmp)
-            res = subprocess.run([sys.executable, "-m", "whitecap.io.alembic", json.dumps(job)], capture_output=True,
+            res = subprocess.run([sys.executable, "-m", "whitecap.export.alembic", json.dumps(job)], capture_output=True,
                                  text=True, env=child_env())
             if res.returncode != 0 or not tmp.stat().st_size:
                 last = (res.stderr.strip().splitlines() or ["no output"])[-1]

@@ -16,9 +16,9 @@ The scene is the one the renderer builds (no Blender needed to describe it):
 - the camera as the renderer places it (:func:`whitecap.render.stage.camera_keys`,
   framing at the final resolution's aspect).
 
-The writers are the io registry's scene formats (``usd``: :mod:`whitecap.io.usd`,
-``abc``: :mod:`whitecap.io.alembic`). Output goes to ``RUN/export/<to>/scene.<to>``.
-As for the ParaView series (:mod:`whitecap.surface.export`), ``export.json`` there
+The writers are the io registry's scene formats, registered by this package (``usd``:
+:mod:`whitecap.export.usd`, ``abc``: :mod:`whitecap.export.alembic`). Output goes to ``RUN/export/<to>/scene.<to>``.
+As for the ParaView series (:mod:`whitecap.export.series`), ``export.json`` there
 lists whitecap's files (the USD frame layers too), extended before anything is
 written; an export removes only listed files it did not write again. With ``--out``
 outside the run, the run is only read (a shared lock) and may be read-only.
@@ -40,8 +40,9 @@ from ..io.diffuse_types import TYPE_NAMES
 from ..io.lock import export_locks
 from ..io.run import RunInfo
 from ..progress import progress
-from . import stage
-from .scene import diffuse_radius
+from ..render import stage
+from ..render.scene import diffuse_radius
+from .series import export_target, record_planned, replace_previous
 
 SCENE_TARGETS = ("usd", "abc")
 #: Bumped when what a frame layer holds changes, so that a rerun rewrites old frame layers.
@@ -178,18 +179,9 @@ def export_scene(run: str | Path, to: str = "usd", out: str | Path | None = None
     """Write ``run`` as one scene file (``RUN/export/<to>/scene.<to>`` unless ``out`` names a
     directory). Returns {target: path}, plus {"note": ...} when the export left something out.
     ``jobs`` is checked as for the series (one process writes a scene)."""
-    from ..surface.export import check_jobs
-
-    if to not in SCENE_TARGETS:
-        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(SCENE_TARGETS)})")
-    check_jobs("export", jobs)
-    run = Path(run)
-    if not run.is_dir():
-        raise InputError(f"{run}: no such run directory")
-    out = Path(out) if out is not None else run / "export" / to
+    run, out = export_target(run, to, SCENE_TARGETS, out, jobs, sub=to)
     with export_locks(run, out, "export"):
-        from ..surface.export import record_planned, replace_previous
-        from .driver import render_settings
+        from ..render.driver import render_settings
 
         info = RunInfo.load(run)
         cfg = render_settings(run)
@@ -197,7 +189,7 @@ def export_scene(run: str | Path, to: str = "usd", out: str | Path | None = None
         cache = build_cache(run, info, cfg)
         path = out / f"scene.{to}"
         if to == "usd":
-            from ..io.usd import files
+            from .usd import files
 
             written = {str(f.relative_to(out)) for f in files(path, cache)}
         else:

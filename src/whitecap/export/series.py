@@ -31,13 +31,12 @@ from ..io.diffuse_types import TYPE_NAMES
 from ..io.frame import ParticleFrame
 from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
 from ..io.pvd import write_pvd, write_series
-from ..executor import cluster_settings, executor, map_frames
-from ..io.atomic import sweep_temps, write_text
+from ..executor import cluster_settings
 from ..io.lock import export_locks
 from ..io.manifest import Manifest
 from ..io.run import RunInfo
 from ..io.vtk_xml import write_vtp
-from ..progress import progress
+from ..stage_frames import check_jobs, map_over_frames
 
 #: diffuse particle ``type`` codes of the run-directory contract
 TARGETS = ("vtk", "ply")  # vtk: .vtp/.vtu + .pvd; ply: PLY + .series
@@ -95,21 +94,22 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     local processes, or on Dask with ``cluster``; the collections are written
     here, from the frame list, so they do not depend on which frame finished first.
     """
-    if to not in TARGETS:
-        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(TARGETS)})")
-    check_jobs("export", jobs)
-    run = Path(run)
-    if not run.is_dir():
-        raise InputError(f"{run}: no such run directory")
-    out = Path(out) if out is not None else run / "export"
+    run, out = export_target(run, to, TARGETS, out, jobs)
     with export_locks(run, out, "export"):
         return _export(run, to, out, split_types, kinds, show_progress, jobs or 1, cluster)
 
 
-def check_jobs(stage: str, jobs: int | None) -> None:
-    """``--jobs`` is a count of processes: None (the default) or at least 1."""
-    if jobs is not None and jobs < 1:
-        raise InputError(f"{stage}: --jobs must be at least 1 (got {jobs})")
+def export_target(run: str | Path, to: str, targets: tuple[str, ...], out: str | Path | None, jobs: int | None,
+                  sub: str = "") -> tuple[Path, Path]:
+    """Check an export's target, ``--jobs`` and run; returns the run and the output folder
+    (``out``, else ``RUN/export``, or ``RUN/export/<sub>``)."""
+    if to not in targets:
+        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(targets)})")
+    check_jobs("export", jobs)
+    run = Path(run)
+    if not run.is_dir():
+        raise InputError(f"{run}: no such run directory")
+    return run, Path(out) if out is not None else run / "export" / sub
 
 
 def export_frame(src: Path, kind: str, paths: dict[str, Path], to: str) -> None:
@@ -153,15 +153,9 @@ def _export(run: Path, to: str, out: Path, split_types: bool, kinds: tuple[str, 
     collections = {f"{name}.{'pvd' if to == 'vtk' else 'series'}" for name in series}
     files = collections | {rel for entries in series.values() for _, rel in entries}
     record_planned(out, info.simulation, files)
-    ex = executor(cluster, run, jobs=min(max(1, jobs), len(tasks)), cfg=cluster_settings(run) if cluster else None)
-    try:
-        with progress(disable=None if show_progress else True) as bar:
-            task = bar.add_task("export", total=len(work), info="")
-            map_frames(ex, "export", export_frame, tasks, bar, task, lambda r: work[r.index][2], report=show_progress)
-    finally:
-        ex.close()
-        for name in series:
-            sweep_temps(out / name)
+    map_over_frames("export", export_frame, tasks, lambda r: work[r.index][2], shared=run, jobs=jobs, cluster=cluster,
+                    cfg=cluster_settings(run) if cluster else None, show_progress=show_progress,
+                    sweep=[out / name for name in series])
 
     written: dict[str, Path] = {}
     for name, entries in series.items():

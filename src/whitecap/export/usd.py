@@ -53,10 +53,10 @@ from typing import Callable
 import numpy as np
 
 from ..errors import MissingDependency
-from .atomic import atomic_path
-from .cache import PointSet, SceneCache
-from .mesh import SurfaceMesh
-from .registry import SCENE, register
+from ..io.atomic import atomic_path
+from ..io.cache import PointSet, SceneCache
+from ..io.mesh import SurfaceMesh
+from ..io.registry import SCENE, register
 
 INSTALL_HINT = "install it with: pip install 'whitecap[usd]' (Pixar's usd-core)"
 WORLD = "/World"
