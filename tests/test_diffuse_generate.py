@@ -182,3 +182,21 @@ def test_candidates_a_chunk_at_a_time_give_the_same_bytes(monkeypatch, preset):
             assert x.tobytes() == y.tobytes()
     assert g1.state.counts == g2.state.counts and g1.state.next_id == g2.state.next_id
     assert bool(thinned) == (preset == "auto")
+
+
+def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
+    """kernels.generate_candidates (what the generator runs, a chunk at a time) writes the bits kernels.generate
+    (per fluid particle) writes, for every candidate a type may keep: the classification sees the positions
+    the particles are born at."""
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    gen.step(frame, 0, DT)
+    b, c, n = gen._bufs, gen.candidates(), len(frame)
+    total = c["total"]
+    (x, v, life), _ = _all_candidates(gen, frame, 0)
+    owner = np.repeat(np.arange(n), c["counts"])
+    slot = np.arange(total) - c["offset"][owner]
+    need = (slot[:, None] < b["limit"].to_numpy()[:n][owner]).any(1)
+    assert need.sum() > 1000
+    for ref, got in ((x, "cand_x"), (v, "cand_v"), (life, "cand_life")):
+        assert ref[need].tobytes() == b[got].to_numpy()[:total][need].tobytes()

@@ -59,12 +59,12 @@ MAX_FLUID_NEIGHBOURS = 96
 # The fluid neighbour grid, when the fluid outgrows it (inflow), is rebuilt this many times larger
 # (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
 GRID_GROWTH = 1.25
-# A frame's candidates are classified and placed this many at a time, in arrays of this size made once
-# (13 bytes a candidate, 25 with obstacles: 110 or 210 MB): a splash makes up to ~86 a fluid particle
-# (2.4M from the r = 4 mm dam break's 125k), which stored whole would grow with the fluid (3.9 kB a
-# fluid particle at the 45 bytes each they took before). A frame with more is classified again when it
-# is placed (and where the budget thins it): a cost only past ~100k fluid particles.
-CANDIDATE_CHUNK = 1 << 23
+# A frame's candidates are generated, classified and placed this many at a time, in arrays of this size
+# made once (45 bytes a candidate: 190 MB at most): a splash makes up to ~86 a fluid particle (2.4M
+# from the r = 4 mm dam break's 125k), which stored whole would grow with the fluid (3.9 kB a fluid
+# particle). A frame with more is generated and classified again when it is placed (and where the
+# budget thins it): a cost only past ~50k-200k fluid particles, depending on the splash.
+CANDIDATE_CHUNK = 1 << 22
 
 
 @dataclass
@@ -699,7 +699,7 @@ class FoamGenerator:
         thinned by their type's multiplier (K.candidate_limits, K.classify_candidates), CANDIDATE_CHUNK at a
         time. Under 'auto' with the budget, the kept are thinned again (K.thin_kept) so that no type passes its
         share and the frame not the budget: that reads back three counts. Returns (kept, kept by type, beyond
-        slots_per_particle); _compact places the kept (self._rule: the thinning they were kept with)."""
+        slots_per_particle); _compact places the kept (the limits they were kept with in 'want')."""
         p = self.p
         v_diff, crest, e_k, vort = pots
         self._dt = dt
@@ -734,24 +734,27 @@ class FoamGenerator:
         # only the work that decides whether a candidate is kept.
         mult32 = self._upload("mult", mult.astype(np.float32), ti.f32)
         most32 = np.float32(most)
-        lim = self._buffer("limit", m, cols=3)
-        K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, lim)
+        lim, want = self._buffer("limit", m, cols=3), self._buffer("want", m, ti.f32, cols=3)
+        K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, want, lim)
         chunk = min(total, CANDIDATE_CHUNK)
-        kd = self._buffer("cand_kind", chunk, ti.i8)
+        kd, owner = self._buffer("cand_kind", chunk, ti.i8), self._buffer("cand_owner", chunk)
         g = self.grid
         box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
                int(p.model == "foamgenerator" and p.wall_correction))
-        cut = np.ones(3, np.float32)
-        self._rule = (cut, np.float32(1.0), False)  # no thinning beyond the limits yet
+        self._thin = False  # no thinning beyond the limits (yet)
+
+        cx, cv = self._buffer("cand_x", chunk, vec=True), self._buffer("cand_v", chunk, vec=True)
+        cl = self._buffer("cand_life", chunk, ti.f32)
 
         def classify(base: int, size: int) -> None:
-            K.classify_candidates(size, base, n, off, lim, fx, fv, fid, self.r, dt, self.seed, frame, g.nb_count,
+            K.chunk_owners(n, base, size, cnt, off, owner)
+            K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
+                                  p.lifetime_multiplier, self.r, dt, self.seed, frame, cx, cv, cl)
+            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count,
                                   g.nb, *args[:7], *box, kd)
 
         def thin(base: int, size: int, tally) -> None:
-            c, s2, _ = self._rule
-            K.thin_kept(size, base, kd, n, off, rate, fid, most32, mult32, self._upload("cut", c, ti.f32), s2,
-                        self.seed, frame, half_up, tally)
+            K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)
 
         self._chunks = (total, chunk, classify, thin)
         tally = self._buffer("tally", 3)
@@ -771,17 +774,18 @@ class FoamGenerator:
             room = np.maximum(p.budget * n * share - live, 0.0)
             cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0).astype(np.float32)
             if (cut < 1).any():
-                self._rule = (cut, np.float32(1.0), True)
+                K.scale_want(n, want, self._upload("cut", cut, ti.f32))
                 made = self._thinned()
             room = p.budget * n - live.sum()
             if made.sum() > max(room, 0):
-                self._rule = (cut, np.float32(max(room, 0) / made.sum()), True)
+                K.scale_want(n, want, self._upload("cut", np.full(3, max(room, 0) / made.sum(), np.float32), ti.f32))
                 made = self._thinned()
         return int(made.sum()), [int(x) for x in made], lost
 
     def _thinned(self) -> np.ndarray:
-        """The kept candidates by type under self._rule (K.thin_kept: in place where one chunk holds them all,
-        thinner limits keep a subset; chunk by chunk, classified again, otherwise)."""
+        """The kept candidates by type under the limits in 'want' (K.thin_kept: in place where one chunk holds
+        them all, thinner limits keep a subset; chunk by chunk, classified again, otherwise)."""
+        self._thin = True
         total, chunk, classify, thin = self._chunks
         tally = self._buffer("tally", 3)
         tally.fill(0)
@@ -808,7 +812,7 @@ class FoamGenerator:
         Places are exclusive prefix sums of keep flags (_scan); particles outside the domain or inside an
         obstacle go. The new particles are placed a chunk of candidates at a time (classified and thinned
         again where the frame had more than one chunk). Returns the count of each type."""
-        p, st = self.p, self.state
+        st = self.state
         src, dst = self._live[self._cur], self._live[1 - self._cur]
         keep, pos = self._bufs["live_keep"], self._bufs["live_pos"]
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
@@ -849,35 +853,33 @@ class FoamGenerator:
         the ``ns`` survivors, chunk by chunk; returns how many."""
         p, st, b = self.p, self.state, self._bufs
         total, chunk, classify, thin = self._chunks
-        n = self._candidates["n"]
-        kd, off, fx, fv, fid = b["cand_kind"], b["offset"], b["fluid_x"], b["fluid_v"], b["fluid_id"]
+        kd, owner, off, fid = b["cand_kind"], b["cand_owner"], b["offset"], b["fluid_id"]
         flag, rank = self._buffer("cand_flag", chunk), self._buffer("cand_rank", chunk)
-        at, cx = self._buffer("cand_pos", chunk), self._buffer("cand_x", chunk if self.obstacles else 1, vec=True)
-        frame, dt = index & 0xFFFFFFFF, self._dt
+        at, cx = self._buffer("cand_pos", chunk), b["cand_x"]
+        frame = index & 0xFFFFFFFF
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
                for r in (p.spray_lifetime, p.bubble_lifetime)]
-        life = (p.lifetime_min, p.lifetime_max, p.lifetime_multiplier, self.r, dt, self.seed, frame)
         scratch = self._buffer("tally_scratch", 3)
         kept_before, placed = 0, 0
         for base in range(0, total, chunk):
             size = min(chunk, total - base)
             if total > chunk:  # the chunk's types again, thinned as _generate thinned them
                 classify(base, size)
-                if self._rule[2]:
+                if self._thin:
                     thin(base, size, scratch)
             K.kept_flags(size, kd, flag)
             kept = self._scan(size, flag, rank)
             if kept:
-                K.place_new(size, base, kd, rank, kept_before, room, n, off, fx, fv, fid, self.r, dt, self.seed, frame,
-                            lo, hi, int(bool(self.obstacles)), cx, flag)
+                K.place_new(size, kd, rank, kept_before, room, cx, lo, hi, flag)
                 self._free(size, cx, flag)  # nothing is born inside an obstacle
                 here = self._scan(size, flag, at)
                 if here:
-                    K.scatter_new(size, base, flag, at, rank, kept_before, ns + placed, st.next_id & 0xFFFFFFFF, kd, n,
-                                  off, fx, fv, fid, b["e_k"], b["tau"], *life, rng[0], rng[1],
-                                  int(p.model == "foamgenerator"), max(p.lifetime_max - p.lifetime_min, 1e-30),
-                                  p.lifetime_min, p.lifetime_max - p.lifetime_min,
+                    K.scatter_new(size, base, flag, at, rank, kept_before, ns + placed, st.next_id & 0xFFFFFFFF, kd,
+                                  owner, off, fid, b["e_k"], b["tau"], cx, b["cand_v"], b["cand_life"],
+                                  p.lifetime_min, rng[0], rng[1], int(p.model == "foamgenerator"),
+                                  max(p.lifetime_max - p.lifetime_min, 1e-30), p.lifetime_min,
+                                  p.lifetime_max - p.lifetime_min, self.seed, frame,
                                   dst["x"], dst["v"], dst["life"], dst["ids"], dst["kind"])
                 placed += here
             kept_before += kept

@@ -22,6 +22,7 @@ from . import splishsplash as SP
 vec3 = ti.math.vec3
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 B1 = ti.types.ndarray(dtype=ti.i8, ndim=1)  # a diffuse type per particle (or NOT_KEPT)
+F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 
 # δ_vn of the wave-crest potential: a surface particle counts as a crest only
 # while it moves along its normal, v̂_i·n̂_i ≥ this cosine (Ihmsen et al. 2012, Sec. 4.2).
@@ -238,31 +239,13 @@ def generate(
                                                            r_v, dt, seed, frame)
 
 
-@ti.func
-def owner_of(k, n, offset: I1) -> ti.i32:
-    """The fluid particle whose run of candidates [offset[i], offset[i] + count[i]) holds candidate k: the
-    last i with offset[i] ≤ k (a particle with no candidates shares its offset with the next one), by
-    bisection over the non-decreasing offsets."""
-    lo, hi = 0, n - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if offset[mid] <= k:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-@ti.func
-def candidate(k, n, offset: I1, x: F3, v: F3, ids: U1, e_k: F1, tau: F1, life_min, life_max, life_mult, r_v, dt,
-              seed, frame):
-    """Candidate k of a frame: (its fluid particle i, its slot s, x_d, v_d, lifetime), as :func:`generate`
-    writes it; computed where it is needed instead of stored (a splash has ~86 a fluid particle)."""
-    i = owner_of(k, n, offset)
-    s = k - offset[i]
-    i_k = clamp_phi(e_k[i], tau[4], tau[5])
-    xd, vd, life = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult, r_v, dt, seed, frame)
-    return i, s, xd, vd, life
+@ti.kernel
+def chunk_owners(n: ti.i32, base: ti.i32, m: ti.i32, count: I1, offset: I1, owner: I1):
+    """owner[k − base] = i for the candidates k of the chunk [base, base + m) in the run [offset[i],
+    offset[i] + count[i]) of fluid particle i (see generate)."""
+    for i in range(n):
+        for k in range(ti.max(offset[i], base), ti.min(offset[i] + count[i], base + m)):
+            owner[k - base] = i
 
 
 @ti.kernel
@@ -454,19 +437,37 @@ def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32) -
 
 
 @ti.kernel
+def generate_candidates(
+    m: ti.i32, base: ti.i32, owner: I1, offset: I1, limit: I2, x: F3, v: F3, ids: U1, e_k: F1, tau: F1,
+    life_min: ti.f32, life_max: ti.f32, life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32,
+    out_x: F3, out_v: F3, out_life: F1,
+):
+    """:func:`generate`'s particles for the chunk of candidates base + j (j < m; candidate k is slot
+    k − offset[i] of fluid particle i = owner[j], see chunk_owners), in parallel over them (a splash crowds
+    its candidates into a few fluid particles, 800k from 3.6k in the r = 4 mm dam break, which one thread
+    each would share badly); only those a type may keep (the others are never looked at). All three are
+    written: a kernel that kept only the positions would compile them with other roundings (fast math
+    contracts the shared offset into the position), and the classification would not see the positions
+    the particles are born at."""
+    for j in range(m):
+        k = base + j
+        i = owner[j]
+        s = k - offset[i]
+        if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+            i_k = clamp_phi(e_k[i], tau[4], tau[5])
+            out_x[j], out_v[j], out_life[j] = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult,
+                                                           r_v, dt, seed, frame)
+
+
+@ti.kernel
 def classify_candidates(
     m: ti.i32,
     base: ti.i32,
-    n: ti.i32,
+    owner: I1,
     offset: I1,
     limit: I2,
+    xd: F3,
     x: F3,
-    v: F3,
-    ids: U1,
-    r_v: ti.f32,
-    dt: ti.f32,
-    seed: ti.u32,
-    frame: ti.u32,
     nb_count: I1,
     nb: I2,
     lower: vec3,
@@ -484,7 +485,7 @@ def classify_candidates(
     kind: B1,
 ):
     """Which of the candidates k = base + j (j < m, a chunk of the frame's) are kept: candidate k, at slot s of
-    fluid particle i (see candidate), is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t],
+    fluid particle i = owner[j] at xd[j] (generate_candidates), is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t],
     the particle's n_d·m_t rounded (see kept_limit). The type is found with the least work that decides this:
     - s at or above every type's limit: never kept, no count;
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
@@ -495,12 +496,11 @@ def classify_candidates(
     kind[j] is the type of a kept candidate and NOT_KEPT for the others."""
     r2_owner = (h * (1.0 - OWNER_SLACK)) ** 2
     for j in range(m):
-        k = base + j
-        i = owner_of(k, n, offset)
-        s = k - offset[i]
+        i = owner[j]
+        s = base + j - offset[i]
         t = NOT_KEPT
         if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
-            p, _, _ = new_particle(x[i], v[i], ids[i], s, 0.0, 0.0, 0.0, 0.0, r_v, dt, seed, frame)
+            p = xd[j]
             full = 0
             if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
                 full = 1
@@ -619,11 +619,8 @@ def scatter_survivors(
 
 # ---------------------------------------------------------------- the keep rule of the new particles
 @ti.func
-def kept_limit(rate: ti.f32, most: ti.f32, m: ti.f32, cut: ti.f32, s2: ti.f32, u0: ti.f32, round_half_up: ti.i32) -> ti.f32:
-    """How many of its candidates a fluid particle keeps for a type: n_d·m_t (n_d = rate/most, the rate
-    of the most generous type), times the budget's cuts (``cut`` of the type, then ``s2`` of all; 1
-    without), rounded with the particle's own draw u0 (or half up, FoamGenerator's)."""
-    want = rate / most * m * cut * s2
+def rounded(want: ti.f32, u0: ti.f32, round_half_up: ti.i32) -> ti.f32:
+    """A fluid particle's n_d·m_t rounded with its own draw u0 (or half up, FoamGenerator's)."""
     f = ti.floor(want)
     lim = f + ti.cast(u0 < want - f, ti.f32)
     if round_half_up:
@@ -634,16 +631,30 @@ def kept_limit(rate: ti.f32, most: ti.f32, m: ti.f32, cut: ti.f32, s2: ti.f32, u
 @ti.kernel
 def candidate_limits(
     n: ti.i32, count: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, seed: ti.u32, frame: ti.u32,
-    round_half_up: ti.i32, limit: I2,
+    round_half_up: ti.i32, want: F2, limit: I2,
 ):
-    """limit[i, t]: the slots of fluid particle i that type t may keep (see kept_limit); zero without candidates."""
+    """want[i, t] = n_d·m_t of fluid particle i for type t (n_d = rate/most: the rate of the most generous
+    type), and limit[i, t], the slots that type t may keep: want rounded (see rounded); zero without
+    candidates."""
     for i in range(n):
         u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
+        nd = rate[i] / most
         for t in ti.static(range(3)):
+            w = nd * mult[t]
+            want[i, t] = w
             lim = 0.0
             if count[i] > 0:
-                lim = ti.min(kept_limit(rate[i], most, mult[t], 1.0, 1.0, u0, round_half_up), 2.0**30)
+                lim = ti.min(rounded(w, u0, round_half_up), 2.0**30)
             limit[i, t] = ti.cast(lim, ti.i32)
+
+
+@ti.kernel
+def scale_want(n: ti.i32, want: F2, factor: F1):
+    """want[i, t] ×= factor[t]: the budget's cut of each type, or its common cut (one rounding each, in this
+    order: a product of several factors in one expression may be reordered by the compiler's fast math)."""
+    for i in range(n):
+        for t in ti.static(range(3)):
+            want[i, t] = want[i, t] * factor[t]
 
 
 @ti.kernel
@@ -654,20 +665,20 @@ def kept_flags(total: ti.i32, kind: B1, flag: I1):
 
 @ti.kernel
 def thin_kept(
-    m: ti.i32, base: ti.i32, kind: B1, n: ti.i32, offset: I1, rate: F1, ids: U1, most: ti.f32, mult: F1, cut: F1,
-    s2: ti.f32, seed: ti.u32, frame: ti.u32, round_half_up: ti.i32, tally: I1,
+    m: ti.i32, base: ti.i32, kind: B1, owner: I1, offset: I1, want: F2, ids: U1, seed: ti.u32, frame: ti.u32,
+    round_half_up: ti.i32, tally: I1,
 ):
-    """The keep rule again with lower limits (each type's ``cut`` and the common ``s2`` for the budget) on the
-    chunk of candidates base + j (j < m; their types in kind[j]): a kept candidate whose slot reaches its
-    type's new limit is no longer kept. Counts the kept by type in tally[0..3) (integer atomics: the same
-    whatever the order)."""
+    """The keep rule again with lower limits (``want`` after scale_want's cuts for the budget) on the chunk of
+    candidates base + j (j < m; their types in kind[j]): a kept candidate whose slot reaches its type's new
+    limit is no longer kept. Counts the kept by type in tally[0..3) (integer atomics: the same whatever the
+    order)."""
     for j in range(m):
         t = ti.cast(kind[j], ti.i32)
         if t >= 0:
             k = base + j
-            i = owner_of(k, n, offset)
+            i = owner[j]
             u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
-            if k - offset[i] >= kept_limit(rate[i], most, mult[t], cut[t], s2, u0, round_half_up):
+            if k - offset[i] >= rounded(want[i, t], u0, round_half_up):
                 kind[j] = ti.cast(NOT_KEPT, ti.i8)
             else:
                 ti.atomic_add(tally[t], 1)
@@ -683,23 +694,13 @@ def tally_kinds(n: ti.i32, kind: ti.types.ndarray(ndim=1), tally: I1):
 
 
 @ti.kernel
-def place_new(
-    m: ti.i32, base: ti.i32, kind: B1, rank: I1, rank_base: ti.i32, room: ti.i32, n: ti.i32, offset: I1, x: F3,
-    v: F3, ids: U1, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, lo: vec3, hi: vec3, store_x: ti.i32,
-    cx: F3, flag: I1,
-):
-    """The kept candidates of the chunk base + j (j < m) that fit (their rank among the frame's kept,
-    rank_base + rank[j], in candidate order, below ``room``) and lie in the domain get flag 1, and, with
-    ``store_x`` (for the obstacles' test), their position in cx[j]."""
+def place_new(m: ti.i32, kind: B1, rank: I1, rank_base: ti.i32, room: ti.i32, cx: F3, lo: vec3, hi: vec3, flag: I1):
+    """The kept candidates j of a chunk (j < m; positions cx[j]) that fit (their rank among the
+    frame's kept, rank_base + rank[j], in candidate order, below ``room``) and lie in the domain get flag 1."""
     for j in range(m):
         f = 0
         if kind[j] >= 0 and rank_base + rank[j] < room:
-            k = base + j
-            i = owner_of(k, n, offset)
-            p, _, _ = new_particle(x[i], v[i], ids[i], k - offset[i], 0.0, 0.0, 0.0, 0.0, r_v, dt, seed, frame)
-            if store_x:
-                cx[j] = p
-            f = inside_box(p, lo, hi)
+            f = inside_box(cx[j], lo, hi)
         flag[j] = f
 
 
@@ -714,10 +715,9 @@ def outside_box(n: ti.i32, x: F3, flag: I1, lo: vec3, hi: vec3):
 @ti.kernel
 def scatter_new(
     m: ti.i32, base: ti.i32, flag: I1, pos: I1, rank: I1, rank_base: ti.i32, out_base: ti.i32, next_id: ti.u32,
-    kind: B1, n: ti.i32, offset: I1, x: F3, v: F3, ids: U1, e_k: F1, tau: F1, life_min: ti.f32, life_max: ti.f32,
-    life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32, spray_range: vec3,
-    bubble_range: vec3, foamgenerator: ti.i32, span: ti.f32, life_min64: ti.f64, span64: ti.f64,
-    ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
+    kind: B1, owner: I1, offset: I1, ids: U1, e_k: F1, tau: F1, cx: F3, cv: F3, clife: F1, life_min: ti.f32,
+    spray_range: vec3, bubble_range: vec3, foamgenerator: ti.i32, span: ti.f32, life_min64: ti.f64, span64: ti.f64,
+    seed: ti.u32, frame: ti.u32, ox: F3, ov: F3, olife: F1, oids: U1, okind: I1,
 ):
     """The placed new particles of the chunk (flag[j]) to out_base + pos[j], after the survivors, in candidate
     order; ids next_id + their rank among the frame's kept (so one born outside the domain still takes its id,
@@ -726,23 +726,22 @@ def scatter_new(
     own range for spray and bubbles that have one (range = (min, max − min, 1); z = 0: none)."""
     for j in range(m):
         if flag[j]:
-            k = base + j
-            i, s, xd, vd, life = candidate(k, n, offset, x, v, ids, e_k, tau, life_min, life_max, life_mult, r_v, dt,
-                                           seed, frame)
+            i = owner[j]
+            s = ti.cast(base + j - offset[i], ti.u32)
             t = ti.cast(kind[j], ti.i32)
+            life = clife[j]
             if foamgenerator:
                 x01 = (life - life_min) / span
                 e = ti.cast(e_k[i], ti.f64)
                 t4, t5 = ti.cast(tau[4], ti.f64), ti.cast(tau[5], ti.f64)
                 i_k = (ti.min(e, t5) - ti.min(e, t4)) / ti.cast(tau[5] - tau[4], ti.f64)
                 life = ti.cast(life_min64 + i_k / t5 * ti.cast(x01, ti.f64) * span64, ti.f32)
-            su = ti.cast(s, ti.u32)
             if t == SPRAY and spray_range.z > 0.0:
-                life = spray_range.x + spray_range.y * rand01(seed, frame, ids[i], su, ti.u32(DRAW_LIFE))
+                life = spray_range.x + spray_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
             if t == BUBBLE and bubble_range.z > 0.0:
-                life = bubble_range.x + bubble_range.y * rand01(seed, frame, ids[i], su, ti.u32(DRAW_LIFE))
+                life = bubble_range.x + bubble_range.y * rand01(seed, frame, ids[i], s, ti.u32(DRAW_LIFE))
             q = out_base + pos[j]
-            ox[q], ov[q], olife[q] = xd, vd, life
+            ox[q], ov[q], olife[q] = cx[j], cv[j], life
             oids[q] = next_id + ti.cast(rank_base + rank[j], ti.u32)
             okind[q] = t
 
