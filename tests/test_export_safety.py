@@ -331,12 +331,13 @@ def meshed_run(tiny_run, tmp_path) -> Path:
 @pytest.fixture
 def no_blender(monkeypatch):
     """Fail the test if render starts a Blender worker process."""
+    import whitecap.executor as executor
     import whitecap.render.driver as driver
 
     def refuse(*a, **k):
         raise AssertionError(f"Blender was started: {a[0] if a else k}")
 
-    monkeypatch.setattr(driver.subprocess, "Popen", refuse)
+    monkeypatch.setattr(executor.subprocess, "Popen", refuse)  # the worker processes' (executor.ProcessWorkers)
     monkeypatch.setattr(driver, "require_bpy", lambda: None)
 
 
@@ -415,11 +416,12 @@ w.main()
 def test_a_worker_on_a_full_disk_is_the_os_error(meshed_run, monkeypatch, capsys):
     """The worker's OSError reaches the user as the OS error naming the file (exit 5), not
     as "Blender render failed" (exit 2)."""
+    import whitecap.executor as executor
     import whitecap.render.driver as driver
 
     real = subprocess.Popen
     monkeypatch.setattr(driver, "require_bpy", lambda: None)
-    monkeypatch.setattr(driver.subprocess, "Popen",
+    monkeypatch.setattr(executor.subprocess, "Popen",  # the worker processes' (executor.ProcessWorkers)
                         lambda cmd, **k: real([cmd[0], "-c", WORKER_FULL_DISK, *cmd[3:]], **k))
     assert main(["render", str(meshed_run), "--frames", "1:2", "--no-movie"]) == 5
     err = capsys.readouterr().err.splitlines()[-1] + "\n"  # after the progress bar, where one is drawn

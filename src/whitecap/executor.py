@@ -8,6 +8,10 @@ frames to an executor through one interface, :func:`map_frames`:
 - :class:`LocalExecutor` (the default) runs them in this process (one job) or
   in a pool of spawned worker processes that die with their parent. No Dask
   is needed.
+- :class:`ProcessWorkers` starts ``jobs`` long-lived worker processes from a command
+  line, each given an interleaved share of the frames, for work whose set-up costs
+  more than a frame (``render``: a Blender process builds its scene once, then renders
+  frame after frame). Each worker says ``<word> N`` on a line per finished frame.
 - :class:`DaskExecutor` (``--cluster ADDRESS|local|slurm|pbs``) submits one
   Dask task per frame. The run directory is the contract: it must be on a
   filesystem every worker sees. The client (this process) holds the run's
@@ -24,11 +28,15 @@ from __future__ import annotations
 
 import asyncio
 import difflib
+import json
 import logging
 import os
 import shutil
 import socket
 import struct
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -36,10 +44,10 @@ from concurrent.futures import FIRST_COMPLETED, CancelledError, ProcessPoolExecu
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, NoReturn
 
 from .errors import InputError, MissingDependency, WhitecapError
-from .workers import die_with_parent
+from .workers import child_env, die_with_parent
 
 CLUSTER_HINT = "install it with: pip install 'whitecap[cluster]' (dask, distributed, dask-jobqueue)"
 #: the clusters --cluster starts itself; anything else is a scheduler address
@@ -143,6 +151,103 @@ class LocalExecutor:
             finally:
                 for fut in pending:
                     fut.cancel()
+
+    def close(self) -> None:
+        pass
+
+
+# ============================================================================ worker processes
+#: A worker process that stops on an operating-system error exits with this status after printing
+#: OS_ERROR_TAG and the error as JSON on its last line of standard error (:func:`exit_on_os_error`);
+#: :class:`ProcessWorkers` raises the same OSError in the parent.
+OS_ERROR_EXIT = 5
+OS_ERROR_TAG = "whitecap-oserror "
+
+
+class WorkerFailed(WhitecapError):
+    """A worker process of :class:`ProcessWorkers` failed; the message is its last line of standard error."""
+
+
+def exit_on_os_error(exc: OSError) -> NoReturn:
+    """In a worker process: end with OS_ERROR_EXIT and ``exc`` as JSON on the last line of standard error."""
+    name = exc.filename if isinstance(exc.filename, str) else None
+    sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps({'errno': exc.errno, 'strerror': exc.strerror or str(exc), 'filename': name})}\n")
+    sys.stderr.flush()
+    sys.exit(OS_ERROR_EXIT)
+
+
+def worker_os_error(stderr: str) -> OSError | None:
+    """The OSError a worker reported on its last tagged line of standard error, if any."""
+    for line in reversed(stderr.strip().splitlines()):
+        if line.startswith(OS_ERROR_TAG):
+            try:
+                e = json.loads(line[len(OS_ERROR_TAG):])
+                return OSError(e["errno"], e["strerror"], *([e["filename"]] if e.get("filename") else []))
+            except (ValueError, KeyError, TypeError):
+                return None
+    return None
+
+
+class ProcessWorkers:
+    """``jobs`` worker processes, each started from the command line ``command(k, share)`` with
+    its interleaved share of the frames (worker k: frames k, k + jobs, ...), each printing
+    ``<word> N`` on standard output when frame N is done. Every worker is started, even one
+    with no frames (it may have other work: render's first worker saves the scene).
+
+    The workers die with this process (:func:`whitecap.workers.die_with_parent` reads
+    :func:`whitecap.workers.child_env`). Frames are reported as the lines come; errors once
+    every worker has ended: the first OSError a worker reported (:func:`exit_on_os_error`),
+    else :class:`WorkerFailed` with the first failed worker's last line of standard error."""
+
+    cluster = False
+
+    def __init__(self, jobs: int = 1, word: str = "done"):
+        self.jobs = max(1, int(jobs))
+        self.word = word
+
+    def map(self, command: Callable[[int, list[int]], list[str]], tasks: list[tuple[int, tuple]]
+            ) -> Iterator[FrameResult]:
+        """Yield a :class:`FrameResult` per frame a worker reports; ``command`` replaces the
+        per-frame function of the other executors (the workers run the frames)."""
+        procs, logs = [], []
+        try:
+            for k in range(self.jobs):
+                log = tempfile.TemporaryFile(mode="w+")
+                logs.append(log)
+                share = [index for index, _ in tasks[k::self.jobs]]
+                procs.append(subprocess.Popen(command(k, share), stdout=subprocess.PIPE, stderr=log, text=True,
+                                              env=child_env()))
+            for k, p in enumerate(procs):
+                for line in p.stdout:  # one line per finished frame, reported at once (resumable)
+                    words = line.split()
+                    if words[:1] == [self.word]:
+                        yield FrameResult(int(words[1]), worker=f"worker {k}")
+            self._raise_failures(procs, logs)
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                p.wait()
+                p.stdout.close()
+            for log in logs:
+                log.close()
+
+    @staticmethod
+    def _raise_failures(procs: list, logs: list) -> None:
+        errors, os_errors = [], []
+        for p, log in zip(procs, logs):
+            p.wait()
+            if p.returncode:
+                log.seek(0)
+                text = log.read()
+                found = worker_os_error(text) if p.returncode == OS_ERROR_EXIT else None
+                if found is not None:
+                    os_errors.append(found)
+                errors.append((text.strip().splitlines() or ["unknown error"])[-1])
+        if os_errors:  # a full disk or a read-only folder: the OS error itself
+            raise os_errors[0]
+        if errors:
+            raise WorkerFailed(errors[0])
 
     def close(self) -> None:
         pass

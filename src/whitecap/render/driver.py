@@ -24,10 +24,8 @@ read-only folder, a full disk, in this process or in a worker) propagates as
 from __future__ import annotations
 
 import errno
-import json
 import os
 import re
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -39,8 +37,8 @@ from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
+from ..executor import ProcessWorkers, WorkerFailed, map_frames
 from ..stage_frames import check_jobs, todo as stage_todo
-from ..workers import child_env
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"
 #: Memory one Blender process needs per pixel of the image [B]: Cycles' float RGBA result,
@@ -48,10 +46,6 @@ INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and n
 #: float and 8-bit copies made to save the PNG. An estimate on the high side: a render it
 #: lets through fits; one it refuses could not be saved in the memory left anyway.
 BYTES_PER_PIXEL = 96
-#: A worker that stops on an operating-system error exits with this status after printing
-#: OS_ERROR_TAG and the error as JSON on its last line of standard error; the parent raises it.
-OS_ERROR_EXIT = 5
-OS_ERROR_TAG = "whitecap-oserror "
 
 
 def require_bpy():
@@ -116,18 +110,6 @@ def check_writable(folder: Path) -> None:
         raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno or errno.EIO), str(folder)) from None
     os.close(fd)
     os.unlink(probe)
-
-
-def worker_os_error(stderr: str) -> OSError | None:
-    """The OSError a worker reported on its last tagged line of standard error, if any."""
-    for line in reversed(stderr.strip().splitlines()):
-        if line.startswith(OS_ERROR_TAG):
-            try:
-                e = json.loads(line[len(OS_ERROR_TAG):])
-                return OSError(e["errno"], e["strerror"], *([e["filename"]] if e.get("filename") else []))
-            except (ValueError, KeyError, TypeError):
-                return None
-    return None
 
 
 def parse_range(spec: str | None, available: list[int]) -> list[int]:
@@ -330,41 +312,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
             if need_blend:
                 _record(run_dir, [], blend=look)
         elif todo or need_blend:
-            import tempfile
-
-            procs, logs = [], []
-            threads = max(1, (os.cpu_count() or 1) // jobs) if jobs > 1 else 0
-            for k in range(jobs):
-                share = todo[k::jobs]
-                cmd = [
-                    sys.executable, "-m", "whitecap.render.worker", str(run_dir), quality,
-                    ",".join(map(str, share)) or "-", str(threads), "1" if (k == 0 and need_blend) else "0",
-                    cfg.device,
-                ]
-                log = tempfile.TemporaryFile(mode="w+")
-                logs.append(log)
-                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()))
-            for p in procs:
-                for line in p.stdout:  # one line per finished frame, recorded at once (resumable)
-                    if line.startswith("rendered"):
-                        _record(run_dir, [int(line.split()[1])], keys=keys)
-                        bar.advance(task)
-            errors, os_errors = [], []
-            for p, log in zip(procs, logs):
-                p.wait()
-                p.stdout.close()
-                if p.returncode:
-                    log.seek(0)
-                    text = log.read()
-                    found = worker_os_error(text) if p.returncode == OS_ERROR_EXIT else None
-                    if found is not None:
-                        os_errors.append(found)
-                    errors.append((text.strip().splitlines() or ["unknown error"])[-1])
-                log.close()
-            if os_errors:  # a full disk or a read-only folder: the OS error itself (CLI exit 5)
-                raise os_errors[0]
-            if errors:
-                raise InputError(f"{run_dir}: Blender render failed: {errors[0]}")
+            _render_locally(run_dir, quality, cfg.device, todo, need_blend, jobs, bar, task,
+                            lambda r: _record(run_dir, [r.index], keys=keys))
             if need_blend:
                 _record(run_dir, [], blend=look)
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
@@ -374,6 +323,25 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
     _record(run_dir, wanted)
     return result
+
+
+def _render_locally(run_dir: Path, quality: str, device: str, todo: list[int], need_blend: bool, jobs: int, bar,
+                    task, on_done) -> None:
+    """``todo`` on ``jobs`` Blender worker processes here (:class:`whitecap.executor.ProcessWorkers`:
+    each builds the scene once and renders an interleaved share, Cycles' threads split between
+    them), the first saving render/scene.blend after its frames when ``need_blend``. ``on_done``
+    records each frame as it comes. An OS error in a worker is raised as itself (CLI exit 5)."""
+    threads = max(1, (os.cpu_count() or 1) // jobs) if jobs > 1 else 0
+
+    def command(k: int, share: list[int]) -> list[str]:
+        return [sys.executable, "-m", "whitecap.render.worker", str(run_dir), quality, ",".join(map(str, share)) or "-",
+                str(threads), "1" if (k == 0 and need_blend) else "0", device]
+
+    try:
+        map_frames(ProcessWorkers(jobs, word="rendered"), "render", command, [(i, ()) for i in todo], bar, task,
+                   on_done)
+    except WorkerFailed as exc:
+        raise InputError(f"{run_dir}: Blender render failed: {exc}") from None
 
 
 def frame_key(run_dir: Path, info: RunInfo, cfg, quality: str, index: int | None) -> str:

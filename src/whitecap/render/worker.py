@@ -9,15 +9,16 @@ several processes.
 
 An operating-system error (a full disk, a read-only folder) ends the worker
 with status ``OS_ERROR_EXIT`` and, as the last line of standard error, the
-error as JSON after ``OS_ERROR_TAG``, so the parent raises the same OSError.
+error as JSON after ``OS_ERROR_TAG`` (:func:`whitecap.executor.exit_on_os_error`),
+so the parent (:class:`whitecap.executor.ProcessWorkers`) raises the same OSError.
 """
 
-import json
 import sys
 from pathlib import Path
 
+from ..executor import exit_on_os_error
 from ..workers import die_with_parent
-from .driver import OS_ERROR_EXIT, OS_ERROR_TAG, render_worker, serve_worker
+from .driver import render_worker, serve_worker
 
 
 def main() -> None:
@@ -25,10 +26,7 @@ def main() -> None:
     try:
         _work()
     except OSError as exc:
-        name = exc.filename if isinstance(exc.filename, str) else None
-        sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps({'errno': exc.errno, 'strerror': exc.strerror or str(exc), 'filename': name})}\n")
-        sys.stderr.flush()
-        sys.exit(OS_ERROR_EXIT)
+        exit_on_os_error(exc)
 
 
 def _work() -> None:
