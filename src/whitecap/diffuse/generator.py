@@ -20,7 +20,9 @@ writes one from the other. Advection, expiry, foam aging and dissipation, the ob
 rule, lifetimes and compaction (exclusive prefix sums of keep flags, kernels.scan_sums/scan_offsets)
 all run in kernels; the host reads back counts only, and the live particles once a frame, for the
 frame's output (they are also ``state``'s host view, for checkpoints; a state set on the host, as a
-resume does, is uploaded at the next step, see FoamGenerator._sync_in).
+resume does, is uploaded at the next step, see FoamGenerator._sync_in). A frame's candidates are
+generated, classified and placed CANDIDATE_CHUNK at a time, in arrays made once: no Taichi array is
+made per frame once the largest frame was seen, and the candidates' memory does not grow with the fluid.
 Output against the host version before it (main at 80c2fce): byte-identical without obstacles (the
 same float operations in the same order, the same counter-based draws). With obstacles it differs in
 the last bits and, rarely, more: the SDFs are now sampled by sim.obstacles.sdf_sample in f32 (the
