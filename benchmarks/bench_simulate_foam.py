@@ -8,8 +8,11 @@ and the ratio to issue 31's reference figures on 2 CPU cores (diffuse 356 ms a f
 37% of the run, against 578 ms a frame of solver). Target: the diffuse phase at most 15%.
 
     python benchmarks/bench_simulate_foam.py [--radius 0.004] [--frames 30] [--arch cpu] [--foam-only]
+        [--against OLD/src]
 
-Each configuration runs in its own process (one Taichi runtime per process).
+Each configuration runs in its own process (one Taichi runtime per process). ``--against`` runs the
+foam-on case once more with another checkout's package (e.g. ``git archive 80c2fce | tar -x -C OLD``)
+and prints the diffuse share of both, measured in the same run, and their ratio.
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--foam-only", action="store_true", help="skip the run with foam off")
+    ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
@@ -71,10 +75,14 @@ def main() -> None:
         print("RESULT " + json.dumps(r))
         return
     results = {}
-    for mode in (("on",) if a.foam_only else ("on", "off")):
+    runs = [(m, m, None) for m in (("on",) if a.foam_only else ("on", "off"))]
+    if a.against:
+        runs.append(("on, against", "on", os.path.abspath(a.against)))
+    for name, mode, src in runs:
         cmd = [sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch, "--one", mode]
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
-        results[mode] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
+        env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.path.dirname(os.path.abspath(__file__))) if src else None
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
+        results[name] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
     for mode, r in results.items():
         t = r["timers"]
         top = {k: v for k, v in t.items() if "." not in k}
@@ -93,6 +101,12 @@ def main() -> None:
                   f"{100 * REFERENCE_SHARE:.0f}%): {ms:.0f} ms a frame, {ms / REFERENCE_DIFFUSE_MS:.2f}x the reference "
                   f"{REFERENCE_DIFFUSE_MS:.0f} ms; solver {1e3 * top.get('step', 0) / f:.0f} ms a frame "
                   f"(reference {REFERENCE_SOLVER_MS:.0f})")
+    if "on, against" in results:
+        share = {k: results[k]["timers"].get(PHASE, 0.0) / sum(v for n, v in results[k]["timers"].items() if "." not in n)
+                 for k in ("on", "on, against")}
+        phase = results["on"]["timers"].get(PHASE, 0.0) / results["on, against"]["timers"].get(PHASE, 1.0)
+        print(f"diffuse share {100 * share['on']:.1f}% against {100 * share['on, against']:.1f}% with {a.against} "
+              f"({share['on'] / share['on, against']:.2f}x); diffuse phase {phase:.2f}x its time")
     if "off" in results:
         on = sum(v for k, v in results["on"]["timers"].items() if "." not in k)
         off = sum(v for k, v in results["off"]["timers"].items() if "." not in k)
