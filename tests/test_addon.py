@@ -303,7 +303,7 @@ def addon_run(tiny_run, tmp_path_factory) -> Path:
     trimesh.creation.box((0.1, 0.1, 0.1)).export(run / "box.obj")
     info.obstacles = [OBSTACLE, {**OBSTACLE, "translate": [0.1, 0.1, 0.1]}]
     for i in (1, 2, 3):  # the second obstacle moves (run.json's per-frame body poses)
-        info.frame(i)["bodies"] = [{"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
+        info.frame(i).bodies = [{"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
                                    {"position": BODY_POS[i], "quaternion": BODY_QUAT[i]}]
     info.extra["scene_dir"] = str(run)
     info.save(run)
@@ -409,16 +409,17 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
     from whitecap.geometry import obstacle_transform
+    from whitecap.io.record import Obstacle
 
     import trimesh
     import trimesh.transformations as T
 
     rest = np.asarray(trimesh.load(addon_run / "box.obj", force="mesh", process=False).vertices)
-    want = (obstacle_transform(OBSTACLE) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
+    want = (obstacle_transform(Obstacle.model_validate(OBSTACLE)) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]
     assert np.allclose(np.sort(res["obstacle_world"], axis=0), np.sort(want, axis=0), atol=1e-5)
     assert res["obstacle_verts"] == 8
     # the moving body at each frame: world = T(position) R(quaternion) placement (geometry.obstacle_matrix)
-    place = obstacle_transform({**OBSTACLE, "translate": [0.1, 0.1, 0.1]})
+    place = obstacle_transform(Obstacle.model_validate({**OBSTACLE, "translate": [0.1, 0.1, 0.1]}))
     for f in (1, 2, 3):
         M = T.translation_matrix(BODY_POS[f]) @ T.quaternion_matrix(BODY_QUAT[f]) @ place
         want = (M @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]

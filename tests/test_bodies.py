@@ -11,7 +11,7 @@ import trimesh
 
 from whitecap.config import scene_from_dict
 from whitecap import geometry
-from whitecap.geometry import obstacle_matrix
+from whitecap.geometry import obstacle_matrix, pose_matrix
 from whitecap.errors import InputError
 from whitecap.io import read
 from whitecap.io.run import RunInfo
@@ -258,8 +258,7 @@ def test_render_keyframes_the_moving_body(tmp_path):
     for f in (1, 3):
         # the object's matrix is the pose; with the rest placement baked into the mesh the world
         # placement is obstacle_matrix (pose · placement)
-        pose = obstacle_matrix({"scale": 1.0, "rotate": [0, 0, 0], "translate": [0, 0, 0], "mesh": ""},
-                               info.body_pose(f, 0))
+        pose = pose_matrix(info.body_pose(f, 0))
         assert np.allclose(got[str(f)], pose, atol=1e-5), f
     assert not np.allclose(got["1"], got["3"], atol=1e-3)  # it moves (6° per frame at 30 fps, 60 rpm)
     # between frames the keys interpolate: half way at frame 1.5 (what motion blur samples)

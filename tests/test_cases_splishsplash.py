@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 
 from whitecap.cases import splishsplash
-from whitecap.geometry import obstacle_matrix
+from whitecap.geometry import pose_matrix
 from whitecap.errors import InputError
 from whitecap.io import read, read_mesh
 from whitecap.io.axes import to_z_up
+from whitecap.io.record import Pose
 
 TINY = Path(__file__).resolve().parent / "data" / "splishsplash_rigid"
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "splishsplash_rigid"
@@ -64,9 +65,9 @@ def _z_up(v) -> np.ndarray:
     return np.asarray(to_z_up(np.asarray(v, np.float32), None, "y")[0], np.float64)
 
 
-def _posed(pose: dict, points: np.ndarray) -> np.ndarray:
-    """Rest-placement points carried by a run.json pose, through the project's one transform."""
-    M = obstacle_matrix({"mesh": ""}, pose)
+def _posed(pose, points: np.ndarray) -> np.ndarray:
+    """Rest-placement points carried by a run.json pose (a record or its dict), through the project's one transform."""
+    M = pose_matrix(Pose.model_validate(pose))
     return points @ M[:3, :3].T + M[:3, 3]
 
 
@@ -395,7 +396,8 @@ def test_render_shows_the_sphere_through_the_closed_tank(tmp_path):
     stone = tmp_path / "stone"
     shutil.copytree(run, stone)
     info = RunInfo.load(stone)
-    info.obstacles = [{**o, "material": "stone"} if o["role"] == "container" else o for o in info.obstacles]
+    info.obstacles = [o.model_copy(update={"material": "stone"}) if o.role == "container" else o
+                      for o in info.obstacles]
     info.save(stone)
     colours = {}
     for name, d in (("glass", run), ("stone", stone)):

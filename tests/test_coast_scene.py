@@ -188,8 +188,10 @@ def test_an_imported_run_takes_the_terrain_of_its_scene_toml(tmp_path):
 
     run = tmp_path / "run"
     run.mkdir()
-    info = types.SimpleNamespace(obstacles=[{"name": "Box", "role": "container", "mesh": "geometry/Box.ply",
-                                             "material": "stone"}],
+    from whitecap.io.record import Obstacle
+
+    info = types.SimpleNamespace(obstacles=[Obstacle(name="Box", role="container", mesh="geometry/Box.ply",
+                                                     material="stone")],
                                  domain={"lower": [-0.85, -0.38, -0.01], "upper": [2.47, 1.06, 0.96]})
     assert scene_terrain(info, run) == []                               # no scene.toml
     (run / "scene.toml").write_text("[render]\nsea = true\n")
@@ -200,8 +202,8 @@ def test_an_imported_run_takes_the_terrain_of_its_scene_toml(tmp_path):
         f'height = {list(assets.QUAY_HEIGHT)}\nmaterial = "concrete"\nrender_resolution = 0.05\n'
         "[render]\nground = false\nsea = true\n")
     (entry,) = scene_terrain(info, run)
-    assert entry["material"] == "terrain"
-    surface = trimesh.load(entry["render_mesh"], force="mesh")
+    assert entry.material == "terrain"
+    surface = trimesh.load(entry.render_mesh, force="mesh")
     lo, hi = surface.bounds
     assert np.allclose(lo[:2], assets.QUAY_LOWER) and np.allclose(hi[:2], np.add(assets.QUAY_LOWER, assets.QUAY_SIZE))
     # The apron under the tank is flat, a few millimetres above the imported domain's floor.
@@ -209,5 +211,5 @@ def test_an_imported_run_takes_the_terrain_of_its_scene_toml(tmp_path):
     under = v[(v[:, 0] > 0) & (v[:, 0] < 1.6) & (v[:, 1] > 0) & (v[:, 1] < 0.67)]
     assert np.abs(under[:, 2] - assets.QUAY_TOP).max() < 0.003 and assets.QUAY_TOP > info.domain["lower"][2]
     # A run whitecap simulated holds its terrain in run.json already: nothing is added twice.
-    info.obstacles.append({**entry})
+    info.obstacles.append(entry)
     assert scene_terrain(info, run) == []

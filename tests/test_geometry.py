@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from whitecap import geometry as G
+from whitecap.io.record import Obstacle
 
 
 def test_euler_rotation_is_the_placement_rotation():
@@ -34,7 +35,7 @@ def test_quaternion_round_trip_and_sign():
 
 
 def test_obstacle_matrix_is_pose_times_placement():
-    o = {"mesh": "x.obj", "scale": 2.0, "rotate": [0.0, 0.0, 90.0], "translate": [1.0, 0.0, 0.0]}
+    o = Obstacle(mesh="x.obj", scale=2.0, rotate=[0.0, 0.0, 90.0], translate=[1.0, 0.0, 0.0])
     # rest: scale, rotate a quarter turn about z, translate
     np.testing.assert_allclose(G.obstacle_matrix(o) @ [1.0, 0.0, 0.0, 1.0], [1.0, 2.0, 0.0, 1.0], atol=1e-12)
     pose = G.pose_record(G.axis_rotation([0, 0, 1], np.pi), [0.0, 0.0, 0.5])
@@ -43,5 +44,5 @@ def test_obstacle_matrix_is_pose_times_placement():
     np.testing.assert_allclose(M @ [1.0, 0.0, 0.0, 1.0], [-1.0, -2.0, 0.5, 1.0], atol=1e-12)
     np.testing.assert_allclose(M, G.pose_matrix(pose) @ G.obstacle_transform(o), atol=0)
     np.testing.assert_allclose(G.apply_pose(pose, [[1.0, 2.0, 0.0]]), [[-1.0, -2.0, 0.5]], atol=1e-12)
-    # missing keys take the model's defaults: identity placement
-    np.testing.assert_array_equal(G.obstacle_transform({"mesh": ""}), np.eye(4))
+    # missing keys take the record's defaults: identity placement
+    np.testing.assert_array_equal(G.obstacle_transform(Obstacle.model_validate({"mesh": "x.obj"})), np.eye(4))

@@ -368,11 +368,11 @@ def test_frame_entries_are_found_by_index_with_gaps_and_out_of_order_files(tmp_p
     info = RunInfo(particle_radius=0.01, rest_density=1000.0, particle_mass=0.008, frame_rate=10.0,
                    gravity=[0, 0, -9.81], domain={"lower": [0, 0, 0], "upper": [1, 1, 1]})
     for i in (7, 2, 5, 0):
-        info.frame(i)["bodies"] = [{"position": [i, 0, 0], "quaternion": [1, 0, 0, 0]}]
-    assert [f["index"] for f in info.frames] == [0, 2, 5, 7]
-    assert [info.body_pose(i, 0)["position"][0] for i in (0, 2, 5, 7)] == [0, 2, 5, 7]
+        info.frame(i).bodies = [{"position": [i, 0, 0], "quaternion": [1, 0, 0, 0]}]
+    assert [f.index for f in info.frames] == [0, 2, 5, 7]
+    assert [info.body_pose(i, 0).position[0] for i in (0, 2, 5, 7)] == [0, 2, 5, 7]
     assert info.body_pose(3, 0) is None and info.body_pose(8, 0) is None and info.body_pose(5, 1) is None
-    assert info.frame(3)["time"] == pytest.approx(0.3) and [f["index"] for f in info.frames] == [0, 2, 3, 5, 7]
+    assert info.frame(3).time == pytest.approx(0.3) and [f.index for f in info.frames] == [0, 2, 3, 5, 7]
     info.save(tmp_path)
     data = json.loads((tmp_path / "run.json").read_text())
     data["frames"].reverse()  # another writer's order

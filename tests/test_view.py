@@ -179,12 +179,13 @@ def test_dualsphysics_sequence_plays_back(tmp_path):
 def test_obstacle_transform_rotates_x_then_y_then_z():
     from whitecap.config import Obstacle
     from whitecap.geometry import obstacle_transform
+    from whitecap.io.record import Obstacle as Record
 
-    m = obstacle_transform({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0})
+    m = obstacle_transform(Record.model_validate({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0}))
     # The scene model and its run.json dict place an obstacle alike; missing keys are the defaults.
     o = Obstacle(mesh="m.obj", translate=[1.0, 0.0, 0.0], rotate=[90.0, 90.0, 0.0], scale=2.0)
     np.testing.assert_array_equal(obstacle_transform(o), m)
-    np.testing.assert_array_equal(obstacle_transform({"mesh": "m.obj"}), np.eye(4))
+    np.testing.assert_array_equal(obstacle_transform(Record.model_validate({"mesh": "m.obj"})), np.eye(4))
     # (0,1,0) -> scale 2 -> Rx90 -> (0,0,2) -> Ry90 -> (2,0,0) -> +translate
     np.testing.assert_allclose((m @ [0, 1, 0, 1])[:3], [3.0, 0.0, 0.0], atol=1e-9)
 

@@ -246,7 +246,8 @@ def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
     the notebook view is an iframe of the viewer's page."""
     import trimesh
 
-    from whitecap.geometry import obstacle_matrix
+    from whitecap.geometry import pose_matrix
+    from whitecap.io.record import Pose
     from whitecap.view.web import WebViewer
 
     run = tmp_path / "run"
@@ -264,7 +265,7 @@ def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
             assert v.wait_drawn(k, HANG_GUARD_S)
             (_, h), = v.h_obstacles
             M = viser.transforms.SE3.from_rotation_and_translation(viser.transforms.SO3(np.asarray(h.wxyz)), np.asarray(h.position)).as_matrix()
-            want = obstacle_matrix({"mesh": ""}, meta["frames"][k]["bodies"][0])
+            want = pose_matrix(Pose.model_validate(meta["frames"][k]["bodies"][0]))
             assert np.allclose(M, want, atol=1e-6)
             assert len(v.h_fluid.points) == 500
             assert "drawing 500 of 1,500 particles (subsample)" in v.g_info.content

@@ -137,7 +137,7 @@ def _cmd_import(a) -> int:
     info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
                                 scene_json=a.scene, fluid_model=a.fluid_model, force=a.force, dt=a.dt,
                                 radius=a.radius)
-    roles = ", ".join(f"{o['name']} ({o['role']})" for o in info.obstacles) or "no shapes"
+    roles = ", ".join(f"{o.name} ({o.role})" for o in info.obstacles) or "no shapes"
     print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
     return 0
 

@@ -5,8 +5,8 @@ Conventions, shared by every stage:
 - an obstacle's *rest placement* (``[[obstacle]] scale, rotate, translate``) is
   x_rest = T(translate) · Rz · Ry · Rx · S(scale) · x_mesh, the angles in degrees
   about x, then y, then z (:func:`obstacle_transform`);
-- a *pose*, as ``run.json`` records one per frame and body, is
-  ``{"position": [x, y, z], "quaternion": [w, x, y, z]}``, the rigid motion
+- a *pose*, as ``run.json`` records one per frame and body, is a
+  :class:`whitecap.io.record.Pose` (position [x, y, z], quaternion [w, x, y, z]), the rigid motion
   x_world = R(q) · x_rest + position (:func:`pose_matrix`);
 - an obstacle in the world is the pose times the rest placement
   (:func:`obstacle_matrix`).
@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from .io.record import Pose
 
 
 def axis_rotation(axis, angle: float) -> np.ndarray:
@@ -85,42 +87,35 @@ def placement_matrix(scale, rotate, translate) -> np.ndarray:
 
 def obstacle_transform(o) -> np.ndarray:
     """The 4×4 rest placement of an obstacle mesh (:func:`placement_matrix` of its ``scale``,
-    ``rotate``, ``translate``). ``o`` is a :class:`whitecap.config.Obstacle` or its dict as
-    ``run.json`` stores it; missing keys take the model's defaults."""
-    from .config import Obstacle
-
-    def get(key: str):
-        if isinstance(o, dict):
-            return o.get(key, Obstacle.model_fields[key].default)
-        return getattr(o, key)
-
-    return placement_matrix(get("scale"), get("rotate"), get("translate"))
+    ``rotate``, ``translate``): a run's :class:`whitecap.io.record.Obstacle` or the scene's
+    :class:`whitecap.config.Obstacle`."""
+    return placement_matrix(o.scale, o.rotate, o.translate)
 
 
-def pose_matrix(pose: dict | None) -> np.ndarray:
+def pose_matrix(pose: Pose | None) -> np.ndarray:
     """The 4×4 rigid motion T(position)·R(quaternion) of a recorded pose; identity for None."""
     import trimesh.transformations as T
 
-    if not pose:
+    if pose is None:
         return np.eye(4)
-    return T.concatenate_matrices(T.translation_matrix(pose["position"]), T.quaternion_matrix(pose["quaternion"]))
+    return T.concatenate_matrices(T.translation_matrix(pose.position), T.quaternion_matrix(pose.quaternion))
 
 
-def pose_record(R: np.ndarray, t) -> dict:
-    """A pose as ``run.json`` stores it, from a rotation matrix and a translation."""
-    return {"position": [float(v) for v in t], "quaternion": quaternion(R)}
+def pose_record(R: np.ndarray, t) -> Pose:
+    """A pose as ``run.json`` records it, from a rotation matrix and a translation."""
+    return Pose(position=[float(v) for v in t], quaternion=quaternion(R))
 
 
-def apply_pose(pose: dict | None, points: np.ndarray) -> np.ndarray:
+def apply_pose(pose: Pose | None, points: np.ndarray) -> np.ndarray:
     """Rest-placement points carried by a pose, float64."""
     M = pose_matrix(pose)
     return np.asarray(points, np.float64) @ M[:3, :3].T + M[:3, 3]
 
 
-def obstacle_matrix(o, pose: dict | None = None) -> np.ndarray:
+def obstacle_matrix(o, pose: Pose | None = None) -> np.ndarray:
     """The 4×4 world matrix of an obstacle mesh: its rest placement (:func:`obstacle_transform`)
     carried by the pose ``pose`` (None: at rest). World = T(position)·R(quaternion)·placement."""
     M = obstacle_transform(o)
-    if not pose:
+    if pose is None:
         return M
     return pose_matrix(pose) @ M

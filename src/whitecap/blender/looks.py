@@ -9,6 +9,7 @@ reuses them.
 from __future__ import annotations
 
 from ..io.diffuse_types import COUNT_NAMES, DIFFUSE_RADIUS
+from ..io.record import OBSTACLE_COLOR, Obstacle
 
 # [render]'s defaults (config.Render): the add-on, which has no scene, uses these.
 WATER_COLOR = (0.55, 0.8, 0.9)
@@ -17,7 +18,6 @@ WATER_ROUGHNESS = 0.02
 WATER_IOR = 1.33
 #: Obstacle presets: (roughness, metallic).
 OBSTACLE_PRESETS = {"stone": (0.8, 0.0), "clay": (0.6, 0.0), "metal": (0.3, 1.0), "plastic": (0.35, 0.0)}
-OBSTACLE_COLOR = (0.8, 0.78, 0.72)
 GLASS_COLOR = (0.93, 0.97, 0.96)
 #: The "glass" preset's Fresnel reflectance: window glass [-].
 THIN_GLASS_IOR = 1.5
@@ -140,19 +140,19 @@ def thin_glass(mat, color) -> None:
     nt.links.new(mix.outputs[0], nt.nodes.get("Material Output").inputs["Surface"])
 
 
-def obstacle_material(entry: dict):
-    """A new material for one obstacle of run.json (``material`` preset and ``color``); one per
-    obstacle, since a texture (render/stage.apply_texture) changes it."""
+def obstacle_material(entry: Obstacle):
+    """A new material for one obstacle of run.json (``material`` preset and ``color``, without one
+    the preset's); one per obstacle, since a texture (render/stage.apply_texture) changes it."""
     import bpy
 
-    preset = entry.get("material", "stone")
+    preset = entry.material
     mat = bpy.data.materials.new(f"whitecap_obstacle_{preset}")
     if preset == "glass":
-        thin_glass(mat, tuple(entry.get("color", GLASS_COLOR)))
+        thin_glass(mat, tuple(entry.color or GLASS_COLOR))
         return mat
     _, b = _principled(mat)
     rough, metal = OBSTACLE_PRESETS.get(preset, (0.7, 0.0))
-    b.inputs["Base Color"].default_value = (*entry.get("color", OBSTACLE_COLOR), 1.0)
+    b.inputs["Base Color"].default_value = (*(entry.color or OBSTACLE_COLOR), 1.0)
     b.inputs["Roughness"].default_value = rough
     b.inputs["Metallic"].default_value = metal
     return mat

@@ -12,25 +12,26 @@ from __future__ import annotations
 
 import math
 
+from ..io.record import Frame, Obstacle, Pose
 
-def place_obstacle(obj, entry: dict) -> None:
+
+def place_obstacle(obj, entry: Obstacle) -> None:
     """Set ``obj``'s transform to the obstacle's rest placement."""
-    obj.location = entry.get("translate", [0.0, 0.0, 0.0])
+    obj.location = entry.translate
     obj.rotation_mode = "XYZ"
-    obj.rotation_euler = [math.radians(a) for a in entry.get("rotate", [0.0, 0.0, 0.0])]
-    s = float(entry.get("scale", 1.0))
+    obj.rotation_euler = [math.radians(a) for a in entry.rotate]
+    s = float(entry.scale)
     obj.scale = (s, s, s)
 
 
-def body_poses(frames: list, k: int, first: int | None = None, last: int | None = None) -> list[tuple[int, dict]]:
+def body_poses(frames: list[Frame], k: int, first: int | None = None,
+               last: int | None = None) -> list[tuple[int, Pose]]:
     """(frame index, pose) of body ``k`` from run.json's frames (within first..last where given)."""
     out = []
     for f in frames:
-        b = f.get("bodies") if isinstance(f, dict) else None
-        if isinstance(b, list) and k < len(b) and b[k]:
-            i = int(f["index"])
-            if (first is None or i >= first) and (last is None or i <= last):
-                out.append((i, b[k]))
+        b = f.bodies or []
+        if k < len(b) and (first is None or f.index >= first) and (last is None or f.index <= last):
+            out.append((f.index, b[k]))
     return sorted(out, key=lambda p: p[0])
 
 
@@ -44,8 +45,8 @@ def key_body(obj, poses) -> None:
     obj.location, obj.scale = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
     obj.rotation_mode = "QUATERNION"
     for i, pose in poses:
-        obj.location = pose["position"]
-        obj.rotation_quaternion = pose["quaternion"]
+        obj.location = pose.position
+        obj.rotation_quaternion = pose.quaternion
         obj.keyframe_insert("location", frame=i)
         obj.keyframe_insert("rotation_quaternion", frame=i)
     linear_keys(obj.animation_data.action)
@@ -62,7 +63,7 @@ def linear_keys(action) -> None:
             kp.interpolation = "LINEAR"
 
 
-def obstacle_object(name: str, me, entry: dict, frames: list, k: int, collection, first=None, last=None):
+def obstacle_object(name: str, me, entry: Obstacle, frames: list[Frame], k: int, collection, first=None, last=None):
     """An obstacle object over mesh ``me`` (in the obstacle's own coordinates), placed, keyed
     when it moves, and linked into ``collection``."""
     import bpy

@@ -16,6 +16,7 @@ import math
 import re
 from pathlib import Path
 
+from ..io.record import Obstacle
 from ..io.run import RunInfo, obstacle_path
 
 #: The run's own objects in render/scene.blend, which the add-on makes itself (per frame).
@@ -33,18 +34,13 @@ VIEW_DISTANCE = 1.4
 
 def current_files(info: RunInfo, kind: str) -> list[tuple[int, str]]:
     """(frame, relative path) of a kind's files made from the run's current simulation (an
-    entry from an earlier simulation is stale: left out, as whitecap does)."""
-    out = []
-    for f in info.frames:
-        rel = f.get("files", {}).get(kind)
-        if rel and f.get("made_from", {}).get(kind, "") == info.simulation:
-            out.append((int(f["index"]), rel))
-    return sorted(out)
+    entry from an earlier simulation is stale: RunInfo.load left it out)."""
+    return sorted(info.files(kind))
 
 
-def obstacle_mesh_file(entry: dict, info: RunInfo, run_dir) -> Path | None:
+def obstacle_mesh_file(entry: Obstacle, info: RunInfo, run_dir) -> Path | None:
     """An obstacle's render mesh (else its collision mesh) file, or None when missing."""
-    src = entry.get("render_mesh") or entry.get("mesh") if isinstance(entry, dict) else None
+    src = entry.render_file
     return obstacle_path(src, info, run_dir) if src else None
 
 
@@ -121,8 +117,7 @@ def _default_stage(sc, info: RunInfo) -> list:
     sun.data.energy = SUN_STRENGTH
     sun.rotation_euler = [math.radians(a) for a in SUN_ANGLE]
     sc.collection.objects.link(sun)
-    lo = Vector(info.domain.get("lower", [0.0, 0.0, 0.0]))
-    hi = Vector(info.domain.get("upper", [1.0, 1.0, 1.0]))
+    lo, hi = Vector(info.domain["lower"]), Vector(info.domain["upper"])
     centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-3)
     cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     cam.location = centre + Vector(VIEW_DIRECTION).normalized() * size * VIEW_DISTANCE

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.record import Pose
 from .rigid_fit import pose
 
 BIN_FILE = re.compile(r"^rb_data_(?P<k>\d+)\.bin$")
@@ -121,10 +122,10 @@ def read_bin_run(bins: dict[int, Path], ks: list[int]):
     return header, Rs, ts
 
 
-def relative_poses(Rs: list[np.ndarray], ts: list[np.ndarray], M: np.ndarray) -> list[dict]:
+def relative_poses(Rs: list[np.ndarray], ts: list[np.ndarray], M: np.ndarray) -> list[Pose]:
     """run.json poses from the first frame's placement, z up: world_k = R'·world_1 + t' with
     R' = M R_k R_1ᵀ Mᵀ and t' = M (t_k − R_k R_1ᵀ t_1); M takes the solver's axes to z up."""
-    poses: list[dict] = []
+    poses: list[Pose] = []
     R1, t1 = Rs[0], ts[0]
     for R, t in zip(Rs, ts):
         D = R @ R1.T

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..geometry import apply_pose as _apply_pose
 from ..geometry import quaternion
+from ..io.record import Pose
 
 
 def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -37,31 +38,31 @@ def kabsch(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return R, q_bar - R @ p_bar
 
 
-def pose(R: np.ndarray, t: np.ndarray, previous: dict | None = None) -> dict:
+def pose(R: np.ndarray, t: np.ndarray, previous: Pose | None = None) -> Pose:
     """A run.json pose from a rotation and translation. With ``previous``, the quaternion's sign
     is the one nearer the previous pose's, so that keys interpolated per component (Blender)
     take the short way between frames."""
     q = np.asarray(quaternion(R))  # w ≥ 0; the one conversion, shared with the rigid-body solver
     q = q / np.linalg.norm(q)
-    if previous is not None and float(np.dot(q, previous["quaternion"])) < 0:
+    if previous is not None and float(np.dot(q, previous.quaternion)) < 0:
         q = -q
-    return {"position": [float(x) for x in t], "quaternion": [float(x) for x in q]}
+    return Pose(position=[float(x) for x in t], quaternion=[float(x) for x in q])
 
 
-def fit_pose(rest: np.ndarray, moved: np.ndarray, previous: dict | None = None) -> dict:
+def fit_pose(rest: np.ndarray, moved: np.ndarray, previous: Pose | None = None) -> Pose:
     """The pose carrying the body's rest particles onto ``moved``, by least squares."""
     R, t = kabsch(rest, moved)
     return pose(R, t, previous)
 
 
-def fit_poses(rest: np.ndarray, frames: list[np.ndarray]) -> list[dict]:
+def fit_poses(rest: np.ndarray, frames: list[np.ndarray]) -> list[Pose]:
     """One pose per frame (each an array matching ``rest`` row for row), signs kept continuous."""
-    out: list[dict] = []
+    out: list[Pose] = []
     for moved in frames:
         out.append(fit_pose(rest, moved, out[-1] if out else None))
     return out
 
 
-def apply_pose(body: dict, points: np.ndarray) -> np.ndarray:
+def apply_pose(body: Pose, points: np.ndarray) -> np.ndarray:
     """Rest-placement points carried by a pose (``geometry.apply_pose``)."""
     return _apply_pose(body, points)

@@ -194,7 +194,7 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
             info.save(out)  # after every frame: an interrupted import resumes from here
             bar.update(task, advance=1, info=f"{len(fr):,} fluid")
     for k, (index, _) in enumerate(case.fluid):  # poses of frames converted earlier, too
-        info.frame(index)["time"] = float(times[k])
+        info.frame(index).time = float(times[k])
         if moving:
             info.set_bodies(index, [s.poses[k] for s in moving])
     info.save(out)

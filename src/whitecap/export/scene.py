@@ -37,6 +37,7 @@ from ..errors import InputError
 from ..io import read, read_mesh, write_scene
 from ..io.cache import CacheCamera, CacheObstacle, FrameGeometry, PointSet, SceneCache
 from ..io.diffuse_types import TYPE_NAMES
+from ..io.record import OBSTACLE_COLOR
 from ..io.lock import export_locks
 from ..io.run import RunInfo
 from ..progress import progress
@@ -48,7 +49,6 @@ SCENE_TARGETS = ("usd", "abc")
 #: Bumped when what a frame layer holds changes, so that a rerun rewrites old frame layers.
 CACHE_VERSION = 1
 #: Colour of an obstacle whose entry names none (the renderer's default stone).
-OBSTACLE_COLOR = (0.8, 0.78, 0.72)
 
 
 # ---------------------------------------------------------------------------- one frame (pure)
@@ -113,7 +113,7 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
     has_mesh = bool(info.files("mesh"))
     has_diffuse = bool(info.files("diffuse"))
     kinds = ("mesh", "diffuse") if has_mesh else ("fluid", "diffuse")
-    frames = [(f["index"], float(f["time"])) for f in info.frames if any(k in f["files"] for k in kinds)]
+    frames = [(f.index, float(info.time(f.index))) for f in info.frames if any(k in f.files for k in kinds)]
     if not frames:
         raise InputError(f"{run_dir / 'run.json'}: no mesh, fluid or diffuse frames to export")
     point_sets = (() if has_mesh else ("fluid",)) + (TYPE_NAMES if has_diffuse else ())
@@ -121,7 +121,7 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
     radii = {name: diffuse_radius(cfg, t, r) for t, name in enumerate(TYPE_NAMES) if name in point_sets}
     if "fluid" in point_sets:
         radii["fluid"] = (r, r)
-    table = {f["index"]: dict(f["files"]) for f in info.frames}
+    table = {f.index: dict(f.files) for f in info.frames}
     notes = []
     if not has_mesh:
         notes.append(f"{run_dir}: no surface meshes: exported points only (fluid and diffuse particles); "
@@ -142,11 +142,11 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
         placement = obstacle_transform(entry)
         found = {i: info.body_pose(i, k) for i, _ in frames}
         poses = {}
-        if any(found.values()):  # a frame without a pose is at rest
-            poses = {i: (list(p["position"]), list(p["quaternion"])) if p else ([0.0] * 3, [1.0, 0.0, 0.0, 0.0])
+        if any(p is not None for p in found.values()):  # a frame without a pose is at rest
+            poses = {i: (list(p.position), list(p.quaternion)) if p is not None else ([0.0] * 3, [1.0, 0.0, 0.0, 0.0])
                      for i, p in found.items()}
         obstacles.append(CacheObstacle(f"obstacle_{k}", np.asarray(m.vertices), np.asarray(m.faces),
-                                       tuple(entry.get("color", OBSTACLE_COLOR)), placement, poses))
+                                       tuple(entry.color or OBSTACLE_COLOR), placement, poses))
         rest = np.asarray(m.vertices) @ placement[:3, :3].T + placement[:3, 3]
         boxes.append(np.array([rest.min(0), rest.max(0)]))
     cache = SceneCache(frame_rate=info.frame_rate, frames=frames, has_mesh=has_mesh, point_sets=point_sets,

@@ -134,7 +134,7 @@ def _export(run: Path, to: str, out: Path, split_types: bool, kinds: tuple[str, 
             show_progress: bool, jobs: int = 1, cluster: str | None = None) -> dict[str, Path]:
     info = RunInfo.load(run)
     ext = "vtp" if to == "vtk" else "ply"
-    times = {f["index"]: float(f["time"]) for f in info.frames}
+    times = {f.index: float(info.time(f.index)) for f in info.frames}
     work = [(kind, i, rel) for kind in kinds for i, rel in info.files(kind)]
     if not work:
         raise InputError(f"{run / 'run.json'}: no {', '.join(kinds)} frames to export")

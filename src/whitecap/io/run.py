@@ -16,6 +16,8 @@ from, and, in runs with moving obstacles, (``bodies``) each obstacle's pose
 at that frame: position [m] and quaternion (w, x, y, z) of the rigid motion
 from its rest placement (``geometry.obstacle_matrix`` composes the two). The
 ``obstacles`` entries name each body's collision ``mesh`` and ``render_mesh``.
+The fields, their types and their defaults are the records of ``io/record.py``
+(:class:`RunInfo` is its run record with the reading, writing and look-ups).
 
 The identity (:func:`simulation_identity`) is a hash of the resolved scene
 TOML, seed included; ``output.frames`` is left out so that extending a run
@@ -30,10 +32,8 @@ import bisect
 import contextlib
 import hashlib
 import json
-import math
 import os
 import tomllib
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +41,8 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import write_text
+from .record import FORMAT_VERSION, HAVE_PYDANTIC, Frame, Pose, RunRecord, relpath_problem
 
-FORMAT_VERSION = 1
 RUN_JSON = "run.json"
 #: scene keys (or whole sections) that do not change the simulated frames, left out of the identity
 #: (checkpoints are where a resume starts: the frames after one are the same bytes whatever the interval)
@@ -72,82 +72,30 @@ def source_identity(paths: list[Path], up: str, extra: object = None) -> str:
 
 def check_relpath(rel: Any, where: str) -> str:
     """``rel`` if it is a relative path that stays inside the run, else an InputError naming ``where``."""
-    if not isinstance(rel, str) or not rel or "\0" in rel:
-        raise InputError(f"{where}: expected a file path, got {rel!r}")
-    parts = rel.replace("\\", "/").split("/")
-    if rel.startswith(("/", "\\")) or ".." in parts or (len(parts[0]) >= 2 and parts[0][1] == ":"):
-        raise InputError(f"{where}: {rel!r} is not a relative path inside the run")
+    problem = relpath_problem(rel)
+    if problem:
+        raise InputError(f"{where}: {problem}")
     return rel
 
 
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+def _field(loc: tuple) -> str:
+    """A field's location as run.json's readers write it: ``frames[1].bodies[0].quaternion``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
 
 
-def _validate(data: Any, p: Path) -> None:
-    """Check the types of run.json's fields; an InputError names the first bad one."""
-    if not isinstance(data, dict):
-        raise InputError(f"{p}: expected a JSON object, got {type(data).__name__}")
+def _one_line(exc: Any, p: Path) -> InputError:
+    """The first error of a pydantic ValidationError as one line naming run.json and the field."""
+    err = exc.errors()[0]
+    field = _field(err["loc"])
+    if err["type"] == "missing":
+        return InputError(f"{p}: missing field '{field}'")
+    if err["type"] == "value_error":
+        return InputError(f"{p}: field '{field}': {err['ctx']['error']}")
+    return InputError(f"{p}: field '{field}': {err['msg'].lower()}, got {err['input']!r}")
 
-    def bad(field: str, want: str) -> InputError:
-        return InputError(f"{p}: field '{field}': expected {want}")
-
-    for k in ("particle_radius", "rest_density", "particle_mass", "frame_rate"):
-        if not _number(data[k]) or data[k] <= 0:
-            raise bad(k, f"a positive number, got {data[k]!r}")
-    vec3 = lambda v: isinstance(v, list) and len(v) == 3 and all(_number(x) for x in v)  # noqa: E731
-    if "gravity" in data and not vec3(data["gravity"]):
-        raise bad("gravity", f"3 numbers, got {data['gravity']!r}")
-    if "domain" in data:
-        dom = data["domain"]
-        if not isinstance(dom, dict):
-            raise bad("domain", "an object with lower and upper")
-        for k in ("lower", "upper"):
-            if not vec3(dom.get(k)):
-                raise bad(f"domain.{k}", f"3 numbers, got {dom.get(k)!r}")
-    for k, typ, want in (("obstacles", list, "a list"), ("extra", dict, "an object"), ("format", str, "a string"),
-                         ("up", str, "a string"), ("simulation", str, "a string")):
-        if k in data and not isinstance(data[k], typ):
-            raise bad(k, f"{want}, got {data[k]!r}")
-    extra = data.get("extra", {})
-    for k, typ, want in (("seed", int, "an integer"), ("scene_dir", str, "a string"), ("kernel_support", float,
-                                                                                       "a number")):
-        v = extra.get(k)
-        if v is not None and not (_number(v) if typ is float else isinstance(v, typ) and not isinstance(v, bool)):
-            raise bad(f"extra.{k}", f"{want}, got {v!r}")
-    if "version" in data and (not isinstance(data["version"], int) or isinstance(data["version"], bool)):
-        raise bad("version", f"an integer, got {data['version']!r}")
-    frames = data.get("frames", [])
-    if not isinstance(frames, list):
-        raise bad("frames", "a list")
-    for n, f in enumerate(frames):
-        at = f"frames[{n}]"
-        if not isinstance(f, dict):
-            raise bad(at, f"an object, got {f!r}")
-        if not isinstance(f.get("index"), int) or isinstance(f["index"], bool) or f["index"] < 0:
-            raise bad(f"{at}.index", f"a frame number, got {f.get('index')!r}")
-        if "time" in f and not _number(f["time"]):
-            raise bad(f"{at}.time", f"a number, got {f['time']!r}")
-        bodies = f.get("bodies", [])
-        if not isinstance(bodies, list):
-            raise bad(f"{at}.bodies", f"a list, got {bodies!r}")
-        for b, body in enumerate(bodies):
-            if not isinstance(body, dict) or not vec3(body.get("position")):
-                raise bad(f"{at}.bodies[{b}].position", f"3 numbers, got {body!r}")
-            q = body.get("quaternion")
-            if not (isinstance(q, list) and len(q) == 4 and all(_number(x) for x in q)
-                    and abs(math.fsum(x * x for x in q) - 1.0) < 1e-3):
-                raise bad(f"{at}.bodies[{b}].quaternion", f"a unit quaternion (w, x, y, z), got {q!r}")
-        for k in ("files", "made_from"):
-            if not isinstance(f.get(k, {}), dict):
-                raise bad(f"{at}.{k}", f"an object, got {f[k]!r}")
-        if "files" not in f:
-            raise bad(f"{at}.files", "an object")
-        for kind, rel in f["files"].items():
-            check_relpath(rel, f"{p}: field '{at}.files.{kind}'")
-        for kind, sim in f.get("made_from", {}).items():
-            if not isinstance(sim, str):
-                raise bad(f"{at}.made_from.{kind}", f"a string, got {sim!r}")
 
 #: The six faces of the domain box, named by axis and side: "x-" is the face at domain.lower[0].
 WALLS = ("x-", "x+", "y-", "y+", "z-", "z+")
@@ -158,21 +106,8 @@ def frame_name(kind: str, index: int, ext: str = "ply") -> str:
     return f"{kind}/{kind}_{index:05d}.{ext}"
 
 
-@dataclass
-class RunInfo:
-    particle_radius: float
-    rest_density: float
-    particle_mass: float
-    gravity: list[float]
-    domain: dict[str, list[float]]
-    frame_rate: float
-    frames: list[dict[str, Any]] = field(default_factory=list)
-    obstacles: list[dict[str, Any]] = field(default_factory=list)
-    extra: dict[str, Any] = field(default_factory=dict)
-    format: str = "whitecap-run"
-    version: int = FORMAT_VERSION
-    up: str = "z"
-    simulation: str = ""  # identity of the simulation the fluid frames come from
+class RunInfo(RunRecord):
+    """run.json (the fields: io/record.py's :class:`RunRecord`), read, looked up and written."""
 
     # ------------------------------------------------------------------ io
     @classmethod
@@ -184,27 +119,29 @@ class RunInfo:
             data = json.loads(p.read_text())
         except json.JSONDecodeError as exc:
             raise InputError(f"{p}: malformed JSON: {exc}") from None
-        known = {f for f in cls.__dataclass_fields__}
         if not isinstance(data, dict):
             raise InputError(f"{p}: expected a JSON object, got {type(data).__name__}")
-        missing = [k for k in ("particle_radius", "rest_density", "particle_mass", "frame_rate", "gravity",
-                                  "domain") if k not in data]
-        if missing:
-            raise InputError(f"{p}: missing field '{missing[0]}'")
-        _validate(data, p)
-        if data.get("version", 0) > FORMAT_VERSION:
-            raise InputError(f"{p}: version {data['version']} is newer than this whitecap ({FORMAT_VERSION})")
-        info = cls(**{k: v for k, v in data.items() if k in known})
-        info.frames.sort(key=lambda e: e["index"])  # kept in index order (see _entry)
+        if HAVE_PYDANTIC:
+            from pydantic import ValidationError
+
+            try:
+                info = cls.model_validate(data)
+            except ValidationError as exc:
+                raise _one_line(exc, p) from None
+        else:  # Blender's Python (the add-on): read as it is
+            info = cls.model_validate(data)
+        if info.version > FORMAT_VERSION:
+            raise InputError(f"{p}: version {info.version} is newer than this whitecap ({FORMAT_VERSION})")
+        info.frames.sort(key=lambda e: e.index)  # kept in index order (see _entry)
         for f in info.frames:  # entries made from another simulation are stale: forget them
-            made = f.setdefault("made_from", {})
-            for kind in [k for k in f["files"] if made.get(k, "") != info.simulation]:
-                del f["files"][kind]
-                made.pop(kind, None)
+            f.made_from = dict(f.made_from)  # written back even where the file had none
+            for kind in [k for k in f.files if f.made_from.get(k, "") != info.simulation]:
+                del f.files[kind]
+                f.made_from.pop(kind, None)
         return info
 
     def save(self, run_dir: str | Path) -> None:
-        write_text(Path(run_dir) / RUN_JSON, json.dumps(asdict(self), indent=1))
+        write_text(Path(run_dir) / RUN_JSON, json.dumps(self.model_dump(), indent=1))
 
     # ------------------------------------------------------------------ walls
     def solid_walls(self) -> list[str]:
@@ -221,54 +158,60 @@ class RunInfo:
         return [w for w in WALLS if w in walls]
 
     # ------------------------------------------------------------------ frames
-    def _entry(self, index: int) -> dict[str, Any] | None:
+    def _entry(self, index: int) -> Frame | None:
         """The frame entry with this index, or None. The entries are kept sorted by index and are
         usually contiguous, so this is a direct look-up, else a binary search: stages ask for a
         frame's entry (its time, a body's pose) once per frame, and a scan made that O(frames²)."""
         fr = self.frames
         if not fr:
             return None
-        k = index - fr[0]["index"]
-        if 0 <= k < len(fr) and fr[k]["index"] == index:
+        k = index - fr[0].index
+        if 0 <= k < len(fr) and fr[k].index == index:
             return fr[k]
-        k = bisect.bisect_left(fr, index, key=lambda e: e["index"])
-        return fr[k] if k < len(fr) and fr[k]["index"] == index else None
+        k = bisect.bisect_left(fr, index, key=lambda e: e.index)
+        return fr[k] if k < len(fr) and fr[k].index == index else None
 
-    def frame(self, index: int) -> dict[str, Any]:
+    def frame(self, index: int) -> Frame:
+        """The frame entry with this index, made (at time index / frame rate, no files) if missing."""
         f = self._entry(index)
         if f is not None:
             return f
-        f = {"index": index, "time": index / self.frame_rate, "files": {}, "made_from": {}}
+        f = Frame(index=index, time=index / self.frame_rate, files={}, made_from={})
         self.frames.append(f)
-        self.frames.sort(key=lambda e: e["index"])
+        self.frames.sort(key=lambda e: e.index)
         return f
+
+    def time(self, index: int) -> float:
+        """Frame ``index``'s simulated time [s]: as recorded, else index / frame rate."""
+        f = self._entry(index)
+        return f.time if f is not None and f.time is not None else index / self.frame_rate
 
     def set_file(self, index: int, kind: str, relpath: str, time: float | None = None) -> None:
         """Record a file of this frame, made from the current simulation."""
         f = self.frame(index)
-        f["files"][kind] = check_relpath(relpath, f"run.json: frame {index}: {kind}")
-        f.setdefault("made_from", {})[kind] = self.simulation
+        f.files[kind] = check_relpath(relpath, f"run.json: frame {index}: {kind}")
+        f.made_from[kind] = self.simulation
         if time is not None:
-            f["time"] = float(time)
+            f.time = float(time)
 
-    def set_bodies(self, index: int, bodies: list[dict]) -> None:
-        """Record the pose of every obstacle at this frame: ``{"position": [x, y, z], "quaternion":
-        [w, x, y, z]}`` per obstacle, in scene order, the rigid motion from its rest placement."""
-        self.frame(index)["bodies"] = bodies
+    def set_bodies(self, index: int, bodies: list[Pose | dict]) -> None:
+        """Record the pose of every obstacle at this frame (:class:`Pose`, or its dict), in scene
+        order: the rigid motion from its rest placement."""
+        self.frame(index).bodies = bodies
 
-    def body_pose(self, index: int, k: int) -> dict | None:
+    def body_pose(self, index: int, k: int) -> Pose | None:
         """Obstacle ``k``'s pose at frame ``index`` (None: static, or not recorded: at rest)."""
         f = self._entry(index)
-        b = (f.get("bodies") or []) if f is not None else []
+        b = (f.bodies or []) if f is not None else []
         return b[k] if k < len(b) else None
 
     def files(self, kind: str) -> list[tuple[int, str]]:
         """(index, relative path) of every frame that has a file of this kind."""
-        return [(f["index"], f["files"][kind]) for f in self.frames if kind in f["files"]]
+        return [(f.index, f.files[kind]) for f in self.frames if kind in f.files]
 
     def truncate(self, last_index: int) -> None:
         """Forget frames after ``last_index`` (used when resuming)."""
-        self.frames = [f for f in self.frames if f["index"] <= last_index]
+        self.frames = [f for f in self.frames if f.index <= last_index]
 
 
 def obstacle_path(src: str, info: "RunInfo", run_dir: str | Path | None) -> Path | None:

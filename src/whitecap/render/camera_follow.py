@@ -28,6 +28,7 @@ import numpy as np
 from ..config import Render
 from ..geometry import obstacle_transform, unit_quat_matrix
 from ..errors import InputError
+from ..io.record import Obstacle
 from ..io.run import RunInfo, obstacle_path
 from . import stage
 from .sea import still_level
@@ -76,12 +77,12 @@ def body_index(cfg: Render, info: RunInfo) -> int | None:
     return k
 
 
-def body_rest_box(entry: dict, info: RunInfo, run_dir: Path | None) -> tuple[np.ndarray, np.ndarray]:
+def body_rest_box(entry: Obstacle, info: RunInfo, run_dir: Path | None) -> tuple[np.ndarray, np.ndarray]:
     """The box of an obstacle's rest-placed collision mesh (its translate alone where the file is missing)."""
     import trimesh
 
     M = obstacle_transform(entry)
-    src = entry.get("mesh") or entry.get("render_mesh")
+    src = entry.mesh or entry.render_mesh
     path = obstacle_path(src, info, run_dir) if src else None
     if path is None:
         c = M[:3, 3]
@@ -100,7 +101,7 @@ def body_track(info: RunInfo, k: int, centre, frames) -> np.ndarray:
         if pose is None:
             out.append(c)
         else:
-            out.append(unit_quat_matrix(pose["quaternion"]) @ c + np.asarray(pose["position"], float))
+            out.append(unit_quat_matrix(pose.quaternion) @ c + np.asarray(pose.position, float))
     return np.array(out)
 
 
@@ -109,7 +110,7 @@ def follow_keys(cfg: Render, info: RunInfo, bounds, first: int, last: int, aspec
     """Camera position and look-at point at every frame first..last (see the module docstring)."""
     lo, hi = (np.asarray(b, float) for b in (bounds if bounds is not None else
                                                (info.domain["lower"], info.domain["upper"])))
-    start = min([f["index"] for f in info.frames] + [first])
+    start = min([f.index for f in info.frames] + [first])
     frames = list(range(start, last + 1))
     k = body_index(cfg, info)
     if k is not None:

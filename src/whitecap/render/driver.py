@@ -286,7 +286,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
     keys = {i: frame_key(run_dir, info, cfg, quality, i) for i in wanted}
-    todo = stage_todo(wanted, lambda i: i in current and info.frame(i).get("render_key") == keys[i]
+    todo = stage_todo(wanted, lambda i: i in current and info.frame(i).render_key == keys[i]
                       and _done(frame_path(run_dir, i), size), force)
     blend = run_dir / "render" / "scene.blend"
     made = info.extra.get("blend")
@@ -352,15 +352,17 @@ def frame_key(run_dir: Path, info: RunInfo, cfg, quality: str, index: int | None
     import hashlib
     import json
 
-    files = info.frame(index)["files"] if index is not None else {}  # None: the look alone (scene.blend)
+    frame = info.frame(index) if index is not None else None  # None: the look alone (scene.blend)
+    files = frame.files if frame is not None else {}
     inputs = []
     for kind in ("mesh", "diffuse"):
         if kind in files:
             st = (run_dir / files[kind]).stat()
             inputs.append([kind, files[kind], st.st_size, st.st_mtime_ns])
     look = {k: v for k, v in cfg.model_dump(mode="json").items() if k != "device"}
-    bodies = info.frame(index).get("bodies") if index is not None else None
-    text = json.dumps([look, quality, inputs, info.obstacles, bodies], sort_keys=True, default=str)
+    bodies = [b.model_dump() for b in frame.bodies] if frame is not None and frame.bodies is not None else None
+    obstacles = [o.model_dump() for o in info.obstacles]
+    text = json.dumps([look, quality, inputs, obstacles, bodies], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -371,7 +373,7 @@ def _record(run_dir: Path, indices: list[int], blend: str | None = None, keys: d
     for i in indices:
         info.set_file(i, "render", f"render/frame_{i:05d}.png")
         if keys and i in keys:
-            info.frame(i)["render_key"] = keys[i]
+            info.frame(i).render_key = keys[i]
     if blend:
         info.extra["blend"] = {"file": "render/scene.blend", "made_from": info.simulation, "key": blend}
     info.save(run_dir)
@@ -391,7 +393,7 @@ def _is_addon_zip(path: Path) -> bool:
 def build_addon(out: str | Path | None = None) -> Path:
     """Zip the Blender extension: blender_manifest.toml, the add-on's modules, and in its
     ``whitecap`` folder the whitecap modules it shares with ``whitecap render`` (the bpy layer
-    whitecap/blender and what it imports: errors, io/diffuse_types, io/run, io/atomic)."""
+    whitecap/blender and what it imports: errors, io/diffuse_types, io/record, io/run, io/atomic)."""
     import zipfile
 
     from ..io.atomic import atomic_path
@@ -495,7 +497,7 @@ def manifest_with_wheels(text: str, wheels: list[str]) -> str:
 
 
 #: whitecap modules the extension carries (below the package), beside the whole bpy layer
-ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/run.py", "io/atomic.py", "geometry.py",
+ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/record.py", "io/run.py", "io/atomic.py", "geometry.py",
                 "cases/rigid_bin.py", "cases/rigid_fit.py")
 
 

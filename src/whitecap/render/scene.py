@@ -25,6 +25,7 @@ from ..errors import InputError
 from ..io import read, read_mesh
 from ..blender import looks, mesh as blender_mesh, place
 from ..blender.mesh import polygons_of
+from ..io.record import Obstacle
 from ..io.run import RunInfo
 from .terrain import dress_terrain, scene_terrain
 from . import camera_follow, sea, stage
@@ -247,7 +248,7 @@ def _add_camera(sc, cfg: Render, info: RunInfo, first: int, last: int, run_dir: 
     return cam
 
 
-def _add_obstacle(entry: dict, k: int, info: RunInfo, run_dir: Path | None, first: int, last: int):
+def _add_obstacle(entry: Obstacle, k: int, info: RunInfo, run_dir: Path | None, first: int, last: int):
     """The high-poly render mesh of an obstacle, placed and (a moving body) keyed as the add-on
     places it (blender/place.py)."""
     import bpy
@@ -289,7 +290,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
     import bpy
 
     frame = info.frame(index)
-    files = frame["files"]
+    files = frame.files
     stats = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
         verts, faces, vel, normals = read_surface(run_dir / files["mesh"])
@@ -298,7 +299,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
         fill_mesh(h.fluid.data, verts, faces, vel, normals=normals)
         stats["triangles"] = len(faces)
     if h.sea is not None:
-        sea.update_sea(h.sea, verts if "mesh" in files else np.zeros((0, 3)), frame["time"])
+        sea.update_sea(h.sea, verts if "mesh" in files else np.zeros((0, 3)), info.time(index))
     if "diffuse" in files:
         d = read(run_dir / files["diffuse"])
         types = d.arrays.get("type", np.zeros(len(d), np.uint8))

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..config import Render
 from ..errors import InputError
+from ..io.record import Obstacle
 from ..io.run import RunInfo, obstacle_path
 
 #: The glass's inner faces sit this many particle radii inside the domain box, under the water's edge.
@@ -94,7 +95,7 @@ def environment_path(cfg: Render, info: RunInfo, run_dir: Path) -> Path | None:
 
 def has_own_container(info: RunInfo) -> bool:
     """Whether the run brings its own tank: an obstacle with role "container" (an imported case)."""
-    return any(isinstance(o, dict) and o.get("role") == "container" for o in info.obstacles)
+    return any(o.role == "container" for o in info.obstacles)
 
 
 def container_kind(cfg: Render, info: RunInfo) -> str:
@@ -174,8 +175,7 @@ def camera_path(cfg: Render, info: RunInfo, bounds=None, aspect: float = 4 / 3) 
         # An opaque tank, drawn (basin) or the case's own (an imported container), is seen from high
         # enough to look over its front wall; a glass one (a closed tank, cases/splishsplash.py) from the side.
         opaque = container_kind(cfg, info) == "basin" or any(
-            isinstance(o, dict) and o.get("role") == "container" and o.get("material") != "glass"
-            for o in info.obstacles)
+            o.role == "container" and o.material != "glass" for o in info.obstacles)
         view = VIEW_DIRECTION_BASIN if opaque else VIEW_DIRECTION
         dist = frame_box(lo, hi, target, view, cfg.lens, aspect)
         u = np.asarray(view, float) / np.linalg.norm(view)
@@ -507,12 +507,12 @@ def depth_of_field(cam, cfg: Render, target_obj) -> None:
 
 
 # ============================================================================ obstacles
-def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None):
+def obstacle_render_mesh(entry: Obstacle, info: RunInfo, run_dir: Path | None = None):
     """The obstacle's render mesh (``render_mesh``, else its collision ``mesh``) as a trimesh in
     its own coordinates, found by :func:`obstacle_path`; None when the file is missing."""
     import trimesh
 
-    src = entry.get("render_mesh") or entry.get("mesh")
+    src = entry.render_file
     path = obstacle_path(src, info, run_dir) if src else None
     if path is None:
         return None
@@ -528,11 +528,11 @@ def obstacle_render_mesh(entry: dict, info: RunInfo, run_dir: Path | None = None
 
 
 # ============================================================================ obstacle textures
-def texture_path(entry: dict, k: int, info: RunInfo, run_dir: Path) -> Path | None:
+def texture_path(entry: Obstacle, k: int, info: RunInfo, run_dir: Path) -> Path | None:
     """The image of ``obstacle[k].texture``, resolved against the scene's directory; a missing one is an error."""
-    if not entry.get("texture"):
+    if not entry.texture:
         return None
-    p = Path(entry["texture"])
+    p = Path(entry.texture)
     if not p.is_absolute():
         p = Path(info.extra.get("scene_dir", run_dir)) / p
     if not p.is_file():
@@ -540,7 +540,7 @@ def texture_path(entry: dict, k: int, info: RunInfo, run_dir: Path) -> Path | No
     return p
 
 
-def apply_texture(obj, mesh, entry: dict, k: int, info: RunInfo, run_dir: Path) -> None:
+def apply_texture(obj, mesh, entry: Obstacle, k: int, info: RunInfo, run_dir: Path) -> None:
     """Give an obstacle object its image texture, mapped by the UVs of its render mesh (a trimesh)."""
     import bpy
 

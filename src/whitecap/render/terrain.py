@@ -26,6 +26,7 @@ import math
 from pathlib import Path
 
 from ..config import Terrain
+from ..io.record import Obstacle
 from ..io.run import RunInfo
 from ..terrain import TERRAIN_MATERIAL
 
@@ -229,7 +230,7 @@ def run_terrain(run_dir: Path | None) -> Terrain | None:
     return Terrain.model_validate(t) if isinstance(t, dict) else None
 
 
-def scene_terrain(info: RunInfo, run_dir: Path | None) -> list[dict]:
+def scene_terrain(info: RunInfo, run_dir: Path | None) -> list[Obstacle]:
     """The run's scene.toml ``[terrain]`` as an obstacle entry, where run.json holds no terrain: a run
     whitecap did not simulate (``whitecap import``) set in a landscape at render time. Without a
     ``[domain]`` the terrain's collision solid (unused here) is cut to the run's domain. [] otherwise."""
@@ -239,17 +240,18 @@ def scene_terrain(info: RunInfo, run_dir: Path | None) -> list[dict]:
 
     p = Path(run_dir) / "scene.toml" if run_dir is not None else None
     if p is None or not p.is_file() or any(
-            isinstance(e, dict) and e.get("material") == TERRAIN_MATERIAL for e in info.obstacles):
+            e.material == TERRAIN_MATERIAL for e in info.obstacles):
         return []
     raw = tomllib.loads(p.read_text("utf-8"))
     if "terrain" not in raw:
         return []
     raw.setdefault("domain", {"lower": list(info.domain["lower"]), "upper": list(info.domain["upper"])})
     scene = scene_from_dict(raw, str(p), p.parent)
-    return [o.model_dump() for o in scene.obstacle if o.material == TERRAIN_MATERIAL]
+    return [Obstacle.model_validate(o.model_dump()) for o in scene.obstacle if o.material == TERRAIN_MATERIAL]
 
 
-def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False, extra: list[dict] = ()) -> list:
+def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False,
+                  extra: list[Obstacle] = ()) -> list:
     """Give the obstacles that are terrain (material "terrain") the terrain material, smooth
     shading and the name ``terrain_K``; remove the ground plane they replace. Returns them.
 
@@ -263,7 +265,7 @@ def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False
     out = []
     t = None
     for k, entry in enumerate([*info.obstacles, *extra]):  # extra: scene_terrain's, after the run's own
-        material = entry.get("material") if isinstance(entry, dict) else None
+        material = entry.material
         if material != TERRAIN_MATERIAL and material not in PRESETS:
             continue
         obj = sc.objects.get(f"obstacle_{k}")

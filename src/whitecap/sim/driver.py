@@ -225,7 +225,7 @@ def _refuse_restart_without_checkpoint(out: Path) -> None:
     first frame (a simulate stopped before its first checkpoint). A run with later frames and none
     (one written by `foam --out` from a run, or whose checkpoint was removed) is not replaced without
     --force."""
-    later = [f["index"] for f in RunInfo.load(out).frames if f["files"] and f["index"] > 0]
+    later = [f.index for f in RunInfo.load(out).frames if f.files and f.index > 0]
     if later:
         raise InputError(f"{out}: holds {len(later)} frames after the first but no {CHECKPOINT} to resume from "
                          "(a run converted by `foam --out`, or its checkpoint was removed); simulate with --force to "
@@ -316,7 +316,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         with timer("output"):
             a = solver.arrays()  # fresh host copies (to_numpy): the writer may keep them while the solver goes on
             frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
-            info.frame(index)["particles"] = len(frame)  # the count varies with emitters and sinks
+            info.frame(index).particles = len(frame)  # the count varies with emitters and sinks
             for fmt in scene.output.formats:
                 rel = frame_name("fluid", index, fmt)
                 writer.submit(functools.partial(write, out / rel, frame), "fluid")

@@ -57,6 +57,7 @@ from ..config import Obstacle, Scene
 from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..errors import InputError
 from ..io.atomic import write_arrays
+from ..io.record import Pose
 from ..timing import timer
 from .grid import F1, F3, I1
 
@@ -210,13 +211,13 @@ class PosedSDF:
         self.T0 = self.T1 = np.zeros(3)
         self.dt = 0.0
 
-    def _pose(self, time: float, body: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    def _pose(self, time: float, body: Pose | None) -> tuple[np.ndarray, np.ndarray]:
         if body is not None:
             M = pose_matrix(body)
             return M[:3, :3], M[:3, 3]
         return self.law.pose(time)
 
-    def at_frame(self, time: float, body: dict | None, dt: float = 0.0, prev: dict | None = None) -> None:
+    def at_frame(self, time: float, body: Pose | None, dt: float = 0.0, prev: Pose | None = None) -> None:
         """The pose at ``time`` (record ``body``) and at ``time − dt`` (record ``prev``; without one,
         the pose this was last set to, or with dt = 0 the same pose: at rest over the frame)."""
         R1, T1 = self._pose(time, body)
@@ -340,14 +341,15 @@ def run_obstacle_grids(info, run_dir: Path, fluid: np.ndarray | None = None) -> 
     where = Path(run_dir) / "run.json"
     out = []
     for k, e in enumerate(info.obstacles):
-        if not isinstance(e, dict) or not isinstance(e.get("mesh"), str):
+        if not e.mesh:
             raise InputError(f"{where}: field 'obstacles[{k}].mesh': expected a mesh file path")
-        path = obstacle_path(e["mesh"], info, run_dir)
+        path = obstacle_path(e.mesh, info, run_dir)
         if path is None:
-            raise InputError(f"{where}: field 'obstacles[{k}].mesh': {e['mesh']} not found")
+            raise InputError(f"{where}: field 'obstacles[{k}].mesh': {e.mesh} not found")
         keys = ("translate", "rotate", "scale", "sdf_resolution", "repair")
+        given = e.model_dump()
         try:
-            o = Obstacle(mesh=str(path), **{key: e[key] for key in keys if key in e})
+            o = Obstacle(mesh=str(path), **{key: given[key] for key in keys if key in given})
         except ValidationError as exc:
             err = exc.errors()[0]
             field = ".".join(str(x) for x in err["loc"])
@@ -355,10 +357,10 @@ def run_obstacle_grids(info, run_dir: Path, fluid: np.ndarray | None = None) -> 
         try:
             g = build_sdf(o, path, r, pad=h + 2 * o.sdf_resolution * r)
         except InputError as exc:  # an open wall (or one wound both ways): no volume to keep particles out of
-            console.print(f"[yellow]warning:[/] {exc}: obstacle[{k}] ({e.get('name', path.name)}) is left out of "
+            console.print(f"[yellow]warning:[/] {exc}: obstacle[{k}] ({e.name or path.name}) is left out of "
                           "the diffuse particles' collisions", soft_wrap=True)
             continue
-        if e.get("role") == "container" and fluid is not None and len(fluid):
+        if e.role == "container" and fluid is not None and len(fluid):
             if float((g.sample(np.asarray(fluid, np.float64)) < 0).mean()) > FLUID_INSIDE_FRACTION:
                 g = g.inverted()
         out.append(PosedSDF(g, MotionLaw(o, run_dir, k), k))
@@ -641,7 +643,7 @@ class ObstacleCollider:
         rec(obstacle_penalty, r["n"], r["x"], r["v"], *self._geo(r, pre), r[pre + "stiffness"], r["r"], r["dt"],
             *self._coupling(r, pre), r[pre + "m"])
 
-    def body_records(self) -> list[dict]:
+    def body_records(self) -> list[Pose]:
         """Every obstacle's current pose as run.json records it (sim.bodies.pose_record)."""
 
         return [pose_record(R, T) for R, T in self.poses]

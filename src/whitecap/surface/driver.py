@@ -172,7 +172,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         info = RunInfo.load(job.run_dir)
         current, key = dict(info.files("mesh")), settings_key(job.params)
         job.recorded = {i for i, _, _, rel in job.frames
-                        if current.get(i) == rel and info.frame(i).get("mesh_settings") == key}
+                        if current.get(i) == rel and info.frame(i).mesh_settings == key}
     elif job.frames:  # outside a run: only files the folder's manifest lists are ours
         refuse_inside_other_run(job.frames[0][2].parent, job.source_run, "mesh")
         manifest = Manifest(job.frames[0][2].parent, MESH_MANIFEST)
@@ -180,7 +180,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}
     todo = stage_todo(job.frames, lambda f: _done(job, f), force)
     if job.run_dir is not None:  # inside the run: never over a file the run holds as something else
-        others = {rel: kind for f in info.frames for kind, rel in f["files"].items() if kind != "mesh"}
+        others = {rel: kind for f in info.frames for kind, rel in f.files.items() if kind != "mesh"}
         for _, _, o, rel in todo:
             if rel in others:
                 raise InputError(f"{o}: is the run's {others[rel]} file; mesh would overwrite it: choose another --out")
@@ -232,10 +232,10 @@ def record(job: MeshJob) -> RunInfo:
     for i, _, o, rel in job.frames:
         if i in made and o.is_file():
             info.set_file(i, "mesh", rel)
-            info.frame(i)["mesh_settings"] = key
+            info.frame(i).mesh_settings = key
     # The settings of the meshes run.json lists: only once every one of them was made with these.
-    meshed = [f for f in info.frames if "mesh" in f["files"]]
-    if meshed and all(f.get("mesh_settings") == key for f in meshed):
+    meshed = [f for f in info.frames if "mesh" in f.files]
+    if meshed and all(f.mesh_settings == key for f in meshed):
         info.extra["mesh"] = job.params.as_dict()
     else:
         info.extra.pop("mesh", None)

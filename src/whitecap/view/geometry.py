@@ -8,11 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import obstacle_transform, pose_matrix
+from ..io.record import OBSTACLE_COLOR, Obstacle, Pose
 
 log = logging.getLogger("whitecap.view")
 
 
-def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple, int]]:
+def load_obstacle_meshes(entries: list[Obstacle], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple, int]]:
     """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour, obstacle index) per
     obstacle, in its rest placement (:func:`posed` moves it to a frame's pose).
 
@@ -25,9 +26,9 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
 
     out = []
     for k, e in enumerate(entries):
-        if e.get("material") == "glass":
+        if e.material == "glass":
             continue
-        path = Path(e.get("render_mesh") or e["mesh"])
+        path = Path(e.render_file)
         cands = [path] if path.is_absolute() else [b / path for b in bases] + [Path.cwd() / path]
         found = next((c for c in cands if c.is_file()), None)
         if found is None:
@@ -39,14 +40,13 @@ def load_obstacle_meshes(entries: list[dict], bases: list[Path]) -> list[tuple[n
             log.warning("obstacle mesh %s unreadable (%s); not shown", found, exc)
             continue
         m.apply_transform(obstacle_transform(e))
-        color = tuple(float(c) for c in e.get("color", (0.8, 0.78, 0.72)))
+        color = tuple(float(c) for c in e.color or OBSTACLE_COLOR)
         out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color, k))
     return out
 
 
-def posed(vertices: np.ndarray, normals: np.ndarray, body: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Rest-placement vertices and normals carried by a body pose from run.json
-    (``{"position", "quaternion"}``): ``geometry.pose_matrix``."""
+def posed(vertices: np.ndarray, normals: np.ndarray, body: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Rest-placement vertices and normals carried by a body pose from run.json: ``geometry.pose_matrix``."""
     M = pose_matrix(body)
     R, T = M[:3, :3], M[:3, 3]
     return (vertices @ R.T + T).astype(np.float32), (normals @ R.T).astype(np.float32)

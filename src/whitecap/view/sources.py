@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import read
 from ..io.sequence import find_sequence
+from ..io.record import Obstacle
 from ..io.run import RUN_JSON, RunInfo
 
 
@@ -43,7 +44,7 @@ class Frame:
     diffuse_type: np.ndarray | None = None
     diffuse_radius: np.ndarray | None = None
     device: DeviceFluid | None = None
-    bodies: list | None = None  # per obstacle, its pose {"position", "quaternion"} (None: all at rest)
+    bodies: list | None = None  # per obstacle, its pose (io.record.Pose; None: all at rest)
 
     def as_dict(self) -> dict:
         if self.positions is None and self.device is not None:
@@ -89,11 +90,11 @@ class PlaybackSource:
             self.indices = [i for i, _ in fl]
             self.files = [self.path / rel for _, rel in fl]
             self.diffuse = {i: self.path / rel for i, rel in self.info.files("diffuse")}
-            self.times = {f["index"]: f.get("time", f["index"] / self.info.frame_rate) for f in self.info.frames}
-            self.bodies = {f["index"]: f["bodies"] for f in self.info.frames if f.get("bodies")}
+            self.times = {f.index: self.info.time(f.index) for f in self.info.frames}
+            self.bodies = {f.index: f.bodies for f in self.info.frames if f.bodies}
             self.radius = float(self.info.particle_radius)
-            d = self.info.domain or {}
-            self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float)) if "lower" in d else None
+            d = self.info.domain
+            self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float))
         else:
             if not self.path.exists() and not any(c in str(path) for c in "*?["):
                 raise InputError(f"{self.path}: no such run directory or particle sequence")
@@ -150,7 +151,7 @@ class PlaybackSource:
         self._cache[k] = fr
         return fr
 
-    def obstacles(self) -> list[dict]:
+    def obstacles(self) -> list[Obstacle]:
         return list(self.info.obstacles) if self.info else []
 
     def obstacle_base(self) -> list[Path]:
@@ -272,7 +273,7 @@ class LiveSource:
             logging.getLogger("whitecap.view").warning("foam generator failed (%s); diffuse particles off", exc)
             self.hook, self._diffuse = None, None
 
-    def obstacles(self) -> list[dict]:
+    def obstacles(self) -> list[Obstacle]:
         return [o.model_dump() for o in self.scene.obstacle]
 
     def obstacle_base(self) -> list[Path]:

@@ -173,7 +173,7 @@ def add_obstacle(context, made, rd, info, entry, k):
     scene's folder, else the run's own) and placed and keyed by the shared layer."""
     path = run.obstacle_mesh_file(entry, info, rd)
     if path is None:
-        print(f"whitecap: obstacle {k}: {entry.get('render_mesh') or entry.get('mesh')}: file not found, left out")
+        print(f"whitecap: obstacle {k}: {entry.render_file}: file not found, left out")
         return None
     geom = readers.read(str(path))
     me = bpy.data.meshes.new(f"obstacle_{k}")
