@@ -200,3 +200,21 @@ def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_partic
     assert need.sum() > 1000
     for ref, got in ((x, "cand_x"), (v, "cand_v"), (life, "cand_life")):
         assert ref[need].tobytes() == b[got].to_numpy()[:total][need].tobytes()
+
+
+def test_the_candidate_arrays_never_grow_past_a_chunk(monkeypatch):
+    """Frames of more and more candidates (the multipliers doubled each frame) grow the candidate arrays
+    geometrically, but never past CANDIDATE_CHUNK rows."""
+    from whitecap.diffuse import generator as G
+
+    monkeypatch.setattr(G, "CANDIDATE_CHUNK", 3000)
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    totals = []
+    for k in range(4):
+        gen.p = replace(gen.p, k_ta=10.0 * 4**k, k_wc=10.0 * 4**k)
+        gen.step(frame, k, DT)
+        totals.append(gen._candidates["total"])
+    assert totals[0] < 3000 < totals[-1]
+    for name in ("cand_kind", "cand_owner", "cand_x", "cand_v", "cand_life", "cand_flag", "cand_rank", "cand_pos"):
+        assert gen._bufs[name].shape[0] <= 3000, name

@@ -739,14 +739,15 @@ class FoamGenerator:
         lim, want = self._buffer("limit", m, cols=3), self._buffer("want", m, ti.f32, cols=3)
         K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, want, lim)
         chunk = min(total, CANDIDATE_CHUNK)
-        kd, owner = self._buffer("cand_kind", chunk, ti.i8), self._buffer("cand_owner", chunk)
+        up = {"limit": CANDIDATE_CHUNK}  # grown geometrically, never past a chunk
+        kd, owner = self._buffer("cand_kind", chunk, ti.i8, **up), self._buffer("cand_owner", chunk, **up)
         g = self.grid
         box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
                int(p.model == "foamgenerator" and p.wall_correction))
         self._thin = False  # no thinning beyond the limits (yet)
 
-        cx, cv = self._buffer("cand_x", chunk, vec=True), self._buffer("cand_v", chunk, vec=True)
-        cl = self._buffer("cand_life", chunk, ti.f32)
+        cx, cv = self._buffer("cand_x", chunk, vec=True, **up), self._buffer("cand_v", chunk, vec=True, **up)
+        cl = self._buffer("cand_life", chunk, ti.f32, **up)
 
         def classify(base: int, size: int) -> None:
             K.chunk_owners(n, base, size, cnt, off, owner)
@@ -856,8 +857,9 @@ class FoamGenerator:
         p, st, b = self.p, self.state, self._bufs
         total, chunk, classify, thin = self._chunks
         kd, owner, off, fid = b["cand_kind"], b["cand_owner"], b["offset"], b["fluid_id"]
-        flag, rank = self._buffer("cand_flag", chunk), self._buffer("cand_rank", chunk)
-        at, cx = self._buffer("cand_pos", chunk), b["cand_x"]
+        up = {"limit": CANDIDATE_CHUNK}
+        flag, rank = self._buffer("cand_flag", chunk, **up), self._buffer("cand_rank", chunk, **up)
+        at, cx = self._buffer("cand_pos", chunk, **up), b["cand_x"]
         frame = index & 0xFFFFFFFF
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
