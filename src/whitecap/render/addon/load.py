@@ -10,7 +10,7 @@ import numpy as np
 
 from . import handlers, paths, readers, sequences
 from .properties import KINDS, POINT_KINDS, add_template
-from .shared import COUNT_NAMES, RunInfo, looks, mesh, place, rigid_bin, run
+from .shared import COUNT_NAMES, Obstacle, RunInfo, looks, mesh, place, rigid_bin, run
 
 SPACING_SAMPLES = 256  # points whose nearest-neighbour distance estimates the particle spacing
 DEFAULT_FPS = 24.0  # a plain folder's frame rate when the operator is given none
@@ -210,7 +210,7 @@ def load_rigid_bodies(context, d, bins, made, fps):
         made.append(me)
         pts = rigid_bin.first_world(geom.points, scale, Rs[i][0], ts[i][0], Y_UP)
         mesh.fill_mesh(me, pts, geom.loops, geom.starts)
-        me.materials.append(looks.obstacle_material({"material": "glass" if wall else "stone"}))
+        me.materials.append(looks.obstacle_material(Obstacle(material="glass" if wall else "stone")))
         obj = bpy.data.objects.new(me.name, me)
         made.append(obj)
         sc.collection.objects.link(obj)
