@@ -157,13 +157,14 @@ def test_rocks_lie_on_the_beach_beside_the_breakwater_head():
 
 DRESS_SCRIPT = """
 import types, bpy
+from whitecap.io.record import Obstacle
 from whitecap.render.terrain import dress_terrain
 sc = bpy.context.scene
 for k in range(3):
     me = bpy.data.meshes.new(f"m{k}")
     me.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 1)], [], [(0, 1, 2)])
     sc.collection.objects.link(bpy.data.objects.new(f"obstacle_{k}", me))
-info = types.SimpleNamespace(obstacles=[{"material": "stone"}, {"material": "concrete"}, {"material": "rock"}])
+info = types.SimpleNamespace(obstacles=[Obstacle(material=m) for m in ("stone", "concrete", "rock")])
 assert dress_terrain(sc, info, None, preview=True) == []          # no terrain: the ground stays
 names = lambda k: {n.name for n in sc.objects[f"obstacle_{k}"].data.materials[0].node_tree.nodes}
 assert not sc.objects["obstacle_0"].data.materials                  # stone is left to the obstacle material
