@@ -69,7 +69,7 @@ def test_playback_of_frames_5_7_9_11_shows_each_frames_own_data(tiny_run, tmp_pa
         np.testing.assert_array_equal(fr.positions, read(run / frame_name("fluid", idx)).positions)
         assert fr.diffuse_positions is not None and len(fr.diffuse_positions) == k + 1
         assert (fr.diffuse_type == k % 3).all()
-        assert fr.bodies is not None and fr.bodies[0]["position"] == pytest.approx([0.0, 0.0, 0.01 * idx])
+        assert fr.bodies is not None and fr.bodies[0].position == pytest.approx([0.0, 0.0, 0.01 * idx])
 
 
 def test_web_viewer_shows_the_surface_of_the_frame_played(tiny_run, tmp_path):
@@ -116,18 +116,19 @@ def test_a_turned_bodys_normals_turn_with_it():
     normals of the carried mesh (a box turned 30° about an oblique axis and moved)."""
     import trimesh
 
+    from whitecap.io.record import Pose
     from whitecap.view.geometry import posed
 
     box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
     axis = np.array([1.0, 2.0, 2.0]) / 3.0
     a = math.radians(30)
     q = [math.cos(a / 2), *(math.sin(a / 2) * axis)]
-    body = {"position": [0.4, -0.1, 0.25], "quaternion": q}
+    body = Pose(position=[0.4, -0.1, 0.25], quaternion=q)
     v, n = posed(np.asarray(box.vertices, np.float32), np.asarray(box.face_normals[0:1].repeat(len(box.vertices), 0),
                                                                     np.float32), body)
     moved = trimesh.Trimesh(v, box.faces, process=False)
     assert np.allclose(moved.face_normals[0], n[0], atol=1e-5)  # the first face's normal, carried
-    assert np.allclose(moved.vertices.mean(0), body["position"], atol=1e-5)
+    assert np.allclose(moved.vertices.mean(0), body.position, atol=1e-5)
     # every vertex normal of the posed box agrees with the posed mesh's own
     _, vn = posed(np.asarray(box.vertices, np.float32), np.asarray(box.vertex_normals, np.float32), body)
     assert np.allclose(moved.vertex_normals, vn, atol=1e-5)
