@@ -187,13 +187,13 @@ def armour(core: trimesh.Trimesh, rng: np.random.Generator, unit: trimesh.Trimes
     surface at about UNIT_SPACING (a jittered grid over the faces by area), each unit centred a layer
     out along the surface normal, at a random turn. Returns a list of 4×4 placements."""
     placements = []
-    faces = core.faces
     normals = core.face_normals
     areas = core.area_faces
     keep = normals[:, 2] > -0.5                          # not the bottom
     for layer in range(layers):
         total = areas[keep].sum()
         n = int(total / UNIT_SPACING ** 2)
+        # Three times the draws, thinned to points at least 0.92 spacings apart (trimesh says how many it kept).
         pts, fid = trimesh.sample.sample_surface_even(core, n * 3, radius=UNIT_SPACING * 0.92, seed=int(rng.integers(1 << 30)))
         ok = keep[fid]
         pts, fid = pts[ok], fid[ok]
@@ -206,7 +206,6 @@ def armour(core: trimesh.Trimesh, rng: np.random.Generator, unit: trimesh.Trimes
             M[:3, :3] = _rot(rng)
             M[:3, 3] = c
             placements.append(M)
-    del faces
     return placements
 
 
@@ -236,8 +235,7 @@ def collision_solid(render: trimesh.Trimesh, x0: float, x1: float, y0: float, y1
     hf = heightfield_from_mesh(trimesh.util.concatenate([render, plane]), COLLISION_SPACING)
     V, F, shape = grid_surface(hf, x0, x1, y0, y1, COLLISION_SPACING)
     Vs, Fs = closed_solid(V, F, shape, base)
-    m = trimesh.Trimesh(Vs, Fs, process=True)
-    return m
+    return trimesh.Trimesh(Vs, Fs, process=True)
 
 
 # --------------------------------------------------------------------------- rocks
