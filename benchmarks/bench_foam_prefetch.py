@@ -32,8 +32,7 @@ from pathlib import Path
 os.environ.setdefault("WHITECAP_PROGRESS", "0")
 
 from whitecap import io  # noqa: E402
-from whitecap.diffuse import driver  # noqa: E402
-from whitecap.diffuse import postprocess  # noqa: E402
+from whitecap.diffuse import driver, postprocess  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_INPUT = str(ROOT.parent / "shared/data/dualsphysics_dambreak")

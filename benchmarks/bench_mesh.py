@@ -35,8 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from whitecap import io as wio
-from whitecap import timing
+from whitecap import io as wio, timing
 from whitecap.io.frame import ParticleFrame
 from whitecap.surface.driver import plan, run_mesh
 from whitecap.surface.reconstruct import MeshParams, mesh_frame, single_threaded_splashsurf

@@ -14,8 +14,8 @@ average too: the figures are only comparable on a quiet machine.
 from __future__ import annotations
 
 import argparse
-import os
 import json
+import os
 import tempfile
 import time
 from pathlib import Path

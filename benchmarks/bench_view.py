@@ -200,8 +200,8 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
 def _headless(n: int, size, repeats: int) -> dict:
     import numpy as np
 
-    from whitecap.view.app import initial_camera, make_window
     from whitecap.config import View
+    from whitecap.view.app import initial_camera, make_window
     from whitecap.view.draw import Renderer
     from whitecap.view.sources import Bounds, Frame
     from whitecap.view.state import ViewerState

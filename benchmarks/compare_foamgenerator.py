@@ -106,8 +106,8 @@ def counts(run: Path) -> np.ndarray:
 def dualsphysics(a, tmp: Path, write_partio_bgeo) -> tuple[str, dict, dict]:
     """The DualSPHysics PartFluid sequence: converted to y-up BGEO; whitecap reads it as it is."""
     from whitecap import io
-    from whitecap.diffuse import postprocess
     from whitecap.cases.dualsphysics_xml import read_xml
+    from whitecap.diffuse import postprocess
     from whitecap.io.sequence import find_sequence
 
     src = Path(a.input)
@@ -179,7 +179,6 @@ def main() -> None:
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     sys.path.insert(0, str(ROOT))
     from tests.conftest import write_partio_bgeo  # whitecap itself never writes BGEO
-
     from whitecap.cases.splishsplash import is_case
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -408,11 +408,11 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
     info = RunInfo.load(addon_run)
     assert res["lock_interface"]  # renders change meshes per frame: the interface stays off them
     assert res["timeline"][:2] == [0, 3] and res["timeline"][2] == pytest.approx(info.frame_rate)
-    from whitecap.geometry import obstacle_transform
-    from whitecap.io.record import Obstacle
-
     import trimesh
     import trimesh.transformations as T
+
+    from whitecap.geometry import obstacle_transform
+    from whitecap.io.record import Obstacle
 
     rest = np.asarray(trimesh.load(addon_run / "box.obj", force="mesh", process=False).vertices)
     want = (obstacle_transform(Obstacle.model_validate(OBSTACLE)) @ np.c_[rest, np.ones(len(rest))].T).T[:, :3]

@@ -9,15 +9,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from whitecap.config import scene_from_dict
 from whitecap import geometry
-from whitecap.geometry import obstacle_matrix, pose_matrix
+from whitecap.config import scene_from_dict
 from whitecap.errors import InputError
+from whitecap.geometry import obstacle_matrix, pose_matrix
 from whitecap.io import read
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import simulate
-from whitecap.sim import bodies
-from whitecap.sim import obstacles as obs
+from whitecap.sim import bodies, obstacles as obs
 from whitecap.sim.driver import build_solver
 
 
@@ -273,9 +272,9 @@ def test_view_draws_the_body_at_each_frames_pose(tiny_run, tmp_path):
     frame 0, lifted 10 cm and turned 45° about z at frame 1."""
     import shutil
 
-    from .test_view import H, W, _camera, _img, _render
-
     from whitecap.view.draw import project
+
+    from .test_view import H, W, _camera, _img, _render
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)

@@ -8,7 +8,6 @@ it exists (CI has it beside the clone) and is skipped elsewhere.
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -20,8 +19,8 @@ import pytest
 from whitecap.cases import dualsphysics as D
 from whitecap.cases.rigid_fit import apply_pose, fit_pose, fit_poses
 from whitecap.cli import main
-from whitecap.errors import InputError
 from whitecap.io.run import RunInfo
+
 from .conftest import ADDON_LOAD_SCRIPT
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dualsphysics_dambreak"
@@ -431,9 +430,9 @@ def test_preview_shows_the_building_where_it_projects(dambreak_run, tmp_path):
     pixels where the building's box projects change (the building is drawn there, in front of
     the water and the tank), the imported tank replaces the drawn glass container even where
     [render] asks for glass, and both obstacles are in."""
-    import imageio.v2 as imageio
     import shutil
 
+    import imageio.v2 as imageio
     import trimesh
 
     run = tmp_path / "run"

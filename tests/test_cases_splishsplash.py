@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from whitecap.cases import splishsplash
-from whitecap.geometry import pose_matrix
 from whitecap.errors import InputError
+from whitecap.geometry import pose_matrix
 from whitecap.io import read, read_mesh
 from whitecap.io.axes import to_z_up
 from whitecap.io.record import Pose

@@ -35,8 +35,7 @@ distributed = pytest.importorskip("distributed")
 
 from whitecap import pipeline  # noqa: E402
 from whitecap.cli import main  # noqa: E402
-from whitecap.io import ParticleFrame, read_mesh  # noqa: E402
-from whitecap.io import write as write_particles  # noqa: E402
+from whitecap.io import ParticleFrame, read_mesh, write as write_particles  # noqa: E402
 from whitecap.io.run import RunInfo  # noqa: E402
 
 from .test_cluster import _files, _small_run  # noqa: E402  (a copy of the tiny run with a quick preview)

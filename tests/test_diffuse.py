@@ -14,9 +14,9 @@ import pytest
 from whitecap import io
 from whitecap.cli import main
 from whitecap.config import scene_from_dict
-from whitecap.errors import InputError
 from whitecap.diffuse import postprocess
 from whitecap.diffuse.params import PRESETS, read_ini, resolve
+from whitecap.errors import InputError
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import simulate
 

@@ -80,9 +80,9 @@ def test_compaction_keeps_every_survivor_once_with_its_id_in_its_order():
 def test_survivors_come_first_in_their_order_then_the_new_with_the_next_ids():
     """Frames of a splash: each frame's particles are the last frame's survivors, in the order they had,
     then the new ones with ids next_id, next_id + 1, ... (none is born outside this domain); every id once."""
-    from .test_diffuse_generate import DT, _generator as splash_generator, _splash
-
     from dataclasses import replace
+
+    from .test_diffuse_generate import DT, _generator as splash_generator, _splash
 
     gen = splash_generator((30.0, 1.0, 1.0))
     gen.p = replace(gen.p, spray_lifetime=(0.005, 0.02))  # spray lives one to three frames

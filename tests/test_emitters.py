@@ -4,8 +4,6 @@ with both active, and one-line errors on bad input."""
 
 from __future__ import annotations
 
-import textwrap
-
 import numpy as np
 import pytest
 import trimesh

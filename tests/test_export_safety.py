@@ -14,7 +14,6 @@ import json
 import os
 import stat
 import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from whitecap import io as wio
 from whitecap.cli import main
 from whitecap.io.lock import LOCK_FILE
 from whitecap.io.run import RunInfo
+
 
 def _permissions_enforced() -> bool:
     """Whether this process is refused a write into a read-only directory (root, or any

@@ -17,11 +17,10 @@ import pytest
 from whitecap import io as wio
 from whitecap.cli import main
 from whitecap.geometry import obstacle_matrix
-from whitecap.io.diffuse_types import TYPE_NAMES
+from whitecap.io.diffuse_types import DIFFUSE_RADIUS, TYPE_NAMES
 from whitecap.io.mesh import read_mesh
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import export, mesh
-from whitecap.io.diffuse_types import DIFFUSE_RADIUS
 
 from .test_surface_export import synthetic_diffuse
 

@@ -24,8 +24,9 @@ np.save(sys.argv[2], s.arrays()["positions"][np.argsort(s.state.ids.to_numpy())]
 
 
 def test_cuda_matches_cpu(tmp_path):
-    import numpy as np
     from pathlib import Path
+
+    import numpy as np
 
     root = Path(__file__).parents[1]
     for arch in ("cpu", "cuda"):
@@ -38,8 +39,9 @@ def test_cuda_matches_cpu(tmp_path):
 def test_cuda_step_runs_as_compute_graphs(tmp_path):
     """The step's phases build and run as Taichi compute graphs on CUDA too (sim/launch.py), with the
     same result as launching kernel by kernel there."""
-    import numpy as np
     from pathlib import Path
+
+    import numpy as np
 
     script = """
 import sys, numpy as np

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from whitecap.config import scene_from_dict
 from whitecap import geometry
+from whitecap.config import scene_from_dict
 from whitecap.sim import bodies
 from whitecap.sim.driver import build_solver
 

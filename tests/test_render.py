@@ -20,7 +20,7 @@ from plyfile import PlyData, PlyElement
 
 from whitecap import io
 from whitecap.cli import main
-from whitecap.errors import InputError, MissingDependency
+from whitecap.errors import MissingDependency
 from whitecap.io.run import RunInfo
 
 pytest.importorskip("bpy")
@@ -370,7 +370,10 @@ def test_render_copies_are_jittered_and_keep_their_place():
     d = np.linalg.norm(a[:, None] - x[None], axis=2).min(1)
     assert (d <= 0.01 * np.sqrt(3) + 1e-6).all() and (d > 1e-4).sum() == 2 * len(x)  # 2 jittered copies each
     # Frame b: every particle moved by 0.5 and listed in another order; its copies went along.
-    key = lambda p: p[np.lexsort(np.round(p, 6).T)]
+
+    def key(p):
+        return p[np.lexsort(np.round(p, 6).T)]
+
     assert np.allclose(key(b - 0.5), key(a), atol=1e-5)
 
 

@@ -280,9 +280,9 @@ def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
     iterations slider reaches the solver's settings."""
     import tomli_w
 
-    from .conftest import tiny_scene_dict
-
     from whitecap.view.web import WebViewer
+
+    from .conftest import tiny_scene_dict
 
     scene = tmp_path / "tiny.toml"
     scene.write_text(tomli_w.dumps(tiny_scene_dict(foam={"enabled": False}, view={"steps_per_draw": 2})))
@@ -671,9 +671,9 @@ def test_live_scene_waits_for_the_first_page(tmp_path, page):
     first page to connect starts it."""
     import tomli_w
 
-    from .conftest import tiny_scene_dict
-
     from whitecap.view.web import WebViewer
+
+    from .conftest import tiny_scene_dict
 
     scene = tmp_path / "tiny.toml"
     scene.write_text(tomli_w.dumps(tiny_scene_dict(foam={"enabled": False}, view={"steps_per_draw": 2})))

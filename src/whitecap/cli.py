@@ -16,7 +16,6 @@ from .config import Foam, Mesh, Render, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
 
-
 CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), local (a local cluster of --jobs "
                 "workers), or slurm / pbs (batch jobs described by the scene's [cluster] section); needs "
                 "pip install 'whitecap[cluster]'")

@@ -632,7 +632,7 @@ def check_scheduler(spec: str, address: str, timeout: float) -> None:
     def run() -> None:
         try:
             asyncio.run(asyncio.wait_for(handshake(), max(0.1, deadline - time.monotonic())))
-        except BaseException as exc:  # noqa: BLE001: every failure becomes one line below
+        except BaseException as exc:  # noqa: BLE001 -- every failure becomes one line below
             outcome.append(exc)
 
     # In a thread of its own, so that a caller inside an event loop (a notebook) can connect too.

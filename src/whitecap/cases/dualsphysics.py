@@ -39,8 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.registry import find_array
-from ..io.registry import check
+from ..io.registry import check, find_array
 from ..io.sequence import frame_number
 from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
 from . import Case, CaseShape

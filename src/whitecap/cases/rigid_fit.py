@@ -19,8 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import apply_pose as _apply_pose
-from ..geometry import quaternion
+from ..geometry import apply_pose as _apply_pose, quaternion
 from ..io.record import Pose
 
 

@@ -31,8 +31,18 @@ from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
-from ..io.run import (DOMAIN_RULE, RUN_JSON, RunInfo, claim_run_dir, domain_text, flow_domain, frame_name, remove_run,
-                      sequence_bounds, source_identity)
+from ..io.run import (
+    DOMAIN_RULE,
+    RUN_JSON,
+    RunInfo,
+    claim_run_dir,
+    domain_text,
+    flow_domain,
+    frame_name,
+    remove_run,
+    sequence_bounds,
+    source_identity,
+)
 from ..progress import console, progress
 from . import ROLES, Case, CaseShape
 

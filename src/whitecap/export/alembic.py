@@ -54,8 +54,8 @@ def require_bpy() -> None:
 
 def write_abc(path: str | Path, cache: SceneCache, advance: Callable[[str], None] | None = None) -> None:
     """Write ``cache`` as one Alembic archive at ``path`` (see the module docstring)."""
-    from .usd import point_path, require_pxr, write_usd
     from ..workers import child_env
+    from .usd import point_path, require_pxr, write_usd
 
     require_bpy()
     require_pxr()

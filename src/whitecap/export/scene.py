@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Render
-from ..geometry import obstacle_transform
 from ..errors import InputError
+from ..geometry import obstacle_transform
 from ..io import read, read_mesh, write_scene
 from ..io.cache import CacheCamera, CacheObstacle, FrameGeometry, PointSet, SceneCache
 from ..io.diffuse_types import TYPE_NAMES
-from ..io.record import OBSTACLE_COLOR
 from ..io.lock import export_locks
+from ..io.record import OBSTACLE_COLOR
 from ..io.run import RunInfo
 from ..progress import progress
 from ..render import stage

@@ -27,13 +27,13 @@ import numpy as np
 
 from .. import io as wio
 from ..errors import InputError
+from ..executor import cluster_settings
 from ..io.diffuse_types import TYPE_NAMES
 from ..io.frame import ParticleFrame
-from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
-from ..io.pvd import write_pvd, write_series
-from ..executor import cluster_settings
 from ..io.lock import export_locks
 from ..io.manifest import Manifest
+from ..io.mesh import SurfaceMesh, read_mesh, write_mesh
+from ..io.pvd import write_pvd, write_series
 from ..io.run import RunInfo
 from ..io.vtk_xml import write_vtp
 from ..stage_frames import check_jobs, map_over_frames

@@ -6,9 +6,7 @@ registry, :mod:`whitecap.io.registry`, as particle, mesh or scene formats. Impor
 Alembic) register from :mod:`whitecap.export`, their one user.
 """
 
-from . import bgeo, npz, ply, vtk_legacy, vtu  # noqa: F401  (registers the formats)
-from . import mesh_ply  # noqa: F401  (registers the PLY surface-mesh format)
-from . import mesh_obj  # noqa: F401  (registers the OBJ surface-mesh format)
+from . import bgeo, mesh_obj, mesh_ply, npz, ply, vtk_legacy, vtu  # noqa: F401  (registers the formats)
 from .atomic import atomic_path, write_bytes, write_text
 from .frame import ParticleFrame
 from .registry import FORMATS, find_array, read, read_mesh, register, write, write_mesh, write_scene

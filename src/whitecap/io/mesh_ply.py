@@ -16,7 +16,6 @@ from .atomic import atomic_path
 from .mesh import SurfaceMesh
 from .registry import MESH, register
 
-
 _VERTEX = ("x", "y", "z", "nx", "ny", "nz", "vx", "vy", "vz")
 _FACE_DTYPE = np.dtype([("n", "u1"), ("i", "<i4", (3,))])  # packed: 13 bytes per triangle
 _TRIANGLES = {"face": {"vertex_indices": 3}}  # plyfile maps such lists from the file in one go

@@ -103,8 +103,16 @@ def _relpath(v: Any) -> str:
 
 
 try:
-    from pydantic import (BaseModel, ConfigDict, PlainSerializer, PlainValidator, PrivateAttr, WrapValidator,
-                          model_serializer, model_validator)
+    from pydantic import (
+        BaseModel,
+        ConfigDict,
+        PlainSerializer,
+        PlainValidator,
+        PrivateAttr,
+        WrapValidator,
+        model_serializer,
+        model_validator,
+    )
 
     HAVE_PYDANTIC = True
 except ImportError:  # Blender's Python: plain records, below

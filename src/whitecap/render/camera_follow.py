@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Render
-from ..geometry import obstacle_transform, unit_quat_matrix
 from ..errors import InputError
+from ..geometry import obstacle_transform, unit_quat_matrix
 from ..io.record import Obstacle
 from ..io.run import RunInfo, obstacle_path
 from . import stage

@@ -32,12 +32,12 @@ from pathlib import Path
 
 from ..config import Render, load_scene
 from ..errors import InputError, MissingDependency
-from ..resources import MEMORY_HEADROOM, available_memory  # the Blender processes' share, as simulate's
+from ..executor import ProcessWorkers, WorkerFailed, map_frames
 from ..io.atomic import sweep_temps
 from ..io.lock import run_lock
 from ..io.run import RunInfo
 from ..progress import progress
-from ..executor import ProcessWorkers, WorkerFailed, map_frames
+from ..resources import MEMORY_HEADROOM, available_memory  # the Blender processes' share, as simulate's
 from ..stage_frames import check_jobs, todo as stage_todo
 
 INSTALL_HINT = "install it with: pip install bpy==5.0.1 (needs Python 3.11 and numpy<2)"

@@ -20,16 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..blender import looks, mesh as blender_mesh, place
+from ..blender.mesh import polygons_of
 from ..config import Render
 from ..errors import InputError
 from ..io import read, read_mesh
-from ..blender import looks, mesh as blender_mesh, place
-from ..blender.mesh import polygons_of
 from ..io.record import Obstacle
 from ..io.run import RunInfo
-from .terrain import dress_terrain, scene_terrain
 from . import camera_follow, sea, stage
-
+from .terrain import dress_terrain, scene_terrain
 
 
 @dataclass

@@ -35,9 +35,21 @@ from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import sweep_temps, write_arrays
 from ..io.lock import LOCK_FILE, run_lock
+from ..io.run import (
+    CHECKPOINT,
+    IDENTITY_IGNORES,
+    RUN_JSON,
+    SCENE_FILE,
+    WALLS,
+    RunInfo,
+    check_scene_file,
+    claim_run_dir,
+    frame_name,
+    remove_run,
+    scene_sha256,
+    simulation_identity,
+)
 from ..io.writer import DEFAULT_QUEUE, FrameWriter
-from ..io.run import (CHECKPOINT, IDENTITY_IGNORES, RUN_JSON, SCENE_FILE, WALLS, RunInfo, check_scene_file,
-                      claim_run_dir, frame_name, remove_run, scene_sha256, simulation_identity)
 from ..progress import progress
 from ..timing import timer
 from . import runtime

@@ -54,8 +54,8 @@ import numpy as np
 import taichi as ti
 
 from ..config import Obstacle, Scene
-from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..errors import InputError
+from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..io.atomic import write_arrays
 from ..io.record import Pose
 from ..timing import timer

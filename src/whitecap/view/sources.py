@@ -13,9 +13,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..io import read
-from ..io.sequence import find_sequence
 from ..io.record import Obstacle
 from ..io.run import RUN_JSON, RunInfo
+from ..io.sequence import find_sequence
 
 
 @dataclass

@@ -52,8 +52,8 @@ import time
 
 import numpy as np
 
-from ..geometry import pose_matrix
 from ..errors import InputError, WhitecapError
+from ..geometry import pose_matrix
 from ..io.diffuse_types import TYPE_NAMES
 from .app import FOAM_SLIDERS, _advance, _current, _new_state, open_source
 from .colors import DIFFUSE_COLORS, colormap, fitted_range, fluid_scalar, free_fall_speed

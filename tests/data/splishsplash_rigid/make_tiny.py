@@ -13,8 +13,6 @@ import shutil
 import sys
 from pathlib import Path
 
-import numpy as np
-
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
 SRC = ROOT.parent / "shared" / "data" / "splishsplash_rigid"
