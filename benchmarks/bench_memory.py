@@ -110,7 +110,8 @@ def main() -> None:
                          f"{growth / 1e3:+.1f} kB a frame ({growth / n:+.2f} B/particle a frame)")
             print(line)
             if x["foam_nbytes"] is not None:
-                print(f"    foam stage's Taichi arrays: {x['foam_nbytes'] / n:.0f} B/particle ({x['foam_nbytes'] / 2**20:.1f} MiB)")
+                print(f"    foam stage's Taichi arrays: {x['foam_nbytes'] / n:.0f} B/particle "
+                      f"({x['foam_nbytes'] / 2**20:.1f} MiB)")
             if x["gpu"] is not None:
                 g = [t[1] for t in s if t[1] is not None]
                 grow = f", from {g[0] / 2**20:.0f} MiB after frame 1 to {g[-1] / 2**20:.0f} MiB" if g else ""

@@ -135,7 +135,8 @@ def main() -> None:
             t0 = time.perf_counter()
             run_mesh(job, jobs=jobs, force=True, show_progress=False)
             walls[jobs] = time.perf_counter() - t0
-            print(f"{a.frames} frames, --jobs {jobs}: {walls[jobs]:7.2f} s wall  ({walls[jobs] / a.frames:.3f} s/frame)")
+            print(f"{a.frames} frames, --jobs {jobs}: {walls[jobs]:7.2f} s wall  "
+                  f"({walls[jobs] / a.frames:.3f} s/frame)")
         name = "fluid_{:05d}.ply".format
         same = all((tmp / "jobs1" / name(k)).read_bytes() == (tmp / "jobs2" / name(k)).read_bytes()
                    for k in range(a.frames))

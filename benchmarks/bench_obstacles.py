@@ -34,7 +34,8 @@ def one(n: int, steps: int, mesh: str | None, dynamic: bool = False) -> dict:
     if mesh:
         a = sc.domain.upper[0] / 4
         extra = {"dynamic": True, "density": 500.0} if dynamic else {}
-        sc.obstacle = [Obstacle(mesh=mesh, translate=[1.0 * a, a / 4, 0.03], **extra)]  # in the column's foot: contact from the start
+        # in the column's foot: contact from the start
+        sc.obstacle = [Obstacle(mesh=mesh, translate=[1.0 * a, a / 4, 0.03], **extra)]
     t0 = time.perf_counter()
     s = build_solver(sc)
     setup = time.perf_counter() - t0
@@ -81,7 +82,8 @@ def main() -> None:
                 raise SystemExit(1)
             res[key] = json.loads(out.stdout.strip().splitlines()[-1])
     w, o = res["without"], res["with (cached SDF)"]
-    print(f"dam break, {w['particles']:,} particles without / {o['particles']:,} with the obstacle ({len(m.faces):,} faces)")
+    print(f"dam break, {w['particles']:,} particles without / {o['particles']:,} with the obstacle "
+          f"({len(m.faces):,} faces)")
     for k, r in res.items():
         print(f"  {k:18s} {r['ms_per_step']:8.1f} ms/step   setup {r['setup_s']:.2f} s")
     # Per particle, since the obstacle displaces some of the initial fluid.

@@ -48,12 +48,14 @@ def make_run(root: Path, frames: int) -> Path:
         f = np.empty(len(m.faces), dtype=[("vertex_indices", "i4", (3,))])
         f["vertex_indices"] = m.faces
         (run / "mesh").mkdir(parents=True, exist_ok=True)
-        PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(run / f"mesh/fluid_{i:05d}.ply"))
+        ply = PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")])
+        ply.write(str(run / f"mesh/fluid_{i:05d}.ply"))
         info.set_file(i, "mesh", f"mesh/fluid_{i:05d}.ply")
         n = 20000
         d = io.ParticleFrame(rng.random((n, 3)) * [0.8, 0.5, 0.4] + [0.1, 0.05, 0.05], np.zeros((n, 3)),
                              np.arange(n) + n * i, arrays={"type": rng.integers(0, 3, n).astype(np.uint8),
-                                                            "lifetime": np.ones(n, np.float32), "radius": np.full(n, 0.005, np.float32)})
+                                                            "lifetime": np.ones(n, np.float32),
+                                                            "radius": np.full(n, 0.005, np.float32)})
         io.write(run / f"diffuse/diffuse_{i:05d}.ply", d)
         info.set_file(i, "diffuse", f"diffuse/diffuse_{i:05d}.ply")
     info.save(run)
@@ -97,8 +99,9 @@ def main() -> None:
         res.update(stage=stage, load=load, cores=os.cpu_count())
         print(f"fluid mesh {tris} triangles, 20000 diffuse particles, Cycles CPU, {stage}")
         print(f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} on {os.cpu_count()} cores")
-        print(f"preview 320x240 {cfg.preview_samples} spp: {per:.2f} s/frame over {a.frames - 1} frames (incl. one scene build "
-              f"per call: {first:.2f} s for the first) — target {TARGET_PREVIEW_S} s: {per / TARGET_PREVIEW_S:.2f}x of budget")
+        print(f"preview 320x240 {cfg.preview_samples} spp: {per:.2f} s/frame over {a.frames - 1} frames "
+              f"(incl. one scene build per call: {first:.2f} s for the first) — target {TARGET_PREVIEW_S} s: "
+              f"{per / TARGET_PREVIEW_S:.2f}x of budget")
         print(f"  CPU time {cpu / (a.frames - 1):.2f} s per frame (worker start and scene build included), "
               f"{cpu / (a.frames - 1) / os.cpu_count():.2f} s per frame spread over {os.cpu_count()} idle cores")
         if a.final:

@@ -172,12 +172,15 @@ def main() -> None:
     how = "jittered start, CFL-limited dt" if a.moving else "fixed dt"
     print(f"PBF dam break, 4 iterations, {how}, {os.cpu_count()} cores ({cpu_model()})"
           + ("".join(f", GPU {g}" for g in gpu_names()) if "cuda" in archs else ""))
-    print(f"{'arch':5s} {'particles':>10s} {'ms/step':>9s} {'CPU ms':>8s} {'M p-it/s':>9s} {'vs SPH-PBF':>10s} {'vs target':>9s} {'B/particle':>10s} {'peak B/p':>8s} {'res B/p':>7s} {'load':>10s}")
+    print(f"{'arch':5s} {'particles':>10s} {'ms/step':>9s} {'CPU ms':>8s} {'M p-it/s':>9s} {'vs SPH-PBF':>10s} "
+          f"{'vs target':>9s} {'B/particle':>10s} {'peak B/p':>8s} {'res B/p':>7s} {'load':>10s}")
     for r in results:
         print(
-            f"{r['arch']:5s} {r['particles']:10d} {r['ms_per_step']:9.1f} {r['cpu_ms_per_step']:8.1f} {r['pits'] / 1e6:9.2f} "
+            f"{r['arch']:5s} {r['particles']:10d} {r['ms_per_step']:9.1f} {r['cpu_ms_per_step']:8.1f} "
+            f"{r['pits'] / 1e6:9.2f} "
             f"{r['pits'] / REFERENCE_PITS:9.2f}x {r['pits'] / TARGET_PITS:8.2f}x "
-            f"{r['bytes_per_particle_device']:10.0f} {r['bytes_per_particle_rss']:8.0f} {r['bytes_per_particle_resident']:7.0f} "
+            f"{r['bytes_per_particle_device']:10.0f} {r['bytes_per_particle_rss']:8.0f} "
+            f"{r['bytes_per_particle_resident']:7.0f} "
             f"{r['load'][0]:4.1f}→{r['load'][1]:4.1f}"
         )
     print(f"target {TARGET_PITS / 1e6:.1f} M p-it/s; reference SPlisHSPlasH PBF {REFERENCE_PITS / 1e6:.1f} M; "
@@ -187,7 +190,8 @@ def main() -> None:
         if len(rs) >= 2:
             small, big = rs[0], rs[-1]
             ratio = (big["ms_per_step"] / big["particles"]) / (small["ms_per_step"] / small["particles"])
-            print(f"{arch}: per-particle cost at {big['particles']} / at {small['particles']}: {ratio:.2f} (target ≤ 1.3)")
+            print(f"{arch}: per-particle cost at {big['particles']} / at {small['particles']}: {ratio:.2f} "
+                  "(target ≤ 1.3)")
     for r in results:
         ph = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["phases_ms_per_step"].items(), key=lambda kv: -kv[1]))
         print(f"  {r['arch']} {r['particles']}: ms/step by phase: {ph}")

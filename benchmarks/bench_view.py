@@ -106,7 +106,8 @@ def _browser_cpu_s() -> float:
     return total / tick
 
 
-def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle", points: str = "browser") -> dict:
+def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "circle",
+         points: str = "browser") -> dict:
     """Browser playback: a dam-break-like block of n particles moving frame by frame."""
     import io
     import shutil
@@ -193,8 +194,9 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
     return {"n": n, "points": "server" if server else "browser", "frames_on_disk": frames,
             "first_picture_s": t_first - t_goto, "serve_to_picture_s": t_first - t_serve,
             "browser_fps": shown / span if shown else 0.0, "raf_per_s": ticks / wall, "shown": shown, "sent": sent,
-            "sent_fps": sent / wall, "server_cpu_per_shown_s": cpu / max(shown, 1), "browser_cpu_per_shown_s": bcpu / max(shown, 1),
-            "precision": v.precision, "size": list(size), "shape": shape, "load_before": load0, "load_after": _loadavg()}
+            "sent_fps": sent / wall, "server_cpu_per_shown_s": cpu / max(shown, 1),
+            "browser_cpu_per_shown_s": bcpu / max(shown, 1), "precision": v.precision, "size": list(size),
+            "shape": shape, "load_before": load0, "load_after": _loadavg()}
 
 
 def _headless(n: int, size, repeats: int) -> dict:
@@ -291,9 +293,11 @@ def main() -> None:
         w = _web(a.n, a.web_frames, a.seconds, tuple(a.size), a.shape, a.points)
         print(json.dumps(w))
         drawn = "drawn on the server" if w["points"] == "server" else f"{w['shape']}s drawn by the browser"
-        print(f"web {w['n']:,} particles ({drawn}) at {w['size'][0]}x{w['size'][1]} over localhost in headless Chromium: "
-              f"first picture {w['first_picture_s']:.2f} s after loading the page ({w['serve_to_picture_s']:.2f} s after serving); "
-              f"playback {w['browser_fps']:.1f} frames/s shown in the browser ({w['sent']} frames sent, {w['sent_fps']:.1f}/s); "
+        print(f"web {w['n']:,} particles ({drawn}) at {w['size'][0]}x{w['size'][1]} over localhost "
+              f"in headless Chromium: first picture {w['first_picture_s']:.2f} s after loading the page "
+              f"({w['serve_to_picture_s']:.2f} s after serving); "
+              f"playback {w['browser_fps']:.1f} frames/s shown in the browser "
+              f"({w['sent']} frames sent, {w['sent_fps']:.1f}/s); "
               f"CPU per shown frame: server {w['server_cpu_per_shown_s'] * 1e3:.0f} ms, "
               f"browser {w['browser_cpu_per_shown_s'] * 1e3:.0f} ms; "
               f"target {TARGET_WEB_FPS:.0f} frames/s; load {w['load_before']} before, {w['load_after']} after")
@@ -313,12 +317,14 @@ def main() -> None:
     h, lv = res["headless"], res["live"]
     print(f"headless {h['n']:,} particles at {h['size'][0]}x{h['size'][1]}: "
           f"{h['draw_s'] * 1e3:.0f} ms/frame drawn, {h['draw_png_s'] * 1e3:.0f} ms/frame with PNG "
-          f"({1 / h['draw_png_s']:.1f} frames/s); ratio to the recipe's 0.3 s: {h['draw_png_s'] / REFERENCE_100K_S:.2f}")
+          f"({1 / h['draw_png_s']:.1f} frames/s); "
+          f"ratio to the recipe's 0.3 s: {h['draw_png_s'] / REFERENCE_100K_S:.2f}")
     fps = 1 / lv["frame_s"]
     print(f"live {lv['n']:,} particles on {lv['arch']}, {lv['substeps']} solver steps per redraw: "
           f"{fps:.2f} frames/s = {fps * lv['substeps']:.1f} steps/s "
           f"with the viewer, {1 / lv['sim_only_frame_s']:.2f} frames/s simulation only "
-          f"(viewer overhead {lv['frame_s'] / lv['sim_only_frame_s']:.2f}x); target on a GPU: {TARGET_LIVE_FPS:.0f} fps at 200k")
+          f"(viewer overhead {lv['frame_s'] / lv['sim_only_frame_s']:.2f}x); "
+          f"target on a GPU: {TARGET_LIVE_FPS:.0f} fps at 200k")
 
 
 if __name__ == "__main__":

@@ -86,7 +86,8 @@ def fg_runs(fg: str, bgeo: Path, out: Path, radius: float, dt: float, n: int, bo
         d = out / str(len(counts))
         d.mkdir(parents=True)
         cmd[3] = "-o" + str(d / "foam_#.bgeo")
-        counts[name] = foamgenerator_counts(subprocess.run(cmd + extra, capture_output=True, text=True, check=True).stdout)
+        done = subprocess.run(cmd + extra, capture_output=True, text=True, check=True)
+        counts[name] = foamgenerator_counts(done.stdout)
         if name == FG_DEFAULT:  # its spray falls through the walls it does not know, for ever
             inside = np.zeros((n, 3), np.int64)
             for k in range(1, n + 1):
@@ -174,7 +175,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--foamgenerator", required=True, help="the FoamGenerator executable")
     ap.add_argument("--input", default=str(ROOT.parent / "shared/data/dualsphysics_dambreak"),
-                    help="a DualSPHysics case folder (PartFluid_*.vtk and the case XML) or a SPlisHSPlasH output folder")
+                    help="a DualSPHysics case folder (PartFluid_*.vtk and the case XML) "
+                         "or a SPlisHSPlasH output folder")
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     sys.path.insert(0, str(ROOT))

@@ -45,7 +45,8 @@ def biesel(T: float, h: float) -> float:
     return 2 * (math.cosh(kh2) - 1) / (math.sinh(kh2) + kh2)
 
 
-def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float, solver: dict | None = None):
+def flume_scene(tmp: Path, r: float, h: float, S: float, T: float, length: float, ramp: float,
+                solver: dict | None = None):
     import trimesh
 
     from whitecap.config import scene_from_dict
@@ -110,7 +111,8 @@ def main(argv=None) -> int:
     ap.add_argument("--periods", type=float, nargs="+", default=[1.0])
     ap.add_argument("--stroke", type=float, default=0.04)
     ap.add_argument("--depth", type=float, default=0.2)
-    ap.add_argument("--iterations", type=int, default=40, help="solver.iterations (PBF needs many for a stiff enough piston response)")
+    ap.add_argument("--iterations", type=int, default=40,
+                    help="solver.iterations (PBF needs many for a stiff enough piston response)")
     ap.add_argument("--xsph", type=float, default=0.0, help="solver.xsph_c")
     ap.add_argument("--gauge", type=float, default=0.4, help="distance of the gauge from the paddle [m]")
     ap.add_argument("--out", default=None, help="PNG of η(t) at the gauge with the fitted window")

@@ -12,7 +12,8 @@ writes into scenes/assets/:
   surface by less than a millimetre).
 - ``boat_paint.png``: the texture, painted with NumPy: antifouling red below a white boot stripe
   at the waterline the hull floats at in the simulation (FLOAT_DRAFT, TRIM; Archimedes' draft at
-  the scene's density, found by bisection on the displaced volume, is printed beside it), a dark blue topside with a white sheer stripe and a thin gold cove line, the name in
+  the scene's density, found by bisection on the displaced volume, is printed beside it), a dark
+  blue topside with a white sheer stripe and a thin gold cove line, the name in
   block letters of a 5 × 7 pixel font drawn here, a teak-coloured deck with planking and a transom
   with the name again.
 - ``boat_wavemaker.obj``: the piston paddle, a 4 cm thick board wider than the tank.
@@ -323,13 +324,16 @@ def main() -> None:
     zw = waterline(col)
     zmax = float(V[:, 2].max())
     write_obj(ASSETS / "boat_render.obj", V, F, UV,
-              "scenes/boat.toml's painted hull (UVs for boat_paint.png), made by scripts/make_boat_assets.py. z is up, bow +x.")
+              "scenes/boat.toml's painted hull (UVs for boat_paint.png), made by scripts/make_boat_assets.py. "
+              "z is up, bow +x.")
     write_obj(ASSETS / "boat_hull.obj", col.vertices, col.faces, None,
-              "scenes/boat.toml's collision hull (convex hull of boat_render.obj), made by scripts/make_boat_assets.py.")
+              "scenes/boat.toml's collision hull (convex hull of boat_render.obj), "
+              "made by scripts/make_boat_assets.py.")
     iio.imwrite(ASSETS / "boat_paint.png", paint(zmax, FLOAT_DRAFT), optimize=True)
     wm = wavemaker()
     write_obj(ASSETS / "boat_wavemaker.obj", wm.vertices, wm.faces, None,
-              "scenes/boat.toml's piston wave maker: a 4 x 88 x 50 cm board centred on the origin, made by scripts/make_boat_assets.py.")
+              "scenes/boat.toml's piston wave maker: a 4 x 88 x 50 cm board centred on the origin, "
+              "made by scripts/make_boat_assets.py.")
     mass = DENSITY * col.volume
     print(f"boat_render.obj: {len(F)} faces; boat_hull.obj: {len(col.faces)} faces, volume {col.volume * 1e6:.0f} cm³, "
           f"{mass:.2f} kg at {DENSITY:.0f} kg/m³, Archimedes' draft {zw * 100:.1f} cm of {zmax * 100:.1f} cm; "
