@@ -4,7 +4,14 @@ Generates a synthetic sloshing sequence once (a block whose upper part swirls
 and splashes, so all potentials fire), then times `whitecap foam` over it, reading
 and writing included, beside the cost of only reading the frames.
 
-    python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2]
+    python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2] [--against OLD/src] [--repeat 1]
+
+Each timing runs in its own process (one Taichi runtime each), warmed up first on the first two frames
+(the advection's kernels compile only once there are diffuse particles: warmed on one frame, their
+compilation was timed). ``--against`` times another checkout's package on the same sequence too (e.g.
+``git worktree add /tmp/old 80c2fce`` then ``--against /tmp/old/src``), the two alternating
+``--repeat`` times, and prints the best wall and CPU time of each and their ratios: on a shared,
+loaded machine the CPU time (both threads) is the steadier figure.
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.
@@ -17,7 +24,11 @@ of machine (~9 frames/s, ~2.7 frames/s scaled to 100k).
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -28,19 +39,43 @@ REFERENCE_FPS_100K = 2.7
 TARGET_FPS = 5.0
 
 
+def time_foam(run: Path, r: float, budget: float | None, arch: str) -> dict:
+    """`whitecap foam` over the run's fluid frames, after a warm-up on its first two: wall and CPU time a frame."""
+    from whitecap.config import Foam
+    from whitecap.diffuse import postprocess, resolve
+
+    params = resolve(Foam(preset="auto", **({"budget": budget} if budget else {})))
+    files = sorted((run / "fluid").glob("*.ply"))
+    with tempfile.TemporaryDirectory() as tmp:
+        warm = Path(tmp) / "warm"
+        warm.mkdir()
+        for f in files[:2]:
+            shutil.copy(f, warm / f.name)
+        postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False, arch=arch)
+        t0, c0 = time.perf_counter(), time.process_time()
+        postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
+                    arch=arch)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
+    return {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--particles", type=int, default=100_000)
     ap.add_argument("--budget", type=float, default=None, help="[foam] budget (default: the default, 2)")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"], help="Taichi backend of the foam stage")
+    ap.add_argument("--against", help="another checkout's src folder, timed on the same sequence")
+    ap.add_argument("--repeat", type=int, default=1, help="timings of each package, alternating")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--radius", type=float, help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
+    if a.one:
+        print("RESULT " + json.dumps(time_foam(Path(a.one), a.radius, a.budget, a.arch)))
+        return
     from whitecap import io
-    from whitecap.config import Foam
-    from whitecap.diffuse import postprocess, resolve
-
-    params = resolve(Foam(preset="auto", **({"budget": a.budget} if a.budget else {})))
 
     side = 0.5
     r = side / (2 * (2 * a.particles) ** (1 / 3))  # column side/2 × side × side on a lattice of spacing 2r
@@ -69,20 +104,34 @@ def main() -> None:
         for f in files:
             io.read(f)
         t_read = (time.perf_counter() - t0) / len(files)
-        # foam: read + potentials + generation + advection + write (warm up the kernels on one frame first)
-        postprocess(files[0], out=Path(tmp) / "warm", params=params, dt=1 / 30, radius=r, show_progress=False,
-                    arch=a.arch)
-        t0 = time.perf_counter()
-        postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
-                    arch=a.arch)
-        t_foam = (time.perf_counter() - t0) / len(files)
-        counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
+        # foam: read + potentials + generation + advection + write, each package in its own process
+        here = str(Path(__file__).resolve().parents[1] / "src")
+        srcs = {"this": here} | ({"against": os.path.abspath(a.against)} if a.against else {})
+        got: dict[str, list] = {k: [] for k in srcs}
+        for _ in range(a.repeat):
+            for name, src in srcs.items():
+                cmd = [sys.executable, __file__, "--one", str(run), "--radius", repr(r), "--arch", a.arch]
+                if a.budget:
+                    cmd += ["--budget", str(a.budget)]
+                env = dict(os.environ, PYTHONPATH=src)
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
+                got[name].append(json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:]))
+    load = open("/proc/loadavg").read().split()[0] if os.path.exists("/proc/loadavg") else "?"
+    best = {k: {m: min(x[m] for x in v) for m in ("wall", "cpu")} for k, v in got.items()}
+    t_foam = best["this"]["wall"]
     fps = 1 / t_foam
     print(f"read only:       {1e3 * t_read:7.1f} ms/frame ({1 / t_read:.1f} frames/s)")
-    print(f"foam (all in):   {1e3 * t_foam:7.1f} ms/frame ({fps:.2f} frames/s; includes writing fluid+diffuse PLYs)")
-    print(f"last frame counts (frame,time,spray,foam,bubbles): {counts}")
+    print(f"foam (all in):   {1e3 * t_foam:7.1f} ms/frame ({fps:.2f} frames/s; includes writing fluid+diffuse PLYs), "
+          f"CPU {1e3 * best['this']['cpu']:.1f} ms/frame; best of {a.repeat}, load average {load}")
+    print(f"last frame counts (frame,time,spray,foam,bubbles): {got['this'][-1]['counts']}")
     print(f"vs target {TARGET_FPS} frames/s: {fps / TARGET_FPS:.2f}x;  vs SPlisHSPlasH FoamGenerator at 100k "
           f"(~{REFERENCE_FPS_100K} frames/s): {fps / REFERENCE_FPS_100K:.2f}x")
+    if a.against:
+        o = best["against"]
+        same = "same" if got["against"][-1]["counts"] == got["this"][-1]["counts"] else "DIFFERENT"
+        print(f"against {a.against}: {1e3 * o['wall']:.1f} ms/frame wall, CPU {1e3 * o['cpu']:.1f} ms/frame "
+              f"({same} last counts); rate {o['wall'] / t_foam:.2f}x its rate by wall time, "
+              f"{o['cpu'] / best['this']['cpu']:.2f}x by CPU time (issue 31's target: 2x)")
 
 
 if __name__ == "__main__":
