@@ -51,7 +51,8 @@ def time_foam(run: Path, r: float, budget: float | None, arch: str) -> dict:
         warm.mkdir()
         for f in files[:2]:
             shutil.copy(f, warm / f.name)
-        postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False, arch=arch)
+        postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False,
+                    arch=arch)
         t0, c0 = time.perf_counter(), time.process_time()
         postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
                     arch=arch)
