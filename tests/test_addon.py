@@ -249,7 +249,8 @@ def test_the_zip_carries_the_shared_bpy_layer_and_passes_blenders_validator(tmp_
         "files": "Read simulation frames and runs from disk"}
     # meshio and its pure-Python requirements as wheels, listed in the manifest; numpy is Blender's own
     wheels = sorted(n for n in z.namelist() if n.startswith("wheels/"))
-    assert [w.split("/")[1].split("-")[0] for w in wheels] == ["markdown_it_py", "mdurl", "meshio", "pygments", "rich"]
+    names = [w.split("/")[1].split("-")[0] for w in wheels]
+    assert names == ["markdown_it_py", "mdurl", "meshio", "plyfile", "pygments", "rich"]
     assert "wheels/meshio-5.3.5-py3-none-any.whl" in wheels
     assert sorted(tomllib.loads(z.read("blender_manifest.toml").decode())["wheels"]) == [f"./{w}" for w in wheels]
     meshio_whl = zipfile.ZipFile(__import__("io").BytesIO(z.read("wheels/meshio-5.3.5-py3-none-any.whl")))

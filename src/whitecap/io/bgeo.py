@@ -35,12 +35,15 @@ END = b"\x00\xff"
 TYPES = {0: "FLOAT", 1: "INT", 5: "VECTOR"}
 
 
-def _gunzip(path: Path) -> tuple[bytes, bool]:
-    """(the decompressed bytes, whether the gzip stream was complete)."""
+def _gunzip(path: Path, require_gzip: bool = True) -> tuple[bytes, bool]:
+    """(the decompressed bytes, whether the gzip stream was complete); an uncompressed file as it
+    is where ``require_gzip`` is off."""
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if raw[:2] != GZIP_MAGIC and not require_gzip:
+        return raw, True
     if raw[:2] != GZIP_MAGIC:
         # SPlisHSPlasH (partio with compression on) writes the files gzip-compressed.
         raise InputError(f"{path}: not a gzip-compressed BGEO file (SPlisHSPlasH/partio write them compressed); "
@@ -101,12 +104,21 @@ def _parse(path: Path, data: bytes, complete: bool) -> tuple[np.ndarray, dict[st
     return block[:, :3], arrays
 
 
+def read_points(path: str | Path, require_gzip: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The one BGEO parse: (positions (N, 3) as stored, every point attribute by its name), big-endian
+    views of the file. The Blender add-on reads ``.bgeo`` through this function too (a copy inside
+    the extension; it needs numpy only), there with uncompressed files allowed (``require_gzip``
+    off)."""
+    path = Path(path)
+    data, complete = _gunzip(path, require_gzip)
+    return _parse(path, data, complete)
+
+
 def read_bgeo(path: Path, up: str = "z", require_velocity: bool = True, by_id: bool = False) -> ParticleFrame:
     """One partio BGEO frame; ``by_id``: rows in increasing id order (the file must hold ids,
     see :meth:`ParticleFrame.sorted_by_id`)."""
     path = Path(path)
-    data, complete = _gunzip(path)
-    points, arrays = _parse(path, data, complete)
+    points, arrays = read_points(path)
     vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing attribute 'velocity'; found {sorted(arrays) or 'no attributes'} "

@@ -4,6 +4,11 @@ Fluid frames carry ``x y z vx vy vz density id``; diffuse frames add
 ``type lifetime radius``. Any extra float/int vertex property is read into
 ``ParticleFrame.arrays``. A file cut short is refused with one line: the file,
 ``truncated``, the element and its declared and held rows.
+
+PLY is parsed in one place, plyfile through :func:`read_vertices`: the registry's particle and
+mesh readers and the Blender add-on (:func:`read_geometry`, every vertex property and polygons of
+any size) all go through it. The add-on carries this module and plyfile itself as a pure-Python
+wheel (``whitecap blender-addon``), so plyfile is imported only where a file is read or written.
 """
 
 from __future__ import annotations
@@ -11,7 +16,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseError
 
 from ..errors import InputError
 from .atomic import atomic_path
@@ -22,17 +26,22 @@ _CORE = ("x", "y", "z", "vx", "vy", "vz", "density", "id")
 _DTYPES = {np.dtype(np.float32): "f4", np.dtype(np.uint32): "u4", np.dtype(np.uint8): "u1", np.dtype(np.int32): "i4"}
 
 
-def read_vertices(path: Path, known_list_len: dict | None = None):
+def read_vertices(path: Path, known_list_len: dict | None = None, other_lengths: bool = False):
     """(PlyData, vertex records, property names) of a PLY with x y z, or InputError naming the file.
 
     ``known_list_len`` ({element: {list property: length}}) lets plyfile map
     fixed-length lists (triangles) straight from the file instead of parsing
     them row by row; a row of another length raises a PlyElementParseError
-    naming the element and row.
+    naming the element and row, or with ``other_lengths`` reads the file again
+    row by row (polygons of any size).
     """
+    from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
+
     try:
         ply = PlyData.read(str(path), known_list_len=known_list_len or {})
     except PlyElementParseError as exc:
+        if other_lengths and known_list_len and exc.message == "unexpected list length":
+            return read_vertices(path)
         raise _element_error(path, exc) from None
     except PlyHeaderParseError as exc:
         if "early end-of-file" in str(exc):
@@ -55,7 +64,7 @@ def read_vertices(path: Path, known_list_len: dict | None = None):
     return ply, v, names
 
 
-def _element_error(path: Path, exc: PlyElementParseError) -> InputError:
+def _element_error(path: Path, exc) -> InputError:
     """One line for plyfile's element errors; rows missing at the end of the file say ``truncated``
     with the rows the element declares and the complete rows the file holds."""
     el = exc.element
@@ -73,6 +82,39 @@ def _ends_with_newline(path: Path) -> bool:
             return False
         f.seek(-1, 2)
         return f.read(1) == b"\n"
+
+
+#: a face element's list of corners, by the names writers give it
+FACE_LISTS = ("vertex_indices", "vertex_index")
+
+
+def read_geometry(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None,
+                                              np.ndarray | None]:
+    """(points (N, 3), every other scalar vertex property by name in native byte order, polygons as
+    flat corner indices and each polygon's first corner (None without faces)): what a viewer shows,
+    the Blender add-on's PLY reader. Triangles are mapped in one go; other polygons row by row."""
+    path = Path(path)
+    ply, v, names = read_vertices(path, {"face": {k: 3 for k in FACE_LISTS}}, other_lengths=True)
+
+    def native(a):
+        a = np.asarray(a)
+        return a.astype(a.dtype.newbyteorder("="))
+
+    points = np.stack([native(v["x"]), native(v["y"]), native(v["z"])], axis=1)
+    arrays = {k: native(v[k]) for k in names if k not in ("x", "y", "z") and v.dtype[k].kind != "O"}
+    loops = starts = None
+    if "face" in ply and ply["face"].count:
+        data = ply["face"].data
+        key = next((k for k in FACE_LISTS if k in (data.dtype.names or ())), None)
+        if key is not None and data[key].dtype != object:  # mapped as triangles
+            loops = np.asarray(data[key], np.int32).ravel()
+            starts = np.arange(0, len(loops), 3, dtype=np.int32)
+        elif key is not None:
+            rows = [np.asarray(r, np.int32) for r in data[key] if len(r) >= 3]
+            if rows:
+                loops = np.concatenate(rows)
+                starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])[:-1]]).astype(np.int32)
+    return points, arrays, loops, starts
 
 
 def read_ply(path: Path, up: str = "z", require_velocity: bool = False) -> ParticleFrame:
@@ -96,6 +138,8 @@ def read_ply(path: Path, up: str = "z", require_velocity: bool = False) -> Parti
 
 
 def write_ply(path: Path, frame: ParticleFrame) -> None:
+    from plyfile import PlyData, PlyElement
+
     n = len(frame)
     cols: list[tuple[str, np.ndarray]] = [
         ("x", frame.positions[:, 0]),

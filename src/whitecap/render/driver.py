@@ -419,9 +419,10 @@ def build_addon(out: str | Path | None = None) -> Path:
     return out
 
 
-#: The Python packages the extension carries as wheels (with their requirements): meshio reads
-#: every other mesh format. Blender bundles numpy, so it is left out.
-ADDON_PACKAGES = ("meshio",)
+#: The Python packages the extension carries as wheels (with their requirements): plyfile parses
+#: PLY for whitecap's io/ply.py, the add-on's copy included; meshio reads every other mesh format.
+#: Blender bundles numpy, so it is left out.
+ADDON_PACKAGES = ("meshio", "plyfile")
 BLENDER_BUNDLES = ("numpy",)
 
 
@@ -498,7 +499,10 @@ def manifest_with_wheels(text: str, wheels: list[str]) -> str:
 
 #: whitecap modules the extension carries (below the package), beside the whole bpy layer
 ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/record.py", "io/run.py", "io/atomic.py", "geometry.py",
-                "cases/rigid_bin.py", "cases/rigid_fit.py")
+                "cases/rigid_bin.py", "cases/rigid_fit.py",
+                # the add-on's readers parse with whitecap's own format modules (numpy, plyfile),
+                # with what they import
+                "io/bgeo.py", "io/ply.py", "io/registry.py", "io/frame.py", "io/axes.py")
 
 
 def addon_shared_files() -> dict[str, bytes]:

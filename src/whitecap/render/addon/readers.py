@@ -29,7 +29,6 @@ and partio's BGEO version 5 (SPlisHSPlasH's ``.bgeo``, gzip-compressed or not).
 """
 
 import base64
-import gzip
 import os
 import re
 import struct
@@ -37,6 +36,13 @@ import xml.etree.ElementTree as ET
 import zlib
 
 import numpy as np
+
+try:  # inside the extension: the copies ``whitecap blender-addon`` puts in its whitecap folder
+    from .whitecap.errors import WhitecapError
+    from .whitecap.io import bgeo as _bgeo, ply as _ply
+except ImportError:  # whitecap's source tree, or this file loaded on its own (tests)
+    from whitecap.errors import WhitecapError
+    from whitecap.io import bgeo as _bgeo, ply as _ply
 
 EXTENSIONS = (".vtk", ".vtu", ".vtp", ".ply", ".obj", ".bgeo")
 
@@ -371,127 +377,16 @@ def _appended(path, blob, offset, header, end, compressed, enc):
 
 
 # ----------------------------------------------------------------------------- PLY
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-
-
 def read_ply(path):
-    """A PLY file (ascii or binary): every scalar vertex property becomes an array; faces
-    from ``vertex_indices`` (or ``vertex_index``)."""
-    with open(path, "rb") as fh:
-        data = fh.read()
-    end = data.find(b"end_header")
-    if data.startswith(b"ply") and end < 0:
-        raise ValueError(f"{path}: the file ends inside its header (truncated?)")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
-    body = data.index(b"\n", end) + 1
-    fmt, elements = None, []
-    for raw in data[:end].decode("latin-1").splitlines():
-        w = raw.split()
-        if not w:
-            continue
-        if w[0] == "format":
-            fmt = w[1]
-        elif w[0] == "element":
-            elements.append((w[1], int(w[2]), []))
-        elif w[0] == "property" and elements:
-            if w[1] == "list":
-                elements[-1][2].append((w[4], _PLY_TYPES[w[2]], _PLY_TYPES[w[3]]))
-            else:
-                elements[-1][2].append((w[2], _PLY_TYPES[w[1]], None))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise ValueError(f"{path}: unknown PLY format {fmt!r}")
-    verts, loops, starts = None, None, None
-    if fmt == "ascii":
-        tokens = data[body:].split()
-        k = 0
-        for name, count, props in elements:
-            if all(p[2] is None for p in props):
-                n = count * len(props)
-                if k + n > len(tokens):
-                    raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
-                block = np.array(tokens[k:k + n], np.float64).reshape(count, len(props))
-                k += n
-                if name == "vertex":
-                    verts = {p[0]: block[:, j].astype(p[1]) for j, p in enumerate(props)}
-            else:
-                rows = []
-                for _ in range(count):
-                    row = []
-                    for p in props:
-                        if p[2] is None:
-                            k += 1
-                        else:
-                            c = int(tokens[k])
-                            row = [int(t) for t in tokens[k + 1:k + 1 + c]]
-                            k += 1 + c
-                    rows.append(row)
-                if name == "face":
-                    loops, starts = _rows(rows)
-    else:
-        e = "<" if fmt == "binary_little_endian" else ">"
-        pos = body
-        for name, count, props in elements:
-            if all(p[2] is None for p in props):
-                dt = np.dtype([(p[0], e + p[1]) for p in props])
-                if pos + dt.itemsize * count > len(data):
-                    raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
-                rec = np.frombuffer(data, dt, count, pos)
-                pos += dt.itemsize * count
-                if name == "vertex":
-                    verts = {p[0]: rec[p[0]].astype(p[1]) for p in props}
-                continue
-            lists = [p for p in props if p[2] is not None]
-            if len(props) == 1 and count:
-                cdt, idt = np.dtype(e + lists[0][1]), np.dtype(e + lists[0][2])
-                first = int(np.frombuffer(data, cdt, 1, pos)[0])
-                dt = np.dtype([("n", cdt), ("i", idt, (first,))])
-                if pos + dt.itemsize * count <= len(data):
-                    rec = np.frombuffer(data, dt, count, pos)
-                    if (rec["n"] == first).all():  # all polygons the same size: read in one go
-                        pos += dt.itemsize * count
-                        if name == "face":
-                            loops = rec["i"].astype(np.int32).ravel()
-                            starts = np.arange(0, first * count, first, dtype=np.int32)
-                        continue
-            rows = []
-            for _ in range(count):
-                row = []
-                for p in props:
-                    if p[2] is None:
-                        pos += np.dtype(p[1]).itemsize
-                        continue
-                    cdt, idt = np.dtype(e + p[1]), np.dtype(e + p[2])
-                    if pos + cdt.itemsize > len(data):
-                        raise ValueError(f"{path}: the file ends inside element '{name}' (truncated?)")
-                    c = int(np.frombuffer(data, cdt, 1, pos)[0])
-                    pos += cdt.itemsize
-                    row = np.frombuffer(data, idt, c, pos).tolist()
-                    pos += idt.itemsize * c
-                rows.append(row)
-            if name == "face":
-                loops, starts = _rows(rows)
-    if verts is None:
-        return Geometry(np.zeros((0, 3)))
-    for k in ("x", "y", "z"):
-        if k not in verts:
-            raise ValueError(f"{path}: PLY vertex element has no '{k}' property")
-    pts = np.stack([verts.pop("x"), verts.pop("y"), verts.pop("z")], axis=1)
+    """A PLY file (ascii or binary), parsed once for whitecap and the add-on: whitecap's
+    ``io/ply.read_geometry`` (plyfile, which the extension carries as a wheel). Every scalar vertex
+    property becomes an array; ``vx vy vz`` and ``nx ny nz`` become ``velocity`` and ``normals``."""
+    pts, verts, loops, starts = _ply.read_geometry(path)
     if all(k in verts for k in ("vx", "vy", "vz")):
         verts["velocity"] = np.stack([verts.pop("vx"), verts.pop("vy"), verts.pop("vz")], axis=1)
     if all(k in verts for k in ("nx", "ny", "nz")):  # the file's normals: custom split normals
         verts["normals"] = np.stack([verts.pop("nx"), verts.pop("ny"), verts.pop("nz")], axis=1)
     return Geometry(pts, loops, starts, verts)
-
-
-def _rows(rows):
-    rows = [r for r in rows if len(r) >= 3]
-    if not rows:
-        return None, None
-    sizes = np.array([len(r) for r in rows])
-    return np.concatenate(rows).astype(np.int32), np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
 
 
 # ----------------------------------------------------------------------------- OBJ, STL
@@ -549,50 +444,11 @@ def read_stl(path):
 
 
 # ----------------------------------------------------------------------------- BGEO
-_BGEO_TYPES = {0: "f", 1: "i", 5: "f"}  # partio: FLOAT, INT, VECTOR (4: indexed strings, not supported)
-
-
 def read_bgeo(path):
-    """partio's BGEO version 5 particles (SPlisHSPlasH ``.bgeo``), gzip-compressed or not."""
-    with open(path, "rb") as fh:
-        data = fh.read()
-    if data[:2] == b"\x1f\x8b":
-        try:
-            data = gzip.decompress(data)
-        except EOFError:
-            raise ValueError(f"{path}: the gzip stream ends early (truncated?)") from None
-        except OSError as exc:
-            raise ValueError(f"{path}: damaged gzip data ({exc})") from None
-    if data[:5] != b"BgeoV":
-        raise ValueError(f"{path}: not a BGEO version 5 particle file (Houdini's newer JSON BGEO is not supported)")
-    try:
-        version, npts, nprim, _, _, nattr, _, _, _ = struct.unpack(">9i", data[5:41])
-        pos = 41
-        attrs = []
-        for _ in range(nattr):
-            (ln,) = struct.unpack(">h", data[pos:pos + 2])
-            name = data[pos + 2:pos + 2 + ln].decode("latin-1")
-            pos += 2 + ln
-            size, typ = struct.unpack(">hi", data[pos:pos + 6])
-            pos += 6
-            if typ not in _BGEO_TYPES:
-                raise ValueError(f"{path}: attribute '{name}' has type {typ}, which is not supported")
-            pos += 4 * size
-            attrs.append((name, size, typ))
-    except struct.error:
-        raise ValueError(f"{path}: the file ends inside its header (truncated?)") from None
-    width = 4 + sum(s for _, s, _ in attrs)
-    need = pos + 4 * width * npts
-    if len(data) < need:
-        raise ValueError(f"{path}: the file ends after {(len(data) - pos) // (4 * width)} of {npts} points (truncated?)")
-    block = np.frombuffer(data, ">f4", width * npts, pos).reshape(npts, width)
-    ints = block.view(">i4")
-    arrays, col = {}, 4
-    for name, size, typ in attrs:
-        a = (ints if typ == 1 else block)[:, col:col + size].astype("i4" if typ == 1 else "f4")
-        arrays[name] = a[:, 0] if size == 1 else a
-        col += size
-    return Geometry(block[:, :3], None, None, arrays)
+    """partio's BGEO version 5 particles (SPlisHSPlasH ``.bgeo``), gzip-compressed or not: whitecap's
+    one BGEO parse (``io/bgeo.read_points``), every attribute by its name in native byte order."""
+    points, arrays = _bgeo.read_points(path, require_gzip=False)
+    return Geometry(points, None, None, {k: v.astype(v.dtype.newbyteorder("=")) for k, v in arrays.items()})
 
 
 READERS = {".vtk": read_vtk_legacy, ".vtu": read_vtk_xml, ".vtp": read_vtk_xml, ".ply": read_ply,
@@ -668,6 +524,8 @@ def read(path):
         g = reader(path)
     except ValueError:
         raise
+    except WhitecapError as exc:  # whitecap's own parsers (io/bgeo, io/ply) say it in one line too
+        raise ValueError(str(exc)) from None
     except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError,
             EOFError, zlib.error, OSError) as exc:
         raise ValueError(f"{path}: not a readable {ext[1:].upper()} file ({type(exc).__name__}: {exc})") from None
