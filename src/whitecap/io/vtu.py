@@ -16,7 +16,10 @@ from .registry import DENSITY_NAMES, ID_NAMES, VELOCITY_NAMES, find_array, regis
 from .vtk_xml import check_complete
 
 
-def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
+def read_mesh(path: str | Path):
+    """The one VTU parse: meshio's ``Mesh`` of the file (every point array, every cell block), its
+    completeness and array lengths checked. The registry's :func:`read_vtu` and the Blender add-on
+    (which carries meshio as a wheel and this module as a copy) both read ``.vtu`` through it."""
     from meshio import vtu
 
     check_complete(path)
@@ -25,12 +28,17 @@ def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> Partic
         m = vtu.read(str(path))
     except Exception as exc:
         raise InputError(f"{path}: not a readable VTU file ({str(exc) or type(exc).__name__})") from None
-    arrays = dict(m.point_data)
-    for k, v in arrays.items():
+    for k, v in m.point_data.items():
         if len(v) != len(m.points):
             what = "truncated: " if len(v) < len(m.points) else ""
             raise InputError(f"{path}: {what}array '{k}' holds {len(v)} values for the {len(m.points)} points "
                              "the file declares (NumberOfPoints)")
+    return m
+
+
+def read_vtu(path: Path, up: str = "z", require_velocity: bool = True) -> ParticleFrame:
+    m = read_mesh(path)
+    arrays = dict(m.point_data)
     vk, rk, ik = find_array(arrays, VELOCITY_NAMES), find_array(arrays, DENSITY_NAMES), find_array(arrays, ID_NAMES)
     if vk is None and require_velocity:
         raise InputError(f"{path}: missing array 'velocity'; found {sorted(arrays) or 'no arrays'}")

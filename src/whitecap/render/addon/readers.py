@@ -39,10 +39,10 @@ import numpy as np
 
 try:  # inside the extension: the copies ``whitecap blender-addon`` puts in its whitecap folder
     from .whitecap.errors import WhitecapError
-    from .whitecap.io import bgeo as _bgeo, ply as _ply
+    from .whitecap.io import bgeo as _bgeo, ply as _ply, vtu as _vtu
 except ImportError:  # whitecap's source tree, or this file loaded on its own (tests)
     from whitecap.errors import WhitecapError
-    from whitecap.io import bgeo as _bgeo, ply as _ply
+    from whitecap.io import bgeo as _bgeo, ply as _ply, vtu as _vtu
 
 EXTENSIONS = (".vtk", ".vtu", ".vtp", ".ply", ".obj", ".bgeo")
 
@@ -451,7 +451,13 @@ def read_bgeo(path):
     return Geometry(points, None, None, {k: v.astype(v.dtype.newbyteorder("=")) for k, v in arrays.items()})
 
 
-READERS = {".vtk": read_vtk_legacy, ".vtu": read_vtk_xml, ".vtp": read_vtk_xml, ".ply": read_ply,
+def read_vtu(path):
+    """A ``.vtu`` file, parsed once for whitecap and the add-on: whitecap's ``io/vtu.read_mesh``
+    (meshio's VTU reader, checked for a cut file), faces and point data as :func:`read_meshio` takes them."""
+    return _geometry(path, _vtu.read_mesh(path))
+
+
+READERS = {".vtk": read_vtk_legacy, ".vtu": read_vtu, ".vtp": read_vtk_xml, ".ply": read_ply,
            ".obj": read_obj, ".stl": read_stl, ".bgeo": read_bgeo}
 NORMAL_NAMES = ("normals", "normal", "n")  # point arrays read as the file's normals
 
@@ -487,6 +493,12 @@ def read_meshio(path):
         # meshio's readers do not say why a file fails; a cut file is the common cause
         raise ValueError(f"{path}: not readable by meshio, truncated or damaged? ({type(exc).__name__}: {exc})"
                          .replace("\n", " ")) from None
+    return _geometry(path, m)
+
+
+def _geometry(path, m):
+    """A meshio ``Mesh`` as a :class:`Geometry`: triangles, quads and polygons as faces, volume
+    cells as their boundary, point data by name."""
     faces = []
     for block in m.cells:
         data = np.asarray(block.data)
@@ -524,8 +536,8 @@ def read(path):
         g = reader(path)
     except ValueError:
         raise
-    except WhitecapError as exc:  # whitecap's own parsers (io/bgeo, io/ply) say it in one line too
-        raise ValueError(str(exc)) from None
+    except WhitecapError as exc:  # whitecap's own parsers (io/bgeo, io/ply, io/vtu) say it in one line too
+        raise ValueError(str(exc).replace("\n", " ")) from None
     except (IndexError, KeyError, AttributeError, TypeError, struct.error, UnicodeDecodeError, OverflowError,
             EOFError, zlib.error, OSError) as exc:
         raise ValueError(f"{path}: not a readable {ext[1:].upper()} file ({type(exc).__name__}: {exc})") from None
