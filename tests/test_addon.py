@@ -107,7 +107,8 @@ def test_vtu_vtp_ply_obj_bgeo_read_as_whitecap_writes_them(tmp_path):
     rng = np.random.default_rng(2)
     n = 30
     fr = io.ParticleFrame(rng.random((n, 3)), rng.random((n, 3)), np.arange(n) + 7, rng.random(n),
-                          arrays={"type": rng.integers(0, 3, n).astype(np.uint8), "lifetime": rng.random(n).astype(np.float32)})
+                          arrays={"type": rng.integers(0, 3, n).astype(np.uint8),
+                                  "lifetime": rng.random(n).astype(np.float32)})
     io.write(tmp_path / "p.vtu", fr)
     io.write(tmp_path / "p.ply", fr)
     for name in ("p.vtu", "p.ply"):
@@ -141,7 +142,8 @@ def test_vtu_vtp_ply_obj_bgeo_read_as_whitecap_writes_them(tmp_path):
 def test_empty_files_read_as_empty_geometry(tmp_path):
     from whitecap.io.mesh import SurfaceMesh
 
-    io.write(tmp_path / "d.ply", io.ParticleFrame(np.zeros((0, 3)), np.zeros((0, 3)), arrays={"type": np.zeros(0, np.uint8)}))
+    io.write(tmp_path / "d.ply",
+             io.ParticleFrame(np.zeros((0, 3)), np.zeros((0, 3)), arrays={"type": np.zeros(0, np.uint8)}))
     io.write_mesh(tmp_path / "m.obj", SurfaceMesh.empty())
     io.write_mesh(tmp_path / "m.ply", SurfaceMesh.empty())
     for name in ("d.ply", "m.obj", "m.ply"):
@@ -296,8 +298,9 @@ def addon_run(tiny_run, tmp_path_factory) -> Path:
         info.set_file(i, "mesh", f"mesh/fluid_{i:05d}.ply")
         n = 0 if i == 0 else 100 + 50 * i
         types = rng.integers(0, 3, n).astype(np.uint8)
-        d = io.ParticleFrame(fr.positions[rng.integers(0, len(fr), n)], np.zeros((n, 3)), np.arange(n) + 1000 * i, arrays={
-            "type": types, "lifetime": np.ones(n, np.float32), "radius": np.full(n, 0.004, np.float32)})
+        d = io.ParticleFrame(fr.positions[rng.integers(0, len(fr), n)], np.zeros((n, 3)), np.arange(n) + 1000 * i,
+                             arrays={"type": types, "lifetime": np.ones(n, np.float32),
+                                     "radius": np.full(n, 0.004, np.float32)})
         io.write(run / f"diffuse/diffuse_{i:05d}.ply", d)
         info.set_file(i, "diffuse", f"diffuse/diffuse_{i:05d}.ply")
         counts[i] = {"mesh": [len(m.vertices), len(m.faces)], "types": np.bincount(types, minlength=3).tolist()}
@@ -381,7 +384,8 @@ for f in (0, 1, 2, 3):
     sc.frame_set(f)
     res["frames"][f] = {n: counts(n) for n in objs}
     res["frames"][f]["attrs"] = sorted(a.name for a in objs["foam"].data.attributes if not a.name.startswith("."))
-    res["frames"][f]["fluid_attrs"] = sorted(a.name for a in objs["fluid"].data.attributes if not a.name.startswith("."))
+    res["frames"][f]["fluid_attrs"] = sorted(a.name for a in objs["fluid"].data.attributes
+                                             if not a.name.startswith("."))
 sc.frame_set(0)
 res["empty_again"] = {n: counts(n) for n in ("spray", "foam", "bubbles")}
 dg = bpy.context.evaluated_depsgraph_get()
@@ -435,7 +439,8 @@ def test_a_whole_run_loads_in_one_action(addon_run, addon_zip, tmp_path):
         assert [got[n][0] for n in ("spray", "foam", "bubbles")] == counts[f]["types"], f
         assert got["foam"][1] == 0
     # frame 0's diffuse file is empty: empty geometry, no error, nothing left from frame 3
-    assert res["frames"]["0"]["foam"] == [0, 0] and res["empty_again"] == {n: [0, 0] for n in ("spray", "foam", "bubbles")}
+    assert res["frames"]["0"]["foam"] == [0, 0]
+    assert res["empty_again"] == {n: [0, 0] for n in ("spray", "foam", "bubbles")}
     assert "whitecap:" not in res["stdout"]
     assert {"velocity", "id", "lifetime", "radius", "type"} <= set(res["frames"]["2"]["attrs"])
     assert "velocity" in res["frames"]["2"]["fluid_attrs"]
@@ -591,8 +596,9 @@ def test_bad_paths_give_true_errors_and_leave_nothing_behind(addon_run, addon_zi
     broken = tmp_path / "broken"
     shutil.copytree(addon_run, broken)
     # frame 1 shows on loading; its file is cut off after the header
-    (broken / "diffuse" / "diffuse_00001.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
-                                                          b"property float x\nproperty float y\nproperty float z\nend_header\n")
+    (broken / "diffuse" / "diffuse_00001.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
+        b"property float x\nproperty float y\nproperty float z\nend_header\n")
     folder = tmp_path / "folder"
     folder.mkdir()
     rng = np.random.default_rng(3)
@@ -723,7 +729,8 @@ def test_sequence_list_enable_refresh_editable_path_and_root(addon_zip, tmp_path
         write_mesh_ply(folder / f"surf_{k:04d}.ply", np.random.default_rng(k).random((k, 3)), np.array([[0, 1, 2]]),
                        np.zeros((k, 3)))
     copy.mkdir()
-    write_mesh_ply(copy / "surf_0032.ply", np.random.default_rng(0).random((5, 3)), np.array([[0, 1, 2]]), np.zeros((5, 3)))
+    write_mesh_ply(copy / "surf_0032.ply", np.random.default_rng(0).random((5, 3)), np.array([[0, 1, 2]]),
+                   np.zeros((5, 3)))
     res = run_blender(LIST, addon_zip, tmp_path, folder, copy, root)
     assert res["stored"] == "seq"  # relative to the root folder
     assert res["disabled"] == 29 and res["enabled"] == 30  # off: the mesh stays; on again: it catches up
@@ -968,7 +975,9 @@ seq.use_frame = True
 for value, f in ((0.0, 1), (3.0, 7)):  # slow motion: half speed, keyed
     seq.frame = value
     o.keyframe_insert('whitecap_seq.frame', frame=f)
-for c in [c for layer in o.animation_data.action.layers for s in layer.strips for b in s.channelbags for c in b.fcurves]:
+curves = [c for layer in o.animation_data.action.layers for s in layer.strips
+          for b in s.channelbags for c in b.fcurves]
+for c in curves:
     for k in c.keyframe_points:
         k.interpolation = "LINEAR"
 res["slow"] = shown(range(1, 8))
@@ -1239,7 +1248,8 @@ def test_splishsplash_rigid_body_bin_poses_as_whitecap_import_records_them(addon
         got = res["bodies"][shape.name]
         w1 = np.array(got["1"]["world"])
         # the first frame's mesh, as import writes it (import welds OBJ vertices: compare the point sets)
-        assert np.allclose(np.unique(np.round(w1, 5), axis=0), np.unique(np.round(shape.vertices, 5), axis=0), atol=2e-5)
+        assert np.allclose(np.unique(np.round(w1, 5), axis=0), np.unique(np.round(shape.vertices, 5), axis=0),
+                           atol=2e-5)
         for j, f in enumerate(("1", "29", "30")):
             want = np.eye(4) if shape.poses is None else (
                 T.translation_matrix(shape.poses[j]["position"]) @ T.quaternion_matrix(shape.poses[j]["quaternion"]))

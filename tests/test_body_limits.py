@@ -57,7 +57,8 @@ def test_a_coupling_that_blew_up_stops_with_one_line_and_no_numpy_warning(tmp_pa
     body.F = np.array([np.inf, 0.0, 0.0])
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a RuntimeWarning from NumPy would be printed before the error line
-        with pytest.raises(SimulationError, match=r"obstacle\[0\] \(.*slab.stl\): the fluid's force on it is not finite"):
+        with pytest.raises(SimulationError,
+                           match=r"obstacle\[0\] \(.*slab.stl\): the fluid's force on it is not finite"):
             body.advance(1e-3)
 
 

@@ -51,7 +51,8 @@ def test_the_history_is_bounded_and_its_thresholds_are_the_pooled_percentiles():
     kept = B.history_samples(*h)
     assert len(kept) < len(pool) / 4
     base = np.full(8, 1e-6, np.float32)
-    exact = B.percentile_thresholds({k: pool[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, pool[:, 4] > 0, base)
+    exact = B.percentile_thresholds({k: pool[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))},
+                                    pool[:, 4] > 0, base)
     got = B.percentile_thresholds({k: kept[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, kept[:, 4] > 0, base)
     for c, name in enumerate(("ta", "wc", "ke", "vo")):
         vals = pool[:, c][(pool[:, 4] > 0) & (pool[:, c] > 0)]
@@ -79,7 +80,8 @@ def test_a_row_rate_is_the_mean_of_its_frames_and_the_peak_is_the_frame_by_frame
     rates = B.history_rates(*h, tau, k, dt)
     bounds = np.concatenate([[0], np.cumsum(frames)])
     mean_own = np.array([np.mean(own[a:b]) for a, b in zip(bounds[:-1], bounds[1:])])
-    assert stride > 1 and frames[-1] < stride and np.allclose(rates, mean_own, rtol=1e-5), np.abs(rates / mean_own - 1).max()
+    assert stride > 1 and frames[-1] < stride
+    assert np.allclose(rates, mean_own, rtol=1e-5), np.abs(rates / mean_own - 1).max()
     for frames_left in (None, 40, 1000):
         want = B.running_peak(np.repeat(rates, frames), p, dt, frames_left)
         assert B.running_peak(rates, p, dt, frames_left, frames) == pytest.approx(want, rel=1e-12)

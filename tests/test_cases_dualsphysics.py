@@ -412,7 +412,8 @@ for name in ("with", "without"):
     b = objs.get(f"obstacle_{k}")
     res[name] = {"objects": sorted(objs), "container": bpy.data.objects.get("container") is not None}
     if b is not None:
-        res[name]["uv"] = [list(world_to_camera_view(sc, sc.camera, b.matrix_world @ Vector(c)))[:2] for c in b.bound_box]
+        res[name]["uv"] = [list(world_to_camera_view(sc, sc.camera, b.matrix_world @ Vector(c)))[:2]
+                           for c in b.bound_box]
         corners = [b.matrix_world @ Vector(c) for c in b.bound_box]
         top = max(c.z for c in corners)
         roof = sum((c for c in corners if c.z == top), Vector()) / 4  # the roof's centre: seen over the tank's wall

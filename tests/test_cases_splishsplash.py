@@ -227,16 +227,20 @@ BAD = {
     "first BIN missing": (lambda d: (d / "rigid_bodies" / "rb_data_1.bin").unlink(),
                           r"rb_data_1\.bin: missing"),
     "BIN frames != fluid frames": (lambda d: (d / "rigid_bodies" / "rb_data_29.bin").unlink(),
-                                   r"rigid_bodies: rigid-body poses .*2 frames but the fluid has 3 \(missing frames 29\)"),
+                                   r"rigid_bodies: rigid-body poses .*2 frames but the fluid has 3 "
+                                   r"\(missing frames 29\)"),
     "dynamic body without poses": (lambda d: [(d / "rigid_bodies" / f"rb_data_{k}.bin").unlink() for k in (29, 30)],
                                    r"rigid_bodies: only rb_data_1\.bin, but .*RigidBodies\[1\]\.isDynamic is true"),
     "not a rotation": (_bad_rotation, r"rb_data_29\.bin: body 1 rotation: not a rotation matrix"),
     "OBJ frames != fluid frames": (lambda d: (shutil.rmtree(d / "rigid_bodies"),
                                               (d / "obj" / "rb_data_1_29.obj").unlink()),
                                    r"obj: body 1 meshes .*2 frames but the fluid has 3"),
-    "misspelt field": (_json_edit(lambda s: s["RigidBodies"][0].update(translaton=s["RigidBodies"][0].pop("translation"))),
-                       r"WC_RigidSample\.json: RigidBodies\[0\]\.translaton: unknown field \(did you mean 'translation'\?\)"),
-    "misspelt config field": (_json_edit(lambda s: s["Configuration"].update(ParticleRadius=s["Configuration"].pop("particleRadius"))),
+    "misspelt field": (_json_edit(lambda s: s["RigidBodies"][0].update(
+                           translaton=s["RigidBodies"][0].pop("translation"))),
+                       r"WC_RigidSample\.json: RigidBodies\[0\]\.translaton: unknown field "
+                       r"\(did you mean 'translation'\?\)"),
+    "misspelt config field": (_json_edit(lambda s: s["Configuration"].update(
+                                  ParticleRadius=s["Configuration"].pop("particleRadius"))),
                               r"WC_RigidSample\.json: Configuration\.ParticleRadius: unknown field"),
     "malformed field": (_json_edit(lambda s: s["RigidBodies"][0].update(scale="big")),
                         r"WC_RigidSample\.json: RigidBodies\[0\]\.scale: expected 3 numbers"),

@@ -199,7 +199,8 @@ class Elsewhere(distributed.WorkerPlugin):
 @pytest.mark.parametrize("joined_later", [False, True])
 def test_workers_that_cannot_see_the_run_directory_fail_at_once(tiny_run, tmp_path, cluster, capsys, monkeypatch,
                                                                 joined_later):
-    """Checked before the first frame; a worker that joins after that check fails its first frame, which stops the run."""
+    """Checked before the first frame; a worker that joins after that check fails its first frame,
+    which stops the run."""
     import cloudpickle
 
     from whitecap.executor import DaskExecutor

@@ -169,7 +169,8 @@ def test_short_lived_foam_expires(foam_run, tmp_path):
         assert (a.arrays["lifetime"][foam_a] <= 0.1 + 1e-6).all()
         assert (a.arrays["lifetime"][foam_a] > 0).all()  # none kept at or below zero
         foam_b = {int(k): float(life) for k, life, t in zip(b.ids, b.arrays["lifetime"], b.arrays["type"]) if t == 1}
-        drops = [life - foam_b[int(k)] for k, life in zip(a.ids[foam_a], a.arrays["lifetime"][foam_a]) if int(k) in foam_b]
+        drops = [life - foam_b[int(k)] for k, life in zip(a.ids[foam_a], a.arrays["lifetime"][foam_a])
+                 if int(k) in foam_b]
         if not drops:
             continue
         step = float(np.median(drops))
@@ -215,7 +216,8 @@ def test_same_seed_same_bytes_whatever_the_thread_count(foam_run, tmp_path):
         assert (tmp_path / "t1" / name).read_bytes() == (tmp_path / "t2" / name).read_bytes()
     # A different seed gives different particles.
     postprocess(foam_run, out=tmp_path / "s9", seed=9, show_progress=False)
-    assert (tmp_path / "s9/diffuse/diffuse_00012.ply").read_bytes() != (tmp_path / "t1/diffuse/diffuse_00012.ply").read_bytes()
+    s9, t1 = (tmp_path / f"{d}/diffuse/diffuse_00012.ply" for d in ("s9", "t1"))
+    assert s9.read_bytes() != t1.read_bytes()
 
 
 def test_dualsphysics_partvtk_makes_foam(tmp_path):
@@ -367,7 +369,8 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01):
     runtime.init(runtime.current() or "cpu")
     n = len(v_diff)
     zeros = np.zeros(n, np.float32)
-    x, v = _nd(np.zeros((n, 3), np.float32), ti.f32, True), _nd(np.tile([[0.0, 0.0, 2.0]], (n, 1)).astype(np.float32), ti.f32, True)
+    x = _nd(np.zeros((n, 3), np.float32), ti.f32, True)
+    v = _nd(np.tile([[0.0, 0.0, 2.0]], (n, 1)).astype(np.float32), ti.f32, True)
     tau = _nd(np.array([*ta_range, 1, 2, 0, 1e-3, 1, 2], np.float32), ti.f32)
     ids = _nd(np.arange(n, dtype=np.uint32), ti.u32)
     ek = _nd(np.ones(n, np.float32), ti.f32)  # above ke_max: I_k = 1
@@ -855,8 +858,8 @@ def test_one_command_runs_the_job_the_ini_describes(tmp_path, capsys):
 def test_an_ending_time_step_past_the_last_file_stops_there_and_says_so(tmp_path, capsys):
     # Like the VisualSPHysics simulator the run ends at the first missing frame, but not silently.
     ini = tmp_path / "foam.ini"
-    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out="o", xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"),
-                            custom="no", first=13, last=40))
+    ini.write_text(full_ini(inp=str(DATA / "dualsphysics"), out="o",
+                            xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"), custom="no", first=13, last=40))
     assert main(["foam", "--params", str(ini)]) == 0
     err = capsys.readouterr().err
     warn = [ln for ln in err.splitlines() if "EndingTimeStep" in ln]
@@ -1028,7 +1031,10 @@ def test_foam_thins_out_only_in_whitecaps_own_presets_not_in_foamgenerators(pres
     p = replace(resolve(preset=preset), ta_min=1e3, ta_max=2e3, wc_min=1e3, wc_max=2e3)  # no generation
     gen = FoamGenerator(p, r, ([-1, -1, -1], [2, 2, 2]), (0, 0, -9.81), seed=1)
     gen.state = DiffuseState.empty()
-    gen.state.tau = np.array([1e3, 2e3, 1e3, 2e3, 1e3, 2e3, 1e3, 2e3], np.float32) if p.model == "foamgenerator" else None
+    if p.model == "foamgenerator":
+        gen.state.tau = np.array([1e3, 2e3, 1e3, 2e3, 1e3, 2e3, 1e3, 2e3], np.float32)
+    else:
+        gen.state.tau = None
     n = 400
     rng = np.random.default_rng(0)
     x0 = np.column_stack([rng.uniform(0.17, 0.21, n), rng.uniform(0.17, 0.21, n), np.full(n, x[:, 2].max() + r)])

@@ -121,5 +121,6 @@ def test_the_live_particles_survive_the_capacity_growing_with_the_fluid():
     gen._size(10_000)
     assert gen._live[0]["x"].shape[0] == gen.capacity > 20_000
     out = gen._download()
-    for a, b in ((out.positions, d["x"]), (out.velocities, d["v"]), (out.arrays["lifetime"], d["life"]), (out.ids, d["ids"])):
+    for a, b in ((out.positions, d["x"]), (out.velocities, d["v"]), (out.arrays["lifetime"], d["life"]),
+                 (out.ids, d["ids"])):
         assert a.tobytes() == b.tobytes()

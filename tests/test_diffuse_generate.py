@@ -92,7 +92,8 @@ def test_the_kept_candidates_are_those_the_full_classification_keeps(multipliers
     d = gen.step(frame, 0, DT)
     c = gen.candidates()
     keep, kind, x = _reference_keep(gen, frame, 0)
-    assert c["total"] > 3_000 and c["total"] >= thinned * keep.sum()  # many candidates (with spray first: most not kept)
+    # many candidates (with spray first: most not kept)
+    assert c["total"] > 3_000 and c["total"] >= thinned * keep.sum()
     np.testing.assert_array_equal(c["kept"], np.flatnonzero(keep))
     # the frame's particles (none alive before it, none outside the domain) are exactly the kept candidates
     np.testing.assert_array_equal(d.positions, x[keep])

@@ -143,5 +143,6 @@ def test_resident_memory_does_not_grow_over_many_frames():
     per_frame, grown = r["per_frame"], r["grown"]
     bound = 10 * per_frame
     assert per_frame > 100_000  # enough data a frame for a leak to stand out of the noise
-    assert grown < bound, f"resident memory grew {grown:,} bytes over 40 frames (bound {bound:,}; {per_frame:,} a frame)"
+    assert grown < bound, (f"resident memory grew {grown:,} bytes over 40 frames "
+                           f"(bound {bound:,}; {per_frame:,} a frame)")
     assert r["grown_leaking"] > bound, f"a leak of {per_frame // 2:,} bytes a frame grew {r['grown_leaking']:,} bytes"

@@ -186,7 +186,8 @@ def test_nan_positions_are_refused_by_view_and_export(tiny_run, tmp_path, capsys
     write(run / "fluid" / "fluid_00002.ply", f)
     code = main(["export", str(run)])
     err = capsys.readouterr().err.strip()
-    assert code == 2 and err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or infinite"
+    assert code == 2
+    assert err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or infinite"
 
 
 def test_mesh_no_velocity_reads_files_without_one(tmp_path, capsys):

@@ -153,7 +153,8 @@ def test_an_interrupted_vtk_export_is_cleaned_up_by_the_next(tiny_run, tmp_path,
     assert list((out / "diffuse_foam").glob("*.vtp"))
     monkeypatch.setattr(export, "export_frame", real)
     assert main(["export", str(run), "--out", str(out)]) == 0
-    assert not any((out / d).exists() and any((out / d).iterdir()) for d in ("diffuse_spray", "diffuse_foam", "diffuse_bubble"))
+    assert not any((out / d).exists() and any((out / d).iterdir())
+                   for d in ("diffuse_spray", "diffuse_foam", "diffuse_bubble"))
     assert (out / "README.txt").read_text() == "my notes"
     listed = json.loads((out / "export.json").read_text())["files"]
     assert all((out / rel).is_file() for rel in listed) and not any(rel.startswith("diffuse_") for rel in listed)

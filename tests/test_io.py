@@ -158,7 +158,8 @@ def test_two_fluids_in_one_folder_ask_for_a_glob(tmp_path):
     with pytest.raises(InputError, match=r"frame 1 also given by .*pass a glob such as '.*ParticleData_Fluid_\*\.npz'"):
         find_sequence(tmp_path)
     hint = str(tmp_path / "ParticleData_Fluid_*.npz")
-    assert [(i, p.name) for i, p in find_sequence(hint)] == [(1, "ParticleData_Fluid_1.npz"), (2, "ParticleData_Fluid_2.npz")]
+    found = [(i, p.name) for i, p in find_sequence(hint)]
+    assert found == [(1, "ParticleData_Fluid_1.npz"), (2, "ParticleData_Fluid_2.npz")]
 
 
 # The output contract (README, "simulate" and "foam"): binary little-endian PLY, these properties in

@@ -205,7 +205,8 @@ def test_not_watertight_is_a_clear_error(tmp_path, capsys):
         (tmp_path / "empty.obj").write_text("# nothing\n")
         obs.load_mesh(tmp_path / "empty.obj")
     with pytest.raises(InputError, match="outside the domain"):
-        sc = scene_from_dict({"obstacle": [{"mesh": save(trimesh.creation.box(), tmp_path / "b.stl"), "translate": [9, 9, 9]}]})
+        box = save(trimesh.creation.box(), tmp_path / "b.stl")
+        sc = scene_from_dict({"obstacle": [{"mesh": box, "translate": [9, 9, 9]}]})
         obs.load_obstacles(sc)
 
 

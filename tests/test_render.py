@@ -53,7 +53,8 @@ def meshed_run(tiny_run, tmp_path_factory) -> Path:
         fr = io.read(run / rel)
         m = trimesh.convex.convex_hull(fr.positions)
         vel = np.tile(fr.velocities.mean(0), (len(m.vertices), 1))
-        write_mesh_ply(run / f"mesh/fluid_{i:05d}.ply", np.asarray(m.vertices), np.asarray(m.faces), vel, np.asarray(m.vertex_normals))
+        write_mesh_ply(run / f"mesh/fluid_{i:05d}.ply", np.asarray(m.vertices), np.asarray(m.faces), vel,
+                       np.asarray(m.vertex_normals))
         info.set_file(i, "mesh", f"mesh/fluid_{i:05d}.ply")
         n = 400
         types = rng.integers(0, 3, n).astype(np.uint8)
@@ -69,7 +70,8 @@ def meshed_run(tiny_run, tmp_path_factory) -> Path:
 
 
 def blender(script: str, *args) -> dict:
-    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
+    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stderr[-2000:]
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     assert lines, out.stdout[-2000:] + out.stderr[-2000:]
@@ -183,7 +185,8 @@ def test_render_workers_die_with_a_killed_parent(meshed_run, tmp_path):
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and parent.poll() is None and not workers:
-            workers = [p for p in _children(parent.pid) if b"whitecap.render.worker" in Path(f"/proc/{p}/cmdline").read_bytes()]
+            workers = [p for p in _children(parent.pid)
+                       if b"whitecap.render.worker" in Path(f"/proc/{p}/cmdline").read_bytes()]
             time.sleep(0.1)
         time.sleep(2)  # let Blender start up and begin rendering
         assert parent.poll() is None and workers, "the render worker never started, or rendering ended too soon"
@@ -276,7 +279,8 @@ def test_bad_frame_range(meshed_run, capsys):
     assert "--frames" in capsys.readouterr().err
 
 
-DEVICE = "import json; from whitecap.render.scene import cycles_device; print(json.dumps({'device': cycles_device('auto')}))"
+DEVICE = ("import json; from whitecap.render.scene import cycles_device; "
+          "print(json.dumps({'device': cycles_device('auto')}))")
 
 
 def _has_gpu() -> bool:

@@ -61,7 +61,8 @@ def test_follow_camera_tracks_the_body_with_the_set_smoothing():
     assert x.max() <= 0.3 + 1e-12 and 0.29 < x[-1]  # no overshoot, settled after 8 τ
     offsets = np.array([np.subtract(keys[i], targets[i]) for i in range(n)])
     assert np.allclose(offsets, offsets[0]) and np.linalg.norm(offsets[0]) > 0.01
-    rigid = camera_follow.follow_keys(Render(camera_follow="body:0", camera_smoothing=0), info, None, 0, n - 1, 4 / 3)[1]
+    rigid = camera_follow.follow_keys(Render(camera_follow="body:0", camera_smoothing=0), info, None, 0, n - 1,
+                                      4 / 3)[1]
     assert np.allclose([rigid[i][0] - 0.5 for i in range(n)], pos[:, 0])
 
 
@@ -115,7 +116,8 @@ def test_over_water_preset_is_low_and_looks_across_the_water(follow):
     cfg = Render(camera_preset="over_water", sea_level=0.12, camera_height=0.05)
     assert camera_follow.follow_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0][0][2] == pytest.approx(0.17)
     # stage.camera_keys (what the exports write) gives the same positions
-    assert stage.camera_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0] == camera_follow.follow_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0]
+    keys = stage.camera_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0]
+    assert keys == camera_follow.follow_keys(cfg, info, (LO, HI), 0, 0, 1.0)[0]
 
 
 # ============================================================================ sea geometry

@@ -251,7 +251,8 @@ def settled_tank_run(root: Path, extra: dict) -> tuple[Path, np.ndarray, np.ndar
     """A run holding one frame of water at rest in the corner of a tank: a lattice of spacing 2r
     with centres r from the walls, as the solver leaves them (it confines centres to r inside)."""
     lo, hi = np.zeros(3), np.array([0.3, 0.2, 0.4])
-    g = [np.arange(lo[i] + R_SIM, hi[i] - R_SIM + 1e-9, 2 * R_SIM) for i in range(2)] + [np.arange(R_SIM, 0.15, 2 * R_SIM)]
+    g = [np.arange(lo[i] + R_SIM, hi[i] - R_SIM + 1e-9, 2 * R_SIM) for i in range(2)]
+    g.append(np.arange(R_SIM, 0.15, 2 * R_SIM))
     pos = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
     run = root / "run"
     run.mkdir()

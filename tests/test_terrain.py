@@ -119,7 +119,8 @@ def test_bad_heightmaps_are_one_line_errors(tmp_path, capsys):
     iio.imwrite(eight, np.full((8, 8), 100, np.uint8))
     for path, what in ((bad, "not an image"), (eight, "8-bit")):
         scene = tmp_path / f"{path.stem}.toml"
-        scene.write_text(f'[[fluid]]\nlower = [0, 0, 0]\nupper = [0.1, 0.1, 0.1]\n[terrain]\nheightmap = "{path.name}"\n')
+        scene.write_text('[[fluid]]\nlower = [0, 0, 0]\nupper = [0.1, 0.1, 0.1]\n'
+                         f'[terrain]\nheightmap = "{path.name}"\n')
         code = main(["simulate", str(scene), "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err.strip()
         assert code == 2 and len(err.splitlines()) == 1, err

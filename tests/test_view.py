@@ -181,7 +181,8 @@ def test_obstacle_transform_rotates_x_then_y_then_z():
     from whitecap.geometry import obstacle_transform
     from whitecap.io.record import Obstacle as Record
 
-    m = obstacle_transform(Record.model_validate({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0], "scale": 2.0}))
+    m = obstacle_transform(Record.model_validate({"translate": [1.0, 0.0, 0.0], "rotate": [90.0, 90.0, 0.0],
+                                                  "scale": 2.0}))
     # The scene model and its run.json dict place an obstacle alike; missing keys are the defaults.
     o = Obstacle(mesh="m.obj", translate=[1.0, 0.0, 0.0], rotate=[90.0, 90.0, 0.0], scale=2.0)
     np.testing.assert_array_equal(obstacle_transform(o), m)
@@ -233,7 +234,8 @@ def test_obstacle_mesh_is_drawn_where_it_projects(tiny_run, tmp_path):
     meta = json.loads((run / "run.json").read_text())
     # A red cube, 45° about z, in the empty right part of the box; a missing mesh is skipped.
     meta["obstacles"] = [
-        {"mesh": "block.obj", "translate": [0.45, 0.1, 0.1], "rotate": [0, 0, 45], "scale": 1.0, "color": [0.9, 0.1, 0.1]},
+        {"mesh": "block.obj", "translate": [0.45, 0.1, 0.1], "rotate": [0, 0, 45], "scale": 1.0,
+         "color": [0.9, 0.1, 0.1]},
         {"mesh": "missing.obj"},
     ]
     (run / "run.json").write_text(json.dumps(meta))

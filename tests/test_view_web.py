@@ -50,7 +50,8 @@ def _poll(cond, what: str, timeout: float = WAIT_S, period: float = 0.05):
 
 @pytest.fixture(scope="module")
 def browser():
-    sync_api = pytest.importorskip("playwright.sync_api", reason="browser tests need playwright: pip install 'whitecap[web]'")
+    sync_api = pytest.importorskip("playwright.sync_api",
+                                   reason="browser tests need playwright: pip install 'whitecap[web]'")
     exe = _chromium()
     if exe is None:
         pytest.skip("no Chromium found (Debian: apt-get install chromium); browser tests skipped")
@@ -142,7 +143,8 @@ def _camera(viewer):
 
 
 FLUID_TOL = 30.0  # RGB distance within which a pixel counts as fluid-coloured
-GREY_CHROMA = 25.0  # max - min channel below which a pixel is grey (background, panel, box); the map's colours are all above
+# max - min channel below which a pixel is grey (background, panel, box); the map's colours are all above
+GREY_CHROMA = 25.0
 
 
 def _fluid_coloured(img: np.ndarray) -> np.ndarray:
@@ -226,12 +228,14 @@ def test_timeline_moves_the_drawn_particles(tiny_run, page):
         first = _drawn(v.h_fluid)
         last_k = len(v.source) - 1
         _move_slider_to_end(page)
-        _until(v, lambda: v.state.frame == last_k and v.drawn_frame == v.source.indices[last_k], "the last frame to be drawn")
+        _until(v, lambda: v.state.frame == last_k and v.drawn_frame == v.source.indices[last_k],
+               "the last frame to be drawn")
         p3 = v.source.frame(last_k).positions
         drawn = _drawn(v.h_fluid)
         assert np.abs(drawn - p3).max() < 1e-6
         assert np.abs(drawn - first).max() > 0.01  # the column moved by more than a centimetre
-        _poll(lambda: page.get_by_text(f"frame {v.source.indices[last_k]} ({last_k + 1} of").count(), "the page to show the frame")
+        _poll(lambda: page.get_by_text(f"frame {v.source.indices[last_k]} ({last_k + 1} of").count(),
+              "the page to show the frame")
 
         def shows_frame3():
             fluid, where, _ = _fluid_mask_checks(v, page, p3)
@@ -264,7 +268,8 @@ def test_moving_body_and_subsample_and_notebook(tiny_run, tmp_path):
             v.seek(k)
             assert v.wait_drawn(k, HANG_GUARD_S)
             (_, h), = v.h_obstacles
-            M = viser.transforms.SE3.from_rotation_and_translation(viser.transforms.SO3(np.asarray(h.wxyz)), np.asarray(h.position)).as_matrix()
+            M = viser.transforms.SE3.from_rotation_and_translation(viser.transforms.SO3(np.asarray(h.wxyz)),
+                                                                   np.asarray(h.position)).as_matrix()
             want = pose_matrix(Pose.model_validate(meta["frames"][k]["bodies"][0]))
             assert np.allclose(M, want, atol=1e-6)
             assert len(v.h_fluid.points) == 500
@@ -296,7 +301,8 @@ def test_live_scene_simulates_and_takes_solver_sliders(tmp_path):
     # drawn on the server, a live frame hands the solver's particles to the pages' pictures
     with WebViewer(scene, port=0, points="server") as v:
         v.play()
-        _until(v, lambda: v.frames_sent >= 2 and v.spheres is not None, "the live simulation to reach the server's drawing")
+        _until(v, lambda: v.frames_sent >= 2 and v.spheres is not None,
+               "the live simulation to reach the server's drawing")
         assert v.drawn_on_server and not v.h_fluid.visible
         P = v.spheres[2]
         assert len(P) == v.source.solver.n and np.isfinite(P).all()
@@ -400,7 +406,8 @@ def test_a_frame_with_an_empty_surface_hides_the_previous_surface(tiny_run, tmp_
             assert v.wait_drawn(k, HANG_GUARD_S)
             idx = v.source.indices[k]
             if len(boxes[idx].faces):  # (frame 0 may have been drawn before the surface was switched on)
-                _until(v, lambda: shown() and np.allclose(np.asarray(v.h_surface.vertices), boxes[idx].vertices, atol=1e-6),
+                _until(v, lambda: shown() and np.allclose(np.asarray(v.h_surface.vertices), boxes[idx].vertices,
+                                                          atol=1e-6),
                       f"frame {idx}'s surface to be shown")
             else:
                 assert not shown()
@@ -422,7 +429,8 @@ def test_stepping_through_frames_does_not_recompile_the_point_shader(tiny_run, p
     def show(v, k):
         v.seek(k)
         assert v.wait_drawn(k, HANG_GUARD_S)
-        _poll(lambda: page.get_by_text(f"frame {v.source.indices[k]} ({k + 1} of").count(), f"the page to show frame {k}")
+        _poll(lambda: page.get_by_text(f"frame {v.source.indices[k]} ({k + 1} of").count(),
+              f"the page to show frame {k}")
         page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")  # drawn
 
     with WebViewer(tiny_run, port=0) as v:
@@ -631,7 +639,8 @@ def test_server_pictures_are_depth_composited_with_obstacles(tiny_run, tmp_path,
     trimesh.creation.box(extents=(0.03, 0.03, 0.03)).export(run / "front.obj")
     trimesh.creation.box(extents=(0.05, 0.05, 0.05)).export(run / "behind.obj")
     meta = json.loads((run / "run.json").read_text())
-    meta["obstacles"] = [{"mesh": "front.obj", "translate": front.tolist()}, {"mesh": "behind.obj", "translate": behind.tolist()}]
+    meta["obstacles"] = [{"mesh": "front.obj", "translate": front.tolist()},
+                         {"mesh": "behind.obj", "translate": behind.tolist()}]
     (run / "run.json").write_text(json.dumps(meta))
     with WebViewer(run, port=0, points="server") as v:
         _open(v, page)

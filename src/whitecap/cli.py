@@ -72,8 +72,8 @@ def _add_foam(sub) -> None:
         help="diffuse particles (spray, foam, bubbles) over any particle sequence",
         description="Generate spray, foam and air bubbles (Ihmsen et al. 2012) for INPUT: a whitecap run "
         "directory, a DualSPHysics PartVTK folder (its case XML is read when beside the files), "
-        "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. Writes diffuse/diffuse_NNNNN.ply and "
-        "diffuse/counts.csv.",
+        "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. "
+        "Writes diffuse/diffuse_NNNNN.ply and diffuse/counts.csv.",
     )
     p.add_argument("input", nargs="?", help="run directory, sequence directory or glob ('frames/*.vtk'); "
                    "may be left out when --params names it ([PATHS] InputDataPath)")
@@ -99,7 +99,8 @@ def _cmd_foam(a) -> int:
 
     info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
                          radius=a.radius, seed=a.seed, force=a.force, arch=a.arch)
-    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to {info.extra.get('out', a.out or a.input)}")
+    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to "
+          f"{info.extra.get('out', a.out or a.input)}")
     return 0
 
 
@@ -123,7 +124,8 @@ def _add_import(sub) -> None:
                    "places the floating body, in place of fitting it to its particles")
     p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
                    "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
-    p.add_argument("--fluid-model", help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
+    p.add_argument("--fluid-model",
+                   help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
     p.add_argument("--dt", type=float, help="a bare sequence's time between frames [s] (when no case XML says)")
     p.add_argument("--radius", type=float, help="a bare sequence's particle radius [m] (half the spacing)")
     p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
@@ -166,7 +168,8 @@ def _add_mesh(sub) -> None:
                    help="unweighted Laplacian smoothing")
     p.add_argument("--no-velocity", dest="interpolate_velocity", action="store_const", const=False,
                    help="do not interpolate particle velocity onto vertices")
-    p.add_argument("--format", choices=choices(Mesh, "format"), help="mesh file format (default ply; obj has no velocity)")
+    p.add_argument("--format", choices=choices(Mesh, "format"),
+                   help="mesh file format (default ply; obj has no velocity)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
@@ -212,7 +215,8 @@ def _add_export(sub) -> None:
     p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
     p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
                    "separate series (usd and abc always split them)")
-    p.add_argument("--jobs", "-j", type=int, default=1, help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
+    p.add_argument("--jobs", "-j", type=int, default=1,
+                   help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
     _add_cluster_option(p, "vtk, ply: ")
     p.set_defaults(func=_cmd_export)
 
@@ -245,14 +249,17 @@ def _add_view(sub) -> None:
     p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a sequence's files (default z)")
     p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for live simulation")
-    p.add_argument("--web", action="store_true", help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
+    p.add_argument("--web", action="store_true",
+                   help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
     p.add_argument("--port", type=int, default=8080, help="with --web, the port to serve on (default 8080)")
-    p.add_argument("--host", default="localhost", help="with --web, the address to serve on (default localhost; 0.0.0.0 for all)")
+    p.add_argument("--host", default="localhost",
+                   help="with --web, the address to serve on (default localhost; 0.0.0.0 for all)")
     p.add_argument("--max-points", type=int, default=300_000,
                    help="with --web --points browser, particles drawn at most per kind; more are subsampled")
     p.add_argument("--points", choices=choices(View, "web_points"),
                    help="with --web, where particles are drawn: browser (WebGL points), server (pictures drawn here, "
-                   "for large runs and slow browsers), auto (server above 30,000 particles; default: [view] web_points)")
+                   "for large runs and slow browsers), auto (server above 30,000 particles; "
+                   "default: [view] web_points)")
     p.set_defaults(func=_cmd_view)
 
 
@@ -284,8 +291,8 @@ def _add_render(sub) -> None:
     p = sub.add_parser(
         "render",
         help="render a run in Blender (Cycles) to PNGs and an MP4",
-        description="Render RUN's meshes and diffuse particles with Blender's Cycles (on a GPU where one exists). Writes "
-        "render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
+        description="Render RUN's meshes and diffuse particles with Blender's Cycles (on a GPU where one exists). "
+        "Writes render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
     )
     p.add_argument("run", help="run directory (with mesh/ from `whitecap mesh`)")
     p.add_argument("--quality", default="preview", choices=["preview", "final"], help="preview: small and fast")
@@ -323,7 +330,8 @@ def _add_blender_addon(sub) -> None:
 def _cmd_blender_addon(a) -> int:
     from . import pipeline
 
-    print(f"wrote {pipeline.blender_addon(a.out)}; install it in Blender: Edit > Preferences > Get Extensions > Install from Disk")
+    print(f"wrote {pipeline.blender_addon(a.out)}; "
+          "install it in Blender: Edit > Preferences > Get Extensions > Install from Disk")
     return 0
 
 
@@ -370,7 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"whitecap {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_simulate, _add_foam, _add_import, _add_mesh, _add_export, _add_view, _add_render, _add_blender_addon, _add_run):
+    for add in (_add_simulate, _add_foam, _add_import, _add_mesh, _add_export, _add_view, _add_render,
+                _add_blender_addon, _add_run):
         add(sub)
     return parser
 

@@ -84,7 +84,11 @@ class Solver(_Section):
     scorr_n: int = Field(4, ge=1, le=8, description="artificial pressure exponent n [-]")
     scorr_dq: float = Field(0.2, ge=0, lt=1, description="artificial pressure Δq as a fraction of h [-]")
     max_neighbors: int = Field(64, ge=16, le=512, description="fixed neighbour-list capacity per particle [-]")
-    reorder_interval: int = Field(8, ge=0, description="steps between cell reorders of particle data; 0 = never [-] (8: 2-6 % faster steps than 32 at 120k-1M, measured interleaved in one process)")
+    reorder_interval: int = Field(
+        8, ge=0,
+        description="steps between cell reorders of particle data; 0 = never [-] "
+        "(8: 2-6 % faster steps than 32 at 120k-1M, measured interleaved in one process)",
+    )
     wall_friction: float = Field(0.0, ge=0, le=1, description="tangential velocity damping at domain walls [-]")
     max_speed: float = Field(
         100.0, gt=0, description="a particle faster than this is a blow-up and stops the run [m/s]"
@@ -163,7 +167,9 @@ class Motion(_Section):
     axis: Vec3 | None = Field(None, description="piston: direction of the stroke; spin: rotation axis [-]")
     stroke: float | None = Field(None, gt=0, description="piston: peak-to-peak displacement S [m]")
     period: float | None = Field(None, gt=0, description="piston/flap: period T [s]")
-    csv: str | None = Field(None, description="piston: CSV file of time [s], displacement [m] rows, instead of stroke/period")
+    csv: str | None = Field(
+        None, description="piston: CSV file of time [s], displacement [m] rows, instead of stroke/period"
+    )
     ramp: float = Field(0.0, ge=0, description="piston/flap: the amplitude ramps up smoothly over this time [s]")
     # flap
     hinge_axis: Vec3 | None = Field(None, description="flap: hinge direction [-]")
@@ -418,7 +424,9 @@ class Foam(_Section):
     """Diffuse particles (spray, foam, bubbles) after Ihmsen et al. 2012."""
 
     enabled: bool = Field(True, description="generate diffuse particles during `simulate`")
-    preset: Literal["ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-box", "splishsplash-manual", "auto"] = Field(
+    preset: Literal[
+        "ihmsen2012", "dualsphysics", "splishsplash", "splishsplash-box", "splishsplash-manual", "auto"
+    ] = Field(
         "auto",
         description="parameter preset; every value set below overrides it. 'auto' sets the clamping "
         "thresholds from percentiles of each potential over frames sampled across the run (in the "
@@ -460,7 +468,8 @@ class Foam(_Section):
     bubble_multiplier: float = Field(1.0, ge=0, le=100, description="generation of bubbles, relative to the rest [-]")
     spray_lifetime: list[float] | None = Field(
         None, min_length=2, max_length=2,
-        description="spray lifetime range [min, max], counting down while spray; unset = spray lives until it lands [s]",
+        description="spray lifetime range [min, max], counting down while spray; "
+        "unset = spray lives until it lands [s]",
     )
     bubble_lifetime: list[float] | None = Field(
         None, min_length=2, max_length=2,
@@ -484,7 +493,9 @@ class Foam(_Section):
         None, ge=1, description="capacity of diffuse particles; unset = 3 × budget × fluid particles [-]"
     )
     radius: float = Field(0.5, gt=0, description="diffuse particle radius as a multiple of the fluid radius [-]")
-    support: float = Field(4.0, ge=2.0, le=8.0, description="neighbourhood radius h as a multiple of the fluid radius [-]")
+    support: float = Field(
+        4.0, ge=2.0, le=8.0, description="neighbourhood radius h as a multiple of the fluid radius [-]"
+    )
 
     @model_validator(mode="after")
     def _ranges(self) -> "Foam":
@@ -564,10 +575,15 @@ class Render(_Section):
     resolution: list[int] = Field([1920, 1080], min_length=2, max_length=2, description="final image size [px]")
     samples: int = Field(128, ge=1, le=65536, description="final Cycles samples per pixel [-]")
     device: Literal["auto", "cpu", "gpu"] = Field(
-        "auto", description="Cycles device: auto = a GPU (OptiX, CUDA, HIP, oneAPI) where Blender finds one, else the CPU"
+        "auto",
+        description="Cycles device: auto = a GPU (OptiX, CUDA, HIP, oneAPI) where Blender finds one, else the CPU",
     )
     preview_resolution: list[int] = Field([320, 240], min_length=2, max_length=2, description="preview size [px]")
-    preview_samples: int = Field(8, ge=1, le=4096, description="preview samples per pixel [-] (8: the denoiser gives the same picture as 16 at about 60 % of the CPU time)")
+    preview_samples: int = Field(
+        8, ge=1, le=4096,
+        description="preview samples per pixel [-] "
+        "(8: the denoiser gives the same picture as 16 at about 60 % of the CPU time)",
+    )
     camera_start: Vec3 | None = Field(None, description="camera position at the first frame [m]")
     camera_end: Vec3 | None = Field(None, description="camera position at the last frame; unset = camera_start [m]")
     camera_target: Vec3 | None = Field(
@@ -579,10 +595,12 @@ class Render(_Section):
     water_absorption: float = Field(3.0, ge=0, description="volume absorption density [1/m]")
     water_roughness: float = Field(0.02, ge=0, le=1, description="surface roughness of the water [-]")
     spray_radius: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="spray droplet radius range [m]; unset = 0.1–0.25 × particle radius"
+        None, min_length=2, max_length=2,
+        description="spray droplet radius range [m]; unset = 0.1–0.25 × particle radius",
     )
     foam_radius: list[float] | None = Field(
-        None, min_length=2, max_length=2, description="foam bubble radius range [m]; unset = 0.15–0.35 × particle radius"
+        None, min_length=2, max_length=2,
+        description="foam bubble radius range [m]; unset = 0.15–0.35 × particle radius",
     )
     bubble_radius: list[float] | None = Field(
         None, min_length=2, max_length=2, description="air bubble radius range [m]; unset = 0.1–0.3 × particle radius"
@@ -598,7 +616,8 @@ class Render(_Section):
     glare: float = Field(0.15, ge=0, le=1, description="strength of the compositor glare (0 = off) [-]")
     sun_strength: float = Field(3.0, ge=0, description="sun irradiance [W/m²] (Blender units); with the sky only")
     sun_angle: Vec3 = Field(
-        [50.0, 10.0, 30.0], description="sun lamp rotation about x, y, z [deg]; the sky's sun is put where it points from"
+        [50.0, 10.0, 30.0],
+        description="sun lamp rotation about x, y, z [deg]; the sky's sun is put where it points from",
     )
     world_strength: float = Field(1.0, ge=0, description="strength of the sky or of the environment image [-]")
     environment: str | None = Field(
@@ -609,15 +628,21 @@ class Render(_Section):
     )
     exposure: float = Field(0.0, ge=-10, le=10, description="exposure of the AgX view transform [stops]")
     focus_target: Vec3 | None = Field(None, description="depth of field: the point in focus; unset = camera target [m]")
-    fstop: float | None = Field(None, gt=0, le=1024, description="depth of field: aperture f-number; unset = no depth of field [-]")
+    fstop: float | None = Field(
+        None, gt=0, le=1024, description="depth of field: aperture f-number; unset = no depth of field [-]"
+    )
     container: Literal["glass", "basin", "none"] | None = Field(
         None,
         description="the domain's solid walls drawn as a glass tank with an open top, an opaque tiled basin, or "
         "nothing; unset = glass where the run's walls held the fluid, else none",
     )
-    wall_thickness: float | None = Field(None, gt=0, description="container wall thickness [m]; unset = 2.5 particle radii")
+    wall_thickness: float | None = Field(
+        None, gt=0, description="container wall thickness [m]; unset = 2.5 particle radii"
+    )
     ground: bool = Field(True, description="a textured ground plane under the domain box")
-    ground_texture: Literal["tiles", "checker", "concrete"] = Field("tiles", description="the ground's procedural texture")
+    ground_texture: Literal["tiles", "checker", "concrete"] = Field(
+        "tiles", description="the ground's procedural texture"
+    )
     # open sea around the domain and a camera that follows (render/sea.py, render/camera_follow.py)
     sea: bool = Field(False, description="a sea surface around the domain to the horizon, blended into the simulated "
                       "water at the domain's edge (the container is then none)")
@@ -669,10 +694,14 @@ class Cluster(_Section):
     cores: int = Field(4, ge=1, le=4096, description="cores per batch job [-]")
     processes: int = Field(1, ge=1, le=4096, description="Dask worker processes per batch job (one Blender each) [-]")
     memory: str = Field("16GB", pattern=r"^\d+(\.\d+)?\s*[KMGT]i?B$", description="memory per batch job, e.g. 16GB")
-    walltime: str = Field("01:00:00", pattern=r"^(\d+-)?\d{1,3}:\d{2}(:\d{2})?$", description="time limit per batch job, HH:MM:SS")
+    walltime: str = Field(
+        "01:00:00", pattern=r"^(\d+-)?\d{1,3}:\d{2}(:\d{2})?$", description="time limit per batch job, HH:MM:SS"
+    )
     queue: str | None = Field(None, description="partition (Slurm) or queue (PBS); unset = the site's default")
     account: str | None = Field(None, description="account or project to charge; unset = the user's default")
-    interface: str | None = Field(None, description="network interface the workers talk on (e.g. ib0); unset = the default")
+    interface: str | None = Field(
+        None, description="network interface the workers talk on (e.g. ib0); unset = the default"
+    )
     job_extra: list[str] = Field(default_factory=list, description="extra #SBATCH/#PBS options, e.g. ['--gres=gpu:1']")
     setup: list[str] = Field(
         default_factory=list, description="shell lines run in each job before the worker starts (module load, venv)"

@@ -171,7 +171,8 @@ class WorkerFailed(WhitecapError):
 def exit_on_os_error(exc: OSError) -> NoReturn:
     """In a worker process: end with OS_ERROR_EXIT and ``exc`` as JSON on the last line of standard error."""
     name = exc.filename if isinstance(exc.filename, str) else None
-    sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps({'errno': exc.errno, 'strerror': exc.strerror or str(exc), 'filename': name})}\n")
+    fields = {"errno": exc.errno, "strerror": exc.strerror or str(exc), "filename": name}
+    sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps(fields)}\n")
     sys.stderr.flush()
     sys.exit(OS_ERROR_EXIT)
 
@@ -258,7 +259,9 @@ def require_distributed():
     try:
         import distributed
     except ImportError:
-        raise MissingDependency(f"--cluster needs Dask's 'distributed', which is not installed; {CLUSTER_HINT}") from None
+        raise MissingDependency(
+            f"--cluster needs Dask's 'distributed', which is not installed; {CLUSTER_HINT}"
+        ) from None
     return distributed
 
 
@@ -320,7 +323,8 @@ class DaskExecutor:
         if blind:
             raise ClusterError(
                 f"{self.shared}: {len(blind)} of {len(seen)} Dask workers cannot see the run directory "
-                f"(first: {blind[0]}: {seen[blind[0]]}); it must be on a filesystem shared by the client and every worker"
+                f"(first: {blind[0]}: {seen[blind[0]]}); "
+                "it must be on a filesystem shared by the client and every worker"
             )
 
     def map(self, fn: Callable, tasks: list[tuple[int, tuple]], key: str = "frame") -> Iterator[FrameResult]:
@@ -336,8 +340,8 @@ class DaskExecutor:
         run = uuid.uuid4().hex[:8]
         futures = {}
         for index, args in tasks:
-            fut = self.client.submit(_shared_task, str(self.probe), self.token, fn, args, key=f"{key}-{index:05d}-{run}",
-                                     pure=False)
+            fut = self.client.submit(_shared_task, str(self.probe), self.token, fn, args,
+                                     key=f"{key}-{index:05d}-{run}", pure=False)
             futures[fut] = index
         try:
             for fut in as_completed(list(futures), loop=self.client.loop):
@@ -699,7 +703,9 @@ def batch_cluster(kind: str, cfg):
     try:
         import dask_jobqueue
     except ImportError:
-        raise MissingDependency(f"--cluster {kind} needs 'dask-jobqueue', which is not installed; {CLUSTER_HINT}") from None
+        raise MissingDependency(
+            f"--cluster {kind} needs 'dask-jobqueue', which is not installed; {CLUSTER_HINT}"
+        ) from None
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
     return cls(**batch_options(cfg))
 

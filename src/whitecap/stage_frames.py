@@ -37,8 +37,9 @@ def todo(frames: Iterable[T], done: Callable[[T], bool], force: bool = False) ->
     return [f for f in frames if force or not done(f)]
 
 
-def map_over_frames(stage: str, fn: Callable, tasks: list[tuple[int, tuple]], on_done: Callable[[FrameResult], str | None],
-                    *, shared: Path, jobs: int = 1, cluster: str | None = None, cfg=None, total: int | None = None,
+def map_over_frames(stage: str, fn: Callable, tasks: list[tuple[int, tuple]],
+                    on_done: Callable[[FrameResult], str | None], *, shared: Path, jobs: int = 1,
+                    cluster: str | None = None, cfg=None, total: int | None = None,
                     completed: int = 0, show_progress: bool = True, sweep: Iterable[Path] = (),
                     around: Callable | None = None) -> None:
     """Run ``fn`` over ``tasks`` ((index, args) pairs) on an executor (here with ``jobs`` = 1, a

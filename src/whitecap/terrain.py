@@ -72,8 +72,8 @@ def read_heightmap(path: Path, field: str = "terrain.heightmap") -> np.ndarray:
         raise InputError(f"{path}: {field}: expected a single-channel (grayscale) image, got shape {img.shape}")
     if img.dtype != np.uint16:
         bits = 8 * img.dtype.itemsize
-        raise InputError(f"{path}: {field}: {'an' if bits == 8 else 'a'} {bits}-bit image ({img.dtype}); a heightmap must be a 16-bit "
-                         "grayscale PNG (scripts/make_terrain_assets.py writes one)")
+        raise InputError(f"{path}: {field}: {'an' if bits == 8 else 'a'} {bits}-bit image ({img.dtype}); "
+                         "a heightmap must be a 16-bit grayscale PNG (scripts/make_terrain_assets.py writes one)")
     if min(img.shape) < 2:
         raise InputError(f"{path}: {field}: {img.shape[1]}×{img.shape[0]} pixels; a heightmap needs at least 2×2")
     return img.astype(np.float64) / 65535.0
@@ -234,14 +234,18 @@ def heightfield(scene, source: str = "scene") -> Heightfield:
         h = read_heightmap(path, field)
         z0, z1 = t.height if t.height is not None else default_height(scene)
         lower = t.lower if t.lower is not None else scene.domain.lower[:2]
-        size = t.size if t.size is not None else [u - lo for lo, u in zip(scene.domain.lower[:2], scene.domain.upper[:2])]
+        if t.size is not None:
+            size = t.size
+        else:
+            size = [u - lo for lo, u in zip(scene.domain.lower[:2], scene.domain.upper[:2])]
         return Heightfield(z0 + h * (z1 - z0), lower, size)
     import trimesh
 
     try:
         m = trimesh.load(str(path), force="mesh")
     except Exception as exc:
-        raise InputError(f"{path}: {field}: not a readable mesh ({str(exc).splitlines()[0] if str(exc) else exc})") from None
+        first = str(exc).splitlines()[0] if str(exc) else exc
+        raise InputError(f"{path}: {field}: not a readable mesh ({first})") from None
     if m is None or len(getattr(m, "faces", [])) == 0:
         raise InputError(f"{path}: {field}: the mesh is empty (no triangles)")
     lo, hi = m.bounds

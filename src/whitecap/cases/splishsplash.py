@@ -150,7 +150,8 @@ def _fluid_frames(folder: Path, model: str | None) -> tuple[str, list[tuple[int,
             break
     else:
         raise InputError(f"{folder}: no SPlisHSPlasH fluid files (vtk/ParticleData_<model>_<frame>.vtk or "
-                         "partio/ParticleData_<model>_<frame>.bgeo); enable enableVTKExport in the scene's Configuration")
+                         "partio/ParticleData_<model>_<frame>.bgeo); "
+                         "enable enableVTKExport in the scene's Configuration")
     if model is None:
         if len(by_model) > 1:
             raise InputError(f"{d}: several fluid models ({', '.join(sorted(by_model))}); choose one")
@@ -168,7 +169,8 @@ def _find_scene(folder: Path) -> Path:
     if not found:
         raise InputError(f"{folder}: no scene JSON beside the output (looked for *.json in it and in Scenes/); "
                          "give the scene file that was run (it holds particleRadius and dataExportFPS)")
-    raise InputError(f"{folder}: several scene JSON files ({', '.join(p.name for p in found)}); give the one that was run")
+    raise InputError(f"{folder}: several scene JSON files ({', '.join(p.name for p in found)}); "
+                     "give the one that was run")
 
 
 class _Scene:

@@ -49,7 +49,9 @@ def require_bpy() -> None:
     except (ImportError, ValueError):
         found = False
     if not found:
-        raise MissingDependency(f"Alembic export needs Blender's Python module 'bpy', which is not installed; {INSTALL_HINT}")
+        raise MissingDependency(
+            f"Alembic export needs Blender's Python module 'bpy', which is not installed; {INSTALL_HINT}"
+        )
 
 
 def write_abc(path: str | Path, cache: SceneCache, advance: Callable[[str], None] | None = None) -> None:
@@ -69,8 +71,8 @@ def write_abc(path: str | Path, cache: SceneCache, advance: Callable[[str], None
         job = {"usd": str(usd), "first": cache.first, "last": cache.last, "fps": cache.frame_rate, "radii": radii}
         with atomic_path(path) as tmp:
             job["abc"] = str(tmp)
-            res = subprocess.run([sys.executable, "-m", "whitecap.export.alembic", json.dumps(job)], capture_output=True,
-                                 text=True, env=child_env())
+            res = subprocess.run([sys.executable, "-m", "whitecap.export.alembic", json.dumps(job)],
+                                 capture_output=True, text=True, env=child_env())
             if res.returncode != 0 or not tmp.stat().st_size:
                 last = (res.stderr.strip().splitlines() or ["no output"])[-1]
                 raise InputError(f"{path}: Blender's Alembic export failed: {last}")

@@ -17,7 +17,8 @@ def encode_mp4(pngs: list[Path], path: str | Path, fps: float = 30.0, quality: i
 
     path = Path(path)
     with atomic_path(path) as tmp:
-        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", macro_block_size=2, quality=quality, format="FFMPEG") as w:
+        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", macro_block_size=2, quality=quality,
+                                format="FFMPEG") as w:
             for p in pngs:
                 img = imageio.imread(p)[..., :3]
                 h, wd = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2

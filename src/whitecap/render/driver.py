@@ -52,7 +52,9 @@ def require_bpy():
     try:
         import bpy  # noqa: F401
     except ImportError:
-        raise MissingDependency(f"rendering needs Blender's Python module 'bpy', which is not installed; {INSTALL_HINT}") from None
+        raise MissingDependency(
+            f"rendering needs Blender's Python module 'bpy', which is not installed; {INSTALL_HINT}"
+        ) from None
     return bpy
 
 
@@ -91,7 +93,8 @@ def check_image_memory(run_dir: Path, cfg: Render, quality: str, processes: int,
         from ..executor import cluster_settings
 
         mem = cluster_settings(run_dir).memory
-        need, have, what = per_process, MEMORY_HEADROOM * _memory_size(mem), f"a batch job has ([cluster] memory = {mem})"
+        need, have = per_process, MEMORY_HEADROOM * _memory_size(mem)
+        what = f"a batch job has ([cluster] memory = {mem})"
     else:
         return  # a scheduler's workers: their memory is not known here
     if need > have:

@@ -133,7 +133,10 @@ def fluid_bounds(run_dir: Path, info: RunInfo) -> tuple[np.ndarray, np.ndarray] 
             pts = read(path).positions
         if len(pts) == 0:
             continue
-        q = np.quantile(pts, [FRAMING_TRIM, 1 - FRAMING_TRIM], axis=0) if len(pts) > 1000 else np.array([pts.min(0), pts.max(0)])
+        if len(pts) > 1000:
+            q = np.quantile(pts, [FRAMING_TRIM, 1 - FRAMING_TRIM], axis=0)
+        else:
+            q = np.array([pts.min(0), pts.max(0)])
         lo, hi = np.minimum(lo, q[0]), np.maximum(hi, q[1])
     if not np.isfinite(lo).all():
         return None

@@ -4,8 +4,8 @@ Loading (host side): trimesh reads OBJ/STL/PLY; the mesh is checked for
 watertightness (or repaired on request), transformed (scale, then rotations
 about x, y, z in that order, then translation) and sampled into a signed
 distance field on a regular grid with spacing ``sdf_resolution × r``, padded
-by the kernel support. Distances (negative inside) come from libigl. The grid is cached on disk, keyed by the mesh file's content, the
-transform and the resolution, so a second run starts at once.
+by the kernel support. Distances (negative inside) come from libigl. The grid is cached on disk,
+keyed by the mesh file's content, the transform and the resolution, so a second run starts at once.
 
 Collision (Taichi, per particle and obstacle):
 
@@ -192,7 +192,8 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     with timer("obstacles.sdf"):
         vals = compute_sdf(m.vertices, m.faces, pts).astype(np.float32).reshape(tuple(dims))
-    grid = SDFGrid(lo.astype(np.float32), float(dx), vals, m.bounds[0].astype(np.float32), m.bounds[1].astype(np.float32))
+    grid = SDFGrid(lo.astype(np.float32), float(dx), vals,
+                   m.bounds[0].astype(np.float32), m.bounds[1].astype(np.float32))
     with contextlib.suppress(OSError):  # a cache: a full or read-only disk only costs the next run the SDF
         write_arrays(cached, dict(origin=grid.origin, spacing=grid.spacing, values=vals, aabb_lo=grid.aabb_lo,
                                   aabb_hi=grid.aabb_hi))
@@ -300,7 +301,8 @@ def load_obstacles(scene: Scene) -> Obstacles | None:
         path = scene.resolve(o.mesh)
         g = build_sdf(o, path, r, pad=h + 2 * o.sdf_resolution * r)
         if (g.aabb_hi < lo).any() or (g.aabb_lo > hi).any():
-            raise InputError(f"{path}: obstacle[{k}] lies outside the domain {lo.tolist()}..{hi.tolist()} after its transform")
+            raise InputError(f"{path}: obstacle[{k}] lies outside the domain {lo.tolist()}..{hi.tolist()} "
+                             "after its transform")
         grids.append(g)
     bodies = {}
     for k, o in enumerate(scene.obstacle):

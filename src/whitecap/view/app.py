@@ -72,7 +72,8 @@ def initial_camera(cfg: View, bounds) -> OrbitCamera:
 def make_window(res: tuple[int, int], headless: bool, fps_limit: int = 60):
     """A GGUI window; a clear one-line error when Vulkan is missing."""
     require_vulkan()
-    if not headless and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    has_display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if not headless and sys.platform.startswith("linux") and not has_display:
         # GLFW would print "cannot initialize GLFW" and exit the process.
         raise WhitecapError("view: no display for a window (DISPLAY is unset); use --headless --out DIR for PNGs")
     import taichi as ti
@@ -83,7 +84,8 @@ def make_window(res: tuple[int, int], headless: bool, fps_limit: int = 60):
     try:
         return ti.ui.Window("whitecap view", tuple(int(v) for v in res), show_window=not headless, fps_limit=fps_limit)
     except Exception as exc:  # taichi raises RuntimeError with a long Vulkan trace
-        raise WhitecapError(f"{INSTALL_HINT} (window creation failed: {str(exc).splitlines()[0] if str(exc) else exc})") from None
+        first = str(exc).splitlines()[0] if str(exc) else exc
+        raise WhitecapError(f"{INSTALL_HINT} (window creation failed: {first})") from None
 
 
 # ----------------------------------------------------------------------------- input

@@ -60,7 +60,8 @@ class _Buffer:
 class Renderer:
     """Owns the GGUI scene objects and the vertex buffers of one window."""
 
-    def __init__(self, window, radius: float, bounds, obstacles: list, point_scale: float = 1.0, background=(0.13, 0.14, 0.17)):
+    def __init__(self, window, radius: float, bounds, obstacles: list, point_scale: float = 1.0,
+                 background=(0.13, 0.14, 0.17)):
         self.window = window
         self.canvas = window.get_canvas()
         self.scene = window.get_scene()
@@ -118,7 +119,8 @@ class Renderer:
     # --------------------------------------------------------------- drawing
     def color_range(self, state: ViewerState, frame: Frame) -> tuple[float, float]:
         if state.color_range is None:
-            state.color_range = fitted_range(fluid_scalar(frame.as_dict(), state.color_mode), state.color_mode, self.speed_scale)
+            scalar = fluid_scalar(frame.as_dict(), state.color_mode)
+            state.color_range = fitted_range(scalar, state.color_mode, self.speed_scale)
         return state.color_range
 
     def draw_scene(self, state: ViewerState, frame: Frame) -> None:
@@ -133,11 +135,13 @@ class Renderer:
             if frame.device is not None:
                 d, n = frame.device, frame.device.n
                 self.fluid.reserve(n)
-                fill_fluid_buffer(n, d.x, d.v, d.rho, int(state.color_mode == "density"), lo, hi, self.fluid.pos, self.fluid.col)
+                fill_fluid_buffer(n, d.x, d.v, d.rho, int(state.color_mode == "density"), lo, hi,
+                                  self.fluid.pos, self.fluid.col)
             else:
                 col = colormap(fluid_scalar(frame.as_dict(), state.color_mode), lo, hi)
                 n = self.fluid.fill(frame.positions, col)
-            sc.particles(self.fluid.pos, radius=self.radius * self.point_scale, per_vertex_color=self.fluid.col, index_count=n)
+            sc.particles(self.fluid.pos, radius=self.radius * self.point_scale, per_vertex_color=self.fluid.col,
+                         index_count=n)
         if vis.diffuse and frame.diffuse_positions is not None and len(frame.diffuse_positions):
             t = np.clip(frame.diffuse_type.astype(np.int64), 0, len(DIFFUSE_COLORS) - 1)
             n = self.diffuse.fill(frame.diffuse_positions, DIFFUSE_COLORS[t], frame.diffuse_radius)

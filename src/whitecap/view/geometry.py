@@ -13,14 +13,15 @@ from ..io.record import OBSTACLE_COLOR, Obstacle, Pose
 log = logging.getLogger("whitecap.view")
 
 
-def load_obstacle_meshes(entries: list[Obstacle], bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple, int]]:
+def load_obstacle_meshes(entries: list[Obstacle],
+                         bases: list[Path]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, tuple, int]]:
     """(vertices (V,3) f32, faces (F,3) i32, vertex normals (V,3) f32, colour, obstacle index) per
     obstacle, in its rest placement (:func:`posed` moves it to a frame's pose).
 
-    Relative mesh paths are looked for in ``bases`` in order (the scene
-    directory, then the run directory for playback), then the working directory. Missing or unreadable meshes are skipped with a
-    warning: the viewer still shows the fluid. Glass obstacles (a closed tank around the fluid) are
-    not drawn: opaque, they would hide the water; the domain box's edges outline them.
+    Relative mesh paths are looked for in ``bases`` in order (the scene directory, then the run
+    directory for playback), then the working directory. Missing or unreadable meshes are skipped
+    with a warning: the viewer still shows the fluid. Glass obstacles (a closed tank around the
+    fluid) are not drawn: opaque, they would hide the water; the domain box's edges outline them.
     """
     import trimesh
 
@@ -41,7 +42,8 @@ def load_obstacle_meshes(entries: list[Obstacle], bases: list[Path]) -> list[tup
             continue
         m.apply_transform(obstacle_transform(e))
         color = tuple(float(c) for c in e.color or OBSTACLE_COLOR)
-        out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32), color, k))
+        out.append((m.vertices.astype(np.float32), m.faces.astype(np.int32), m.vertex_normals.astype(np.float32),
+                    color, k))
     return out
 
 

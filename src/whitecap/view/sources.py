@@ -265,7 +265,8 @@ class LiveSource:
             for g in self.hook.obstacles or []:  # obstacles (sim.obstacles.PosedSDF) at this pose, from the last
                 g.at_frame(fr.time, fr.bodies[g.index] if fr.bodies else None, dt if self.index > 0 else 0.0)
             d = self.hook.gen.step(pf, self.index, dt)
-            self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8), np.asarray(d.arrays["radius"], np.float32))
+            self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8),
+                             np.asarray(d.arrays["radius"], np.float32))
             self._diffuse_index = self.index
         except Exception as exc:  # the viewer carries on without diffuse particles
             import logging

@@ -26,7 +26,8 @@ def vulkan_problem() -> str | None:
     """None when a loader and at least one driver manifest exist, else what is missing."""
     if os.environ.get("WHITECAP_FAKE_NO_VULKAN"):  # lets tests check the message
         return "Vulkan disabled by WHITECAP_FAKE_NO_VULKAN"
-    if not (ctypes.util.find_library("vulkan") or glob.glob("/usr/lib/*/libvulkan.so.1") or glob.glob("/usr/lib/libvulkan.so.1")):
+    if not (ctypes.util.find_library("vulkan") or glob.glob("/usr/lib/*/libvulkan.so.1")
+            or glob.glob("/usr/lib/libvulkan.so.1")):
         return "the Vulkan loader libvulkan.so.1 is missing"
     icds = [f for d in _ICD_DIRS for f in glob.glob(os.path.join(d, "*.json"))]
     if os.environ.get("VK_ICD_FILENAMES") or os.environ.get("VK_DRIVER_FILES"):

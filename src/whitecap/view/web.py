@@ -126,7 +126,8 @@ def check_port_free(host: str, port: int) -> None:
                 s.bind(addr)
             except OSError as exc:
                 if exc.errno == errno.EADDRINUSE:
-                    raise WhitecapError(f"view --web: port {port} is already in use on {host}; choose another with --port") from None
+                    raise WhitecapError(f"view --web: port {port} is already in use on {host}; "
+                                        "choose another with --port") from None
                 if exc.errno == errno.EADDRNOTAVAIL:  # e.g. no IPv6 on this machine
                     continue
                 raise WhitecapError(f"view --web: cannot serve on {host}:{port} ({exc.strerror})") from None
@@ -175,7 +176,8 @@ class WebViewer:
         self.state = _new_state(self.cfg, self.source)
         self.state.paused = True  # playback waits for play; live waits for the first page, then simulates
         self.waiting_for_page = self.live  # cleared by the first connection or by play / pause
-        self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True, "surface": False}
+        self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True,
+                     "surface": False}
         self.point_scale = float(self.cfg.point_scale)
         self.point_shape = point_shape
         self.speed_scale = free_fall_speed(self.source.bounds)
@@ -224,8 +226,10 @@ class WebViewer:
         sc, cam = self.server.scene, self.state.camera
         sc.set_up_direction("+z")
         ic = self.server.initial_camera
-        ic.position, ic.look_at, ic.up, ic.fov = tuple(cam.eye), tuple(cam.target), (0.0, 0.0, 1.0), float(np.radians(cam.fov))
-        self.server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False)  # no share tunnel: nothing leaves the machine
+        ic.position, ic.look_at, ic.up = tuple(cam.eye), tuple(cam.target), (0.0, 0.0, 1.0)
+        ic.fov = float(np.radians(cam.fov))
+        # no share tunnel: nothing leaves the machine
+        self.server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False)
         b = self.source.bounds
         self.h_domain = sc.add_line_segments("/domain", box_lines(b.lower, b.upper).reshape(-1, 2, 3), DOMAIN_COLOR,
                                              thickness=DOMAIN_LINE_PX, thickness_units="screen")
@@ -238,7 +242,8 @@ class WebViewer:
         opts = dict(point_size=self._size(), point_shape=self.point_shape, point_shading="flat", visible=False,
                     precision=self.precision, position=tuple(self.origin))
         self.h_fluid = sc.add_point_cloud("/fluid", empty, (0, 0, 0), **opts)
-        self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])), **opts)
+        self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])),
+                                             **opts)
                           for t, name in enumerate(TYPE_NAMES)]
         # viser's client builds a new point material whenever a cloud's colours change (every frame
         # for the fluid) and disposes the old one; three.js then deletes the shader program, which was
@@ -303,8 +308,8 @@ class WebViewer:
         self.g_step.on_click(lambda e: self._poke(step_once=True, paused=True))
         with g.add_folder("display"):
             self.g_color = g.add_dropdown("colour by", ("speed", "density"), initial_value=self.state.color_mode)
-            self.g_colorbar = g.add_image(_u8(colormap(np.repeat(np.linspace(0, 1, COLORBAR_PX[1])[None], COLORBAR_PX[0], 0).ravel(), 0, 1))
-                                          .reshape(*COLORBAR_PX, 3), format="png")
+            ramp = np.repeat(np.linspace(0, 1, COLORBAR_PX[1])[None], COLORBAR_PX[0], 0).ravel()
+            self.g_colorbar = g.add_image(_u8(colormap(ramp, 0, 1)).reshape(*COLORBAR_PX, 3), format="png")
             self.g_range = g.add_markdown("")
             self.g_size = g.add_slider("point size", 0.1, 4.0, 0.05, self.point_scale)
             self.g_shape = g.add_dropdown("point shape", POINT_SHAPES, initial_value=self.point_shape)
@@ -662,7 +667,8 @@ class WebViewer:
     # ------------------------------------------------------------------ notebook
     def _repr_html_(self) -> str:
         return (f'<iframe src="{self.url}" width="100%" height="{NOTEBOOK_HEIGHT_PX}" '
-                f'style="border:1px solid #ccc"></iframe><div>whitecap viewer at <a href="{self.url}">{self.url}</a></div>')
+                f'style="border:1px solid #ccc"></iframe>'
+                f'<div>whitecap viewer at <a href="{self.url}">{self.url}</a></div>')
 
 
 NOTEBOOK_HEIGHT_PX = 560
@@ -789,7 +795,8 @@ class _PagePictures:
 
 
 def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
-          color_mode: str | None = None, max_points: int = MAX_POINTS, points: str | None = None, announce=print) -> None:
+          color_mode: str | None = None, max_points: int = MAX_POINTS, points: str | None = None,
+          announce=print) -> None:
     """The CLI's ``view --web``: serve until Ctrl-C, after printing the URL."""
     v = WebViewer(target, host=host, port=port, arch=arch, up=up, color_mode=color_mode, max_points=max_points,
                   points=points)

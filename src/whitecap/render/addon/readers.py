@@ -1,31 +1,34 @@
-"""The add-on's readers: numpy readers for the files simulations write, and meshio for the rest.
+"""The add-on's readers: whitecap's own format modules where they can run in Blender, numpy
+readers for the rest, and meshio for every other format.
 
-Blender bundles numpy; the extension carries meshio as a wheel. The formats
-whitecap's solvers write are read here in numpy, keeping every point array by its
-own name (whitecap's io registry keeps only the fluid's standard arrays), and
-checked against whitecap's readers by tests/test_addon.py. Every other format
-meshio reads goes through meshio (:func:`read_meshio`), volume meshes as their
-boundary surface. Each reader returns a :class:`Geometry`: points,
-polygons (flat vertex indices plus the start of each polygon) and every point
-array by the name the file gives it. :func:`read` picks the reader from the
+Blender bundles numpy; the extension carries meshio and plyfile as wheels and copies of whitecap's
+format modules (``whitecap blender-addon``, render/driver.py's ADDON_SHARED). Each reader returns
+a :class:`Geometry`: points, polygons (flat vertex indices plus the start of each polygon) and
+every point array by the name the file gives it. :func:`read` picks the reader from the
 extension. Errors are ``ValueError`` with one line that starts with the file.
 
-Why the add-on keeps its own parsers rather than whitecap's io registry (checked for issue 33):
-importing ``whitecap.io`` registers every format, which imports plyfile (PLY), the USD and
-Alembic writers' modules and trimesh paths for meshes, none of which Blender's Python has; and
-the registry's readers return what the pipeline needs, not what a viewer shows: a
-``ParticleFrame`` of the fluid only (DualSPHysics' boundary particles dropped, vector arrays
-other than velocity dropped, y up turned) and a ``SurfaceMesh`` of triangles. The add-on shows
-every particle, every point array by its file's name and any polygon. So each of these formats is
-parsed twice, here and in whitecap/io; tests/test_addon.py reads the same files with both and
-compares them. Joining them means moving these numpy-only parsers into whitecap/io (as
-``io/vtk_legacy.read_points`` already is for legacy VTK) and having the registry's readers
-build their frames from them, so the extension could carry them like the bpy layer; not done yet.
+One parse per format (issue 33). whitecap's registry readers and these share the low-level parse
+and differ only in what they keep (the registry: the fluid's standard arrays, y up turned, triangles;
+here: every point array and polygon):
+- BGEO: ``io/bgeo.read_points`` (numpy; no library reads partio's format);
+- PLY: ``io/ply.read_geometry`` on ``read_vertices`` (plyfile, a pure-Python wheel here);
+- VTU: ``io/vtu.read_mesh`` (meshio's VTU reader, which the extension carries anyway).
+Still parsed twice, and why:
+- legacy VTK: the registry reads with the ``vtk`` package (compiled, no wheel Blender could carry;
+  meshio cannot read POLYDATA), here with :class:`_LegacyVTK`. The way to one parse is to move this
+  numpy parser into ``io/vtk_legacy`` as ``read_points``' parse (its ASCII values cast to the declared
+  type, and the raw cells kept for ``read_mesh_vtk``'s triangle check) and drop ``vtk`` from reading;
+- VTP: no registry format; ``io/vtk_xml.read_vtp`` (vtk, for tests and tools) against
+  :func:`read_vtk_xml` here;
+- OBJ: the registry reads with trimesh (too large for the extension's wheels), here with
+  :func:`read_obj`, which also says "truncated" on a cut file (meshio and trimesh read one silently);
+- STL: read here only (:func:`read_stl`); whitecap loads obstacle STLs with trimesh.
+tests/test_addon.py reads the same files with both and compares them.
 
-Formats: legacy VTK 3.0 to 5.1 (ASCII or binary; POLYDATA and
-UNSTRUCTURED_GRID), VTK XML ``.vtu``/``.vtp`` (ascii, base64 or appended
-data, zlib-compressed or not), PLY (ascii and binary), OBJ, STL (obstacles)
-and partio's BGEO version 5 (SPlisHSPlasH's ``.bgeo``, gzip-compressed or not).
+Formats: legacy VTK 3.0 to 5.1 (ASCII or binary; POLYDATA and UNSTRUCTURED_GRID), VTK XML
+``.vtu`` and ``.vtp`` (ascii, base64 or appended data, zlib-compressed or not), PLY (ascii and
+binary), OBJ, STL (obstacles) and partio's BGEO version 5 (SPlisHSPlasH's ``.bgeo``,
+gzip-compressed or not).
 """
 
 import base64
@@ -156,7 +159,8 @@ class _LegacyVTK:
         if len(tokens) < count:
             if m is None:
                 raise self.truncated(len(tokens), count)
-            raise ValueError(f"{self.path}: expected {count} values before '{self.data[m.start() + 1:].split()[0].decode('latin-1')}', found {len(tokens)}")
+            word = self.data[m.start() + 1:].split()[0].decode("latin-1")
+            raise ValueError(f"{self.path}: expected {count} values before '{word}', found {len(tokens)}")
         try:
             out = np.array(tokens[:count], dtype=np.float64 if dt[0] == "f" else np.int64)
         except ValueError:
@@ -216,7 +220,8 @@ class _LegacyVTK:
                     pass
             elif key in ("SCALARS", "VECTORS", "NORMALS", "COLOR_SCALARS", "TENSORS"):
                 name = parts[1]
-                ncomp = {"VECTORS": 3, "NORMALS": 3, "TENSORS": 9}.get(key, int(parts[3]) if len(parts) > 3 and key == "SCALARS" else 1)
+                ncomp = {"VECTORS": 3, "NORMALS": 3, "TENSORS": 9}.get(
+                    key, int(parts[3]) if len(parts) > 3 and key == "SCALARS" else 1)
                 # colours are bytes in binary files, floats in 0..1 in ASCII ones
                 typ = parts[2] if key != "COLOR_SCALARS" else ("unsigned_char" if self.binary else "float")
                 if key == "COLOR_SCALARS":
@@ -243,7 +248,8 @@ class _LegacyVTK:
                         arrays[name] = v.reshape(ntup, ncomp) if ncomp > 1 else v
             elif key == "DATASET":
                 if parts[1].upper() not in ("POLYDATA", "UNSTRUCTURED_GRID"):
-                    raise ValueError(f"{self.path}: DATASET {parts[1]} is not supported (POLYDATA or UNSTRUCTURED_GRID)")
+                    raise ValueError(f"{self.path}: DATASET {parts[1]} is not supported "
+                                     "(POLYDATA or UNSTRUCTURED_GRID)")
         loops = starts = None
         if faces is not None:
             keep = None
@@ -316,7 +322,8 @@ def read_vtk_xml(path):
         loops, starts = _polygons(np.concatenate([[0], offs]), named(polys, "connectivity"))
     elif cells is not None and int(piece.get("NumberOfCells", "0")):
         offs, types = named(cells, "offsets"), named(cells, "types")
-        loops, starts = _polygons(np.concatenate([[0], offs]), named(cells, "connectivity"), np.isin(types, _FACE_CELLS))
+        loops, starts = _polygons(np.concatenate([[0], offs]), named(cells, "connectivity"),
+                                  np.isin(types, _FACE_CELLS))
     return Geometry(points, loops, starts, arrays)
 
 
