@@ -109,13 +109,6 @@ class Heightfield:
         return map_coordinates(self.coef, [r.ravel(), c.ravel()], order=3, mode="nearest",
                                prefilter=False).reshape(np.shape(x))
 
-    def pixel_xy(self, row, col) -> tuple[np.ndarray, np.ndarray]:
-        """World (x, y) of pixel centres (row, col)."""
-        rows, cols = self.z.shape
-        x = self.lower[0] + np.asarray(col) / (cols - 1) * self.size[0]
-        y = self.lower[1] + (1.0 - np.asarray(row) / (rows - 1)) * self.size[1]
-        return x, y
-
 
 def heightfield_from_mesh(mesh, spacing: float) -> Heightfield:
     """A surface mesh (open or closed) as a heightfield: the highest surface above each point of a

@@ -61,11 +61,3 @@ def attribute(me, name: str, a) -> None:
     else:
         for c in range(comps):
             attribute(me, f"{name}_{c}", a[:, c].astype(np.float32))
-
-
-def new_mesh(name: str, points, faces=None, arrays=(), smooth: bool = True):
-    """A new bpy mesh of triangles or other equal-sized faces (M, k)."""
-    import bpy
-
-    loops, starts = polygons_of(faces if faces is not None else np.zeros((0, 3)))
-    return fill_mesh(bpy.data.meshes.new(name), points, loops, starts, arrays, smooth=smooth)

@@ -12,7 +12,6 @@ import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from ..errors import InputError
 from .atomic import write_text
 
 
@@ -24,15 +23,6 @@ def write_pvd(path: str | Path, entries: list[tuple[float, str]]) -> None:
         ET.SubElement(coll, "DataSet", timestep=repr(float(t)), group="", part="0", file=str(rel))
     ET.indent(root)
     write_text(path, '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n")
-
-
-def read_pvd(path: str | Path) -> list[tuple[float, str]]:
-    p = Path(path)
-    try:
-        root = ET.parse(p).getroot()
-    except (OSError, ET.ParseError) as exc:
-        raise InputError(f"{p}: not a readable .pvd file ({exc})") from None
-    return [(float(d.get("timestep")), d.get("file")) for d in root.iter("DataSet")]
 
 
 def write_series(path: str | Path, entries: list[tuple[float, str]]) -> None:

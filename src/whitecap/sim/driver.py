@@ -26,7 +26,6 @@ import functools
 import time
 import tomllib
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
@@ -63,21 +62,6 @@ BACKGROUND_WRITER: bool | None = None
 WRITER_QUEUE = DEFAULT_QUEUE
 #: The writer of the simulation now running (None: write at once), used by _save_checkpoint.
 _WRITER: FrameWriter | None = None
-
-
-class FrameHook(Protocol):
-    name: str
-    last_frame: int | None  # set before on_start: the run's last frame index (a hook may plan for it)
-
-    def on_start(self, solver, out: Path, info: RunInfo) -> None: ...
-
-    def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str: ...
-
-    def write(self) -> None: ...  # the files of the frame on_frame made (timed as output)
-
-    def checkpoint(self) -> dict[str, np.ndarray]: ...
-
-    def restore(self, data: dict[str, np.ndarray]) -> None: ...
 
 
 def run_info_for(scene: Scene, solver) -> RunInfo:

@@ -202,7 +202,6 @@ class WebViewer:
         self._spheres_seq = 0
         self._pictures: dict[int, "_PagePictures"] = {}  # server drawing: one render thread per connected page
         self._pictures_lock = threading.Lock()
-        self._pictures_closed = 0  # pictures sent to pages that have gone
 
         check_port_free(host, port)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; the CLI prints the URL
@@ -570,12 +569,6 @@ class WebViewer:
             for pp in self._pictures.values():
                 pp.wake.set()
 
-    @property
-    def pictures_sent(self) -> int:
-        """Server pictures sent to all pages so far."""
-        with self._pictures_lock:
-            return self._pictures_closed + sum(pp.sent for pp in self._pictures.values())
-
     def pages(self) -> list["_PagePictures"]:
         with self._pictures_lock:
             return list(self._pictures.values())
@@ -723,8 +716,6 @@ class _PagePictures:
         self.wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout=ACK_TIMEOUT_S + 1)
-        with self.viewer._pictures_lock:
-            self.viewer._pictures_closed += self.sent
 
     def _send(self, rgb: np.ndarray, depth: np.ndarray) -> None:
         """What ``client.scene.set_background_image(rgb, "jpeg", depth=depth)`` sends, with the
