@@ -18,7 +18,7 @@ neighbours; the kinetic energy is ½ m |v|² in joules; and a new particle
 lives τ = l_min + (I_k / τmax_k) X (l_max − l_min) seconds, X uniform in [0, 1).
 
 Two of its rules are reproduced as FoamGenerator has them, because they set its
-counts (measured on ../shared/data/splishsplash_rigid, see the README):
+counts (measured on ../shared/data/splishsplash_rigid, see benchmarks/RESULTS.md):
 
 - *Row volumes.* The trapped-air and wave-crest sums weight their k-th
   neighbour term by m/ρ of row k of the frame (its loop reads ``densities[j]``

@@ -39,7 +39,7 @@ particle instead of thousands of extra neighbours, and it does not depend on
 how well a surface is sampled; its error is the planar approximation on
 strongly curved parts, smaller than a particle for shapes larger than h.
 A dynamic body has none: with it a floating body rode a particle radius too
-high (README, Floating bodies); the fluid meets it by contact alone, whose
+high (docs/obstacles.md, Floating bodies); the fluid meets it by contact alone, whose
 momentum (projection, penalty, velocity response) the body takes back.
 """
 
