@@ -79,8 +79,12 @@ def main() -> None:
     if a.against:
         runs.append(("on, against", "on", os.path.abspath(a.against)))
     for name, mode, src in runs:
-        cmd = [sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch, "--one", mode]
-        env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.path.dirname(os.path.abspath(__file__))) if src else None
+        cmd = [
+            sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch,
+            "--one", mode,
+        ]
+        here = os.path.dirname(os.path.abspath(__file__))
+        env = dict(os.environ, PYTHONPATH=src + os.pathsep + here) if src else None
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
         results[name] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
     for mode, r in results.items():
@@ -102,8 +106,10 @@ def main() -> None:
                   f"{REFERENCE_DIFFUSE_MS:.0f} ms; solver {1e3 * top.get('step', 0) / f:.0f} ms a frame "
                   f"(reference {REFERENCE_SOLVER_MS:.0f})")
     if "on, against" in results:
-        share = {k: results[k]["timers"].get(PHASE, 0.0) / sum(v for n, v in results[k]["timers"].items() if "." not in n)
-                 for k in ("on", "on, against")}
+        share = {
+            k: results[k]["timers"].get(PHASE, 0.0) / sum(v for n, v in results[k]["timers"].items() if "." not in n)
+            for k in ("on", "on, against")
+        }
         phase = results["on"]["timers"].get(PHASE, 0.0) / results["on, against"]["timers"].get(PHASE, 1.0)
         print(f"diffuse share {100 * share['on']:.1f}% against {100 * share['on, against']:.1f}% with {a.against} "
               f"({share['on'] / share['on, against']:.2f}x); diffuse phase {phase:.2f}x its time")

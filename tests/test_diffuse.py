@@ -366,6 +366,8 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01):
     from whitecap.diffuse.generator import _nd
     from whitecap.sim import runtime
 
+    from .diffuse_reference import generate
+
     runtime.init(runtime.current() or "cpu")
     n = len(v_diff)
     zeros = np.zeros(n, np.float32)
@@ -382,7 +384,7 @@ def _generate(v_diff, ta_range=(1.0, 3.0), k_ta=100.0, dt=0.05, r=0.01):
     offset = _nd(np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32), ti.i32)
     m = max(total, 1)
     ox, ov, ol = ti.Vector.ndarray(3, ti.f32, m), ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.f32, m)
-    K.generate(n, x, v, ids, ek, tau, cnt, offset, 1.0, 2.0, 0.0, r, dt, 7, 3, ox, ov, ol)
+    generate(n, x, v, ids, ek, tau, cnt, offset, 1.0, 2.0, 0.0, r, dt, 7, 3, ox, ov, ol)
     return counts, ox.to_numpy()[:total], ov.to_numpy()[:total], ol.to_numpy()[:total]
 
 

@@ -39,17 +39,17 @@ def _generator(multipliers):
 
 
 def _all_candidates(gen, frame, index):
-    """Every candidate of the frame, written by kernels.generate (per fluid particle, into stored arrays)."""
+    """Every candidate of the frame, written by the reference generate (per fluid particle, into stored arrays)."""
     import taichi as ti
 
-    from whitecap.diffuse import kernels as K
+    from .diffuse_reference import generate
 
     p, c, n = gen.p, gen.candidates(), len(frame)
     total = c["total"]
     fx, fv, fid, args = gen._prepare(frame, n)
     out = [ti.Vector.ndarray(3, ti.f32, total), ti.Vector.ndarray(3, ti.f32, total), ti.ndarray(ti.f32, total)]
-    K.generate(n, fx, fv, fid, gen._bufs["e_k"], gen._bufs["tau"], gen._bufs["count"], gen._bufs["offset"],
-               p.lifetime_min, p.lifetime_max, p.lifetime_multiplier, gen.r, DT, gen.seed, index, *out)
+    generate(n, fx, fv, fid, gen._bufs["e_k"], gen._bufs["tau"], gen._bufs["count"], gen._bufs["offset"],
+             p.lifetime_min, p.lifetime_max, p.lifetime_multiplier, gen.r, DT, gen.seed, index, *out)
     return [a.to_numpy()[:total] for a in out], args
 
 
@@ -110,7 +110,8 @@ def test_compaction_keeps_each_kept_candidate_once_in_candidate_order():
     kept, total, m = c["kept"], c["total"], len(c["kept"])
     assert m > 100 and np.all(np.diff(kept) > 0) and kept[-1] < total  # once each, in candidate order
     # the first frame's particles (none alive before it, none outside the domain) are the kept candidates
-    # as kernels.generate writes them, bit for bit, in candidate order, with ids 0, 1, 2, ...
+    # as the reference generate (tests/diffuse_reference.py) writes them, bit for bit, in candidate order,
+    # with ids 0, 1, 2, ...
     (x, v, life), _ = _all_candidates(gen, frame, 0)
     np.testing.assert_array_equal(d.positions, x[kept])
     np.testing.assert_array_equal(d.velocities, v[kept])
@@ -186,9 +187,9 @@ def test_candidates_a_chunk_at_a_time_give_the_same_bytes(monkeypatch, preset):
 
 
 def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
-    """kernels.generate_candidates (what the generator runs, a chunk at a time) writes the bits kernels.generate
-    (per fluid particle) writes, for every candidate a type may keep: the classification sees the positions
-    the particles are born at."""
+    """kernels.generate_candidates (what the generator runs, a chunk at a time) writes the bits the reference
+    generate (per fluid particle, tests/diffuse_reference.py) writes, for every candidate a type may keep: the
+    classification sees the positions the particles are born at."""
     gen = _generator((30.0, 1.0, 1.0))
     frame = _splash()
     gen.step(frame, 0, DT)

@@ -11,4 +11,7 @@ from .driver import FoamStage, postprocess, postprocess_params_file, simulation_
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
-__all__ = ["simulation_hook", "postprocess", "postprocess_params_file", "FoamStage", "FoamGenerator", "DiffuseState", "FoamParams", "resolve"]
+__all__ = [
+    "simulation_hook", "postprocess", "postprocess_params_file", "FoamStage", "FoamGenerator", "DiffuseState",
+    "FoamParams", "resolve",
+]

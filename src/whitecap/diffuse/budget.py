@@ -253,7 +253,9 @@ def history_samples(rows: np.ndarray, frames: np.ndarray, stride: int) -> np.nda
     return np.concatenate([rows[:-1].reshape(-1, 5), rows[-1, : int(frames[-1]) * per]])
 
 
-def history_rates(rows: np.ndarray, frames: np.ndarray, stride: int, tau: np.ndarray, k: tuple, dt: float) -> np.ndarray:
+def history_rates(
+    rows: np.ndarray, frames: np.ndarray, stride: int, tau: np.ndarray, k: tuple, dt: float,
+) -> np.ndarray:
     """Each row's births per frame and fluid particle (its frames' mean) with thresholds τ now."""
     if not len(frames):
         return np.zeros(0)

@@ -16,7 +16,6 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 from __future__ import annotations
 
 import math
-
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,10 +24,10 @@ import numpy as np
 from ..config import Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
+from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
 from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
 from ..progress import console, progress
-from ..io.diffuse_types import COUNT_NAMES
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
@@ -133,7 +132,9 @@ class FoamStage:
                 "than air entrainment needs (about 1 m/s, foam.ke_min). Set the thresholds to make some anyway."
             )
         elif rows and sum(r[2] + r[3] + r[4] for r in rows) == 0:
-            console.print(f"[yellow]warning:[/] no diffuse particles were generated: {self._unreached()}", soft_wrap=True)
+            console.print(
+                f"[yellow]warning:[/] no diffuse particles were generated: {self._unreached()}", soft_wrap=True,
+            )
 
     def _unreached(self) -> str:
         """Which fixed threshold no particle reached, in the units it was given, and the speed it needs."""
@@ -194,7 +195,8 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, show_
     tau = SP.limits_from_maxima(np.array(maxima), gen.r)
     console.print(
         f"foam limits (FoamGenerator automatic mode, mean of {len(files)} per-frame maxima): trapped air "
-        f"{tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest {tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J"
+        f"{tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest {tau[2]:.3g}–{tau[3]:.3g}, "
+        f"kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J"
     )
     return tau
 

@@ -46,12 +46,18 @@ from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
 from ..timing import timer
-from . import budget as B
-from . import kernels as K
-from . import splishsplash as SP
+from . import budget as B, kernels as K, splishsplash as SP
+
 # the draw numbers, the rounding slot and the obstacle constants: one definition, in .kernels
-from .kernels import (BODY_CONTACT, DRAW_DISSIPATE, DRAW_LIFE, PATH_SAMPLES, ROUNDING_SLOT,  # noqa: F401
-                      SPRAY_RESTITUTION, SURFACE_OFFSET)
+from .kernels import (  # noqa: F401
+    BODY_CONTACT,
+    DRAW_DISSIPATE,
+    DRAW_LIFE,
+    PATH_SAMPLES,
+    ROUNDING_SLOT,
+    SPRAY_RESTITUTION,
+    SURFACE_OFFSET,
+)
 from .params import FoamParams
 
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
@@ -122,7 +128,8 @@ class DiffuseState:
         return cls(
             np.asarray(d["positions"], np.float32), np.asarray(d["velocities"], np.float32),
             np.asarray(d["lifetime"], np.float32), np.asarray(d["ids"], np.uint32), int(d["next_id"]),
-            [tuple(r) for r in np.asarray(d["counts"]).tolist()], np.asarray(d["tau"], np.float32) if "tau" in d else None,
+            [tuple(r) for r in np.asarray(d["counts"]).tolist()],
+            np.asarray(d["tau"], np.float32) if "tau" in d else None,
             float(d.get("scale", 1.0)),
             *_history(d),
             np.asarray(d.get("peaks", [0.0, -1.0, 0.0, 0.0, 0.0]), np.float64),
@@ -175,7 +182,8 @@ def uniform(seed: int, frame: int, pid: np.ndarray, slot, draw: int) -> np.ndarr
     slot = np.asarray(slot, np.uint32)
     with np.errstate(over="ignore"):
         inner = _hash_u32(slot * np.uint32(16) + np.uint32(draw))
-    h = _hash_u32(np.uint32(seed) ^ _hash_u32(np.uint32(frame & 0xFFFFFFFF) ^ _hash_u32(np.asarray(pid, np.uint32) ^ inner)))
+    per_id = _hash_u32(np.asarray(pid, np.uint32) ^ inner)
+    h = _hash_u32(np.uint32(seed) ^ _hash_u32(np.uint32(frame & 0xFFFFFFFF) ^ per_id))
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
 
 
@@ -363,16 +371,18 @@ class FoamGenerator:
                   if self._scaled() else "multipliers as set")
         console.print(
             f"foam auto ({how}): trapped air {tau[0]:.3g}–{tau[1]:.3g} m/s, wave crest "
-            f"{tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J/kg, vorticity {tau[6]:.3g}–{tau[7]:.3g} 1/s; "
+            f"{tau[2]:.3g}–{tau[3]:.3g}, kinetic energy {tau[4]:.3g}–{tau[5]:.3g} J/kg, "
+            f"vorticity {tau[6]:.3g}–{tau[7]:.3g} 1/s; "
             + budget
         )
 
     def peak_report(self) -> str:
         pk = self.state.peaks
         k = self.multipliers()
-        return (f"peak diffuse per fluid particle: {pk[0]:.2f} at frame {int(pk[1])} (spray {pk[2]:.2f}, foam {pk[3]:.2f}, "
-                f"bubbles {pk[4]:.2f} at their own peaks)"
-                + (f"; budget {self.p.budget:g} (spray, foam, bubbles {', '.join(f'{x:.2g}' for x in self.p.shares)} of it), "
+        return (f"peak diffuse per fluid particle: {pk[0]:.2f} at frame {int(pk[1])} "
+                f"(spray {pk[2]:.2f}, foam {pk[3]:.2f}, bubbles {pk[4]:.2f} at their own peaks)"
+                + (f"; budget {self.p.budget:g} "
+                   f"(spray, foam, bubbles {', '.join(f'{x:.2g}' for x in self.p.shares)} of it), "
                    f"last multipliers k_ta {k[0]:.3g}, k_wc {k[1]:.3g}, k_vo {k[2]:.3g} 1/s, by type "
                    f"{', '.join(f'{x:.3g}' for x in self.state.type_scale)}"
                    if self._scaled() else ""))
@@ -405,9 +415,14 @@ class FoamGenerator:
             vort.fill(0.0)
             K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
         else:
-            K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+            K.fluid_potentials(
+                n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort,
+            )
             K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
-        self._pots = {"ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n], "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n]}
+        self._pots = {
+            "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
+            "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],
+        }
         return args, fx, fv, fid, (v_diff, crest, e_k, vort)
 
     def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
@@ -511,9 +526,11 @@ class FoamGenerator:
             self._allocate_live(max(n, self.capacity or 0))
         live = self._live[self._cur]
         if n:
-            K.upload_state(n, np.ascontiguousarray(st.positions, np.float32), np.ascontiguousarray(st.velocities, np.float32),
-                           np.ascontiguousarray(st.lifetime, np.float32), np.ascontiguousarray(st.ids, np.uint32),
-                           live["x"], live["v"], live["life"], live["ids"])
+            K.upload_state(
+                n, np.ascontiguousarray(st.positions, np.float32), np.ascontiguousarray(st.velocities, np.float32),
+                np.ascontiguousarray(st.lifetime, np.float32), np.ascontiguousarray(st.ids, np.uint32),
+                live["x"], live["v"], live["life"], live["ids"],
+            )
         self._nd = n
         self._mirror = host
 
@@ -608,8 +625,10 @@ class FoamGenerator:
             self._geo = geo
         from ..sim.bodies import step_velocity
 
-        R0, T0 = np.array([g.R0 for g in self.obstacles], np.float64), np.array([g.T0 for g in self.obstacles], np.float64)
-        R1, T1 = np.array([g.R1 for g in self.obstacles], np.float64), np.array([g.T1 for g in self.obstacles], np.float64)
+        R0 = np.array([g.R0 for g in self.obstacles], np.float64)
+        T0 = np.array([g.T0 for g in self.obstacles], np.float64)
+        R1 = np.array([g.R1 for g in self.obstacles], np.float64)
+        T1 = np.array([g.T1 for g in self.obstacles], np.float64)
         C = R1 @ R0.transpose(0, 2, 1)  # carry: x ← R1 R0ᵀ (x − T0) + T1 = C x + c
         c = T1 - np.einsum("kij,kj->ki", C, T0)
         A, b = np.zeros((k, 3, 3)), np.zeros((k, 3))
@@ -627,7 +646,8 @@ class FoamGenerator:
         return tuple(geo[k] for k in ("values", "off", "origin", "inv_dx", "dims", "beyond"))
 
     def _free(self, n: int, x, flag) -> None:
-        """flag[p] = 0 for the particles inside an obstacle at this frame's pose (poses set by _advect/_obstacle_arrays)."""
+        """flag[p] = 0 for the particles inside an obstacle at this frame's pose (poses set by
+        _advect/_obstacle_arrays)."""
         if self.obstacles and n:
             geo = self.__dict__.get("_geo") or self._obstacle_arrays()
             K.outside_obstacles(n, x, flag, *self._geometry(geo), geo["rot1"], geo["trans1"])
@@ -803,7 +823,9 @@ class FoamGenerator:
         (their indices, in candidate order) where one chunk held them all."""
         c, n = self._candidates, self._candidates["n"]
         total = c["total"]
-        out = {"total": total, "counts": self._bufs["count"].to_numpy()[:n], "offset": self._bufs["offset"].to_numpy()[:n]}
+        out = {
+            "total": total, "counts": self._bufs["count"].to_numpy()[:n], "offset": self._bufs["offset"].to_numpy()[:n],
+        }
         if 0 < total <= CANDIDATE_CHUNK:
             out["kept"] = np.flatnonzero(self._bufs["cand_kind"].to_numpy()[:total] >= 0)
         return out

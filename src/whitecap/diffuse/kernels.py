@@ -207,42 +207,11 @@ def new_particle(
 
 
 @ti.kernel
-def generate(
-    n: ti.i32,
-    x: F3,
-    v: F3,
-    ids: U1,
-    e_k: F1,
-    tau: F1,
-    count: I1,
-    offset: I1,
-    life_min: ti.f32,
-    life_max: ti.f32,
-    life_mult: ti.f32,
-    r_v: ti.f32,
-    dt: ti.f32,
-    seed: ti.u32,
-    frame: ti.u32,
-    out_x: F3,
-    out_v: F3,
-    out_life: F1,
-):
-    """The count[i] new particles of fluid particle i (from birth_counts, see new_particle), in
-    parallel over the fluid particles. Particle i writes only its own run [offset[i], offset[i] + count[i])
-    (offset: the exclusive prefix sum of count), so the order is fixed whatever the thread count.
-    :func:`generate_candidates` writes the same particles, in parallel over them."""
-    for i in range(n):
-        i_k = clamp_phi(e_k[i], tau[4], tau[5])
-        for s in range(count[i]):
-            k = offset[i] + s
-            out_x[k], out_v[k], out_life[k] = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult,
-                                                           r_v, dt, seed, frame)
-
-
-@ti.kernel
 def chunk_owners(n: ti.i32, base: ti.i32, m: ti.i32, count: I1, offset: I1, owner: I1):
     """owner[k − base] = i for the candidates k of the chunk [base, base + m) in the run [offset[i],
-    offset[i] + count[i]) of fluid particle i (see generate)."""
+    offset[i] + count[i]) of fluid particle i: the frame's candidates are numbered by fluid particle, then
+    by slot s < count[i] (offset: the exclusive prefix sum of count), so the order is fixed whatever the
+    thread count."""
     for i in range(n):
         for k in range(ti.max(offset[i], base), ti.min(offset[i] + count[i], base + m)):
             owner[k - base] = i
@@ -270,8 +239,8 @@ def _weigh_fluid(
 
 @ti.func
 def fluid_neighbourhood(
-    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1, reach: ti.template(),
-    h: ti.f32, order: I1, fv: F3,
+    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1,
+    reach: ti.template(), h: ti.f32, order: I1, fv: F3,
 ):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
     :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``, then h, order)."""
@@ -298,7 +267,8 @@ def diffuse_type(cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32) -> ti.i
 
 @ti.func
 def diffuse_type_in_box(
-    p: vec3, cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32, lo: vec3, hi: vec3, h: ti.f32, wall_correction: ti.i32,
+    p: vec3, cnt: ti.i32, spray_below: ti.i32, bubble_above: ti.i32, lo: vec3, hi: vec3, h: ti.f32,
+    wall_correction: ti.i32,
 ) -> ti.i32:
     """:func:`diffuse_type`, with FoamGenerator's count correction near the box's faces for
     foam when ``wall_correction`` (the ``splishsplash-box`` preset; see .splishsplash)."""
@@ -414,8 +384,8 @@ def _count_fluid(g, s, r2, h2, cnt: ti.template()):
 
 @ti.func
 def fluid_count(
-    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1, reach: ti.template(),
-    h: ti.f32,
+    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1,
+    reach: ti.template(), h: ti.f32,
 ) -> ti.i32:
     """The number of fluid particles within h of a point (as :func:`fluid_neighbourhood` counts them, without
     its velocity sums)."""
@@ -442,7 +412,7 @@ def generate_candidates(
     life_min: ti.f32, life_max: ti.f32, life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32,
     out_x: F3, out_v: F3, out_life: F1,
 ):
-    """:func:`generate`'s particles for the chunk of candidates base + j (j < m; candidate k is slot
+    """The new particles (:func:`new_particle`) for the chunk of candidates base + j (j < m; candidate k is slot
     k − offset[i] of fluid particle i = owner[j], see chunk_owners), in parallel over them (a splash crowds
     its candidates into a few fluid particles, 800k from 3.6k in the r = 4 mm dam break, which one thread
     each would share badly); only those a type may keep (the others are never looked at). All three are
@@ -485,8 +455,9 @@ def classify_candidates(
     kind: B1,
 ):
     """Which of the candidates k = base + j (j < m, a chunk of the frame's) are kept: candidate k, at slot s of
-    fluid particle i = owner[j] at xd[j] (generate_candidates), is kept when its type t (:func:`diffuse_type_in_box`) has s < limit[i, t],
-    the particle's n_d·m_t rounded (see kept_limit). The type is found with the least work that decides this:
+    fluid particle i = owner[j] at xd[j] (generate_candidates), is kept when its type t
+    (:func:`diffuse_type_in_box`) has s < limit[i, t], the particle's n_d·m_t rounded (see kept_limit).
+    The type is found with the least work that decides this:
     - s at or above every type's limit: never kept, no count;
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
     - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. The owner's own
@@ -560,7 +531,7 @@ def scan_offsets(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
 
 
 # ---------------------------------------------------------------- the live diffuse particles
-#: Draw numbers of the (seed, frame, id, slot) counter outside generate (which uses 0-4).
+#: Draw numbers of the (seed, frame, id, slot) counter outside the birth (birth_counts uses 0, new_particle 1-4).
 DRAW_LIFE, DRAW_DISSIPATE = 6, 7
 #: Slot of birth_counts' stochastic-rounding draw (the keep rule rounds with the same number).
 ROUNDING_SLOT = 0xFFFF

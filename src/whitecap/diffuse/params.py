@@ -264,7 +264,10 @@ def read_ini(path: str | Path) -> IniFile:
     if not params and not joules and job is None:
         raise InputError(f"{p}: no known parameters (e.g. [FOAMPARAMETERS] MinTrappedAirThreshold, or TaMin, KTa)")
     if unknown:
-        console.print(f"[yellow]warning:[/] {p}: {len(unknown)} key(s) not understood, ignored: {', '.join(unknown)}", soft_wrap=True)
+        console.print(
+            f"[yellow]warning:[/] {p}: {len(unknown)} key(s) not understood, ignored: {', '.join(unknown)}",
+            soft_wrap=True,
+        )
     return IniFile(p, params, joules, job, tuple(unknown))
 
 
