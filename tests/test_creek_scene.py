@@ -23,10 +23,10 @@ def test_creek_scene_matches_its_asset_script():
     t = scene.terrain
     assert list(t.lower) == list(assets.LOWER) and list(t.size) == list(assets.SIZE)
     assert list(t.height) == list(assets.HEIGHT)
-    # The terrain reaches well beyond the domain (hillside around the water), rock below grass.
+    # The terrain reaches well beyond the domain (hillside around the water); grass, rock where steep.
     lo, hi = np.asarray(scene.domain.lower), np.asarray(scene.domain.upper)
     assert t.lower[0] < lo[0] - 0.5 and t.lower[0] + t.size[0] > hi[0] + 0.5
-    assert t.material == "rock" and t.grass_above is not None
+    assert t.material == "grass" and t.rock_slope < 45  # grassy ground, rock on the crag, banks and stones
     assert scene.render.container in (None, "none") and not scene.render.ground
 
 
@@ -61,7 +61,29 @@ def test_water_enters_at_the_top_of_the_channel_and_leaves_at_the_bottom():
     for x in np.linspace(0.1, 1.8, 12):
         y0 = assets.axis_y(x)
         bank = hf(np.array([x, x]), np.array([y0 - 0.38, y0 + 0.38]))
-        assert (bank > hf(np.array([x]), np.array([y0]))[0] + 0.15).all(), x
+        assert (bank > hf(np.array([x]), np.array([y0]))[0] + 0.12).all(), x
+
+
+def test_the_inflow_falls_from_a_notch_in_a_crag_that_curves_round_the_channels_head():
+    scene = load_scene(SCENE)
+    hf = heightfield(scene, str(SCENE))
+    sites, _, _ = scene.emitter[0].sites(scene.solver.particle_radius)
+    x0, y0 = sites[:, 0].mean(), assets.axis_y(0.0)
+    # Rock walls either side of the notch stand well above the water entering through it.
+    walls = hf(np.full(2, x0), np.array([y0 - 0.3, y0 + 0.3]))
+    assert (walls > sites[:, 2].max() + 0.1).all()
+    # The crag's face is no straight wall across the valley: where it falls below the notch's
+    # lip moves downstream away from the channel, and its line is broken.
+    xs = np.linspace(-0.6, 0.8, 701)
+
+    def face_x(dy):
+        z = hf(xs, np.full_like(xs, y0 + dy))
+        return xs[np.argmax(z < assets.NOTCH[0])]
+
+    left = [face_x(-d) for d in (0.25, 0.45, 0.65)]
+    right = [face_x(d) for d in (0.25, 0.45, 0.65)]
+    assert left[2] > left[0] + 0.1 and right[2] > right[0] + 0.1
+    assert abs(face_x(-0.45) - face_x(0.45)) > 0.005
 
 
 def test_creek_heightmap_is_made_by_its_script():
