@@ -47,11 +47,6 @@ def simulate(
     info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
                           show_progress=show_progress)
     info.extra["out"] = str(out)
-    for h in hooks:
-        if hasattr(h, "warn_if_empty"):
-            h.warn_if_empty()
-        if hasattr(h, "finish"):
-            h.finish()
     if profile:
         print(timing.report("simulate profile"))
     return info

@@ -2,8 +2,9 @@
 
 Two ways in, one code path (:class:`~whitecap.diffuse.generator.FoamGenerator`):
 
-- inside ``simulate``: :func:`simulation_hook` gives the frame hook the
-  simulation driver calls after every frame;
+- inside ``simulate``: :func:`simulation_hook` gives the frame hook
+  (:class:`whitecap.sim.driver.FrameHook`) the simulation driver calls after every frame;
+  its obstacles are the solver's own;
 - as post-processing: :func:`postprocess` runs over a whitecap run; a DualSPHysics
   PartVTK sequence, SPlisHSPlasH VTK or partio BGEO output or PLY/VTU/NPZ sequences
   are imported first into a run directory the later stages can read (as a bare
@@ -28,6 +29,7 @@ from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
 from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
 from ..progress import console, progress
+from ..sim.driver import FrameHook
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
@@ -41,8 +43,11 @@ def write_counts(out: Path, rows: list) -> None:
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
 
 
-class FoamStage:
-    """Frame hook: diffuse particles for each fluid frame, with checkpointable state."""
+class FoamStage(FrameHook):
+    """Frame hook: diffuse particles for each fluid frame, with checkpointable state.
+
+    ``obstacles`` (sim.obstacles.PosedSDF, posed per frame from run.json's records) are what the
+    diffuse particles collide with; inside `simulate` they are the solver's (:meth:`on_start`)."""
 
     name = "diffuse"
 
@@ -55,17 +60,22 @@ class FoamStage:
         self.gen: FoamGenerator | None = None
         self._pending: DiffuseState | None = None
         self.verbose = verbose
-        self.last_frame: int | None = None  # the run's last frame index, where known (set by simulate)
+        self.last_frame: int | None = None  # the run's last frame index, where known
         self.max_speed = 0.0  # the fastest fluid particle seen [m/s]: to say which threshold no flow reached
         self.made_any = False  # a diffuse particle was alive at some frame (then max_speed is not needed)
         self.particle_mass: float | None = None
         self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
         self._unwritten: tuple | None = None  # (out, relative path, frame) made by on_frame, for write()
 
-    def on_start(self, solver, out: Path, info: RunInfo) -> None:
-        self.start(info)
+    def on_start(self, solver, out: Path, info: RunInfo, last_frame: int) -> None:
+        self.last_frame = last_frame
+        self.start(info, solver)
 
-    def start(self, info: RunInfo) -> None:
+    def start(self, info: RunInfo, solver=None) -> None:
+        """The generator for the run ``info`` records; with ``solver``, the obstacles are the solver's
+        (its SDFs and motion laws, without loading the meshes again)."""
+        if solver is not None:
+            self.obstacles = solver.obstacles.posed_grids() if solver.obstacles else []
         self.particle_mass = info.particle_mass
         if self.arch is not None:
             from ..sim import runtime
@@ -119,7 +129,9 @@ class FoamStage:
                 self.gen.state = self._pending
 
     def finish(self) -> None:
-        """Say the peak diffuse-to-fluid ratio reached (and the budget it aimed for)."""
+        """Warn when no diffuse particle was made, and say the peak diffuse-to-fluid ratio reached (and the
+        budget it aimed for)."""
+        self.warn_if_empty()
         if self.gen is not None and self.gen.state.counts:
             console.print(self.gen.peak_report())
 
@@ -154,7 +166,8 @@ class FoamStage:
 
 
 def obstacle_grids(scene: Scene) -> list:
-    """The scene's obstacle SDFs (cached on disk), so diffuse particles entering them are removed."""
+    """The scene's obstacle SDFs (cached on disk), so diffuse particles entering them are removed
+    (post-processing a run; inside `simulate` the foam stage takes the solver's)."""
     if not scene.obstacle:
         return []
     from ..sim.obstacles import load_obstacles
@@ -163,7 +176,7 @@ def obstacle_grids(scene: Scene) -> list:
 
 
 def simulation_hook(scene: Scene) -> FoamStage:
-    """The frame hook `simulate` uses when [foam] is enabled."""
+    """The frame hook `simulate` uses when [foam] is enabled (its obstacles: the solver's, at on_start)."""
     p = resolve(scene.foam)
     if p.model == "foamgenerator":
         raise InputError(
@@ -171,7 +184,7 @@ def simulation_hook(scene: Scene) -> FoamStage:
             "sequence; simulate with [foam] enabled = false, then run `whitecap foam RUN --preset splishsplash` "
             "(or use 'splishsplash-manual' in the simulation)"
         )
-    return FoamStage(p, scene.seed, obstacles=obstacle_grids(scene))
+    return FoamStage(p, scene.seed)
 
 
 # ============================================================================ post-processing
@@ -416,7 +429,6 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
 
 
 def _report(stage: FoamStage) -> None:
-    stage.warn_if_empty()
     stage.finish()
     counts = stage.gen.state.counts
     tot = np.array([r_[2:] for r_ in counts]).sum(0) if counts else np.zeros(3)

@@ -13,13 +13,14 @@ complete, and the checkpoint of frame k is written only after every frame up
 to k is on disk and recorded. Its queue is bounded (``WRITER_QUEUE`` jobs), and
 an error of the writer (a full disk) is raised in the loop at the next frame.
 
-Frame hooks (the foam stage, the live viewer) see each frame after the
+Frame hooks (:class:`FrameHook`: the foam stage) see each frame after the
 solver; they may add files and carry state in the checkpoint. This keeps the
 solver free of imports from later stages.
 """
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import copy
 import functools
@@ -62,6 +63,54 @@ BACKGROUND_WRITER: bool | None = None
 WRITER_QUEUE = DEFAULT_QUEUE
 #: The writer of the simulation now running (None: write at once), used by _save_checkpoint.
 _WRITER: FrameWriter | None = None
+
+
+class FrameHook(abc.ABC):
+    """A stage that runs inside `simulate`, after the solver, on every frame it writes.
+
+    The loop calls, in this order: :meth:`restore` (on a resume, with what :meth:`checkpoint`
+    gave at the frame resumed from), :meth:`on_start` once, then per frame :meth:`on_frame`
+    and :meth:`write`, :meth:`checkpoint` at each checkpoint, and :meth:`finish` once the last
+    frame is on disk. A subclass that lacks one of the abstract methods cannot be made
+    (TypeError at construction), and one without a ``name`` cannot be defined.
+    """
+
+    #: The hook's files go to ``<name>/``, its entry in run.json's frames and its checkpoint
+    #: arrays are named by it, as is its timer in ``--profile``.
+    name: str
+
+    def __init_subclass__(cls, **kw) -> None:
+        super().__init_subclass__(**kw)
+        if not isinstance(getattr(cls, "name", None), str):
+            raise TypeError(f"{cls.__qualname__}: a frame hook needs a class attribute 'name' (a str)")
+
+    @abc.abstractmethod
+    def on_start(self, solver, out: Path, info: RunInfo, last_frame: int) -> None:
+        """Before the first frame: the solver built for this run (its obstacles, ``solver.obstacles``),
+        the run directory, its record and the index of the run's last frame."""
+
+    @abc.abstractmethod
+    def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str | None:
+        """Compute frame ``index`` from the fluid ``frame`` (``dt``: the time since the last frame);
+        return the path, relative to ``out``, of the file it makes (written by :meth:`write`), or None."""
+
+    def write(self) -> None:
+        """Write the files the last :meth:`on_frame` made (timed as output, apart from on_frame)."""
+
+    @abc.abstractmethod
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """The hook's state to resume from, as arrays (empty when it has none)."""
+
+    @abc.abstractmethod
+    def restore(self, data: dict[str, np.ndarray]) -> None:
+        """Take back the state :meth:`checkpoint` gave (called before :meth:`on_start`)."""
+
+    def status(self) -> str:
+        """A short text for the progress bar ('' for none)."""
+        return ""
+
+    def finish(self) -> None:
+        """After the last frame is on disk: say what the run made (not called on an error)."""
 
 
 def run_info_for(scene: Scene, solver) -> RunInfo:
@@ -112,6 +161,7 @@ def build_solver(scene: Scene, arch: str = "cpu", frames: int | None = None):
         solver.sources = Sources(scene, solver, obstacles, where=f"{scene.source}: ")
     if obstacles:
         solver.colliders.append(obstacles.collider(solver))
+        solver.obstacles = obstacles  # the frame hooks' (the diffuse particles'): the same SDFs and motion laws
     return solver
 
 
@@ -242,7 +292,7 @@ def run_simulation(
     resume: bool = False,
     force: bool = False,
     arch: str = "cpu",
-    hooks: list | tuple = (),
+    hooks: list[FrameHook] | tuple[FrameHook, ...] = (),
     show_progress: bool = True,
     solver=None,
 ) -> RunInfo:
@@ -252,7 +302,11 @@ def run_simulation(
     scene (else an error lists the changed keys); ``force`` starts over. The
     old run is replaced only once everything is set up and the first new
     frame is about to be written, so a failing set-up leaves it intact.
+    ``hooks`` (:class:`FrameHook`) run after the solver on every frame.
     """
+    for h in hooks:
+        if not isinstance(h, FrameHook):
+            raise TypeError(f"hooks: {type(h).__qualname__} is not a whitecap.sim.driver.FrameHook")
     out = Path(out)
     nframes = scene.output.frames if frames is None else int(frames)
     if nframes < 1:
@@ -300,8 +354,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         info = RunInfo.load(out)
         info.truncate(start_frame)
     for h in hooks:
-        h.last_frame = nframes
-        h.on_start(solver, out, info)
+        h.on_start(solver, out, info, nframes)
 
     bodies = next((c for c in solver.colliders if getattr(c, "moving", False)), None)
 
@@ -358,6 +411,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
             f"[yellow]warning:[/] {solver.stats.neighbor_overflow} neighbour pairs exceeded "
             f"solver.max_neighbors={scene.solver.max_neighbors}; raise it for accuracy"
         )
+    for h in hooks:
+        h.finish()
     return info
 
 
@@ -408,7 +463,7 @@ def _frames(scene: Scene, out: Path, nframes: int, start_frame: int, from_checkp
                     _save_checkpoint(out, index, solver, hooks)
             el = time.perf_counter() - t0
             sps = (solver.step_count - steps0) / el if el > 0 else 0.0
-            extra = "".join(f"  {h.status()}" for h in hooks if hasattr(h, "status"))
+            extra = "".join(f"  {text}" for h in hooks if (text := h.status()))
             bar.update(
                 task,
                 completed=index,

@@ -508,6 +508,7 @@ class PBFSolver:
         confine_to_domain(n, st.x, self.box)
         self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), self.capacity, s.max_neighbors, self.h)
         self.colliders: list = []
+        self.obstacles = None  # the scene's sim.obstacles.Obstacles (set by build_solver), for the frame hooks
         # The step's phases run as Taichi compute graphs (sim/launch.py), one per phase and
         # structure; off, they launch kernel by kernel (the same launches, for comparison).
         self.use_graph = True

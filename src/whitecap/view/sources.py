@@ -193,7 +193,7 @@ class LiveSource:
 
         if self.scene.foam.enabled:
             self.hook = simulation_hook(self.scene)
-            self.hook.start(run_info_for(self.scene, self.solver))
+            self.hook.start(run_info_for(self.scene, self.solver), self.solver)  # the solver's obstacles
 
     @property
     def foam_params(self):
