@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import configparser
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +25,15 @@ FOAM_DISSIPATION = 0.5
 
 @dataclass(frozen=True)
 class FoamParams:
-    """Resolved parameters of Ihmsen et al. 2012 (SI units)."""
+    """Resolved parameters of Ihmsen et al. 2012 (SI units): what :func:`resolve` makes of a preset,
+    a parameter file and the scene's ``[foam]`` section.
 
+    No field has a default here: each value's meaning, unit, bounds and default are those of the
+    ``[foam]`` field of the same name (:class:`whitecap.config.Foam`), or, for the fields that section
+    leaves unset, the preset's (:data:`PRESETS`). The ``[foam]`` fields in :data:`MADE_FROM` reach the
+    parameters in another form."""
+
+    # From the preset unless [foam] or the .ini sets them.
     ta_min: float  # trapped air τ [m/s]
     ta_max: float
     wc_min: float  # wave crest τ [-]
@@ -45,23 +52,38 @@ class FoamParams:
     lifetime_multiplier: float  # > 0: lifetime = multiplier · I_k · Δt
     buoyancy: float  # k_b
     drag: float  # k_d
-    slots_per_particle: int | None = None  # at most this many new particles per fluid particle and frame
-    max_particles: int | None = None  # None: budget.CAPACITY_HEADROOM × budget × fluid particles
-    radius: float = 0.5  # × fluid radius
-    support: float = 4.0  # × fluid radius
-    auto: bool = False
-    budget: float = 3.0  # 'auto': diffuse per fluid particle at the peak
-    shares: tuple = (1 / 3, 1 / 3, 1 / 3)  # 'auto': spray, foam, bubbles' parts of the budget (sum 1)
-    type_multipliers: tuple = (1.0, 1.0, 1.0)  # spray, foam, bubbles: generation of each type, relative
-    spray_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while spray
-    bubble_lifetime: tuple | None = None  # (min, max) [s]; None: no countdown while a bubble
-    foam_dissipation: float = 0.0  # [1/s]: foam vanishes at this rate besides its lifetime
-    wall_correction: bool = False  # 'foamgenerator' model: FoamGenerator's --bbsize count correction (.splishsplash)
-    explicit: frozenset = frozenset()  # names set in [foam] or the .ini: 'auto' leaves them alone
+    foam_dissipation: float  # [1/s]: foam vanishes at this rate besides its lifetime
+    wall_correction: bool  # 'foamgenerator' model: FoamGenerator's --bbsize count correction (.splishsplash)
     # 'ihmsen2012': whitecap's potentials (kernel W̃ = 1 − r/h, E_k per unit mass [J/kg]);
     # 'foamgenerator': SPlisHSPlasH FoamGenerator's automatic mode (see .splishsplash).
-    model: str = "ihmsen2012"
+    model: str
+    # From [foam] as given.
+    budget: float  # 'auto': diffuse per fluid particle at the peak
+    radius: float  # × fluid radius
+    support: float  # × fluid radius
+    slots_per_particle: int | None  # at most this many new particles per fluid particle and frame
+    max_particles: int | None  # None: budget.CAPACITY_HEADROOM × budget × fluid particles
+    spray_lifetime: tuple | None  # (min, max) [s]; None: no countdown while spray
+    bubble_lifetime: tuple | None  # (min, max) [s]; None: no countdown while a bubble
+    # Made from [foam]'s other fields (MADE_FROM).
+    shares: tuple  # 'auto': spray, foam, bubbles' parts of the budget (sum 1)
+    type_multipliers: tuple  # spray, foam, bubbles: generation of each type, relative
+    auto: bool  # preset 'auto'
+    explicit: frozenset  # names set in [foam] or the .ini: 'auto' leaves them alone
 
+
+#: The ``[foam]`` fields that reach :class:`FoamParams` in another form, and the fields made of
+#: them; every other field of the section is a field of the parameters under its own name.
+MADE_FROM: dict[str, tuple[str, ...]] = {
+    "enabled": (),  # whether the foam stage runs at all, not a parameter of it
+    "preset": ("auto", "model"),  # and the starting value of every field it sets (PRESETS)
+    "shares": ("shares",),  # normalised to sum 1
+    "spray_multiplier": ("type_multipliers",),
+    "foam_multiplier": ("type_multipliers",),
+    "bubble_multiplier": ("type_multipliers",),
+}
+#: What every preset has unless it says otherwise: whitecap's potentials, and no FoamGenerator box.
+PRESET_BASE = dict(model="ihmsen2012", wall_correction=False)
 
 PRESETS: dict[str, dict] = {
     # Ihmsen, Akinci, Akinci & Teschner 2012, "Unified spray, foam and air bubbles for particle-based fluids".
@@ -176,7 +198,7 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
     name = preset or cfg.preset
     if name not in PRESETS:
         raise InputError(f"foam.preset: unknown preset {name!r} (known: {', '.join(PRESETS)})")
-    values = dict(PRESETS[name])
+    values = dict(PRESET_BASE, **PRESETS[name])
     explicit: set[str] = set()
     if ini is not None:
         f = ini if isinstance(ini, IniFile) else read_ini(ini)
@@ -188,15 +210,14 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
                 raise InputError(f"{f.path}: {key} is the energy of one particle [J] and the particle mass is "
                                  "unknown; give the case XML ([PATHS] XmlFile or --case)")
             values.update({ours: v / particle_mass for ours, (_, v) in f.joules.items()})
-    for f in fields(FoamParams):
-        v = getattr(cfg, f.name, None)
-        if v is not None and f.name not in ("auto", "model", "explicit", "type_multipliers"):
-            values[f.name] = tuple(v) if isinstance(v, list) else v
-            if f.name in PRESETS[name]:
-                explicit.add(f.name)
+    for field_name, v in cfg:  # every other [foam] field is a parameter of the same name
+        if field_name in MADE_FROM or (v is None and field_name in values):  # unset: the preset's or the .ini's
+            continue
+        values[field_name] = tuple(v) if isinstance(v, list) else v
+        if field_name in PRESETS[name]:
+            explicit.add(field_name)
     values["type_multipliers"] = (cfg.spray_multiplier, cfg.foam_multiplier, cfg.bubble_multiplier)
-    shares = getattr(cfg, "shares", None) or (1.0, 1.0, 1.0)
-    values["shares"] = tuple(float(x) / sum(shares) for x in shares)
+    values["shares"] = tuple(float(x) / sum(cfg.shares) for x in cfg.shares)
     values["auto"] = name == "auto"
     values["explicit"] = frozenset(explicit)
     p = FoamParams(**values)

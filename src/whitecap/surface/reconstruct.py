@@ -32,10 +32,12 @@ from __future__ import annotations
 import os
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from numbers import Real
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import ConfigDict, model_validator
 
 from .. import io as wio
 from ..config import Mesh
@@ -44,24 +46,33 @@ from ..io.mesh import SurfaceMesh, write_mesh
 from ..timing import timer
 
 
-@dataclass(frozen=True)
-class MeshParams:
-    """Everything one frame's reconstruction needs (picklable, absolute radius)."""
+class MeshParams(Mesh):
+    """Everything one frame's reconstruction needs: the ``[mesh]`` section (its fields and defaults,
+    from :class:`whitecap.config.Mesh`) and the run's own numbers (absolute radius). Frozen and
+    picklable, so it travels to worker processes as it is."""
+
+    model_config = ConfigDict(frozen=True)
 
     particle_radius: float  # simulation particle radius r [m]
-    radius_factor: float = 1.5
-    smoothing_length: float = 1.2
-    cube_size: float = 0.5
-    iso_surface_threshold: float = 0.6
-    rest_density: float = 1000.0
-    mesh_cleanup: bool = True
-    mesh_smoothing_iters: int = 15
-    mesh_smoothing_weights: bool = True
-    normals_smoothing_iters: int = 10
-    interpolate_velocity: bool = True
-    up: str = "z"
+    rest_density: float = 1000.0  # [kg/m³]
+    up: str = "z"  # the input files' up axis
     #: Solid walls the surface is closed against: (axis 0-2, side -1 lower / +1 upper, plane coordinate [m]).
     walls: tuple = ()
+
+    #: Fields that change the file, not the surface: left out of :meth:`as_dict` (the run's record of
+    #: the settings, and the settings key that says whether a mesh is current).
+    NOT_RECONSTRUCTION: ClassVar[frozenset[str]] = frozenset({"format"})
+
+    @model_validator(mode="before")
+    @classmethod
+    def _run_numbers(cls, data: Any) -> Any:
+        """The run's radius and density, checked before the section's own checks (one-line InputError)."""
+        for name, what in (("particle_radius", "particle radius must be a positive length in metres"),
+                           ("rest_density", "rest density must be positive")):
+            v = data.get(name) if isinstance(data, dict) else None
+            if v is not None and not (isinstance(v, Real) and v > 0 and np.isfinite(v)):
+                raise InputError(f"mesh: {what} (got {v})")
+        return data
 
     @property
     def surface_radius(self) -> float:
@@ -69,10 +80,7 @@ class MeshParams:
         return self.radius_factor * self.particle_radius
 
     def check(self) -> "MeshParams":
-        if not (self.particle_radius > 0 and np.isfinite(self.particle_radius)):
-            raise InputError(f"mesh: particle radius must be a positive length in metres (got {self.particle_radius})")
-        if not self.rest_density > 0:
-            raise InputError(f"mesh: rest density must be positive (got {self.rest_density})")
+        """Warn of settings that make a poor surface (bad ones are refused on construction)."""
         if self.cube_size > 1.0:
             warnings.warn(
                 f"mesh: cube_size {self.cube_size} is above 1 surface radius; the surface will look faceted "
@@ -98,27 +106,20 @@ class MeshParams:
         )
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The reconstruction's settings, every field but :data:`NOT_RECONSTRUCTION`, in the order run.json
+        has always listed them (r first, the rest density after the iso value), so its bytes stay the same."""
+        d = self.model_dump(exclude=set(self.NOT_RECONSTRUCTION))
+        keys = [k for k in d if k not in ("particle_radius", "rest_density")]
+        at = keys.index("iso_surface_threshold") + 1
+        return {k: d[k] for k in ["particle_radius", *keys[:at], "rest_density", *keys[at:]]}
 
 
 def params_from_config(particle_radius: float, config: Mesh | None = None, rest_density: float = 1000.0,
                        **extra) -> MeshParams:
-    """MeshParams from a ``[mesh]`` section and the run's particle radius."""
-    cfg = config or Mesh()
-    return MeshParams(
-        particle_radius=float(particle_radius),
-        radius_factor=cfg.radius_factor,
-        smoothing_length=cfg.smoothing_length,
-        cube_size=cfg.cube_size,
-        iso_surface_threshold=cfg.iso_surface_threshold,
-        rest_density=float(rest_density),
-        mesh_cleanup=cfg.mesh_cleanup,
-        mesh_smoothing_iters=cfg.mesh_smoothing_iters,
-        mesh_smoothing_weights=cfg.mesh_smoothing_weights,
-        normals_smoothing_iters=cfg.normals_smoothing_iters,
-        interpolate_velocity=cfg.interpolate_velocity,
-        **extra,
-    ).check()
+    """MeshParams from a ``[mesh]`` section (every field of it) and the run's particle radius."""
+    section = (config or Mesh()).model_dump()
+    return MeshParams(**section, particle_radius=float(particle_radius), rest_density=float(rest_density),
+                      **extra).check()
 
 
 #: Environment variable that sizes rayon's global thread pool, which splashsurf's parallel code runs on.

@@ -1,0 +1,114 @@
+"""Each stage's settings are defined once, in its scene section (config.Foam, config.Mesh), and every
+field of that section reaches the parameters the stage runs on (FoamParams, MeshParams): a field
+added to [foam] or [mesh] without a counterpart fails here."""
+
+from __future__ import annotations
+
+import types
+from dataclasses import MISSING, fields
+from typing import Literal, Union, get_args, get_origin
+
+import pytest
+from pydantic import ValidationError
+
+from whitecap.config import Foam, Mesh
+from whitecap.diffuse.params import MADE_FROM, PRESET_BASE, PRESETS, FoamParams, resolve
+from whitecap.errors import InputError
+from whitecap.surface.driver import settings_key
+from whitecap.surface.reconstruct import MeshParams, params_from_config
+
+R = 0.01  # particle radius [m]
+
+
+def _candidates(annotation, current) -> list:
+    """Values of a field's type other than ``current``, to try one by one (some may be out of bounds)."""
+    args = get_args(annotation)
+    if get_origin(annotation) in (Union, types.UnionType):
+        annotation = next(a for a in args if a is not type(None))
+        args = get_args(annotation)
+    if get_origin(annotation) is Literal:
+        return [a for a in args if a != current]
+    if annotation is bool:
+        return [not current]
+    if get_origin(annotation) is list:
+        return [[0.5, 1.0], [1.0, 2.0, 3.0], [2.0, 1.0, 1.0]]
+    if annotation is int:
+        return [1, 2] if current is None else [current + 1, current - 1]
+    if annotation is float:
+        return [0.5, 1.0] if current is None else [current * 2, current / 2, current + 1]
+    raise AssertionError(f"no test values for a field of type {annotation}: add them to _candidates")
+
+
+def _changed(section: type, name: str, current, build):
+    """The first value of ``name`` that the section accepts and ``build`` turns into other parameters."""
+    base = build(section())
+    for v in _candidates(section.model_fields[name].annotation, current):
+        if v == current:
+            continue
+        try:
+            made = build(section(**{name: v}))
+        except (ValidationError, InputError):
+            continue
+        if made != base:
+            return v, base, made
+    return None, base, base
+
+
+@pytest.mark.parametrize("name", list(Foam.model_fields))
+def test_every_foam_field_reaches_the_params(name):
+    default = resolve(Foam())
+    current = Foam.model_fields[name].default
+    current = getattr(default, name, None) if current is None else current  # unset: the preset's
+    v, base, made = _changed(Foam, name, current, resolve)
+    if MADE_FROM.get(name) == ():
+        assert v is None, f"[foam] {name} is declared no parameter (MADE_FROM) but changes FoamParams"
+        return
+    assert v is not None, (f"[foam] {name} changes nothing in FoamParams: give it a field of the same name, "
+                           "or say in diffuse.params.MADE_FROM what it makes")
+    diff = {f.name for f in fields(FoamParams) if getattr(base, f.name) != getattr(made, f.name)} - {"explicit"}
+    if name != "preset":  # a preset changes any value it sets
+        assert diff == set(MADE_FROM.get(name, (name,))), f"[foam] {name} = {v!r} changed {diff}"
+    if name not in MADE_FROM:
+        assert getattr(made, name) == (tuple(v) if isinstance(v, list) else v)
+
+
+def test_foam_params_take_their_defaults_from_the_scene_section_and_the_presets():
+    """FoamParams has no defaults of its own; an unset [foam] field is the preset's value, and every other
+    field keeps config.Foam's default."""
+    assert [f.name for f in fields(FoamParams) if f.default is not MISSING or f.default_factory is not MISSING] == []
+    made_from = {out for outs in MADE_FROM.values() for out in outs}
+    for f in fields(FoamParams):
+        assert f.name in Foam.model_fields or f.name in made_from or f.name == "explicit", \
+            f"FoamParams.{f.name} comes from no [foam] field"
+    for preset in PRESETS:
+        p = resolve(Foam(preset=preset))
+        for name, field in Foam.model_fields.items():
+            if name in MADE_FROM:
+                continue
+            want = dict(PRESET_BASE, **PRESETS[preset]).get(name) if field.default is None else field.default
+            want = tuple(want) if isinstance(want, list) else want
+            assert getattr(p, name) == want, f"{preset}: {name} = {getattr(p, name)!r}, expected {want!r}"
+        assert p.explicit == frozenset()
+
+
+def _mesh(cfg: Mesh) -> MeshParams:
+    return params_from_config(R, cfg)
+
+
+@pytest.mark.parametrize("name", list(Mesh.model_fields))
+def test_every_mesh_field_reaches_the_params_and_the_settings_key(name):
+    v, base, made = _changed(Mesh, name, Mesh.model_fields[name].default, _mesh)
+    assert v is not None and getattr(made, name) == v, f"[mesh] {name} does not reach MeshParams"
+    same_key = settings_key(made) == settings_key(base)
+    assert same_key == (name in MeshParams.NOT_RECONSTRUCTION), \
+        f"[mesh] {name} = {v!r}: the settings key {'did not change' if same_key else 'changed'}"
+
+
+def test_mesh_params_are_the_mesh_section_with_the_runs_numbers():
+    """MeshParams inherits every [mesh] field and its default rather than declaring it again."""
+    assert issubclass(MeshParams, Mesh)
+    assert not set(MeshParams.__annotations__) & set(Mesh.model_fields), "MeshParams declares a [mesh] field again"
+    p = MeshParams(particle_radius=R)
+    for name, field in Mesh.model_fields.items():
+        assert getattr(p, name) == field.default
+    assert params_from_config(R) == p
