@@ -537,7 +537,7 @@ def test_the_camera_looks_at_a_glass_tank_from_the_side_and_over_an_opaque_one(t
         return float(np.degrees(np.arctan2(d[2], np.linalg.norm(d[:2]))))
 
     glass = elevation(info.obstacles)
-    stone = elevation([{**o, "material": "stone"} for o in info.obstacles])
+    stone = elevation([o.model_copy(update={"material": "stone"}) for o in info.obstacles])
     assert glass < 35 < 60 < stone, (glass, stone)
 
 
