@@ -8,6 +8,7 @@
 #   2. `simulate --profile` of the H = 2a dam break with foam on and off, at r = 2 mm and r = 0.8 mm
 #      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
+#      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
 #   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s);
 #   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s).
 # A windowed figure needs a display; run bench_view.py there by hand with the same arguments.
@@ -40,4 +41,5 @@ step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
     "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10
 step 60  "live view, CUDA, ~200k particles, one step per redraw, 1280x720 headless" \
     "$PY" benchmarks/bench_view.py --arch cuda --n 200000 --live 200000 --steps-per-draw 1 --size 1280 720
-echo "== not yet measured by this script: resident device memory over many frames with foam on (issue 31 goal 2)"
+step 120 "memory over 60 frames with foam on and off, CUDA, r = 2 mm (flat once the budget is reached)" \
+    "$PY" benchmarks/bench_memory.py --arch cuda --radius 0.002 --frames 60
