@@ -2,13 +2,14 @@
 
     python scripts/make_creek_assets.py          # writes scenes/assets/creek.png
 
-The creek runs along +x down the middle of the simulated domain (0..2 m in x, 0..0.8 m in y). It
-falls from a notch in a crag (a rock headwall curving round the head of the channel, its face
-broken by ledges and buttresses, not a straight wall) on to a cobbled bed, tumbles over two rock steps with
-boulders in the rapids, fills a pool at x = 1.3-1.75 m held by a lip at x = 1.82 m, and runs on
-downhill beyond the domain. The channel is carved into a hillside that falls smoothly down the
-valley (its banks do not repeat the bed's steps) and rises to hills on either side and behind the
-crag. Heights are built in metres over the image's footprint (``LOWER``, ``SIZE``) and stored over
+The creek runs along +x down the middle of the simulated domain (-0.3..2 m in x, 0..0.8 m in y).
+It runs along the flat floor of a notch in a crag (a rock headwall curving round the head of the
+channel, its face broken by ledges and buttresses, not a straight wall), falls from the notch's lip
+on to a cobbled bed, tumbles over a rock step with boulders in the rapids, fills a pool at
+x = 1.3-1.75 m held by a lip at x = 1.82 m, and runs on downhill beyond the domain. The channel is
+carved into a hillside that falls smoothly down the valley (its banks do not repeat the bed's
+steps) and rises to hills on either side and behind the crag; angular blocks lie scattered over it.
+Heights are built in metres over the image's footprint (``LOWER``, ``SIZE``) and stored over
 ``HEIGHT``; the scene's [terrain] repeats these constants, and tests/test_creek_scene.py checks the
 scene against them.
 """
@@ -51,9 +52,10 @@ CRAG_HEIGHT = 0.5
 CRAG_CURVE = 0.9
 CRAG_SLOPE = 4.0
 #: The notch the creek falls from: its lip's height [m], its half-width [m] and where its lip is [m].
-NOTCH = (0.6, 0.13, 0.08)
-#: Its floor is flat for this far behind the lip [m], then rises at this slope [-].
-NOTCH_FLAT = 0.12
+NOTCH = (0.6, 0.15, 0.08)
+#: Its floor is flat for this far behind the lip (the inflow enters there, out of sight below
+#: the lip) [m], then rises at this slope [-].
+NOTCH_FLAT = 0.45
 NOTCH_RISE = 0.8
 #: Boulders: (x, offset from the axis in y, radius, height above the bed) [m]: in the rapids and
 #: at the pool's edges.
