@@ -75,15 +75,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--final", action="store_true", help="also time one final-quality frame")
     a = ap.parse_args()
-    from whitecap.render import render_run
+    from whitecap.render import RenderJob, render_run
 
     with tempfile.TemporaryDirectory() as tmp:
         run, tris = make_run(Path(tmp), a.frames)
         t0 = time.perf_counter()
-        render_run(run, quality="preview", frames="0:1", movie=False, show_progress=False)
+        render_run(run, RenderJob(quality="preview", frames="0:1", movie=False, show_progress=False))
         first = time.perf_counter() - t0  # process start + scene build + one frame
         t0, c0 = time.perf_counter(), child_cpu()
-        render_run(run, quality="preview", frames=f"1:{a.frames}", movie=False, show_progress=False)
+        render_run(run, RenderJob(quality="preview", frames=f"1:{a.frames}", movie=False, show_progress=False))
         rest, cpu = time.perf_counter() - t0, child_cpu() - c0
         per = rest / (a.frames - 1)
         res = {"triangles": tris, "diffuse": 20000, "preview_first_s": first, "preview_s_per_frame": per,
@@ -106,7 +106,7 @@ def main() -> None:
               f"{cpu / (a.frames - 1) / os.cpu_count():.2f} s per frame spread over {os.cpu_count()} idle cores")
         if a.final:
             t0 = time.perf_counter()
-            render_run(run, quality="final", frames="0:1", force=True, movie=False, show_progress=False)
+            render_run(run, RenderJob(quality="final", frames="0:1", force=True, movie=False, show_progress=False))
             res["final_s"] = time.perf_counter() - t0
             print(f"final 1920x1080: {res['final_s']:.1f} s for one frame (scene build included)")
         print(json.dumps(res))

@@ -112,3 +112,30 @@ def test_mesh_params_are_the_mesh_section_with_the_runs_numbers():
     for name, field in Mesh.model_fields.items():
         assert getattr(p, name) == field.default
     assert params_from_config(R) == p
+
+
+# ---------------------------------------------------------------------------- render: one RenderJob
+def test_render_options_are_one_render_job_whose_defaults_the_cli_shows(tmp_path, capsys):
+    """`whitecap render` and pipeline.render build the same RenderJob: every field is a CLI option
+    whose default is the job's, bad values are refused on construction (before any run is read),
+    and keyword options replace fields of a given job."""
+    from whitecap import pipeline
+    from whitecap.cli import build_parser, main
+    from whitecap.render import RenderJob
+
+    default = RenderJob()
+    args = build_parser().parse_args(["render", str(tmp_path)])
+    for f in fields(RenderJob):
+        if f.name != "show_progress":  # the CLI always shows progress
+            assert getattr(args, f.name) == getattr(default, f.name), f.name
+    help_text = build_parser()._subparsers._group_actions[0].choices["render"].format_help()
+    assert f"default: {default.quality}" in help_text and f"default: {default.jobs}" in help_text
+    for bad in ({"quality": "draft"}, {"device": "tpu"}, {"jobs": 0}):
+        with pytest.raises(InputError, match="--" + next(iter(bad))):
+            RenderJob(**bad)
+        with pytest.raises(InputError):  # refused before the (missing) run is looked at
+            pipeline.render(tmp_path / "no such run", **bad)
+    assert main(["render", str(tmp_path), "--quality", "final", "--jobs", "0"]) == 2
+    assert "--jobs must be at least 1" in capsys.readouterr().err
+    with pytest.raises(InputError, match="run directory not found"):
+        pipeline.render(tmp_path / "no such run", RenderJob(quality="final"), frames="0:1")

@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from .config import Foam, Mesh, Render, View, choices
+from .config import Foam, Mesh, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
 
@@ -294,22 +294,31 @@ def _add_render(sub) -> None:
         description="Render RUN's meshes and diffuse particles with Blender's Cycles (on a GPU where one exists). "
         "Writes render/frame_NNNNN.png, render/movie.mp4 and render/scene.blend; finished frames are skipped.",
     )
+    from .render import RenderJob
+    from .render.driver import DEVICES, QUALITIES
+
+    default = RenderJob()  # the one definition of render's defaults
     p.add_argument("run", help="run directory (with mesh/ from `whitecap mesh`)")
-    p.add_argument("--quality", default="preview", choices=["preview", "final"], help="preview: small and fast")
-    p.add_argument("--frames", help="range a:b of frames to render (b excluded)")
-    p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes (Cycles already uses all cores)")
-    p.add_argument("--force", action="store_true", help="render frames again even if they exist")
-    p.add_argument("--no-movie", action="store_true", help="do not encode render/movie.mp4")
-    p.add_argument("--device", choices=choices(Render, "device"), help="Cycles device (default: [render].device, auto)")
+    p.add_argument("--quality", default=default.quality, choices=QUALITIES,
+                   help=f"preview: small and fast (default: {default.quality})")
+    p.add_argument("--frames", default=default.frames, help="range a:b of frames to render (b excluded; default: all)")
+    p.add_argument("--jobs", "-j", type=int, default=default.jobs,
+                   help=f"worker processes (Cycles already uses all cores; default: {default.jobs})")
+    p.add_argument("--force", action="store_true", default=default.force, help="render frames again even if they exist")
+    p.add_argument("--no-movie", dest="movie", action="store_false", default=default.movie,
+                   help="do not encode render/movie.mp4")
+    p.add_argument("--device", default=default.device, choices=DEVICES,
+                   help="Cycles device (default: [render].device, auto)")
     _add_cluster_option(p)
     p.set_defaults(func=_cmd_render)
 
 
 def _cmd_render(a) -> int:
     from . import pipeline
+    from .render import RenderJob
 
-    r = pipeline.render(a.run, quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=not a.no_movie,
-                         device=a.device, cluster=a.cluster)
+    r = pipeline.render(a.run, RenderJob(quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=a.movie,
+                                         device=a.device, cluster=a.cluster))
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")

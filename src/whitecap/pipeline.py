@@ -6,13 +6,18 @@ whole scene-to-movie run); stages themselves never import it.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import timing
 from .config import Scene, load_scene
 from .io.run import RunInfo
+
+if TYPE_CHECKING:
+    from .render import RenderJob
 
 
 def _scene(scene: Scene | str | Path) -> Scene:
@@ -229,26 +234,17 @@ def export(
 
 
 # ============================================================================ render
-def render(
-    run: str | Path,
-    quality: str = "preview",
-    frames: str | None = None,
-    jobs: int = 1,
-    force: bool = False,
-    movie: bool = True,
-    show_progress: bool = True,
-    device: str | None = None,
-    cluster: str | None = None,
-) -> dict:
+def render(run: str | Path, job: RenderJob | None = None, **options) -> dict:
     """Render a run in Blender: PNG frames, movie.mp4 and scene.blend under RUN/render.
 
-    ``cluster`` (a scheduler address, or local, slurm, pbs) renders on Dask, one
-    Blender process per Dask worker; ``jobs`` then sets the local workers or batch jobs.
+    ``job`` is a :class:`whitecap.render.RenderJob` (its fields and defaults are the
+    options: quality, frames, jobs, force, movie, show_progress, device, cluster);
+    ``options`` build one, or replace those fields of ``job``.
     """
-    from .render import render_run
+    from .render import RenderJob, render_run
 
-    return render_run(run, quality=quality, frames=frames, jobs=jobs, force=force, movie=movie,
-                      show_progress=show_progress, device=device, cluster=cluster)
+    job = RenderJob(**options) if job is None else dataclasses.replace(job, **options)
+    return render_run(run, job)
 
 
 def blender_addon(out: str | Path | None = None) -> Path:

@@ -5,6 +5,6 @@
 - :mod:`.worker`: the worker process entry point.
 """
 
-from .driver import build_addon, encode_movie, render_run, render_worker, require_bpy
+from .driver import RenderJob, build_addon, encode_movie, render_run, render_worker, require_bpy
 
-__all__ = ["render_run", "render_worker", "build_addon", "encode_movie", "require_bpy"]
+__all__ = ["RenderJob", "render_run", "render_worker", "build_addon", "encode_movie", "require_bpy"]

@@ -28,9 +28,10 @@ import os
 import re
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
-from ..config import Render, load_scene
+from ..config import Render, choices, load_scene
 from ..errors import InputError, MissingDependency
 from ..executor import ProcessWorkers, WorkerFailed, map_frames
 from ..io.atomic import sweep_temps
@@ -229,40 +230,59 @@ def encode_movie(run_dir: Path, fps: float, indices: list[int] | None = None) ->
     return encode_mp4(frames, run_dir / "render" / "movie.mp4", fps)
 
 
-def render_run(
-    run_dir: str | Path,
-    quality: str = "preview",
-    frames: str | None = None,
-    jobs: int = 1,
-    force: bool = False,
-    movie: bool = True,
-    show_progress: bool = True,
-    device: str | None = None,
-    cluster: str | None = None,
-) -> dict:
-    """Render a run directory. Returns {'frames': [...], 'movie': path, 'blend': path}.
+#: The image qualities of a render: preview (small, few samples) or final ([render] resolution).
+QUALITIES = ("preview", "final")
+#: Cycles devices a render may ask for instead of [render].device (that field's values).
+DEVICES = choices(Render, "device")
 
-    ``device`` (auto, cpu, gpu) overrides ``[render].device``. ``cluster`` (a
-    scheduler address, or local, slurm, pbs) renders the frames on Dask, one
-    Blender process per Dask worker (:mod:`whitecap.render.cluster`).
+
+@dataclass(frozen=True)
+class RenderJob:
+    """What one render of a run does: the options of ``whitecap render`` and of
+    :func:`whitecap.pipeline.render`, with their defaults, defined here once (the CLI
+    and the pipeline build one; :func:`render_run` takes it). Checked on construction.
+
+    ``frames`` is a range ``a:b`` (b excluded) of meshed frames, all of them when None;
+    ``jobs`` Blender worker processes here (or, with ``cluster``, the local Dask workers or
+    batch jobs); ``force`` renders finished frames again; ``movie`` encodes render/movie.mp4;
+    ``device`` (auto, cpu, gpu) overrides ``[render].device``; ``cluster`` (a scheduler
+    address, or local, slurm, pbs) renders on Dask, one Blender process per Dask worker.
     """
-    check_jobs("render", jobs)
+
+    quality: str = "preview"
+    frames: str | None = None
+    jobs: int = 1
+    force: bool = False
+    movie: bool = True
+    show_progress: bool = True
+    device: str | None = None
+    cluster: str | None = None
+
+    def __post_init__(self) -> None:
+        check_jobs("render", self.jobs)
+        if self.quality not in QUALITIES:
+            raise InputError(f"--quality: expected {' or '.join(QUALITIES)}, got {self.quality!r}")
+        if self.device not in (None, *DEVICES):
+            raise InputError(f"--device: expected {', '.join(DEVICES[:-1])} or {DEVICES[-1]}, got {self.device!r}")
+
+
+def render_run(run_dir: str | Path, job: RenderJob) -> dict:
+    """Render a run directory as ``job`` says. Returns {'frames': [...], 'movie': path, 'blend': path}.
+
+    With ``job.cluster`` the frames render on Dask (:mod:`whitecap.render.cluster`).
+    """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: run directory not found")
     with run_lock(run_dir, "render"):
         try:
-            return _render_run(run_dir, quality, frames, jobs, force, movie, show_progress, device, cluster)
+            return _render_run(run_dir, job)
         finally:
             sweep_temps(run_dir / "render")  # a worker killed while writing leaves its temporary file
 
 
-def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, force: bool, movie: bool,
-                show_progress: bool, device: str | None, cluster: str | None = None) -> dict:
-    if quality not in ("preview", "final"):
-        raise InputError(f"--quality: expected preview or final, got {quality!r}")
-    if device not in (None, "auto", "cpu", "gpu"):
-        raise InputError(f"--device: expected auto, cpu or gpu, got {device!r}")
+def _render_run(run_dir: Path, job: RenderJob) -> dict:
+    quality, frames, cluster = job.quality, job.frames, job.cluster
     info = RunInfo.load(run_dir)
     meshes = [i for i, _ in info.files("mesh")]
     if not meshes:
@@ -270,8 +290,8 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     wanted = parse_range(frames, meshes)
     if not wanted:
         raise InputError(f"--frames {frames}: no meshed frames in that range (have {meshes[0]}..{meshes[-1]})")
-    cfg = render_settings(run_dir, device)
-    check_image_memory(run_dir, cfg, quality, max(1, min(int(jobs or 1), len(wanted))), cluster)
+    cfg = render_settings(run_dir, job.device)
+    check_image_memory(run_dir, cfg, quality, max(1, min(job.jobs or 1, len(wanted))), cluster)
     (run_dir / "render").mkdir(parents=True, exist_ok=True)
     check_writable(run_dir / "render")
     if not cluster:  # on a cluster, Blender runs on the workers
@@ -290,14 +310,15 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
     keys = {i: frame_key(run_dir, info, cfg, quality, i) for i in wanted}
     todo = stage_todo(wanted, lambda i: i in current and info.frame(i).render_key == keys[i]
-                      and _done(frame_path(run_dir, i), size), force)
+                      and _done(frame_path(run_dir, i), size), job.force)
     blend = run_dir / "render" / "scene.blend"
     made = info.extra.get("blend")
     look = frame_key(run_dir, info, cfg, quality, None)
-    need_blend = force or not blend.exists() or not (isinstance(made, dict) and made.get("made_from") == info.simulation
-                                                      and made.get("key") == look)
-    jobs = max(1, min(int(jobs or 1), len(todo) or 1))
-    bar = progress(disable=not show_progress)
+    need_blend = job.force or not blend.exists() or not (isinstance(made, dict)
+                                                         and made.get("made_from") == info.simulation
+                                                         and made.get("key") == look)
+    jobs = max(1, min(job.jobs or 1, len(todo) or 1))
+    bar = progress(disable=not job.show_progress)
     with bar:
         task = bar.add_task("render", total=len(wanted), completed=len(wanted) - len(todo), info=quality)
         if cluster and (todo or need_blend):
@@ -308,7 +329,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
                 from .cluster import render_on_cluster
 
                 blender = render_on_cluster(ex, run_dir, quality, cfg.device, todo, need_blend, bar, task,
-                                            lambda i: _record(run_dir, [i], keys=keys), report=show_progress)
+                                            lambda i: _record(run_dir, [i], keys=keys), report=job.show_progress)
             finally:
                 bar.stop()
                 ex.close()
@@ -322,7 +343,7 @@ def _render_run(run_dir: Path, quality: str, frames: str | None, jobs: int, forc
     result = {"frames": [frame_path(run_dir, i) for i in wanted], "blend": blend, "movie": None}
     if cluster and (todo or need_blend):
         result["blender_processes"] = len(blender)  # one per Dask worker that rendered, not one per frame
-    if movie:
+    if job.movie:
         result["movie"] = encode_movie(run_dir, info.frame_rate, wanted)
     _record(run_dir, wanted)
     return result
