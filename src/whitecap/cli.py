@@ -157,19 +157,26 @@ def _add_mesh(sub) -> None:
     p.add_argument("--radius", type=float, help="simulation particle radius r [m], half the spacing "
                    "(default: the run's; required for plain sequences)")
     p.add_argument("--config", help="scene TOML whose [mesh] section to use (default: the run's scene.toml)")
-    p.add_argument("--radius-factor", type=float, help="surface radius as a multiple of r (default 1.5)")
-    p.add_argument("--smoothing-length", type=float, help="smoothing length, multiple of the surface radius (1.2)")
-    p.add_argument("--cube-size", type=float, help="marching-cubes cell, multiple of the surface radius (0.5)")
-    p.add_argument("--iso", dest="iso_surface_threshold", type=float, help="iso-surface threshold (0.6)")
-    p.add_argument("--smoothing-iters", dest="mesh_smoothing_iters", type=int, help="mesh smoothing passes (15)")
-    p.add_argument("--normals-smoothing-iters", type=int, help="normal smoothing passes (10)")
+    d = {name: f.default for name, f in Mesh.model_fields.items()}  # [mesh]'s defaults, defined once there
+    p.add_argument("--radius-factor", type=float,
+                   help=f"surface radius as a multiple of r (default {d['radius_factor']})")
+    p.add_argument("--smoothing-length", type=float,
+                   help=f"smoothing length, multiple of the surface radius ({d['smoothing_length']})")
+    p.add_argument("--cube-size", type=float,
+                   help=f"marching-cubes cell, multiple of the surface radius ({d['cube_size']})")
+    p.add_argument("--iso", dest="iso_surface_threshold", type=float,
+                   help=f"iso-surface threshold ({d['iso_surface_threshold']})")
+    p.add_argument("--smoothing-iters", dest="mesh_smoothing_iters", type=int,
+                   help=f"mesh smoothing passes ({d['mesh_smoothing_iters']})")
+    p.add_argument("--normals-smoothing-iters", type=int,
+                   help=f"normal smoothing passes ({d['normals_smoothing_iters']})")
     p.add_argument("--no-cleanup", dest="mesh_cleanup", action="store_const", const=False, help="skip mesh cleanup")
     p.add_argument("--no-weights", dest="mesh_smoothing_weights", action="store_const", const=False,
                    help="unweighted Laplacian smoothing")
     p.add_argument("--no-velocity", dest="interpolate_velocity", action="store_const", const=False,
                    help="do not interpolate particle velocity onto vertices")
     p.add_argument("--format", choices=choices(Mesh, "format"),
-                   help="mesh file format (default ply; obj has no velocity)")
+                   help=f"mesh file format (default {d['format']}; obj has no velocity)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
     p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
     p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
