@@ -139,3 +139,41 @@ def test_render_options_are_one_render_job_whose_defaults_the_cli_shows(tmp_path
     assert "--jobs must be at least 1" in capsys.readouterr().err
     with pytest.raises(InputError, match="run directory not found"):
         pipeline.render(tmp_path / "no such run", RenderJob(quality="final"), frames="0:1")
+
+
+# ---------------------------------------------------------------------------- mesh: one MeshRun
+def test_mesh_run_options_are_one_mesh_run_whose_defaults_the_cli_takes(tiny_run, tmp_path, capsys, monkeypatch):
+    """`whitecap mesh` and pipeline.mesh build the same MeshRun: its fields that are CLI options have
+    the run's defaults there, --jobs 0 is refused on construction (before any input is read), and
+    keyword options reach the MeshRun while the other keywords stay [mesh] settings."""
+    import shutil
+
+    from whitecap import pipeline
+    from whitecap.cli import build_parser, main
+    from whitecap.surface import driver
+    from whitecap.surface.driver import MeshRun
+
+    default = MeshRun()
+    args = build_parser().parse_args(["mesh", str(tmp_path)])
+    for name in ("jobs", "force", "cluster"):
+        assert getattr(args, name) == getattr(default, name), name
+    with pytest.raises(InputError, match="mesh: --jobs must be at least 1"):
+        MeshRun(jobs=0)
+    with pytest.raises(InputError, match="--jobs"):  # refused before the (missing) input is looked at
+        pipeline.mesh(tmp_path / "no such run", jobs=0)
+    assert main(["mesh", str(tmp_path / "no such run"), "--jobs", "0"]) == 2
+    assert "--jobs must be at least 1" in capsys.readouterr().err
+    assert MeshRun(jobs=3).workers() == 3 and MeshRun().workers() >= 1
+
+    seen = []
+    run = tmp_path / "R"
+    shutil.copytree(tiny_run, run)
+    real = driver.run_mesh
+
+    def spy(job, options):
+        seen.append((job.params.mesh_smoothing_iters, options))
+        return real(job, options)
+
+    monkeypatch.setattr(driver, "run_mesh", spy)
+    pipeline.mesh(run, MeshRun(force=True), jobs=1, show_progress=False, mesh_smoothing_iters=0)
+    assert seen == [(0, MeshRun(jobs=1, force=True, show_progress=False))]

@@ -21,10 +21,10 @@ CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), 
                 "pip install 'whitecap[cluster]'")
 
 
-def _add_cluster_option(p, scope: str = "") -> None:
+def _add_cluster_option(p, scope: str = "", default: str | None = None) -> None:
     """The --cluster option shared by the per-frame commands (mesh, export, render, run);
     ``scope`` prefixes the help when the option applies to only some of a command's modes."""
-    p.add_argument("--cluster", metavar="WHERE", help=scope + CLUSTER_HELP)
+    p.add_argument("--cluster", metavar="WHERE", default=default, help=scope + CLUSTER_HELP)
 
 
 # ============================================================================ simulate
@@ -178,9 +178,12 @@ def _add_mesh(sub) -> None:
     p.add_argument("--format", choices=choices(Mesh, "format"),
                    help=f"mesh file format (default {d['format']}; obj has no velocity)")
     p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
-    p.add_argument("--jobs", "-j", type=int, help="frames in parallel (default: the core count)")
-    p.add_argument("--force", action="store_true", help="redo frames that already have a mesh")
-    _add_cluster_option(p)
+    from .surface.driver import MeshRun
+
+    run = MeshRun()  # the one definition of how mesh runs by default
+    p.add_argument("--jobs", "-j", type=int, default=run.jobs, help="frames in parallel (default: the core count)")
+    p.add_argument("--force", action="store_true", default=run.force, help="redo frames that already have a mesh")
+    _add_cluster_option(p, default=run.cluster)
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_mesh)
 
@@ -194,12 +197,13 @@ def _cmd_mesh(a) -> int:
     import warnings
 
     from . import pipeline
+    from .surface.driver import MeshRun
 
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
-    stats = pipeline.mesh(a.input, out=a.out, radius=a.radius, jobs=a.jobs, force=a.force, config=a.config,
-                          up=a.up, profile=a.profile, cluster=a.cluster, **overrides)
+    stats = pipeline.mesh(a.input, MeshRun(jobs=a.jobs, force=a.force, cluster=a.cluster), out=a.out,
+                          radius=a.radius, config=a.config, up=a.up, profile=a.profile, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
     print(f"meshed {len(made)} frames ({tris} triangles), skipped {len(stats) - len(made)} already done")

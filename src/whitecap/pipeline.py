@@ -18,6 +18,7 @@ from .io.run import RunInfo
 
 if TYPE_CHECKING:
     from .render import RenderJob
+    from .surface.driver import MeshRun
 
 
 def _scene(scene: Scene | str | Path) -> Scene:
@@ -155,45 +156,36 @@ def record_stage_times(out: Path, seconds: dict[str, float]) -> Path:
 # ============================================================================ mesh, export
 def mesh(
     run: str | Path,
+    options: MeshRun | None = None,
     out: str | Path | None = None,
     radius: float | None = None,
-    jobs: int | None = None,
-    force: bool = False,
     config: str | Path | None = None,
     up: str = "z",
     profile: bool = False,
-    show_progress: bool = True,
-    cluster: str | None = None,
-    **overrides,
+    **settings,
 ) -> list[dict]:
     """Reconstruct a surface per frame of a run (or a particle sequence) with splashsurf.
 
-    ``overrides`` are ``[mesh]`` fields (``cube_size=0.6``, ``format="obj"``...);
-    ``config`` is a scene TOML whose ``[mesh]`` replaces the run's; ``jobs`` frames
-    run in parallel (default: the core count). Returns per-frame stats; meshes of
-    a run are recorded in its run.json. ``profile`` prints the time per phase.
-    ``cluster`` (a scheduler address, or local, slurm, pbs) runs the frames on
-    Dask, configured by the ``[cluster]`` section of ``config`` or of the run's scene.
+    ``options`` is a :class:`whitecap.surface.driver.MeshRun` (how the stage runs: jobs, force,
+    show_progress, cluster; their defaults are its fields); ``settings`` named like its fields
+    build one or replace them, the others are ``[mesh]`` fields (``cube_size=0.6``,
+    ``format="obj"``...). ``config`` is a scene TOML whose ``[mesh]`` replaces the run's, and
+    whose ``[cluster]`` (else the run's scene's) configures a ``cluster``. Returns per-frame
+    stats; meshes of a run are recorded in its run.json. ``profile`` prints the time per phase.
     """
-    import os
+    from .surface.driver import MeshRun, plan, run_mesh
 
-    from .errors import InputError
-    from .surface.driver import plan, run_mesh
-
-    if jobs is not None and jobs < 1:
-        raise InputError(f"mesh: --jobs must be at least 1 (got {jobs})")
-    ccfg = None
-    if cluster:
+    names = {f.name for f in dataclasses.fields(MeshRun)}
+    given = {k: settings.pop(k) for k in names & settings.keys()}
+    options = MeshRun(**given) if options is None else dataclasses.replace(options, **given)
+    if options.cluster and options.cluster_config is None:
         from .executor import cluster_settings
 
-        ccfg = cluster_settings(run, config)
-    cores = len(os.sched_getaffinity(0))
-    remote = bool(cluster) and cluster != "local"
-    jobs = jobs or (ccfg.jobs if remote else cores)  # frames at once; splashsurf itself runs on one thread
+        options = dataclasses.replace(options, cluster_config=cluster_settings(run, config))
     cfg = load_scene(config).mesh if config is not None else None
     timing.reset()
-    job = plan(run, out=out, radius=radius, config=cfg, up=up, **overrides)
-    stats = run_mesh(job, jobs=jobs, force=force, show_progress=show_progress, cluster=cluster, cluster_config=ccfg)
+    job = plan(run, out=out, radius=radius, config=cfg, up=up, **settings)
+    stats = run_mesh(job, options)
     if profile:
         print(timing.report("mesh profile"))
     return stats

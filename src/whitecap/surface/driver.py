@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,7 @@ from ..io.lock import read_lock, run_lock
 from ..io.manifest import Manifest
 from ..io.run import RUN_JSON, RunInfo, refuse_inside_other_run, source_identity
 from ..io.sequence import find_sequence
-from ..stage_frames import map_over_frames, todo as stage_todo
+from ..stage_frames import check_jobs, map_over_frames, todo as stage_todo
 from ..timing import timer
 from .reconstruct import MeshParams, mesh_frame, params_from_config, walls_from_run
 
@@ -44,6 +44,37 @@ class MeshJob:
     stats: list[dict[str, Any]] = field(default_factory=list)
     on_done: Any = None  # outside a run: records a finished frame in the folder's manifest
     source_run: Path | None = None  # the run the frames come from, when they do
+
+
+@dataclass(frozen=True)
+class MeshRun:
+    """How one ``mesh`` runs (not what it makes: that is ``[mesh]``, :class:`~whitecap.config.Mesh`):
+    the options of ``whitecap mesh`` and of :func:`whitecap.pipeline.mesh`, with their defaults,
+    defined here once (the CLI and the pipeline build one; :func:`run_mesh` takes it). Checked on
+    construction.
+
+    ``jobs`` frames at once (None: the core count, or with a remote ``cluster`` its
+    ``[cluster].jobs``); ``force`` meshes finished frames again; ``cluster`` (a scheduler address,
+    or local, slurm, pbs) runs the frames on Dask, configured by ``cluster_config``.
+    """
+
+    jobs: int | None = None
+    force: bool = False
+    show_progress: bool = True
+    cluster: str | None = None
+    cluster_config: Cluster | None = None
+
+    def __post_init__(self) -> None:
+        check_jobs("mesh", self.jobs)
+
+    def workers(self) -> int:
+        """Frames at once: ``jobs``, else a remote cluster's ``[cluster].jobs``, else the core count
+        (splashsurf itself runs on one thread per frame)."""
+        if self.jobs:
+            return self.jobs
+        if self.cluster and self.cluster != "local" and self.cluster_config is not None:
+            return self.cluster_config.jobs
+        return len(os.sched_getaffinity(0))
 
 
 def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
@@ -136,18 +167,18 @@ def settings_key(params: MeshParams) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def run_mesh(job: MeshJob, jobs: int | None = None, force: bool = False, show_progress: bool = True,
-             cluster: str | None = None, cluster_config: Cluster | None = None) -> list[dict]:
-    """Mesh every frame of ``job``; returns per-frame stats (``skipped`` True for frames already done).
+def run_mesh(job: MeshJob, run: MeshRun | None = None, **options) -> list[dict]:
+    """Mesh every frame of ``job`` as ``run`` says (``options``, :class:`MeshRun` fields, build one or
+    replace its fields); returns per-frame stats (``skipped`` True for frames already done).
 
-    ``cluster`` (an address, or local, slurm, pbs) runs the frames on Dask
-    (:mod:`whitecap.executor`); this process keeps the lock and records run.json.
+    With ``run.cluster`` the frames run on Dask (:mod:`whitecap.executor`); this process keeps the
+    lock and records run.json.
     """
-    jobs = max(1, jobs or len(os.sched_getaffinity(0)))
+    run = MeshRun(**options) if run is None else replace(run, **options)
     if job.run_dir is None:
-        return _run_mesh(job, jobs, force, show_progress, cluster, cluster_config)
+        return _run_mesh(job, run)
     with run_lock(job.run_dir, "mesh"):
-        return _run_mesh(job, jobs, force, show_progress, cluster, cluster_config)
+        return _run_mesh(job, run)
 
 
 #: The manifest of meshes written outside a run (io/manifest.py): a sequence's mesh/ folder, or --out.
@@ -165,8 +196,7 @@ def _frame_key(path: Path, params: MeshParams) -> str:
     return f"{source_identity([path], params.up)}-{settings_key(params)}"
 
 
-def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster: str | None = None,
-              cluster_config: Cluster | None = None) -> list[dict]:
+def _run_mesh(job: MeshJob, run: MeshRun) -> list[dict]:
     manifest = None
     if job.run_dir is not None:  # read under the lock, so no simulate can change what is current meanwhile
         info = RunInfo.load(job.run_dir)
@@ -178,7 +208,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
         manifest = Manifest(job.frames[0][2].parent, MESH_MANIFEST)
         keys = {i: _frame_key(p, job.params) for i, p, _, _ in job.frames}
         job.recorded = {i for i, _, o, _ in job.frames if manifest.current(o.name, keys[i])}
-    todo = stage_todo(job.frames, lambda f: _done(job, f), force)
+    todo = stage_todo(job.frames, lambda f: _done(job, f), run.force)
     if job.run_dir is not None:  # inside the run: never over a file the run holds as something else
         others = {rel: kind for f in info.frames for kind, rel in f.files.items() if kind != "mesh"}
         for _, _, o, rel in todo:
@@ -192,7 +222,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
     stats = {f[0]: {"index": f[0], "out": str(f[2]), "skipped": True} for f in job.frames if f not in todo}
     out_dirs = sorted({f[2].parent for f in job.frames})
     try:
-        _map_frames(job, todo, stats, jobs, show_progress, cluster, cluster_config)
+        _map_frames(job, todo, stats, run)
     finally:
         # Frames finished before an error or Ctrl-C are kept and recorded.
         job.stats = [stats[i] for i, *_ in job.frames if i in stats]
@@ -203,8 +233,7 @@ def _run_mesh(job: MeshJob, jobs: int, force: bool, show_progress: bool, cluster
     return job.stats
 
 
-def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress: bool, cluster: str | None = None,
-                cluster_config: Cluster | None = None) -> None:
+def _map_frames(job: MeshJob, todo: list, stats: dict, run: MeshRun) -> None:
     if not todo:
         return
 
@@ -219,8 +248,10 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, jobs: int, show_progress:
         return f"{s['particles']} particles -> {s['faces']} triangles"
 
     map_over_frames("mesh", mesh_frame, [(i, (p, o, job.params)) for i, p, o, _ in todo], done,
-                    shared=job.run_dir if job.run_dir is not None else todo[0][2].parent, jobs=jobs, cluster=cluster,
-                    cfg=cluster_config, total=len(job.frames), completed=len(stats), show_progress=show_progress,
+                    shared=job.run_dir if job.run_dir is not None else todo[0][2].parent,
+                    jobs=run.workers(), cluster=run.cluster,
+                    cfg=run.cluster_config, total=len(job.frames), completed=len(stats),
+                    show_progress=run.show_progress,
                     around=lambda: timer("mesh"))
 
 
