@@ -177,3 +177,22 @@ def test_mesh_run_options_are_one_mesh_run_whose_defaults_the_cli_takes(tiny_run
     monkeypatch.setattr(driver, "run_mesh", spy)
     pipeline.mesh(run, MeshRun(force=True), jobs=1, show_progress=False, mesh_smoothing_iters=0)
     assert seen == [(0, MeshRun(jobs=1, force=True, show_progress=False))]
+
+
+# ---------------------------------------------------------------------------- foam: one FoamJob
+def test_foam_options_are_one_foam_job_that_the_cli_builds_with_its_defaults(tmp_path, monkeypatch):
+    """`whitecap foam` builds the FoamJob its defaults make (so the CLI states none of its own), and
+    pipeline.foam hands postprocess one FoamJob whose fields its keyword options replace."""
+    from whitecap import diffuse, pipeline
+    from whitecap.cli import _foam_job, build_parser
+    from whitecap.diffuse import FoamJob
+
+    args = build_parser().parse_args(["foam", str(tmp_path)])
+    assert _foam_job(args) == FoamJob()
+    args = build_parser().parse_args(["foam", str(tmp_path), "--up", "y", "--dt", "0.02", "--seed", "3", "--force"])
+    assert _foam_job(args) == FoamJob(up="y", dt=0.02, seed=3, force=True)
+
+    seen = []
+    monkeypatch.setattr(diffuse, "postprocess", lambda src, out=None, case=None, job=None: seen.append(job))
+    pipeline.foam(tmp_path, FoamJob(preset="auto", seed=5), seed=7, show_progress=False)
+    assert seen == [FoamJob(preset="auto", seed=7, show_progress=False)]

@@ -97,11 +97,18 @@ def _add_foam(sub) -> None:
 def _cmd_foam(a) -> int:
     from . import pipeline
 
-    info = pipeline.foam(a.input, out=a.out, preset=a.preset, ini=a.params, case=a.case, up=a.up, dt=a.dt,
-                         radius=a.radius, seed=a.seed, force=a.force, arch=a.arch)
+    info = pipeline.foam(a.input, _foam_job(a), out=a.out, ini=a.params, case=a.case)
     print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to "
           f"{info.extra.get('out', a.out or a.input)}")
     return 0
+
+
+def _foam_job(a):
+    """The FoamJob of `whitecap foam`'s arguments (built here, after parsing: the diffuse stage
+    loads Taichi, which `--help` should not wait for)."""
+    from .diffuse import FoamJob
+
+    return FoamJob(preset=a.preset, up=a.up, dt=a.dt, radius=a.radius, seed=a.seed, force=a.force, arch=a.arch)
 
 
 # ============================================================================ import

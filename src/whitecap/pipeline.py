@@ -17,6 +17,7 @@ from .config import Scene, load_scene
 from .io.run import RunInfo
 
 if TYPE_CHECKING:
+    from .diffuse import FoamJob
     from .render import RenderJob
     from .surface.driver import MeshRun
 
@@ -249,37 +250,33 @@ def blender_addon(out: str | Path | None = None) -> Path:
 # ============================================================================ foam (post-processing)
 def foam(
     input: str | Path | None = None,
+    job: FoamJob | None = None,
     out: str | Path | None = None,
-    preset: str | None = None,
     ini: str | Path | None = None,
     case: str | Path | None = None,
-    up: str = "z",
-    dt: float | None = None,
-    radius: float | None = None,
-    seed: int | None = None,
-    show_progress: bool = True,
-    force: bool = False,
-    arch: str = "cpu",
+    **options,
 ) -> RunInfo:
     """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
 
-    With ``ini`` (a parameter file), ``input`` may be left out when the file names
-    the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
+    ``job`` is a :class:`whitecap.diffuse.FoamJob` (its fields and defaults are the options:
+    preset, up, dt, radius, seed, show_progress, force, arch); ``options`` build one, or replace
+    those fields of ``job``. With ``ini`` (a parameter file), ``input`` may be left out when the
+    file names the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
     :func:`whitecap.diffuse.postprocess_params_file`.
     """
+    from .diffuse.driver import foam_job
     from .errors import InputError
 
-    kw = dict(preset=preset, up=up, dt=dt, radius=radius, seed=seed, show_progress=show_progress, force=force,
-              arch=arch)
+    job = foam_job(job, **options)
     if ini is not None:
         from .diffuse import postprocess_params_file
 
-        return postprocess_params_file(ini, src=input, out=out, case=case, **kw)
+        return postprocess_params_file(ini, src=input, out=out, case=case, job=job)
     if input is None:
         raise InputError("foam: give the INPUT sequence, or --params FILE naming it ([PATHS] InputDataPath)")
     from .diffuse import postprocess
 
-    return postprocess(input, out=out, case=case, **kw)
+    return postprocess(input, out=out, case=case, job=job)
 
 
 # ============================================================================ import a foreign case

@@ -7,11 +7,11 @@
 - :mod:`.driver`: the simulation frame hook and post-processing of any sequence.
 """
 
-from .driver import FoamStage, postprocess, postprocess_params_file, simulation_hook
+from .driver import FoamJob, FoamStage, postprocess, postprocess_params_file, simulation_hook
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
 __all__ = [
-    "simulation_hook", "postprocess", "postprocess_params_file", "FoamStage", "FoamGenerator", "DiffuseState",
-    "FoamParams", "resolve",
+    "FoamJob", "simulation_hook", "postprocess", "postprocess_params_file", "FoamStage", "FoamGenerator",
+    "DiffuseState", "FoamParams", "resolve",
 ]

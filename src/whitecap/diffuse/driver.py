@@ -17,7 +17,7 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,8 @@ from ..sim.driver import FrameHook
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, resolve
 
-__all__ = ["simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams", "resolve"]
+__all__ = ["FoamJob", "simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams",
+           "resolve"]
 
 
 def write_counts(out: Path, rows: list) -> None:
@@ -214,25 +215,47 @@ def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, show_
     return tau
 
 
+@dataclass(frozen=True)
+class FoamJob:
+    """How one post-processing ``foam`` runs: the options of ``whitecap foam`` and of
+    :func:`whitecap.pipeline.foam`, with their defaults, defined here once (the CLI and the pipeline
+    build one; :func:`postprocess` and :func:`postprocess_params_file` take it).
+
+    ``preset`` replaces the run's [foam] preset; ``up`` is the input's up axis; ``dt`` [s] and
+    ``radius`` [m] the time between frames and the particle radius where the input does not say
+    them; ``seed`` replaces the run's; ``force`` replaces a run of another simulation at the
+    output, whole; ``arch`` the Taichi backend (cpu, cuda, auto).
+    """
+
+    preset: str | None = None
+    up: str = "z"
+    dt: float | None = None
+    radius: float | None = None
+    seed: int | None = None
+    show_progress: bool = True
+    force: bool = False
+    arch: str = "cpu"
+
+
+def foam_job(job: FoamJob | None = None, **options) -> FoamJob:
+    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
+    return FoamJob(**options) if job is None else replace(job, **options)
+
+
 def postprocess(
     src: str | Path,
     out: str | Path | None = None,
+    job: FoamJob | None = None,
     params: FoamParams | None = None,
     ini: str | Path | None = None,
-    preset: str | None = None,
-    up: str = "z",
-    dt: float | None = None,
-    radius: float | None = None,
-    seed: int | None = None,
     case: str | Path | None = None,
-    show_progress: bool = True,
     frames: list[tuple[int, Path]] | None = None,
     domain: tuple | None = None,
     look_ahead: bool = True,
-    force: bool = False,
-    arch: str = "cpu",
+    **options,
 ) -> RunInfo:
-    """Diffuse particles over any particle sequence; writes (or adds to) a run directory.
+    """Diffuse particles over any particle sequence as ``job`` says (``options``, :class:`FoamJob`
+    fields, build one or replace its fields); writes (or adds to) a run directory.
 
     For a whitecap run, the run's own [foam] settings and seed are used unless
     overridden, and results land in the run itself (``out`` defaults to it).
@@ -246,48 +269,47 @@ def postprocess(
     'auto' reads frames sampled across the whole sequence first (``look_ahead``);
     without it, it keeps the simulation's running estimate, as inside ``simulate``.
     An ``out`` other than the input follows :func:`whitecap.io.run.claim_run_dir`: a run
-    of another simulation there is refused unless ``force``, which replaces it whole.
+    of another simulation there is refused unless ``job.force``, which replaces it whole.
     """
+    job = foam_job(job, **options)
     src = Path(src)
     if frames is not None or not (src.is_dir() and (src / "run.json").exists()):
-        return _postprocess_foreign(src, out, params, ini, preset, up, dt, radius, seed, case, show_progress,
-                                    frames, domain, look_ahead, force, arch)
+        return _postprocess_foreign(src, out, job, params, ini, case, frames, domain, look_ahead)
     info = RunInfo.load(src)
     if not info.files("fluid"):
         raise InputError(f"{src}/run.json: no fluid frames listed")
     foam_cfg, run_seed, grids = _run_settings(src, info)
     out = Path(out) if out is not None else src
-    p = params or resolve(foam_cfg, ini=ini, preset=preset, particle_mass=info.particle_mass)
-    seed = run_seed if seed is None else seed
-    frame_dt = _frame_dt(info, dt, radius)
+    p = params or resolve(foam_cfg, ini=ini, preset=job.preset, particle_mass=info.particle_mass)
+    seed = run_seed if job.seed is None else job.seed
+    frame_dt = _frame_dt(info, job.dt, job.radius)
     state = "same"
     if out.resolve() != src.resolve():  # copied into a run of its own: never over another simulation
-        state = claim_run_dir(out, info.simulation, force)
+        state = claim_run_dir(out, info.simulation, job.force)
     out.mkdir(parents=True, exist_ok=True)
     with run_lock(out, "foam"):
         if state == "replace":
             remove_run(out)
-        return _postprocess(src, out, p, seed, frame_dt, grids, show_progress, look_ahead, _threshold_names(ini),
-                            arch)
+        return _postprocess(src, out, p, seed, frame_dt, grids, job.show_progress, look_ahead, _threshold_names(ini),
+                            job.arch)
 
 
-def _postprocess_foreign(src: Path, out, params, ini, preset, up, dt, radius, seed, case, show_progress, frames,
-                         domain, look_ahead, force, arch) -> RunInfo:
+def _postprocess_foreign(src: Path, out, job: FoamJob, params, ini, case, frames, domain, look_ahead) -> RunInfo:
     """A foreign sequence: imported into ``out`` as a bare sequence, then :func:`postprocess` of that run
     (with the sequence's time step, so the foam is that of the frames as given)."""
     from ..cases.run_dir import write_case
     from ..cases.sequence import read_sequence
 
-    seq = read_sequence(src, frames=frames, xml=case, up=up, dt=dt, radius=radius, domain=domain)
+    seq = read_sequence(src, frames=frames, xml=case, up=job.up, dt=job.dt, radius=job.radius, domain=domain)
     if out is None:
         raise InputError(f"{src}: not a whitecap run; pass --out DIR for the results")
     # Resolved before anything is written: a setting the sequence cannot satisfy leaves no run behind.
-    p = params or resolve(Foam(), ini=ini, preset=preset, particle_mass=seq.particle_mass)
-    if seed is not None:
-        seq.notes["seed"] = seed  # the run's seed, so that `foam RUN` again makes the same foam
-    write_case(seq, out, show_progress=show_progress, force=force)
-    return postprocess(out, params=p, ini=ini, dt=seq.frame_dt, seed=seed, show_progress=show_progress,
-                       look_ahead=look_ahead, arch=arch)
+    p = params or resolve(Foam(), ini=ini, preset=job.preset, particle_mass=seq.particle_mass)
+    if job.seed is not None:
+        seq.notes["seed"] = job.seed  # the run's seed, so that `foam RUN` again makes the same foam
+    write_case(seq, out, show_progress=job.show_progress, force=job.force)
+    return postprocess(out, job=replace(job, dt=seq.frame_dt, radius=None, force=False), params=p, ini=ini,
+                       look_ahead=look_ahead)
 
 
 def run_obstacles(src: Path, info: RunInfo) -> list:
@@ -440,9 +462,11 @@ def postprocess_params_file(
     src: str | Path | None = None,
     out: str | Path | None = None,
     case: str | Path | None = None,
-    **kw,
+    job: FoamJob | None = None,
+    **options,
 ) -> RunInfo:
-    """`whitecap foam [INPUT] --params FILE`: what a parameter file describes, then :func:`postprocess`.
+    """`whitecap foam [INPUT] --params FILE`: what a parameter file describes, then :func:`postprocess`
+    as ``job`` says (``options``, :class:`FoamJob` fields, build one or replace its fields).
 
     A VisualSPHysics foam .ini (the file DualSPHysics users have) also names the
     job: input frames (InputDataPath, InputFilesPrefix, ZeroPadding and
@@ -452,49 +476,50 @@ def postprocess_params_file(
     from ..io.sequence import find_sequence
     from .params import read_ini
 
+    run = foam_job(job, **options)
     f = read_ini(ini)
-    job = f.job
-    if job is None:
+    spec = f.job
+    if spec is None:
         if src is None:
             raise InputError(f"{f.path}: no [PATHS] InputDataPath; give the INPUT sequence as well")
-        return postprocess(src, out=out, ini=f, case=case, **kw)
-    if job.exclusion_zone:
-        raise InputError(f"{f.path}: [PATHS] ExclusionZoneFile = {job.exclusion_zone}: exclusion zones are not "
+        return postprocess(src, out=out, job=run, ini=f, case=case)
+    if spec.exclusion_zone:
+        raise InputError(f"{f.path}: [PATHS] ExclusionZoneFile = {spec.exclusion_zone}: exclusion zones are not "
                          "supported; leave it empty (a [DOMAIN] CustomDomain box is)")
     frames = None
     if src is None:
-        if job.input_dir is None:
+        if spec.input_dir is None:
             raise InputError(f"{f.path}: [PATHS] InputDataPath: missing; set it or give the INPUT sequence")
-        if not job.input_dir.is_dir():
-            raise InputError(f"{f.path}: [PATHS] InputDataPath = {job.input_dir}: no such directory")
-        src = job.input_dir
-        if job.first is not None:
-            frames = _job_frames(f.path, job)
+        if not spec.input_dir.is_dir():
+            raise InputError(f"{f.path}: [PATHS] InputDataPath = {spec.input_dir}: no such directory")
+        src = spec.input_dir
+        if spec.first is not None:
+            frames = _job_frames(f.path, spec)
         else:
-            pattern = job.input_dir / f"{job.prefix}{'[0-9]' * job.zero_padding}*.vtk"
-            frames = [(i, q) for i, q in find_sequence(pattern) if job.last is None or i <= job.last]
-    elif job.first is not None or job.last is not None:
+            pattern = spec.input_dir / f"{spec.prefix}{'[0-9]' * spec.zero_padding}*.vtk"
+            frames = [(i, q) for i, q in find_sequence(pattern) if spec.last is None or i <= spec.last]
+    elif spec.first is not None or spec.last is not None:
         src_p = Path(src)
         if not (src_p.is_dir() and (src_p / "run.json").exists()):
-            lo, hi = job.first or 0, job.last if job.last is not None else float("inf")
+            lo, hi = spec.first or 0, spec.last if spec.last is not None else float("inf")
             frames = [(i, q) for i, q in find_sequence(src_p) if lo <= i <= hi]
             if not frames:
                 raise InputError(f"{f.path}: [TIMESTEPS]: no frame of {src} lies in {lo}..{hi}")
     if out is None:
-        if job.out is None:
+        if spec.out is None:
             raise InputError(f"{f.path}: [PATHS] OutputDataPath: missing; set it or pass --out")
-        out = job.out
-    if case is None and job.xml is not None:
-        if not job.xml.is_file():
-            raise InputError(f"{f.path}: [PATHS] XmlFile = {job.xml}: file not found")
-        case = job.xml
-    notes = [f"[OUTPUT] {', '.join(job.outputs)}"] if job.outputs else []
-    if job.out_prefix:
-        notes.append(f"[PATHS] FilesOutputPrefix = {job.out_prefix}")
+        out = spec.out
+    if case is None and spec.xml is not None:
+        if not spec.xml.is_file():
+            raise InputError(f"{f.path}: [PATHS] XmlFile = {spec.xml}: file not found")
+        case = spec.xml
+    notes = [f"[OUTPUT] {', '.join(spec.outputs)}"] if spec.outputs else []
+    if spec.out_prefix:
+        notes.append(f"[PATHS] FilesOutputPrefix = {spec.out_prefix}")
     if notes:
         console.print(f"note: {f.path}: {'; '.join(notes)}: whitecap writes {out}/diffuse/diffuse_NNNNN.ply "
                       f"(`whitecap export {out} --to vtk` for VTK)", soft_wrap=True)
-    return postprocess(src, out=out, ini=f, case=case, frames=frames, domain=job.domain, **kw)
+    return postprocess(src, out=out, job=run, ini=f, case=case, frames=frames, domain=spec.domain)
 
 
 def _job_frames(path: Path, job) -> list[tuple[int, Path]]:
