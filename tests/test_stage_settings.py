@@ -196,3 +196,34 @@ def test_foam_options_are_one_foam_job_that_the_cli_builds_with_its_defaults(tmp
     monkeypatch.setattr(diffuse, "postprocess", lambda src, out=None, case=None, job=None: seen.append(job))
     pipeline.foam(tmp_path, FoamJob(preset="auto", seed=5), seed=7, show_progress=False)
     assert seen == [FoamJob(preset="auto", seed=7, show_progress=False)]
+
+
+# ---------------------------------------------------------------------------- --arch and --up: one default each
+def test_every_command_defaults_to_the_one_arch_and_up_axis(tmp_path):
+    """--arch and --up default, in every command that has them, to config's DEFAULT_ARCH and DEFAULT_UP,
+    as do the pipeline functions and the stage options built from them."""
+    import inspect
+
+    from whitecap import pipeline
+    from whitecap.cli import build_parser
+    from whitecap.config import ARCHES, DEFAULT_ARCH, DEFAULT_UP, UP_AXES
+    from whitecap.diffuse import FoamJob
+
+    parser = build_parser()
+    commands = parser._subparsers._group_actions[0].choices
+    seen = {"arch": 0, "up": 0}
+    for name, sub in commands.items():
+        for action in sub._actions:
+            if action.dest == "arch":
+                assert (action.default, tuple(action.choices)) == (DEFAULT_ARCH, ARCHES), name
+                seen["arch"] += 1
+            elif action.dest == "up" and name != "import":  # import's default depends on the solver
+                assert (action.default, tuple(action.choices)) == (DEFAULT_UP, UP_AXES), name
+                seen["up"] += 1
+    assert seen["arch"] >= 4 and seen["up"] >= 3
+    for fn in (pipeline.simulate, pipeline.run, pipeline.mesh, pipeline.view):
+        params = inspect.signature(fn).parameters
+        for opt, default in (("arch", DEFAULT_ARCH), ("up", DEFAULT_UP)):
+            if opt in params:
+                assert params[opt].default == default, (fn.__name__, opt)
+    assert (FoamJob().arch, FoamJob().up) == (DEFAULT_ARCH, DEFAULT_UP)

@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from .config import Foam, Mesh, View, choices
+from .config import ARCHES, DEFAULT_ARCH, DEFAULT_UP, UP_AXES, Foam, Mesh, View, choices
 from .errors import WhitecapError
 from .pipeline import RUN_STAGES
 
@@ -40,7 +40,7 @@ def _add_simulate(sub) -> None:
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from its last checkpoint")
     p.add_argument("--force", action="store_true", help="start over in a directory that already holds a run")
-    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
+    p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help=f"Taichi backend (default {DEFAULT_ARCH})")
     p.add_argument("--no-foam", action="store_true", help="do not generate diffuse particles")
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.add_argument("--print-defaults", action="store_true", help="print the fully resolved scene and exit")
@@ -85,12 +85,12 @@ def _add_foam(sub) -> None:
                    "(its [PATHS], [TIMESTEPS] and [DOMAIN] give the job: `whitecap foam --params FILE` runs it), "
                    "or DiffuseCalculator-style keys (TaMin, KTa...)")
     p.add_argument("--case", help="DualSPHysics case XML (spacing, mass, time step, domain)")
-    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input (y for Y-up solvers)")
+    p.add_argument("--up", default=DEFAULT_UP, choices=UP_AXES, help="up axis of the input (y for Y-up solvers)")
     p.add_argument("--dt", type=float, help="time between frames [s] when the input does not say")
     p.add_argument("--radius", type=float, help="fluid particle radius [m] (half the spacing) when unknown")
     p.add_argument("--seed", type=int, help="random seed (default: the run's)")
     p.add_argument("--force", action="store_true", help="replace a run of another simulation at --out (whole)")
-    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
+    p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help=f"Taichi backend (default {DEFAULT_ARCH})")
     p.set_defaults(func=_cmd_foam)
 
 
@@ -124,7 +124,7 @@ def _add_import(sub) -> None:
     )
     p.add_argument("case_output", help="the solver's output folder")
     p.add_argument("--out", "-o", required=True, help="run directory to write")
-    p.add_argument("--up", choices=["z", "y"], help="up axis of the case (default: z for DualSPHysics, y for "
+    p.add_argument("--up", choices=UP_AXES, help="up axis of the case (default: z for DualSPHysics, y for "
                    "SPlisHSPlasH)")
     p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
     p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
@@ -184,7 +184,8 @@ def _add_mesh(sub) -> None:
                    help="do not interpolate particle velocity onto vertices")
     p.add_argument("--format", choices=choices(Mesh, "format"),
                    help=f"mesh file format (default {d['format']}; obj has no velocity)")
-    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of the input files (default z)")
+    p.add_argument("--up", default=DEFAULT_UP, choices=UP_AXES,
+                   help=f"up axis of the input files (default {DEFAULT_UP})")
     from .surface.driver import MeshRun
 
     run = MeshRun()  # the one definition of how mesh runs by default
@@ -265,8 +266,9 @@ def _add_view(sub) -> None:
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
     p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
     p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
-    p.add_argument("--up", default="z", choices=["z", "y"], help="up axis of a sequence's files (default z)")
-    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for live simulation")
+    p.add_argument("--up", default=DEFAULT_UP, choices=UP_AXES,
+                   help=f"up axis of a sequence's files (default {DEFAULT_UP})")
+    p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help="Taichi backend for live simulation")
     p.add_argument("--web", action="store_true",
                    help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
     p.add_argument("--port", type=int, default=8080, help="with --web, the port to serve on (default 8080)")
@@ -377,7 +379,7 @@ def _add_run(sub) -> None:
     p.add_argument("--frames", type=int, help="number of frames (overrides output.frames)")
     p.add_argument("--jobs", "-j", type=int, help="parallel worker processes for per-frame stages")
     _add_cluster_option(p)
-    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend for the solver")
+    p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help="Taichi backend for the solver")
     p.set_defaults(func=_cmd_run)
 
 

@@ -819,6 +819,16 @@ class Scene(_Section):
         return tomli_w.dumps(_drop_none(self.model_dump(exclude={"base_dir", "source"})))
 
 
+#: Taichi backends a command may ask for (:func:`whitecap.sim.runtime.init`): ``auto`` is CUDA when
+#: present, else the CPU; and the one every command and stage defaults to.
+ARCHES = ("cpu", "cuda", "auto")
+DEFAULT_ARCH = "cpu"
+#: Up axes of particle files read from other solvers (``y``: converted to whitecap's z up on
+#: reading), and the default: whitecap's own.
+UP_AXES = ("z", "y")
+DEFAULT_UP = "z"
+
+
 def choices(model: type[BaseModel], name: str) -> tuple[str, ...]:
     """The allowed values of a Literal field, e.g. ``choices(Foam, "preset")``: the CLI's
     choices come from here, so the scene model stays their one definition."""

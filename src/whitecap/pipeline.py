@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from . import timing
-from .config import Scene, load_scene
+from .config import DEFAULT_ARCH, DEFAULT_UP, Scene, load_scene
 from .io.run import RunInfo
 
 if TYPE_CHECKING:
@@ -36,7 +36,7 @@ def simulate(
     frames: int | None = None,
     resume: bool = False,
     force: bool = False,
-    arch: str = "cpu",
+    arch: str = DEFAULT_ARCH,
     foam: bool = True,
     profile: bool = False,
     show_progress: bool = True,
@@ -86,7 +86,7 @@ def run(
     out: str | Path | None = None,
     until: str = "render",
     preview: bool = False,
-    arch: str = "cpu",
+    arch: str = DEFAULT_ARCH,
     jobs: int | None = None,
     frames: int | None = None,
     show_progress: bool = True,
@@ -161,7 +161,7 @@ def mesh(
     out: str | Path | None = None,
     radius: float | None = None,
     config: str | Path | None = None,
-    up: str = "z",
+    up: str = DEFAULT_UP,
     profile: bool = False,
     **settings,
 ) -> list[dict]:
@@ -307,7 +307,7 @@ def import_case(
 
 # ============================================================================ view
 def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
-         mp4: bool = False, arch: str = "cpu", web: bool = False, **opts):
+         mp4: bool = False, arch: str = DEFAULT_ARCH, web: bool = False, **opts):
     """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
 
     ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import DEFAULT_UP
+
 #: roles a shape can have in a case
 ROLES = ("container", "obstacle", "body")
 
@@ -59,7 +61,7 @@ class Case:
     rest_density: float = 1000.0  # [kg/m³]
     particle_mass: float | None = None  # [kg]; None: rest_density·(2r)³
     gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, -9.81])
-    up: str = "z"  # axis that is up in the fluid files ("y": converted to z up on reading)
+    up: str = DEFAULT_UP  # axis that is up in the fluid files ("y": converted to z up on reading)
     domain: tuple[list[float], list[float]] | None = None  # (lower, upper) [m], z up; None: from the data
     domain_rule: str = "the case's"  # where ``domain`` came from, for run.json and the message
     shapes: list[CaseShape] = field(default_factory=list)

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import DEFAULT_UP
 from ..errors import InputError
 from ..io.registry import check, find_array
 from ..io.sequence import frame_number
@@ -121,7 +122,7 @@ def _groups(info: CaseInfo | None, mks: list[int]) -> list[tuple[str, list[int]]
     return groups
 
 
-def read_output(folder: str | Path, xml: str | Path | None = None, up: str = "z",
+def read_output(folder: str | Path, xml: str | Path | None = None, up: str = DEFAULT_UP,
               floating_csv: str | Path | None = None) -> Case:
     """Read a DualSPHysics output folder (see the module docstring). Every check is made
     here, before anything is written: a bad input leaves the output untouched."""

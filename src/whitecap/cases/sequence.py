@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ..config import DEFAULT_UP
 from ..errors import InputError
 from ..io.sequence import find_sequence
 from . import Case
@@ -25,7 +26,7 @@ SOLVER = "sequence"
 
 
 def read_sequence(src: str | Path, frames: list[tuple[int, Path]] | None = None, xml: str | Path | None = None,
-                  up: str = "z", dt: float | None = None, radius: float | None = None,
+                  up: str = DEFAULT_UP, dt: float | None = None, radius: float | None = None,
                   domain: tuple | None = None, option: str = "--case") -> Case:
     """The frames at ``src`` (``frames``, (index, path) pairs, when given) as a :class:`Case`.
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Foam, Scene, load_scene
+from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.diffuse_types import COUNT_NAMES
@@ -228,13 +228,13 @@ class FoamJob:
     """
 
     preset: str | None = None
-    up: str = "z"
+    up: str = DEFAULT_UP
     dt: float | None = None
     radius: float | None = None
     seed: int | None = None
     show_progress: bool = True
     force: bool = False
-    arch: str = "cpu"
+    arch: str = DEFAULT_ARCH
 
 
 def foam_job(job: FoamJob | None = None, **options) -> FoamJob:
@@ -362,7 +362,7 @@ def _threshold_names(ini) -> dict[str, str]:
 
 
 def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float, grids: list, show_progress: bool,
-                 look_ahead: bool, names: dict[str, str], arch: str = "cpu") -> RunInfo:
+                 look_ahead: bool, names: dict[str, str], arch: str = DEFAULT_ARCH) -> RunInfo:
     info = RunInfo.load(src)  # read again under the lock: what is current cannot change from here on
     files = [(i, src / rel) for i, rel in info.files("fluid")]
     reader = _Reader(files)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Scene, scene_from_dict
+from ..config import DEFAULT_ARCH, Scene, scene_from_dict
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import sweep_temps, write_arrays
@@ -128,7 +128,7 @@ def run_info_for(scene: Scene, solver) -> RunInfo:
     )
 
 
-def build_solver(scene: Scene, arch: str = "cpu", frames: int | None = None):
+def build_solver(scene: Scene, arch: str = DEFAULT_ARCH, frames: int | None = None):
     """Initialise Taichi and build the solver with obstacles, emitters and sinks from the scene
     (its arrays sized for ``frames``, when more than the scene's, see sim.emitters.capacity)."""
     from .emitters import Sources, capacity
@@ -291,7 +291,7 @@ def run_simulation(
     frames: int | None = None,
     resume: bool = False,
     force: bool = False,
-    arch: str = "cpu",
+    arch: str = DEFAULT_ARCH,
     hooks: list[FrameHook] | tuple[FrameHook, ...] = (),
     show_progress: bool = True,
     solver=None,

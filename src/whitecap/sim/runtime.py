@@ -10,6 +10,7 @@ import os
 
 import taichi as ti
 
+from ..config import ARCHES, DEFAULT_ARCH
 from ..errors import WhitecapError
 
 _ARCH: str | None = None
@@ -30,11 +31,11 @@ def _has_nvidia_device() -> bool:
     return os.path.exists("/dev/nvidiactl") or os.path.exists("/proc/driver/nvidia/version")
 
 
-def init(arch: str = "cpu") -> str:
+def init(arch: str = DEFAULT_ARCH) -> str:
     """Initialise Taichi once for this process; return the arch actually used."""
     global _ARCH
-    if arch not in ("cpu", "cuda", "auto"):
-        raise WhitecapError(f"--arch: expected cpu, cuda or auto, got {arch!r}")
+    if arch not in ARCHES:
+        raise WhitecapError(f"--arch: expected {', '.join(ARCHES[:-1])} or {ARCHES[-1]}, got {arch!r}")
     want = "cuda" if arch == "cuda" or (arch == "auto" and cuda_available()) else "cpu"
     if arch == "cuda" and not cuda_available():
         raise WhitecapError("--arch cuda: no CUDA device found (use --arch auto to fall back to the CPU)")

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from ..config import Cluster, Mesh, load_scene
+from ..config import DEFAULT_UP, Cluster, Mesh, load_scene
 from ..errors import InputError
 from ..io.atomic import sweep_temps
 from ..io.lock import read_lock, run_lock
@@ -90,7 +90,7 @@ def mesh_config(base: Mesh | None = None, **overrides) -> Mesh:
 
 
 def plan(source: str | Path, out: str | Path | None = None, radius: float | None = None,
-         config: Mesh | None = None, up: str = "z", **overrides) -> MeshJob:
+         config: Mesh | None = None, up: str = DEFAULT_UP, **overrides) -> MeshJob:
     """Resolve the input (run directory or sequence), the parameters and the output names."""
     src = Path(source)
     is_run = src.is_dir() and (src / RUN_JSON).is_file()

@@ -40,7 +40,7 @@ import numpy as np
 from pydantic import ConfigDict, model_validator
 
 from .. import io as wio
-from ..config import Mesh
+from ..config import DEFAULT_UP, Mesh
 from ..errors import InputError, WhitecapError
 from ..io.mesh import SurfaceMesh, write_mesh
 from ..timing import timer
@@ -55,7 +55,7 @@ class MeshParams(Mesh):
 
     particle_radius: float  # simulation particle radius r [m]
     rest_density: float = 1000.0  # [kg/m³]
-    up: str = "z"  # the input files' up axis
+    up: str = DEFAULT_UP  # the input files' up axis
     #: Solid walls the surface is closed against: (axis 0-2, side -1 lower / +1 upper, plane coordinate [m]).
     walls: tuple = ()
 

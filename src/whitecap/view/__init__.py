@@ -12,8 +12,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..config import DEFAULT_ARCH
 
-def view(target, headless: bool = False, out=None, frames=None, mp4: bool = False, arch: str = "cpu", **opts):
+
+def view(target, headless: bool = False, out=None, frames=None, mp4: bool = False, arch: str = DEFAULT_ARCH,
+         **opts):
     """Show TARGET (scene TOML = live, run directory or sequence = playback).
 
     Headless returns the written PNG paths; interactive returns None when the window closes.

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Scene, View, load_scene
+from ..config import DEFAULT_ARCH, DEFAULT_UP, Scene, View, load_scene
 from ..errors import InputError, WhitecapError
 from ..io.movie import encode_mp4
 from .geometry import load_obstacle_meshes
@@ -37,7 +37,7 @@ VIEW_MP4_QUALITY = 7  # imageio 0-10: a preview, smaller than render/movie.mp4 (
 
 
 # ----------------------------------------------------------------------------- setup
-def open_source(target: str | Path, arch: str = "cpu", up: str = "z"):
+def open_source(target: str | Path, arch: str = DEFAULT_ARCH, up: str = DEFAULT_UP):
     """A LiveSource for a scene TOML, else a PlaybackSource for a run or sequence."""
     p = Path(target)
     if p.suffix.lower() == ".toml":
@@ -244,8 +244,8 @@ def _new_state(cfg: View, source) -> ViewerState:
 
 
 def run_headless(
-    target, out: str | Path, frames: int | None = None, mp4: bool = False, arch: str = "cpu",
-    size: tuple[int, int] | None = None, color_mode: str | None = None, up: str = "z",
+    target, out: str | Path, frames: int | None = None, mp4: bool = False, arch: str = DEFAULT_ARCH,
+    size: tuple[int, int] | None = None, color_mode: str | None = None, up: str = DEFAULT_UP,
     panel: bool = False, legend: bool = True, show_progress: bool = True,
 ) -> list[Path]:
     """Render frames offscreen to OUT/view_NNNNN.png (and OUT/view.mp4). Returns the PNG paths.
@@ -336,7 +336,7 @@ def _fps(source) -> float:
     return float(source.info.frame_rate) if source.info is not None else 30.0
 
 
-def run_interactive(target, arch: str = "cpu", up: str = "z", out: str | Path = "view_out",
+def run_interactive(target, arch: str = DEFAULT_ARCH, up: str = DEFAULT_UP, out: str | Path = "view_out",
                     size: tuple[int, int] | None = None, color_mode: str | None = None,
                     max_frames: int | None = None, window=None, recording: bool = False) -> ViewerState:
     """Open a window and show the scene (live) or the sequence (playback) until closed.

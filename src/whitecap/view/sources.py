@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import DEFAULT_ARCH, DEFAULT_UP
 from ..errors import InputError
 from ..io import read
 from ..io.record import Obstacle
@@ -77,7 +78,7 @@ class PlaybackSource:
 
     live = False
 
-    def __init__(self, path: str | Path, up: str = "z"):
+    def __init__(self, path: str | Path, up: str = DEFAULT_UP):
         self.path = Path(path)
         self.up = up
         self.info: RunInfo | None = None
@@ -167,7 +168,7 @@ class LiveSource:
     """A solver advanced frame by frame while the viewer shows it."""
 
     scene: object
-    arch: str = "cpu"
+    arch: str = DEFAULT_ARCH
     live: bool = True
     hook: object | None = None
     _initial: dict = field(default_factory=dict)

@@ -52,6 +52,7 @@ import time
 
 import numpy as np
 
+from ..config import DEFAULT_ARCH, DEFAULT_UP
 from ..errors import InputError, WhitecapError
 from ..geometry import pose_matrix
 from ..io.diffuse_types import TYPE_NAMES
@@ -150,7 +151,8 @@ class WebViewer:
     ``paced=False`` plays as fast as frames can be read (the benchmark).
     """
 
-    def __init__(self, target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
+    def __init__(self, target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = DEFAULT_ARCH,
+                 up: str = DEFAULT_UP,
                  color_mode: str | None = None, max_points: int = MAX_POINTS, paced: bool = True,
                  point_shape: str = "circle", points: str | None = None):
         try:
@@ -785,7 +787,7 @@ class _PagePictures:
         self.wake.set()  # a newer frame or camera may have come meanwhile
 
 
-def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = "cpu", up: str = "z",
+def serve(target, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, arch: str = DEFAULT_ARCH, up: str = DEFAULT_UP,
           color_mode: str | None = None, max_points: int = MAX_POINTS, points: str | None = None,
           announce=print) -> None:
     """The CLI's ``view --web``: serve until Ctrl-C, after printing the URL."""
