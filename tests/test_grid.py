@@ -123,6 +123,44 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     np.testing.assert_allclose(vsum.to_numpy()[sure], (w @ v)[sure], rtol=1e-3, atol=1e-4)
 
 
+def test_a_count_that_stops_past_its_threshold_is_exact_below_it(grid_and_points):
+    """fluid_count (for_each_neighbor with a stop, columns nearest first): the brute-force count of the
+    fluid particles within h where that is at most the threshold, a number above it where the true count is;
+    so a type decided by count > threshold is the full count's."""
+    import taichi as ti
+
+    from whitecap.diffuse.kernels import fluid_count
+
+    g, _, x = grid_and_points
+    rng = np.random.default_rng(3)
+    q = np.concatenate([rng.uniform(-0.05, 1.05, (400, 3)), x[:300] + rng.normal(0, H / 4, (300, 3)),
+                        np.round(x[300:400] / (H / 2)) * (H / 2)]).astype(np.float32)
+    qs = ti.Vector.ndarray(3, ti.f32, len(q))
+    qs.from_numpy(q)
+    F3 = ti.types.ndarray(dtype=ti.math.vec3, ndim=1)
+    I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+    @ti.kernel
+    def probe(m: ti.i32, qs: F3, lower: ti.math.vec3, inv_cell: ti.f32, dims: ti.math.ivec3, xs: F3, start: I1,
+              reach: ti.template(), h: ti.f32, most: ti.i32, cnt: I1):
+        for p in range(m):
+            cnt[p] = fluid_count(qs[p], lower, inv_cell, dims, xs, start, reach, h, most)
+
+    near, edge = _within(q, x)
+    true = near.sum(1)
+    sure = ~edge.any(1)
+    for most in (2, 20, 60):
+        cnt = ti.ndarray(ti.i32, len(q))
+        probe(len(q), qs, *g.query_args(), H, most, cnt)
+        c = cnt.to_numpy()
+        below = sure & (true <= most)
+        above = sure & (true > most)
+        assert below.sum() > 20 and above.sum() > 20, (most, below.sum(), above.sum())
+        assert (c[below] == true[below]).all()
+        assert (c[above] > most).all() and (c[above] <= true[above]).all()
+    assert (true[sure] > 60).sum() > 50  # points deep in the blobs, whose count stops early
+
+
 # ---------------------------------------------------------------- hashed cell table (issue 31 goal 3)
 def _near_chunked(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_within` for another h, a few rows at a time (no n × n × 3 intermediate)."""
