@@ -341,9 +341,9 @@ def for_each_neighbor(
         for d in ti.static(nearest_columns(reach)):
             cx = c.x + d[0]
             cy = c.y + d[1]
-            go = (0 <= cx) & (cx < dims.x) & (0 <= cy) & (cy < dims.y)
+            go = ti.cast((0 <= cx) & (cx < dims.x) & (0 <= cy) & (cy < dims.y), ti.i32)
             if ti.static(abs(d[0]) == reach and abs(d[1]) == reach):
-                go &= 1 - _corner_beyond(ps, cs, lower, w, d[0], d[1], reach, h_corner2)
+                go = go * (1 - _corner_beyond(ps, cs, lower, w, d[0], d[1], reach, h_corner2))
             if go and not stop(*args):
                 _scan_column(ps, cx, cy, z0, z1, lower, inv_cell, dims, x_sorted, start, scan, h2, task, args,
                              every_candidate)
