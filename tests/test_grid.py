@@ -90,6 +90,7 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     import taichi as ti
 
     from whitecap.diffuse.kernels import fluid_neighbourhood
+    from whitecap.sim.grid import GridQuery
 
     g, _, x = grid_and_points
     rng = np.random.default_rng(2)
@@ -106,10 +107,10 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 
     @ti.kernel
-    def probe(m: ti.i32, qs: F3, lower: ti.math.vec3, inv_cell: ti.f32, dims: ti.math.ivec3, xs: F3, start: I1,
-              reach: ti.template(), h: ti.f32, order: I1, fv: F3, cnt: I1, vsum: F3, wsum: F1):
+    def probe(m: ti.i32, qs: F3, grid: GridQuery, scan: ti.template(), h: ti.f32, order: I1, fv: F3, cnt: I1,
+              vsum: F3, wsum: F1):
         for p in range(m):
-            c, vs, ws = fluid_neighbourhood(qs[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
+            c, vs, ws = fluid_neighbourhood(qs[p], grid, scan, h, order, fv)
             cnt[p], vsum[p], wsum[p] = c, vs, ws
 
     probe(len(q), qs, *g.query_args(), H, g.order, fv, cnt, vsum, wsum)
@@ -130,6 +131,7 @@ def test_a_count_that_stops_past_its_threshold_is_exact_below_it(grid_and_points
     import taichi as ti
 
     from whitecap.diffuse.kernels import fluid_count
+    from whitecap.sim.grid import GridQuery
 
     g, _, x = grid_and_points
     rng = np.random.default_rng(3)
@@ -141,10 +143,9 @@ def test_a_count_that_stops_past_its_threshold_is_exact_below_it(grid_and_points
     I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
     @ti.kernel
-    def probe(m: ti.i32, qs: F3, lower: ti.math.vec3, inv_cell: ti.f32, dims: ti.math.ivec3, xs: F3, start: I1,
-              reach: ti.template(), h: ti.f32, most: ti.i32, cnt: I1):
+    def probe(m: ti.i32, qs: F3, grid: GridQuery, scan: ti.template(), h: ti.f32, most: ti.i32, cnt: I1):
         for p in range(m):
-            cnt[p] = fluid_count(qs[p], lower, inv_cell, dims, xs, start, reach, h, most)
+            cnt[p] = fluid_count(qs[p], grid, scan, h, most)
 
     near, edge = _within(q, x)
     true = near.sum(1)

@@ -774,7 +774,7 @@ class FoamGenerator:
             K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
                                   p.lifetime_multiplier, self.r, dt, self.seed, frame, cx, cv, cl)
             K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count,
-                                  g.nb, *args[:7], *box, kd)
+                                  g.nb, *args[:3], *box, kd)
 
         def thin(base: int, size: int, tally) -> None:
             K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)

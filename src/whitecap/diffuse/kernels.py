@@ -15,7 +15,7 @@ import math
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, I2, for_each_neighbor
+from ..sim.grid import F1, F3, I1, I2, GridQuery, for_each_neighbor
 from ..sim.obstacles import FAR, sdf_sample
 from . import splishsplash as SP
 
@@ -238,18 +238,13 @@ def _weigh_fluid(
 
 
 @ti.func
-def fluid_neighbourhood(
-    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1,
-    reach: ti.template(), h: ti.f32, order: I1, fv: F3,
-):
+def fluid_neighbourhood(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, order: I1, fv: F3):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
-    :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``, then h, order)."""
+    :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``: the query and the scan, then h, order)."""
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor(
-        [p], h, lower, inv_cell, dims, xs, start, reach, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False
-    )
+    for_each_neighbor([p], h, grid, scan, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False)
     return cnt, vsum, wsum
 
 
@@ -284,12 +279,8 @@ def advect_diffuse(
     xd: F3,
     vd: F3,
     life: F1,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ti.math.ivec3,
-    xs: F3,
-    start: I1,
-    reach: ti.template(),
+    grid: GridQuery,
+    scan: ti.template(),
     h: ti.f32,
     order: I1,
     fv: F3,
@@ -315,7 +306,7 @@ def advect_diffuse(
     that leave the domain. ``kind`` is the type each particle moved as. ``wall_correction``:
     FoamGenerator's foam-count correction near the domain's faces (see diffuse_type_in_box)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, order, fv)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
@@ -345,12 +336,8 @@ def advect_diffuse(
 def classify(
     nd: ti.i32,
     xd: F3,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ti.math.ivec3,
-    xs: F3,
-    start: I1,
-    reach: ti.template(),
+    grid: GridQuery,
+    scan: ti.template(),
     h: ti.f32,
     order: I1,
     fv: F3,
@@ -363,7 +350,7 @@ def classify(
 ):
     """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type_in_box)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], lower, inv_cell, dims, xs, start, reach, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, order, fv)
         kind[p] = diffuse_type_in_box(xd[p], cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
 
 
@@ -389,10 +376,7 @@ def _counted_past(h2, cnt: ti.template(), most) -> ti.i32:
 
 
 @ti.func
-def fluid_count(
-    p: vec3, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), xs: F3, start: I1,
-    reach: ti.template(), h: ti.f32, most: ti.i32,
-) -> ti.i32:
+def fluid_count(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, most: ti.i32) -> ti.i32:
     """The number of fluid particles within h of a point (as :func:`fluid_neighbourhood` counts them, without
     its velocity sums), exact up to ``most``; above it, some number above ``most``: the query scans the
     nearest columns of cells first and stops once the count passes it (for_each_neighbor's ``stop``).
@@ -401,8 +385,7 @@ def fluid_count(
     candidates (80 % on bench_foam's 100k) are bubbles, born inside the water, whose count passes
     bubble_above before the outer columns: the foam stage's CPU time there went 190 → 180 ms a frame."""
     cnt = 0
-    for_each_neighbor([p], h, lower, inv_cell, dims, xs, start, reach, _count_fluid, (h * h, cnt, most), True,
-                      _counted_past)
+    for_each_neighbor([p], h, grid, scan, _count_fluid, (h * h, cnt, most), True, _counted_past)
     return cnt
 
 
@@ -452,12 +435,8 @@ def classify_candidates(
     x: F3,
     nb_count: I1,
     nb: I2,
-    lower: vec3,
-    inv_cell: ti.f32,
-    dims: ti.math.ivec3,
-    xs: F3,
-    start: I1,
-    reach: ti.template(),
+    grid: GridQuery,
+    scan: ti.template(),
     h: ti.f32,
     spray_below: ti.i32,
     bubble_above: ti.i32,
@@ -490,7 +469,7 @@ def classify_candidates(
             else:
                 full = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
             if full:  # one search in the kernel's code (it is inlined where it is called)
-                cnt = fluid_count(p, lower, inv_cell, dims, xs, start, reach, h, bubble_above)
+                cnt = fluid_count(p, grid, scan, h, bubble_above)
                 t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
                 if s >= limit[i, t]:
                     t = NOT_KEPT

@@ -45,6 +45,7 @@ whatever the particle count.
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import taichi as ti
 
@@ -102,6 +103,23 @@ class Scan:
 
     reach: int
     hashed: bool = False
+
+
+#: The grid's query arguments, one kernel argument (a Taichi argument pack; its arrays are bound, not
+#: copied): the domain's lower corner [m], 1 / cell width [1/m], the cells along x, y, z, the positions in
+#: cell order and each table entry's first slot. :meth:`NeighborGrid.query_args` gives the grid's own.
+GridQuery = ti.types.argpack(lower=vec3, inv_cell=ti.f32, dims=ivec3, x_sorted=F3, start=I1)
+
+
+class LooseQuery(NamedTuple):
+    """The members of a :data:`GridQuery` from loose kernel arguments (handed on as ``ti.static``), for
+    kernels launched in a compute graph."""
+
+    lower: Any
+    inv_cell: Any
+    dims: Any
+    x_sorted: Any
+    start: Any
 
 
 @ti.func
@@ -264,19 +282,20 @@ def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
 
 @ti.func
 def for_each_neighbor(
-    ps: ti.template(), h: ti.f32, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3,
-    start: I1, scan: ti.template(), task: ti.template(), args: ti.template(), every_candidate: ti.template(),
-    stop: ti.template() = None,
+    ps: ti.template(), h: ti.f32, q: ti.template(), scan: ti.template(), task: ti.template(), args: ti.template(),
+    every_candidate: ti.template(), stop: ti.template() = None,
 ):
     """The one neighbour query: calls ``task(g, s, r², *args)`` for every
     particle within ``h`` of the point ``ps[g]`` (|x_s − ps[g]|² < h²), where
     ``ps`` is a list of points fixed at compile time (usually one), ``s`` is the
     particle's slot in cell order (``order[s]`` its index, ``x_sorted[s]`` its
-    position) and r² its squared distance. ``lower``, ``inv_cell``, ``dims``,
-    ``x_sorted``, ``start`` and ``scan`` (a :class:`Scan`: the reach and the table's
+    position) and r² its squared distance. ``q`` (a :data:`GridQuery`: ``lower``, ``inv_cell``,
+    ``dims``, ``x_sorted``, ``start``) and ``scan`` (a :class:`Scan`: the reach and the table's
     layout) are those of a built :class:`NeighborGrid`, as :meth:`~NeighborGrid.query_args`
-    gives them (a kernel takes them as arguments and hands them on: as templates they are not
-    copied, which keeps the scan as fast as if it were written in the kernel).
+    gives them (a kernel takes ``q`` as one argument and hands it on as a template: it is not
+    copied, which keeps the scan as fast as if it were written in the kernel). The solver's
+    recorded launches (compute graphs take no argument packs) take the five as loose arguments
+    and hand on a :class:`LooseQuery` of them instead.
     A point p falls in cell floor((p − lower)·inv_cell), clamped to [0, dims).
     ``args`` is a tuple handed on to ``task``; give its accumulators a
     ``ti.template()`` annotation in ``task`` so that they are updated in place.
@@ -312,7 +331,7 @@ def for_each_neighbor(
     does not depend on the order it meets the candidates in can use it (a count
     that need only be known up to a threshold: :func:`~whitecap.diffuse.kernels.fluid_count`)."""
     reach = ti.static(scan.reach)
-    cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(len(ps)))]
+    cs = [cell_of(ps[g], q.lower, q.inv_cell, q.dims) for g in ti.static(range(len(ps)))]
     c = cs[0]
     z_lo = c.z
     z_hi = c.z
@@ -320,33 +339,33 @@ def for_each_neighbor(
         z_lo = ti.min(z_lo, cs[g].z)
         z_hi = ti.max(z_hi, cs[g].z)
     z0 = ti.max(z_lo - reach, 0)
-    z1 = ti.min(z_hi + reach, dims.z - 1)
+    z1 = ti.min(z_hi + reach, q.dims.z - 1)
     h2 = h * h
-    w = 1.0 / inv_cell  # cell width
+    w = 1.0 / q.inv_cell  # cell width
     # Corner test with h grown by a hundredth of a cell, so that rounding in f never drops a column holding a neighbour.
     h_corner2 = (h + CORNER_SLACK * w) ** 2
     if ti.static(_no_stop(stop)):
         for dx in ti.static(range(-reach, reach + 1)):
             cx = c.x + dx
-            if 0 <= cx < dims.x:
+            if 0 <= cx < q.dims.x:
                 y0 = c.y - reach
                 y1 = c.y + reach
                 if ti.static(abs(dx) == reach):
-                    y0 += _corner_beyond(ps, cs, lower, w, dx, -reach, reach, h_corner2)
-                    y1 -= _corner_beyond(ps, cs, lower, w, dx, reach, reach, h_corner2)
-                for cy in range(ti.max(y0, 0), ti.min(y1, dims.y - 1) + 1):
-                    _scan_column(ps, cx, cy, z0, z1, lower, inv_cell, dims, x_sorted, start, scan, h2, task, args,
-                                 every_candidate)
+                    y0 += _corner_beyond(ps, cs, q.lower, w, dx, -reach, reach, h_corner2)
+                    y1 -= _corner_beyond(ps, cs, q.lower, w, dx, reach, reach, h_corner2)
+                for cy in range(ti.max(y0, 0), ti.min(y1, q.dims.y - 1) + 1):
+                    _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2,
+                                 task, args, every_candidate)
     else:
         for d in ti.static(nearest_columns(reach)):
             cx = c.x + d[0]
             cy = c.y + d[1]
-            go = ti.cast((0 <= cx) & (cx < dims.x) & (0 <= cy) & (cy < dims.y), ti.i32)
+            go = ti.cast((0 <= cx) & (cx < q.dims.x) & (0 <= cy) & (cy < q.dims.y), ti.i32)
             if ti.static(abs(d[0]) == reach and abs(d[1]) == reach):
-                go = go * (1 - _corner_beyond(ps, cs, lower, w, d[0], d[1], reach, h_corner2))
+                go = go * (1 - _corner_beyond(ps, cs, q.lower, w, d[0], d[1], reach, h_corner2))
             if go and not stop(*args):
-                _scan_column(ps, cx, cy, z0, z1, lower, inv_cell, dims, x_sorted, start, scan, h2, task, args,
-                             every_candidate)
+                _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2, task,
+                             args, every_candidate)
 
 
 def _no_stop(stop) -> bool:
@@ -564,8 +583,8 @@ def _build_lists(
                 if together:
                     bufs = [ti.Vector([0] * (cap + 1), dt=ti.i32) for _ in ti.static(range(group))]  # [cap]: sink
                     ks = [0 for _ in ti.static(range(group))]
-                    for_each_neighbor(ps, h, lower, inv_cell, dims, x_sorted, start, scan, _append_slot,
-                                      (slots, h2, bufs, cap, ks), True)
+                    q = ti.static(LooseQuery(lower, inv_cell, dims, x_sorted, start))
+                    for_each_neighbor(ps, h, q, scan, _append_slot, (slots, h2, bufs, cap, ks), True)
                     for g in ti.static(range(group)):
                         if si + g < end:
                             _store_list(order, slots[g], bufs[g], ks[g], cap, nb_count, nb, overflow, pad)
@@ -593,8 +612,8 @@ def _single_list(
     """The neighbour list of the particle in slot ``si`` alone (see :func:`_build_lists`)."""
     buf = ti.Vector([0] * (cap + 1), dt=ti.i32)  # buf[cap]: the sink of the overflow
     k = 0
-    for_each_neighbor([x_sorted[si]], h, lower, inv_cell, dims, x_sorted, start, scan, _append_slot,
-                      ([si], h2, [buf], cap, [k]), True)
+    q = ti.static(LooseQuery(lower, inv_cell, dims, x_sorted, start))
+    for_each_neighbor([x_sorted[si]], h, q, scan, _append_slot, ([si], h2, [buf], cap, [k]), True)
     _store_list(order, si, buf, k, cap, nb_count, nb, overflow, pad)
 
 
@@ -708,6 +727,9 @@ class NeighborGrid:
         self.lower = vec3(*spec.lower)
         self.inv_cell = 1.0 / spec.cell
         self.dims = ivec3(*spec.dims)
+        self.query = GridQuery(
+            lower=self.lower, inv_cell=self.inv_cell, dims=self.dims, x_sorted=self.x_sorted, start=self.start
+        )
 
     def nbytes(self) -> int:
         nc = self.table_size
@@ -768,10 +790,10 @@ class NeighborGrid:
         return k
 
     def query_args(self) -> tuple:
-        """(lower, inv_cell, dims, x_sorted, start, scan): what a kernel hands
-        :func:`for_each_neighbor` to search this grid after :meth:`build` (``scan``, a
-        :class:`Scan`, is a compile-time template: the reach and the table's layout)."""
-        return self.lower, self.inv_cell, self.dims, self.x_sorted, self.start, self.scan
+        """(query, scan): what a kernel hands :func:`for_each_neighbor` to search this grid after
+        :meth:`build`: ``query`` a :data:`GridQuery` (made once with the grid), ``scan`` a :class:`Scan`,
+        a compile-time template (the reach and the table's layout)."""
+        return self.query, self.scan
 
 
 def len_blocks(nc: int) -> int:
