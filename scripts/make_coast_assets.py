@@ -194,7 +194,8 @@ def armour(core: trimesh.Trimesh, rng: np.random.Generator, unit: trimesh.Trimes
         total = areas[keep].sum()
         n = int(total / UNIT_SPACING ** 2)
         # Three times the draws, thinned to points at least 0.92 spacings apart (trimesh says how many it kept).
-        pts, fid = trimesh.sample.sample_surface_even(core, n * 3, radius=UNIT_SPACING * 0.92, seed=int(rng.integers(1 << 30)))
+        pts, fid = trimesh.sample.sample_surface_even(core, n * 3, radius=UNIT_SPACING * 0.92,
+                                                      seed=int(rng.integers(1 << 30)))
         ok = keep[fid]
         pts, fid = pts[ok], fid[ok]
         offset = UNIT_SIZE * (0.28 + 0.42 * layer)
@@ -402,9 +403,10 @@ def main() -> None:
     save("coast_wavemaker.ply", paddle)
     # The paddle stands in for the storm's swell coming in from the open sea, so it is not drawn: its
     # render mesh is a 1 cm cube 0.6 m below it, under the sea bed.
-    save("coast_wavemaker_render.ply", trimesh.creation.box(extents=[0.01] * 3,
-                                                            transform=trimesh.transformations.translation_matrix([0, 0, -0.6])))
-    print(f"tetrapod: {len(unit.faces)} faces, {unit.volume * 1e6:.0f} cm³, height {np.ptp(unit.vertices[:, 2]) * 100:.1f} cm; "
+    below = trimesh.transformations.translation_matrix([0, 0, -0.6])
+    save("coast_wavemaker_render.ply", trimesh.creation.box(extents=[0.01] * 3, transform=below))
+    print(f"tetrapod: {len(unit.faces)} faces, {unit.volume * 1e6:.0f} cm³, "
+          f"height {np.ptp(unit.vertices[:, 2]) * 100:.1f} cm; "
           f"{count} units; breakwater render mesh {len(render.faces)} faces; collision {len(col.faces)} faces")
     for f in sorted(ASSETS.glob("coast*")):
         print(f"  {f}: {f.stat().st_size / 1024:.0f} KiB")

@@ -150,7 +150,8 @@ def heights_m(x, y, rng) -> np.ndarray:
     crag_here = crag >= z - 1e-9
     z += 0.004 * smooth_noise(shape, 2.5, rng)  # stones and tufts
     bank = np.exp(-e / 0.12) * np.clip(e / 0.02, 0, 1) + crag_here * (x < 0.3) * (1 - notch)
-    z += (0.008 * smooth_noise(shape, 3, rng) + 0.014 * smooth_noise(shape, 8, rng)) * np.clip(bank, 0, 1)  # rock relief
+    relief = 0.008 * smooth_noise(shape, 3, rng) + 0.014 * smooth_noise(shape, 8, rng)
+    z += relief * np.clip(bank, 0, 1)  # rock relief
     z += 0.01 * smooth_noise(shape, 8, rng) * np.clip(e / 0.1, 0, 1)  # rougher ground off the bed
     for bx, by, br, bh in BOULDERS:  # water-worn: an ellipse of random aspect and heading,
         # rising to a blunt peak (so that all of it is steeper than grass grows on), lumpy

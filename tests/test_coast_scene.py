@@ -52,8 +52,10 @@ def test_coast_scene_is_an_open_sea_over_terrain_with_the_script_geometry():
     assert scene.terrain is not None and scene.terrain.material == "sand"
     assert scene.render.sea and not scene.render.ground and scene.render.container in (None, "none")
     assert scene.render.sea_level == pytest.approx(assets.SEA_LEVEL) == scene.terrain.water_level
-    assert list(scene.domain.lower) == list(assets.DOMAIN_LOWER) and list(scene.domain.upper) == list(assets.DOMAIN_UPPER)
-    assert list(scene.terrain.lower) == list(assets.TERRAIN_LOWER) and list(scene.terrain.size) == list(assets.TERRAIN_SIZE)
+    assert list(scene.domain.lower) == list(assets.DOMAIN_LOWER)
+    assert list(scene.domain.upper) == list(assets.DOMAIN_UPPER)
+    assert list(scene.terrain.lower) == list(assets.TERRAIN_LOWER)
+    assert list(scene.terrain.size) == list(assets.TERRAIN_SIZE)
     assert list(scene.terrain.height) == list(assets.TERRAIN_HEIGHT)
     assert max(f.upper[2] for f in scene.fluid) == pytest.approx(assets.SEA_LEVEL)
     # The terrain image is far larger than the domain: beach around it, sea bed under the open sea.
