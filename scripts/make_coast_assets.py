@@ -41,7 +41,13 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from whitecap.terrain import closed_solid, grid_surface, heightfield_from_mesh, write_heightmap  # noqa: E402
+from whitecap.terrain import (  # noqa: E402
+    closed_solid,
+    grid_surface,
+    heightfield_from_mesh,
+    smooth_noise,
+    write_heightmap,
+)
 
 ASSETS = ROOT / "scenes" / "assets"
 
@@ -70,14 +76,6 @@ PADDLE_X = 0.2                           # the wave maker's rest position (its c
 
 
 # --------------------------------------------------------------------------- noise
-def smooth_noise(shape: tuple[int, ...], scale: float, rng: np.random.Generator) -> np.ndarray:
-    """Value noise of feature size ``scale`` pixels, in about [-1, 1]."""
-    from scipy.ndimage import gaussian_filter
-
-    n = gaussian_filter(rng.standard_normal(shape), scale, mode="wrap")
-    return n / (np.abs(n).max() + 1e-12)
-
-
 # --------------------------------------------------------------------------- terrain
 def beach_z(x: np.ndarray) -> np.ndarray:
     """The beach's profile across the shore [m]: flat sea bed, a concave beach up to the berm,

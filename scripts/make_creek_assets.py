@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from whitecap.terrain import write_heightmap  # noqa: E402
+from whitecap.terrain import smooth_noise, write_heightmap  # noqa: E402
 
 LOWER = (-3.0, -1.6)  # x, y of the image's lower corner [m]
 SIZE = (7.0, 4.0)  # its extent [m]
@@ -94,13 +94,6 @@ def half_width(x):
     x = np.asarray(x, np.float64)
     s = np.clip((x - POOL[0]) / 0.12, 0, 1) * np.clip((POOL[1] - x) / 0.08, 0, 1)
     return 0.12 + 0.15 * s * s * (3 - 2 * s)
-
-
-def smooth_noise(shape, scale, rng):
-    from scipy.ndimage import gaussian_filter
-
-    n = gaussian_filter(rng.standard_normal(shape), scale, mode="wrap")
-    return n / (np.abs(n).max() + 1e-12)
 
 
 def cobbles(x, y, rng) -> np.ndarray:

@@ -18,15 +18,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from whitecap.terrain import write_heightmap  # noqa: E402
-
-
-def smooth_noise(shape: tuple[int, int], scale: float, rng: np.random.Generator) -> np.ndarray:
-    """Value noise of feature size ``scale`` pixels, in about [-1, 1]."""
-    from scipy.ndimage import gaussian_filter
-
-    n = gaussian_filter(rng.standard_normal(shape), scale, mode="wrap")
-    return n / (np.abs(n).max() + 1e-12)
+from whitecap.terrain import smooth_noise, write_heightmap  # noqa: E402
 
 
 def beach_heights(width: int = 512, height: int = 256, seed: int = 7, toe: float = 0.35, top: float = 0.8,

@@ -79,6 +79,15 @@ def read_heightmap(path: Path, field: str = "terrain.heightmap") -> np.ndarray:
     return img.astype(np.float64) / 65535.0
 
 
+def smooth_noise(shape: tuple[int, ...], scale: float, rng: np.random.Generator) -> np.ndarray:
+    """Value noise of feature size ``scale`` pixels, in about [-1, 1]: Gaussian-filtered white noise,
+    wrapped at the edges, for the procedural heightmaps of the example scenes (scripts/make_*_assets.py)."""
+    from scipy.ndimage import gaussian_filter
+
+    n = gaussian_filter(rng.standard_normal(shape), scale, mode="wrap")
+    return n / (np.abs(n).max() + 1e-12)
+
+
 def write_heightmap(path: Path, heights: np.ndarray) -> None:
     """Heights in [0, 1] (rows top to bottom) as a 16-bit grayscale PNG."""
     import imageio.v3 as iio
