@@ -99,6 +99,14 @@ class Solver(_Section):
 
 
 # --------------------------------------------------------------------------- fluid blocks
+def _check_box(lower, upper, what: str) -> None:
+    """The one check of a box's corners (fluid blocks, emitters, sinks): both given, upper above lower."""
+    if lower is None or upper is None:
+        raise ValueError(f"{what} needs 'lower' and 'upper'")
+    if any(u <= lo for lo, u in zip(lower, upper)):
+        raise ValueError("box upper must be greater than lower on every axis")
+
+
 class FluidBlock(_Section):
     """An initial block of fluid, filled with a cubic lattice of spacing 2r."""
 
@@ -112,13 +120,9 @@ class FluidBlock(_Section):
     @model_validator(mode="after")
     def _shape_fields(self) -> "FluidBlock":
         if self.shape == "box":
-            if self.lower is None or self.upper is None:
-                raise ValueError("a box needs 'lower' and 'upper'")
-            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
-                raise ValueError("box upper must be greater than lower on every axis")
-        else:
-            if self.center is None or self.radius is None:
-                raise ValueError("a sphere needs 'center' and 'radius'")
+            _check_box(self.lower, self.upper, "a box")
+        elif self.center is None or self.radius is None:
+            raise ValueError("a sphere needs 'center' and 'radius'")
         return self
 
     def bounds(self) -> tuple[list[float], list[float]]:
@@ -328,10 +332,7 @@ class Emitter(_Section):
     @model_validator(mode="after")
     def _shape_fields(self) -> "Emitter":
         if self.shape == "box":
-            if self.lower is None or self.upper is None:
-                raise ValueError("a box emitter needs 'lower' and 'upper'")
-            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
-                raise ValueError("box upper must be greater than lower on every axis")
+            _check_box(self.lower, self.upper, "a box emitter")
         elif self.center is None or self.radius is None:
             raise ValueError("a disk emitter needs 'center' and 'radius'")
         if math.sqrt(sum(x * x for x in self.velocity)) < 1e-9:
@@ -401,10 +402,7 @@ class Sink(_Section):
     @model_validator(mode="after")
     def _shape_fields(self) -> "Sink":
         if self.shape == "box":
-            if self.lower is None or self.upper is None:
-                raise ValueError("a box sink needs 'lower' and 'upper'")
-            if any(u <= lo for lo, u in zip(self.lower, self.upper)):
-                raise ValueError("box upper must be greater than lower on every axis")
+            _check_box(self.lower, self.upper, "a box sink")
         else:
             if self.point is None or self.normal is None:
                 raise ValueError("a plane sink needs 'point' and 'normal'")
