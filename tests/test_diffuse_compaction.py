@@ -1,5 +1,5 @@
 """Compaction of the diffuse particles on the device (issue 31, goal 1): the exclusive prefix sum
-(kernels.scan_sums / scan_offsets) and FoamGenerator._compact keep every live particle exactly once,
+(sim/scan.py, through FoamGenerator._scan) and FoamGenerator._compact keep every live particle exactly once,
 with its id, survivors first in their order, then the new ones in candidate order, as a NumPy
 reference does with the same random keep flags."""
 

@@ -17,7 +17,7 @@ order), so no global counter is needed. 'auto' thresholds and multipliers: :mod:
 The live particles stay on the device (issue 31): positions, velocities, lifetimes, ids and types
 live in Taichi arrays made once at the capacity (budget.capacity_for), two sets that compaction
 writes one from the other. Advection, expiry, foam aging and dissipation, the obstacles, the keep
-rule, lifetimes and compaction (exclusive prefix sums of keep flags, kernels.scan_sums/scan_offsets)
+rule, lifetimes and compaction (exclusive prefix sums of keep flags, sim/scan.py)
 all run in kernels; the host reads back counts only, and the live particles once a frame, for the
 frame's output (they are also ``state``'s host view, for checkpoints; a state set on the host, as a
 resume does, is uploaded at the next step, see FoamGenerator._sync_in). A frame's candidates are
@@ -45,6 +45,7 @@ from ..io.diffuse_types import BUBBLE, FOAM, SPRAY  # noqa: F401 (the codes, for
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, grid_spec
+from ..sim.scan import SCAN_BLOCKS, exclusive_scan
 from ..timing import timer
 from . import budget as B, kernels as K, splishsplash as SP
 
@@ -550,13 +551,10 @@ class FoamGenerator:
                                      "radius": np.full(n, self.p.radius * self.r, np.float32)})
 
     def _scan(self, n: int, a, out) -> int:
-        """out[0..n) = the exclusive prefix sum of the integers a[0..n) (K.scan_sums, K.scan_offsets); returns Σ a."""
+        """out[0..n) = the exclusive prefix sum of the integers a[0..n) (sim.scan); returns Σ a."""
         if n <= 0:
             return 0
-        sums = self._buffer("scan_sums", K.SCAN_BLOCKS + 1)
-        block = K.scan_block(n)
-        K.scan_sums(n, block, a, sums)
-        return int(K.scan_offsets(n, block, a, sums, out))
+        return exclusive_scan(n, a, self._buffer("scan_sums", SCAN_BLOCKS + 1), out)
 
     def _track_peak(self, c: list, n: int, index: int) -> None:
         pk = self.state.peaks

@@ -476,49 +476,7 @@ def classify_candidates(
         kind[j] = ti.cast(t, ti.i8)
 
 
-# ---------------------------------------------------------------- stream compaction on the device
-#: The exclusive prefix sum runs in at most SCAN_BLOCKS blocks of at least SCAN_MIN_BLOCK elements
-#: each: a block is summed and scanned by one thread, the block sums by one thread. 4096 blocks keep
-#: every core of a CPU and thousands of GPU threads busy, and the serial scan of the sums short.
-SCAN_BLOCKS = 4096
-SCAN_MIN_BLOCK = 256
-
-
-def scan_block(n: int) -> int:
-    """Elements per block of :func:`scan_sums` / :func:`scan_offsets` for ``n`` elements."""
-    return max(SCAN_MIN_BLOCK, -(-int(n) // SCAN_BLOCKS))
-
-
-@ti.kernel
-def scan_sums(n: ti.i32, block: ti.i32, a: I1, sums: I1):
-    """First half of the exclusive prefix sum of a[0..n) (non-negative integers: counts or keep
-    flags): sums[b] = Σ a over block b (``block`` elements each, see scan_block)."""
-    for b in range((n + block - 1) // block):
-        s = 0
-        for j in range(b * block, ti.min(n, (b + 1) * block)):
-            s += a[j]
-        sums[b] = s
-
-
-@ti.kernel
-def scan_offsets(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
-    """Second half: out[j] = Σ_{k<j} a[k]; returns Σ a. The block sums are scanned by one thread,
-    then each block by its own: integer sums in a fixed order, the same whatever the thread count."""
-    nb = (n + block - 1) // block
-    for _ in range(1):
-        t = 0
-        for b in range(nb):
-            c = sums[b]
-            sums[b] = t
-            t += c
-        sums[nb] = t
-    for b in range(nb):
-        s = sums[b]
-        for j in range(b * block, ti.min(n, (b + 1) * block)):
-            c = a[j]
-            out[j] = s
-            s += c
-    return sums[nb]
+# Stream compaction on the device: the exclusive prefix sum is sim/scan.py's (shared with the sinks).
 
 
 # ---------------------------------------------------------------- the live diffuse particles

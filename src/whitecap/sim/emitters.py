@@ -12,7 +12,7 @@ is taken again N / ṅ later, when its last particle has advanced ≥ 2r (the sc
 particle at any time.
 
 Removal: after each step, a particle inside any sink is dropped and the others close up
-in their order (a stable compaction), so no particle ends a step inside a sink.
+in their order (a stable compaction on the device, sim/scan.py), so no particle ends a step inside a sink.
 
 Ids: the initial fluid has 0 … n−1; each new particle takes ``next_id`` and increments
 it, so an id is never given twice, even after its particle left. ``next_id``, the count
@@ -32,6 +32,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import InputError, SimulationError
 from .grid import F3, I1
+from .scan import SCAN_BLOCKS, exclusive_scan
 
 #: Rows of the sinks' array, per sink: a box (lo, hi) and a half space (point, normal) that
 #: a particle must both be in. A box sink has a zero normal (its half space is everything);
@@ -68,6 +69,26 @@ def mark_in_sinks(n: ti.i32, x: F3, sinks: F3, nsinks: ti.i32, gone: I1) -> ti.i
         gone[i] = g
         count += g
     return count
+
+
+@ti.kernel
+def close_up(n: ti.i32, gone: I1, before: I1, x: F3, v: F3, ids: I1, tx: F3, tv: F3, tid: I1):
+    """The particles left, in order, into the scratch arrays: particle i (not gone) goes to
+    i − before_i, before_i the number gone ahead of it (the exclusive prefix sum of gone)."""
+    for i in range(n):
+        if gone[i] == 0:
+            j = i - before[i]
+            tx[j], tv[j], tid[j] = x[i], v[i], ids[i]
+
+
+@ti.kernel
+def take_back(m: ti.i32, cap: ti.i32, tx: F3, tv: F3, tid: I1, x: F3, v: F3, ids: I1):
+    """Slots 0 … m−1 from the scratch arrays, the rest of the capacity zero (as at the start)."""
+    for i in range(cap):
+        if i < m:
+            x[i], v[i], ids[i] = tx[i], tv[i], tid[i]
+        else:
+            x[i], v[i], ids[i] = ti.math.vec3(0.0), ti.math.vec3(0.0), 0
 
 
 def run_duration(scene: Scene, frames: int | None = None) -> float:
@@ -130,7 +151,12 @@ class Sources:
                     rows += [lo, hi, s.point, nrm / np.linalg.norm(nrm)]
             self.sinks = ti.Vector.ndarray(3, ti.f32, len(rows))
             self.sinks.from_numpy(np.asarray(rows, np.float32))
-            self.gone = ti.ndarray(ti.i32, solver.capacity)
+            cap = solver.capacity
+            self.gone = ti.ndarray(ti.i32, cap)
+            # made once: the prefix sum of gone and the scratch arrays the rest close up into
+            self.before, self.scan_sums = ti.ndarray(ti.i32, cap), ti.ndarray(ti.i32, SCAN_BLOCKS + 1)
+            self.tx, self.tv, self.tid = ti.Vector.ndarray(3, ti.f32, cap), ti.Vector.ndarray(3, ti.f32, cap), \
+                ti.ndarray(ti.i32, cap)
         self.removed = 0  # particles the sinks took (statistics; not part of the state)
 
     def __bool__(self) -> bool:
@@ -194,17 +220,10 @@ class Sources:
         if k == 0:
             return 0
         n = solver.n
-        keep = self.gone.to_numpy()[:n] == 0
-        cap = solver.capacity
-        for name in ("x", "v"):
-            a = getattr(st, name).to_numpy()
-            b = np.zeros_like(a)
-            b[: n - k] = a[:n][keep]
-            getattr(st, name).from_numpy(b)
-        ids = st.ids.to_numpy()
-        b = np.zeros(cap, ids.dtype)
-        b[: n - k] = ids[:n][keep]
-        st.ids.from_numpy(b)
+        # on the device, in a fixed order (sim/scan.py): nothing crosses to the host
+        exclusive_scan(n, self.gone, self.scan_sums, self.before)
+        close_up(n, self.gone, self.before, st.x, st.v, st.ids, self.tx, self.tv, self.tid)
+        take_back(n - k, solver.capacity, self.tx, self.tv, self.tid, st.x, st.v, st.ids)
         solver.n = n - k
         self.removed += k
         return k
