@@ -226,4 +226,91 @@ def test_every_command_defaults_to_the_one_arch_and_up_axis(tmp_path):
         for opt, default in (("arch", DEFAULT_ARCH), ("up", DEFAULT_UP)):
             if opt in params:
                 assert params[opt].default == default, (fn.__name__, opt)
-    assert (FoamJob().arch, FoamJob().up) == (DEFAULT_ARCH, DEFAULT_UP)
+    from whitecap.sim.driver import SimulateJob
+    from whitecap.view import ViewJob
+
+    for job in (FoamJob(), SimulateJob(), ViewJob()):
+        assert job.arch == DEFAULT_ARCH and getattr(job, "up", DEFAULT_UP) == DEFAULT_UP, job
+
+
+# ---------------------------------------------------------------------------- simulate, export, import, view
+def _job_classes():
+    from whitecap.cases import ImportJob
+    from whitecap.export import ExportJob
+    from whitecap.sim.driver import SimulateJob
+    from whitecap.view import ViewJob
+
+    return {"simulate": (SimulateJob, ["scene.toml"]), "export": (ExportJob, ["run"]),
+            "import": (ImportJob, ["case", "--out", "run"]), "view": (ViewJob, ["run"])}
+
+
+@pytest.mark.parametrize("command", ["simulate", "export", "import", "view"])
+def test_each_commands_options_are_one_job_whose_defaults_the_cli_takes(command):
+    """`whitecap COMMAND` states no default of its own: its arguments, read into the command's job, make
+    the job's defaults, and every field but show_progress (the CLI always shows progress) is an option."""
+    from whitecap.cli import _from_args, build_parser
+
+    cls, argv = _job_classes()[command]
+    args = build_parser().parse_args([command, *argv])
+    assert _from_args(cls, args) == cls()
+    missing = {f.name for f in fields(cls)} - set(vars(args)) - {"show_progress"}
+    assert not missing, f"{command}: fields with no option: {missing}"
+
+
+def test_options_given_on_the_command_line_reach_the_job():
+    from whitecap.cases import ImportJob
+    from whitecap.cli import _from_args, build_parser
+    from whitecap.export import ExportJob
+    from whitecap.sim.driver import SimulateJob
+    from whitecap.view import ViewJob
+
+    parse = build_parser().parse_args
+    assert _from_args(SimulateJob, parse(["simulate", "s.toml", "--frames", "3", "--no-foam", "--resume"])) == \
+        SimulateJob(frames=3, foam=False, resume=True)
+    assert _from_args(ExportJob, parse(["export", "r", "--to", "ply", "-j", "2", "--split-types"])) == \
+        ExportJob(to="ply", jobs=2, split_types=True)
+    assert _from_args(ImportJob, parse(["import", "c", "-o", "r", "--scene", "s.json", "--dt", "0.1"])) == \
+        ImportJob(scene_json="s.json", dt=0.1)
+    assert _from_args(ViewJob, parse(["view", "r", "--size", "320", "240", "--color", "density", "--no-legend"])) \
+        == ViewJob(size=(320, 240), color_mode="density", legend=False)
+    with pytest.raises(InputError, match="--web and --headless"):
+        ViewJob(web=True, headless=True)
+
+
+def test_the_pipeline_hands_each_driver_one_job_whose_fields_its_options_replace(tmp_path, monkeypatch):
+    """pipeline.simulate/export/import_case/view take the stage's job, keyword options build one or
+    replace its fields, and the driver receives that one object."""
+    from whitecap import cases, export, pipeline, view
+    from whitecap.cases import ImportJob
+    from whitecap.config import scene_from_dict
+    from whitecap.export import ExportJob
+    from whitecap.sim import driver
+    from whitecap.sim.driver import SimulateJob
+    from whitecap.view import ViewJob
+
+    seen = []
+    monkeypatch.setattr(driver, "run_simulation", lambda sc, out, job, hooks: seen.append(job) or
+                        types.SimpleNamespace(extra={}))
+    pipeline.simulate(scene_from_dict({}), SimulateJob(frames=2), out=tmp_path / "s", foam=False)
+    assert seen.pop() == SimulateJob(frames=2, foam=False)
+    with pytest.raises(TypeError, match="SimulateJob"):  # the output folder is a keyword
+        pipeline.simulate(scene_from_dict({}), tmp_path / "s")
+
+    monkeypatch.setattr(export, "export", lambda run, job, out: seen.append((job, out)) or {})
+    pipeline.export(tmp_path, ExportJob(to="ply"), jobs=2)
+    assert seen.pop() == (ExportJob(to="ply", jobs=2), None)
+
+    monkeypatch.setattr(cases, "import_case", lambda src, out, job: seen.append(job))
+    pipeline.import_case(tmp_path, tmp_path / "r", dt=0.5, show_progress=False)
+    assert seen.pop() == ImportJob(dt=0.5, show_progress=False)
+
+    monkeypatch.setattr(view, "view", lambda target, job, out: seen.append((job, out)))
+    pipeline.view(tmp_path, ViewJob(headless=True), out=tmp_path / "v", size=[8, 6])
+    assert seen.pop() == (ViewJob(headless=True, size=(8, 6)), tmp_path / "v")
+
+
+def test_an_unknown_export_target_is_refused_with_the_targets(tmp_path):
+    from whitecap import pipeline
+
+    with pytest.raises(InputError, match=r"unknown target 'obj' \(choose from vtk, ply, usd, abc\)"):
+        pipeline.export(tmp_path, to="obj")

@@ -21,6 +21,14 @@ CLUSTER_HELP = ("run the frames on Dask: a scheduler address (tcp://host:8786), 
                 "pip install 'whitecap[cluster]'")
 
 
+def _from_args(cls, a):
+    """A stage's options object (a dataclass) from the parsed arguments named like its fields;
+    the fields the command has no option for keep their defaults."""
+    import dataclasses
+
+    return cls(**{f.name: getattr(a, f.name) for f in dataclasses.fields(cls) if hasattr(a, f.name)})
+
+
 def _add_cluster_option(p, scope: str = "", default: str | None = None) -> None:
     """The --cluster option shared by the per-frame commands (mesh, export, render, run);
     ``scope`` prefixes the help when the option applies to only some of a command's modes."""
@@ -41,7 +49,7 @@ def _add_simulate(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from its last checkpoint")
     p.add_argument("--force", action="store_true", help="start over in a directory that already holds a run")
     p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help=f"Taichi backend (default {DEFAULT_ARCH})")
-    p.add_argument("--no-foam", action="store_true", help="do not generate diffuse particles")
+    p.add_argument("--no-foam", dest="foam", action="store_false", help="do not generate diffuse particles")
     p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.add_argument("--print-defaults", action="store_true", help="print the fully resolved scene and exit")
     p.set_defaults(func=_cmd_simulate)
@@ -57,12 +65,17 @@ def _cmd_simulate(a) -> int:
         return 0
     if not a.scene:
         raise WhitecapError("simulate: a scene file is required (see --print-defaults for a template)")
-    info = pipeline.simulate(
-        a.scene, out=a.out, frames=a.frames, resume=a.resume, force=a.force, arch=a.arch,
-        foam=not a.no_foam, profile=a.profile,
-    )
+    info = pipeline.simulate(a.scene, _simulate_job(a), out=a.out)
     print(f"wrote {len(info.frames)} frames to {info.extra['out']}")
     return 0
+
+
+def _simulate_job(a):
+    """The SimulateJob of `whitecap simulate`'s arguments (built here, after parsing: the solver's
+    driver loads Taichi, which `--help` should not wait for)."""
+    from .sim.driver import SimulateJob
+
+    return _from_args(SimulateJob, a)
 
 
 # ============================================================================ foam
@@ -122,29 +135,36 @@ def _add_import(sub) -> None:
         "Any other folder or glob of numbered frames is a bare sequence (fluid only; --dt and --radius). "
         "Then `whitecap foam OUT`, `mesh OUT` and `render OUT` continue from there. Resumable.",
     )
+    from .cases import ImportJob
+
+    default = ImportJob()  # the one definition of import's defaults
     p.add_argument("case_output", help="the solver's output folder")
     p.add_argument("--out", "-o", required=True, help="run directory to write")
-    p.add_argument("--up", choices=UP_AXES, help="up axis of the case (default: z for DualSPHysics, y for "
-                   "SPlisHSPlasH)")
-    p.add_argument("--xml", help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
-    p.add_argument("--floating-csv", help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
+    p.add_argument("--up", default=default.up, choices=UP_AXES,
+                   help="up axis of the case (default: z for DualSPHysics, y for SPlisHSPlasH)")
+    p.add_argument("--xml", default=default.xml, help="DualSPHysics case XML (default: the one in CASE_OUTPUT)")
+    p.add_argument("--floating-csv", default=default.floating_csv,
+                   help="DualSPHysics FloatingInfo CSV (FloatingMotion_mkNN.csv) whose motion "
                    "places the floating body, in place of fitting it to its particles")
-    p.add_argument("--scene", help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
+    p.add_argument("--scene", dest="scene_json", metavar="SCENE", default=default.scene_json,
+                   help="SPlisHSPlasH scene JSON that was run (default: the only *.json in "
                    "CASE_OUTPUT or CASE_OUTPUT/Scenes)")
-    p.add_argument("--fluid-model",
+    p.add_argument("--fluid-model", default=default.fluid_model,
                    help="SPlisHSPlasH fluid model id (ParticleData_<id>_<k>.vtk) when there are several")
-    p.add_argument("--dt", type=float, help="a bare sequence's time between frames [s] (when no case XML says)")
-    p.add_argument("--radius", type=float, help="a bare sequence's particle radius [m] (half the spacing)")
-    p.add_argument("--force", action="store_true", help="start over in a directory that holds another run")
+    p.add_argument("--dt", type=float, default=default.dt,
+                   help="a bare sequence's time between frames [s] (when no case XML says)")
+    p.add_argument("--radius", type=float, default=default.radius,
+                   help="a bare sequence's particle radius [m] (half the spacing)")
+    p.add_argument("--force", action="store_true", default=default.force,
+                   help="start over in a directory that holds another run")
     p.set_defaults(func=_cmd_import)
 
 
 def _cmd_import(a) -> int:
     from . import pipeline
+    from .cases import ImportJob
 
-    info = pipeline.import_case(a.case_output, a.out, up=a.up, xml=a.xml, floating_csv=a.floating_csv,
-                                scene_json=a.scene, fluid_model=a.fluid_model, force=a.force, dt=a.dt,
-                                radius=a.radius)
+    info = pipeline.import_case(a.case_output, a.out, _from_args(ImportJob, a))
     roles = ", ".join(f"{o.name} ({o.role})" for o in info.obstacles) or "no shapes"
     print(f"imported {len(info.files('fluid'))} frames and {roles} into {a.out}")
     return 0
@@ -229,21 +249,27 @@ def _add_export(sub) -> None:
         "abc: RUN/export/abc/scene.abc) with the fluid surface, diffuse particles, obstacles and camera.",
     )
     p.add_argument("run", help="run directory")
-    p.add_argument("--to", default="vtk", metavar="FORMAT",
-                   help="vtk: .vtp + .pvd (default); ply: PLY + .series; usd: USD stage; abc: Alembic archive")
+    from .export import ExportJob
+
+    default = ExportJob()  # the one definition of export's defaults
+    p.add_argument("--to", default=default.to, metavar="FORMAT",
+                   help=f"vtk: .vtp + .pvd; ply: PLY + .series; usd: USD stage; abc: Alembic archive "
+                   f"(default {default.to})")
     p.add_argument("--out", "-o", help="output directory (default RUN/export, or RUN/export/usd|abc)")
-    p.add_argument("--split-types", action="store_true", help="also write diffuse spray, foam and bubbles as "
-                   "separate series (usd and abc always split them)")
-    p.add_argument("--jobs", "-j", type=int, default=1,
-                   help="vtk, ply: frames in parallel (default 1: export is mostly disk)")
-    _add_cluster_option(p, "vtk, ply: ")
+    p.add_argument("--split-types", action="store_true", default=default.split_types,
+                   help="also write diffuse spray, foam and bubbles as separate series (usd and abc always "
+                   "split them)")
+    p.add_argument("--jobs", "-j", type=int, default=default.jobs,
+                   help=f"vtk, ply: frames in parallel (default {default.jobs}: export is mostly disk)")
+    _add_cluster_option(p, "vtk, ply: ", default=default.cluster)
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(a) -> int:
     from . import pipeline
+    from .export import ExportJob
 
-    written = pipeline.export(a.run, to=a.to, out=a.out, split_types=a.split_types, jobs=a.jobs, cluster=a.cluster)
+    written = pipeline.export(a.run, _from_args(ExportJob, a), out=a.out)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0
@@ -257,26 +283,35 @@ def _add_view(sub) -> None:
         "directory or a numbered particle sequence. --headless writes OUT/view_NNNNN.png without a display; "
         "--web serves the viewer to a browser (prints the URL).",
     )
+    from .view import ViewJob
+
+    default = ViewJob()  # the one definition of view's defaults
     p.add_argument("target", help="scene .toml (live), run directory, or particle sequence (dir, file or glob)")
-    p.add_argument("--headless", action="store_true", help="render offscreen to PNGs instead of opening a window")
-    p.add_argument("--frames", type=int, help="frames to render headless (live: simulated frames; default: all / 1)")
+    p.add_argument("--headless", action="store_true", default=default.headless,
+                   help="render offscreen to PNGs instead of opening a window")
+    p.add_argument("--frames", type=int, default=default.frames,
+                   help="frames to render headless (live: simulated frames; default: all / 1)")
     p.add_argument("--out", "-o", help="output directory for PNGs, screenshots and recordings")
-    p.add_argument("--mp4", action="store_true", help="with --headless, also encode OUT/view.mp4")
-    p.add_argument("--color", choices=choices(View, "color_mode"), help="colour fluid by speed or density")
-    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="image size in pixels")
-    p.add_argument("--panel", action="store_true", help="with --headless, draw the side panel too")
-    p.add_argument("--no-legend", action="store_true", help="with --headless, leave out the colour legend")
-    p.add_argument("--up", default=DEFAULT_UP, choices=UP_AXES,
-                   help=f"up axis of a sequence's files (default {DEFAULT_UP})")
-    p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help="Taichi backend for live simulation")
-    p.add_argument("--web", action="store_true",
+    p.add_argument("--mp4", action="store_true", default=default.mp4, help="with --headless, also encode OUT/view.mp4")
+    p.add_argument("--color", dest="color_mode", default=default.color_mode, choices=choices(View, "color_mode"),
+                   help="colour fluid by speed or density")
+    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), default=default.size, help="image size in pixels")
+    p.add_argument("--panel", action="store_true", default=default.panel,
+                   help="with --headless, draw the side panel too")
+    p.add_argument("--no-legend", dest="legend", action="store_false", default=default.legend,
+                   help="with --headless, leave out the colour legend")
+    p.add_argument("--up", default=default.up, choices=UP_AXES,
+                   help=f"up axis of a sequence's files (default {default.up})")
+    p.add_argument("--arch", default=default.arch, choices=ARCHES, help="Taichi backend for live simulation")
+    p.add_argument("--web", action="store_true", default=default.web,
                    help="serve the viewer to a web browser instead of a window (pip install 'whitecap[web]')")
-    p.add_argument("--port", type=int, default=8080, help="with --web, the port to serve on (default 8080)")
-    p.add_argument("--host", default="localhost",
-                   help="with --web, the address to serve on (default localhost; 0.0.0.0 for all)")
-    p.add_argument("--max-points", type=int, default=300_000,
+    p.add_argument("--port", type=int, default=default.port,
+                   help=f"with --web, the port to serve on (default {default.port})")
+    p.add_argument("--host", default=default.host,
+                   help=f"with --web, the address to serve on (default {default.host}; 0.0.0.0 for all)")
+    p.add_argument("--max-points", type=int, default=default.max_points,
                    help="with --web --points browser, particles drawn at most per kind; more are subsampled")
-    p.add_argument("--points", choices=choices(View, "web_points"),
+    p.add_argument("--points", default=default.points, choices=choices(View, "web_points"),
                    help="with --web, where particles are drawn: browser (WebGL points), server (pictures drawn here, "
                    "for large runs and slow browsers), auto (server above 30,000 particles; "
                    "default: [view] web_points)")
@@ -285,24 +320,12 @@ def _add_view(sub) -> None:
 
 def _cmd_view(a) -> int:
     from . import pipeline
+    from .view import ViewJob
 
-    size = tuple(a.size) if a.size else None
-    if a.web:
-        if a.headless:
-            raise WhitecapError("view: --web and --headless exclude each other")
-        pipeline.view(a.target, web=True, arch=a.arch, up=a.up, color_mode=a.color, host=a.host, port=a.port,
-                      max_points=a.max_points, points=a.points)
-        return 0
-    if a.headless:
-        if not a.out:
-            raise WhitecapError("view --headless: --out DIR is required")
-        paths = pipeline.view(
-            a.target, headless=True, out=a.out, frames=a.frames, mp4=a.mp4, arch=a.arch,
-            size=size, color_mode=a.color, up=a.up, panel=a.panel, legend=not a.no_legend,
-        )
-        print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if a.mp4 else ""))
-        return 0
-    pipeline.view(a.target, out=a.out, arch=a.arch, up=a.up, size=size, color_mode=a.color)
+    job = _from_args(ViewJob, a)
+    paths = pipeline.view(a.target, job, out=a.out)
+    if job.headless:
+        print(f"wrote {len(paths)} images to {a.out}" + (" and view.mp4" if job.mp4 else ""))
     return 0
 
 

@@ -10,16 +10,24 @@ import dataclasses
 import importlib
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 from . import timing
 from .config import DEFAULT_ARCH, DEFAULT_UP, Scene, load_scene
 from .io.run import RunInfo
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    from .cases import ImportJob
     from .diffuse import FoamJob
+    from .export import ExportJob
     from .render import RenderJob
+    from .sim.driver import SimulateJob
     from .surface.driver import MeshRun
+    from .view import ViewJob
+
+J = TypeVar("J", bound="DataclassInstance")
 
 
 def _scene(scene: Scene | str | Path) -> Scene:
@@ -30,31 +38,36 @@ def default_out(scene: Scene) -> Path:
     return Path("out") / scene.name
 
 
-def simulate(
-    scene: Scene | str | Path,
-    out: str | Path | None = None,
-    frames: int | None = None,
-    resume: bool = False,
-    force: bool = False,
-    arch: str = DEFAULT_ARCH,
-    foam: bool = True,
-    profile: bool = False,
-    show_progress: bool = True,
-) -> RunInfo:
-    """Simulate a scene (PBF, plus diffuse particles when ``[foam]`` is on) into ``out``."""
-    sc = _scene(scene)  # a bad scene file fails before Taichi starts
-    from .sim.driver import run_simulation
+def _job(cls: type[J], job: J | None, options: dict) -> J:
+    """A stage's options object: ``job`` with ``options`` (its field names) replacing its fields,
+    or a new one built from them when ``job`` is None."""
+    if job is not None and not isinstance(job, cls):
+        raise TypeError(f"expected a {cls.__qualname__} (or keyword options), got {type(job).__qualname__}")
+    return cls(**options) if job is None else dataclasses.replace(job, **options)
 
+
+def simulate(scene: Scene | str | Path, job: SimulateJob | None = None, out: str | Path | None = None,
+             **options) -> RunInfo:
+    """Simulate a scene (PBF, plus diffuse particles when ``[foam]`` is on) into ``out``
+    (default ``out/<scene name>``).
+
+    ``job`` is a :class:`whitecap.sim.driver.SimulateJob` (its fields and defaults are the
+    options: frames, resume, force, arch, foam, profile, show_progress); ``options`` build one,
+    or replace those fields of ``job``.
+    """
+    sc = _scene(scene)  # a bad scene file fails before Taichi starts
+    from .sim.driver import SimulateJob, run_simulation
+
+    job = _job(SimulateJob, job, options)
     out = Path(out) if out is not None else default_out(sc)
     hooks = []
-    if foam and sc.foam.enabled:
+    if job.foam and sc.foam.enabled:
         foam_stage = importlib.import_module(".diffuse", __package__)
         hooks.append(foam_stage.simulation_hook(sc))
     timing.reset()
-    info = run_simulation(sc, out, frames=frames, resume=resume, force=force, arch=arch, hooks=hooks,
-                          show_progress=show_progress)
+    info = run_simulation(sc, out, job, hooks=hooks)
     info.extra["out"] = str(out)
-    if profile:
+    if job.profile:
         print(timing.report("simulate profile"))
     return info
 
@@ -126,8 +139,10 @@ def run(
         elif stage == "mesh":
             mesh(out, jobs=jobs, show_progress=show_progress, cluster=cluster)
         elif stage == "render":
-            r = render(out, quality="preview" if preview else "final", show_progress=show_progress, cluster=cluster,
-                       **({"jobs": jobs} if cluster and jobs else {}))
+            from .render import RenderJob
+
+            job = RenderJob(quality="preview" if preview else "final", show_progress=show_progress, cluster=cluster)
+            r = render(out, dataclasses.replace(job, jobs=jobs) if cluster and jobs else job)
             result.update(r if isinstance(r, dict) else {})
         seconds[stage] = time.perf_counter() - t0
     result["stage_seconds"] = seconds
@@ -192,38 +207,21 @@ def mesh(
     return stats
 
 
-EXPORT_TARGETS = ("vtk", "ply", "usd", "abc")
-
-
-def export(
-    run: str | Path,
-    to: str = "vtk",
-    out: str | Path | None = None,
-    split_types: bool = False,
-    show_progress: bool = True,
-    jobs: int = 1,
-    cluster: str | None = None,
-) -> dict[str, Path | str]:
+def export(run: str | Path, job: ExportJob | None = None, out: str | Path | None = None,
+           **options) -> dict[str, Path | str]:
     """Export a run: ParaView series (``vtk``: .pvd + .vtp, ``ply``: PLY + .series) of its
     particles and meshes, or the whole run as one animated scene (``usd``: a USD stage,
     ``abc``: an Alembic archive) with the fluid, diffuse particles, obstacles and camera.
 
-    Returns {series or target: path}; a scene export adds {"note": ...} when it left
-    something out (a run without surfaces exports points only). For ``vtk`` and ``ply``,
-    ``jobs`` frames are written in parallel, or on Dask with ``cluster`` (an address, or
-    local, slurm, pbs)."""
-    from .errors import InputError
+    ``job`` is a :class:`whitecap.export.ExportJob` (its fields and defaults are the options:
+    to, split_types, show_progress, jobs, cluster); ``options`` build one, or replace those
+    fields of ``job``. Returns {series or target: path}; a scene export adds {"note": ...} when
+    it left something out (a run without surfaces exports points only). For ``vtk`` and
+    ``ply``, ``jobs`` frames are written in parallel, or on Dask with ``cluster`` (an address,
+    or local, slurm, pbs)."""
+    from .export import ExportJob, export as export_run
 
-    if to in ("usd", "abc"):
-        from .export.scene import export_scene
-
-        return export_scene(run, to=to, out=out, show_progress=show_progress, jobs=jobs)
-    if to not in EXPORT_TARGETS:
-        raise InputError(f"export: unknown target '{to}' (choose from {', '.join(EXPORT_TARGETS)})")
-    from .export.series import export_run
-
-    return export_run(run, to=to, out=out, split_types=split_types, show_progress=show_progress, jobs=jobs,
-                      cluster=cluster)
+    return export_run(run, _job(ExportJob, job, options), out)
 
 
 # ============================================================================ render
@@ -236,8 +234,7 @@ def render(run: str | Path, job: RenderJob | None = None, **options) -> dict:
     """
     from .render import RenderJob, render_run
 
-    job = RenderJob(**options) if job is None else dataclasses.replace(job, **options)
-    return render_run(run, job)
+    return render_run(run, _job(RenderJob, job, options))
 
 
 def blender_addon(out: str | Path | None = None) -> Path:
@@ -280,45 +277,31 @@ def foam(
 
 
 # ============================================================================ import a foreign case
-def import_case(
-    case_output: str | Path,
-    out: str | Path,
-    up: str | None = None,
-    xml: str | Path | None = None,
-    floating_csv: str | Path | None = None,
-    scene_json: str | Path | None = None,
-    fluid_model: str | None = None,
-    force: bool = False,
-    show_progress: bool = True,
-    dt: float | None = None,
-    radius: float | None = None,
-) -> RunInfo:
+def import_case(case_output: str | Path, out: str | Path, job: ImportJob | None = None, **options) -> RunInfo:
     """A whole case from another solver (fluid, tank, obstacles, moving bodies), or a bare sequence of
     frames, -> a run directory that ``foam``, ``mesh``, ``view`` and ``render`` continue from
     (:func:`whitecap.cases.read_case`). Resumable. The case is read and checked in full before
-    anything is written."""
-    from .cases import read_case
-    from .cases.run_dir import write_case
+    anything is written.
 
-    case = read_case(case_output, up=up, xml=xml, floating_csv=floating_csv, scene_json=scene_json,
-                     fluid_model=fluid_model, dt=dt, radius=radius)
-    return write_case(case, out, show_progress=show_progress, force=force)
+    ``job`` is a :class:`whitecap.cases.ImportJob` (its fields and defaults are the options: up,
+    xml, floating_csv, scene_json, fluid_model, dt, radius, force, show_progress); ``options``
+    build one, or replace those fields of ``job``."""
+    from .cases import ImportJob, import_case as import_into
+
+    return import_into(case_output, out, _job(ImportJob, job, options))
 
 
 # ============================================================================ view
-def view(target: Scene | str | Path, headless: bool = False, out: str | Path | None = None, frames: int | None = None,
-         mp4: bool = False, arch: str = DEFAULT_ARCH, web: bool = False, **opts):
+def view(target: Scene | str | Path, job: ViewJob | None = None, out: str | Path | None = None, **options):
     """Real-time viewer: a scene TOML simulates live, a run directory or sequence plays back.
 
-    ``headless=True`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and
-    returns the PNG paths. ``opts``: size, color_mode, up, panel, legend, show_progress.
-    ``web=True`` serves the viewer to a browser until interrupted, after printing its URL
-    (``opts``: host, port, max_points, points, color_mode, up). See :mod:`whitecap.view`.
+    ``job`` is a :class:`whitecap.view.ViewJob` (its fields and defaults are the options:
+    headless, frames, mp4, arch, web, size, color_mode, up, panel, legend, show_progress, host,
+    port, max_points, points); ``options`` build one, or replace those fields of ``job``.
+    ``headless`` renders OUT/view_NNNNN.png offscreen (and view.mp4 with ``mp4``) and returns
+    the PNG paths. ``web`` serves the viewer to a browser until interrupted, after printing its
+    URL. See :mod:`whitecap.view`.
     """
-    if web:
-        from .view.web import serve
+    from .view import ViewJob, view as _view
 
-        return serve(target, arch=arch, **opts)
-    from .view import view as _view
-
-    return _view(target, headless=headless, out=out, frames=frames, mp4=mp4, arch=arch, **opts)
+    return _view(target, _job(ViewJob, job, options), out=out)

@@ -17,12 +17,16 @@ its entry points (``pipeline.import_case``, and ``foam`` over a foreign sequence
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import DEFAULT_UP
+
+if TYPE_CHECKING:
+    from ..io.run import RunInfo
 
 #: roles a shape can have in a case
 ROLES = ("container", "obstacle", "body")
@@ -70,10 +74,47 @@ class Case:
     notes: dict = field(default_factory=dict)  # more for run.json's ``extra`` (e.g. {"case": the case XML})
 
 
-def read_case(src: str | Path, up: str | None = None, xml: str | Path | None = None,
-              floating_csv: str | Path | None = None, scene_json: str | Path | None = None,
-              fluid_model: str | None = None, dt: float | None = None, radius: float | None = None) -> Case:
-    """A DualSPHysics or SPlisHSPlasH output folder, else a bare sequence of frames, as a :class:`Case`.
+@dataclass(frozen=True)
+class ImportJob:
+    """What one ``import`` does: the options of ``whitecap import`` and of
+    :func:`whitecap.pipeline.import_case`, with their defaults, defined here once (the CLI and the
+    pipeline build one; :func:`import_case` and :func:`read_case` take it).
+
+    ``up`` is the case's up axis (None: z for DualSPHysics and bare sequences, y for
+    SPlisHSPlasH); ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model``
+    SPlisHSPlasH ones, ``dt`` [s]/``radius`` [m] a bare sequence's; ``force`` replaces a run of
+    another simulation at the output, whole.
+    """
+
+    up: str | None = None
+    xml: str | Path | None = None
+    floating_csv: str | Path | None = None
+    scene_json: str | Path | None = None
+    fluid_model: str | None = None
+    dt: float | None = None
+    radius: float | None = None
+    force: bool = False
+    show_progress: bool = True
+
+
+def import_job(job: ImportJob | None = None, **options) -> ImportJob:
+    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
+    return ImportJob(**options) if job is None else replace(job, **options)
+
+
+def import_case(src: str | Path, out: str | Path, job: ImportJob | None = None, **options) -> RunInfo:
+    """A whole case (or a bare sequence) at ``src`` -> the run directory ``out``, as ``job`` says
+    (``options``, its field names, build one or replace its fields). The case is read and checked
+    in full (:func:`read_case`) before anything is written (:func:`.run_dir.write_case`)."""
+    from .run_dir import write_case
+
+    job = import_job(job, **options)
+    return write_case(read_case(src, job), out, show_progress=job.show_progress, force=job.force)
+
+
+def read_case(src: str | Path, job: ImportJob | None = None, **options) -> Case:
+    """A DualSPHysics or SPlisHSPlasH output folder, else a bare sequence of frames, as a :class:`Case`,
+    read as ``job`` says (``options``, its field names, build one or replace its fields): its
     ``xml``/``floating_csv`` are DualSPHysics inputs, ``scene_json``/``fluid_model`` SPlisHSPlasH
     ones, ``dt``/``radius`` a bare sequence's (:func:`whitecap.cases.sequence.read_sequence`, which
     reads a DualSPHysics case XML too)."""
@@ -81,6 +122,8 @@ def read_case(src: str | Path, up: str | None = None, xml: str | Path | None = N
     from ..io.sequence import particle_files
     from . import dualsphysics, sequence, splishsplash
 
+    job = import_job(job, **options)
+    up, xml = job.up, job.xml
     src = Path(src)
     pattern = any(c in str(src) for c in "*?[") and not src.exists()
     if not src.exists() and not pattern:
@@ -90,16 +133,16 @@ def read_case(src: str | Path, up: str | None = None, xml: str | Path | None = N
     if kind == "sequence" and src.is_dir() and not particle_files(src):
         raise InputError(f"{src}: neither a DualSPHysics output folder (PartFluid_*.vtk / PartAll_*.vtk), "
                          "SPlisHSPlasH output nor a sequence of particle frames")
-    for opt, val in (("--xml", xml), ("--floating-csv", floating_csv), ("--scene", scene_json),
-                     ("--fluid-model", fluid_model), ("--dt", dt), ("--radius", radius)):
+    for opt, val in (("--xml", xml), ("--floating-csv", job.floating_csv), ("--scene", job.scene_json),
+                     ("--fluid-model", job.fluid_model), ("--dt", job.dt), ("--radius", job.radius)):
         if val is not None and kind not in OPTION_KINDS[opt]:
             raise InputError(f"{src}: {opt} is for {KIND_NAMES[OPTION_KINDS[opt][0]][0]}; "
                              f"this is {KIND_NAMES[kind][1]}")
     if kind == "dualsphysics":
-        return dualsphysics.read_output(src, xml=xml, up=up or "z", floating_csv=floating_csv)
+        return dualsphysics.read_output(src, xml=xml, up=up or "z", floating_csv=job.floating_csv)
     if kind == "splishsplash":
-        return splishsplash.read_output(src, up=up or "y", scene_json=scene_json, model=fluid_model)
-    return sequence.read_sequence(src, xml=xml, up=up or "z", dt=dt, radius=radius, option="--xml")
+        return splishsplash.read_output(src, up=up or "y", scene_json=job.scene_json, model=job.fluid_model)
+    return sequence.read_sequence(src, xml=xml, up=up or "z", dt=job.dt, radius=job.radius, option="--xml")
 
 
 #: how each kind of input is named in messages: (the cases an option is for, what an input is)

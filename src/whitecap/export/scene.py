@@ -43,9 +43,9 @@ from ..io.run import RunInfo
 from ..progress import progress
 from ..render import stage
 from ..render.scene import diffuse_radius
+from . import SCENE_TARGETS, ExportJob, export_job
 from .series import export_target, record_planned, replace_previous
 
-SCENE_TARGETS = ("usd", "abc")
 #: Bumped when what a frame layer holds changes, so that a rerun rewrites old frame layers.
 CACHE_VERSION = 1
 #: Colour of an obstacle whose entry names none (the renderer's default stone).
@@ -174,12 +174,15 @@ def _camera(run_dir: Path, info: RunInfo, cfg: Render, frames, boxes, has_mesh: 
                        clip=stage.camera_clip(keys[first], target), fstop=cfg.fstop, focus=focus)
 
 
-def export_scene(run: str | Path, to: str = "usd", out: str | Path | None = None,
-                 show_progress: bool = True, jobs: int | None = None) -> dict[str, Path | str]:
+def export_scene(run: str | Path, job: ExportJob | None = None, out: str | Path | None = None,
+                 **options) -> dict[str, Path | str]:
     """Write ``run`` as one scene file (``RUN/export/<to>/scene.<to>`` unless ``out`` names a
-    directory). Returns {target: path}, plus {"note": ...} when the export left something out.
-    ``jobs`` is checked as for the series (one process writes a scene)."""
-    run, out = export_target(run, to, SCENE_TARGETS, out, jobs, sub=to)
+    directory) as ``job`` says (``options``, its field names, build one or replace its fields;
+    its ``to`` must be usd or abc). Returns {target: path}, plus {"note": ...} when the export
+    left something out. ``jobs`` is checked as for the series (one process writes a scene)."""
+    job = export_job(job, **options)
+    to, show_progress = job.to, job.show_progress
+    run, out = export_target(run, to, SCENE_TARGETS, out, job.jobs, sub=to)
     with export_locks(run, out, "export"):
         from ..render.driver import render_settings
 

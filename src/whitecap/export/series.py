@@ -37,9 +37,9 @@ from ..io.pvd import write_pvd, write_series
 from ..io.run import RunInfo
 from ..io.vtk_xml import write_vtp
 from ..stage_frames import check_jobs, map_over_frames
+from . import SERIES_TARGETS, ExportJob, export_job
 
-#: diffuse particle ``type`` codes of the run-directory contract
-TARGETS = ("vtk", "ply")  # vtk: .vtp/.vtu + .pvd; ply: PLY + .series
+TARGETS = SERIES_TARGETS
 MANIFEST = "export.json"
 
 
@@ -83,10 +83,10 @@ def _write_surface(path: Path, mesh: SurfaceMesh, to: str) -> None:
         write_mesh(path, mesh)
 
 
-def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, split_types: bool = False,
-               kinds: tuple[str, ...] = ("fluid", "diffuse", "mesh"), show_progress: bool = True, jobs: int = 1,
-               cluster: str | None = None) -> dict[str, Path]:
-    """Write the series of ``run`` to ``out`` (default ``RUN/export``).
+def export_run(run: str | Path, job: ExportJob | None = None, out: str | Path | None = None,
+               kinds: tuple[str, ...] = ("fluid", "diffuse", "mesh"), **options) -> dict[str, Path]:
+    """Write the series of ``run`` to ``out`` (default ``RUN/export``) as ``job`` says
+    (``options``, its field names, build one or replace its fields).
 
     Returns {series name: collection path}. Kinds the run does not have are
     skipped; a run with none of them is an error. The frames are written on
@@ -94,9 +94,10 @@ def export_run(run: str | Path, to: str = "vtk", out: str | Path | None = None, 
     local processes, or on Dask with ``cluster``; the collections are written
     here, from the frame list, so they do not depend on which frame finished first.
     """
-    run, out = export_target(run, to, TARGETS, out, jobs)
+    job = export_job(job, **options)
+    run, out = export_target(run, job.to, SERIES_TARGETS, out, job.jobs)
     with export_locks(run, out, "export"):
-        return _export(run, to, out, split_types, kinds, show_progress, jobs or 1, cluster)
+        return _export(run, job.to, out, job.split_types, kinds, job.show_progress, job.jobs or 1, job.cluster)
 
 
 def export_target(run: str | Path, to: str, targets: tuple[str, ...], out: str | Path | None, jobs: int | None,

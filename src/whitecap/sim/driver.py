@@ -26,6 +26,7 @@ import copy
 import functools
 import time
 import tomllib
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -285,36 +286,61 @@ def _made_from(out: Path) -> str:
     return f"identity {info.simulation or 'unknown'}; its scene.toml may have been edited since"
 
 
+@dataclass(frozen=True)
+class SimulateJob:
+    """What one ``simulate`` does: the options of ``whitecap simulate`` and of
+    :func:`whitecap.pipeline.simulate`, with their defaults, defined here once (the CLI and the
+    pipeline build one; :func:`run_simulation` takes it).
+
+    ``frames`` replaces the scene's ``output.frames``; ``resume`` continues from the last
+    checkpoint, and only with the run's own scene (else an error lists the changed keys);
+    ``force`` starts over in a directory that holds a run; ``arch`` is the Taichi backend
+    (cpu, cuda, auto); ``foam`` generates diffuse particles when the scene's ``[foam]`` is on;
+    ``profile`` prints the time per phase (both read by the pipeline, which adds the hooks and
+    the report).
+    """
+
+    frames: int | None = None
+    resume: bool = False
+    force: bool = False
+    arch: str = DEFAULT_ARCH
+    foam: bool = True
+    profile: bool = False
+    show_progress: bool = True
+
+
+def simulate_job(job: SimulateJob | None = None, **options) -> SimulateJob:
+    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
+    return SimulateJob(**options) if job is None else replace(job, **options)
+
+
 def run_simulation(
     scene: Scene,
     out: str | Path,
-    frames: int | None = None,
-    resume: bool = False,
-    force: bool = False,
-    arch: str = DEFAULT_ARCH,
+    job: SimulateJob | None = None,
     hooks: list[FrameHook] | tuple[FrameHook, ...] = (),
-    show_progress: bool = True,
     solver=None,
+    **options,
 ) -> RunInfo:
-    """Simulate ``scene`` into the run directory ``out``; return its RunInfo.
+    """Simulate ``scene`` into the run directory ``out`` as ``job`` says (``options``, its
+    field names, build one or replace its fields); return its RunInfo.
 
-    ``resume`` continues from the last checkpoint, and only with the run's own
-    scene (else an error lists the changed keys); ``force`` starts over. The
-    old run is replaced only once everything is set up and the first new
+    The old run is replaced only once everything is set up and the first new
     frame is about to be written, so a failing set-up leaves it intact.
     ``hooks`` (:class:`FrameHook`) run after the solver on every frame.
     """
+    job = simulate_job(job, **options)
     for h in hooks:
         if not isinstance(h, FrameHook):
             raise TypeError(f"hooks: {type(h).__qualname__} is not a whitecap.sim.driver.FrameHook")
     out = Path(out)
-    nframes = scene.output.frames if frames is None else int(frames)
+    nframes = scene.output.frames if job.frames is None else int(job.frames)
     if nframes < 1:
         raise InputError(f"--frames: must be at least 1 (got {nframes})")
     created = not out.exists()
     try:
         with run_lock(out, "simulate"):
-            return _simulate(scene, out, nframes, resume, force, arch, hooks, show_progress, solver)
+            return _simulate(scene, out, nframes, job.resume, job.force, job.arch, hooks, job.show_progress, solver)
     finally:
         if out.is_dir() and not (out / RUN_JSON).exists():  # refused, or failed, where no run was: leave nothing
             (out / LOCK_FILE).unlink(missing_ok=True)

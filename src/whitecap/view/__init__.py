@@ -10,27 +10,79 @@ or a Jupyter notebook (viser, :mod:`.web`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from ..config import DEFAULT_ARCH
+from ..config import DEFAULT_ARCH, DEFAULT_UP
+from ..errors import InputError
+from .web import DEFAULT_HOST, DEFAULT_PORT, MAX_POINTS
 
 
-def view(target, headless: bool = False, out=None, frames=None, mp4: bool = False, arch: str = DEFAULT_ARCH,
-         **opts):
-    """Show TARGET (scene TOML = live, run directory or sequence = playback).
+@dataclass(frozen=True)
+class ViewJob:
+    """What one ``view`` does: the options of ``whitecap view`` and of
+    :func:`whitecap.pipeline.view`, with their defaults, defined here once (the CLI and the
+    pipeline build one; :func:`view` takes it). Checked on construction.
 
-    Headless returns the written PNG paths; interactive returns None when the window closes.
+    ``headless`` renders OUT/view_NNNNN.png offscreen (``frames`` of them; live: simulated
+    frames), and OUT/view.mp4 with ``mp4``; ``web`` serves the viewer to a browser on ``host``:
+    ``port`` instead of a window (``max_points`` particles per kind at most, drawn where
+    ``points`` says: browser, server or auto; None: ``[view] web_points``). ``size`` (W, H) and
+    ``color_mode`` replace the scene's ``[view]``; ``up`` is a sequence's up axis; ``arch`` the
+    Taichi backend of a live simulation; ``panel`` and ``legend`` are drawn in headless pictures.
     """
+
+    headless: bool = False
+    frames: int | None = None
+    mp4: bool = False
+    arch: str = DEFAULT_ARCH
+    web: bool = False
+    size: tuple[int, int] | None = None
+    color_mode: str | None = None
+    up: str = DEFAULT_UP
+    panel: bool = False
+    legend: bool = True
+    show_progress: bool = True
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    max_points: int = MAX_POINTS
+    points: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.web and self.headless:
+            raise InputError("view: --web and --headless exclude each other")
+        if self.size is not None:  # argparse gives a list
+            object.__setattr__(self, "size", tuple(self.size))
+
+
+def view_job(job: ViewJob | None = None, **options) -> ViewJob:
+    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
+    return ViewJob(**options) if job is None else replace(job, **options)
+
+
+def view(target, job: ViewJob | None = None, out=None, **options):
+    """Show TARGET (scene TOML = live, run directory or sequence = playback) as ``job`` says
+    (``options``, its field names, build one or replace its fields).
+
+    Headless returns the written PNG paths; interactive returns None when the window closes;
+    ``web`` serves until interrupted, after printing the URL.
+    """
+    job = view_job(job, **options)
+    if job.web:
+        from .web import serve
+
+        return serve(target, host=job.host, port=job.port, arch=job.arch, up=job.up, color_mode=job.color_mode,
+                     max_points=job.max_points, points=job.points)
     from .app import run_headless, run_interactive
 
-    if headless:
+    if job.headless:
         if out is None:
-            from ..errors import InputError
-
             raise InputError("view --headless: --out DIR is required")
-        return run_headless(target, out, frames=frames, mp4=mp4, arch=arch, **opts)
-    return run_interactive(target, arch=arch, out=Path(out) if out else Path("view_out"), up=opts.get("up", "z"),
-                           size=opts.get("size"), color_mode=opts.get("color_mode"))
+        return run_headless(target, out, frames=job.frames, mp4=job.mp4, arch=job.arch, size=job.size,
+                            color_mode=job.color_mode, up=job.up, panel=job.panel, legend=job.legend,
+                            show_progress=job.show_progress)
+    return run_interactive(target, arch=job.arch, out=Path(out) if out else Path("view_out"), up=job.up,
+                           size=job.size, color_mode=job.color_mode)
 
 
 # The browser viewer's entry point. Imported here, after the submodule of the same name,
@@ -38,4 +90,4 @@ def view(target, headless: bool = False, out=None, frames=None, mp4: bool = Fals
 # WebViewer`` still reaches the module through the import system).
 from .web import web  # noqa: E402
 
-__all__ = ["view", "web"]
+__all__ = ["ViewJob", "view", "web"]
