@@ -25,6 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .errors import InputError
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: Per world axis x, y, z: a degree of freedom that is free (true) or held (false).
+Dof3 = Annotated[list[bool], Field(min_length=3, max_length=3)]
 
 
 class _Section(BaseModel):
@@ -215,6 +217,17 @@ class Motion(_Section):
         return self
 
 
+class Drive(_Section):
+    """A prescribed speed for a dynamic body (propulsion): its centre of mass moves at ``velocity``
+    along the translation DOFs it holds (``translation_dof`` false), in the world frame, while the
+    free DOFs stay two-way coupled (sim/bodies.RigidBody). The water's resistance along a driven
+    DOF is taken by the drive, as a towing carriage takes a model's."""
+
+    velocity: Vec3 = Field(..., description="velocity of the centre of mass along x, y, z, world frame [m/s]; "
+                           "non-zero only on held translation DOFs")
+    ramp: float = Field(0.0, ge=0, description="the speed eases in (smoothstep) from rest over this time [s]")
+
+
 #: Densities a dynamic obstacle may have [kg/m³]: from light foams (expanded polystyrene is 10–30) to
 #: the densest metals (osmium, 22 590). Far below, the fluid's smallest push throws the body out of
 #: the tank within a step; far above, the wall contacts no longer hold it.
@@ -246,6 +259,13 @@ class Obstacle(_Section):
     density: float | None = Field(None, ge=BODY_DENSITY[0], le=BODY_DENSITY[1],
                                   description="dynamic: the body's density [kg/m³]")
     mass: float | None = Field(None, gt=0, description="dynamic: the body's mass, instead of density [kg]")
+    translation_dof: Dof3 = Field(
+        [True, True, True], description="dynamic: may the centre of mass move along world x, y, z? false holds "
+        "it (or lets drive move it), as DualSPHysics' translationDOF [-]")
+    rotation_dof: Dof3 = Field(
+        [True, True, True], description="dynamic: may the body turn about world x, y, z (roll, pitch, yaw of a "
+        "hull along x)? false holds it, as DualSPHysics' rotationDOF [-]")
+    drive: Drive | None = Field(None, description="dynamic: a prescribed speed along the held translation DOFs")
 
     @model_validator(mode="after")
     def _dynamic_fields(self) -> "Obstacle":
@@ -254,8 +274,16 @@ class Obstacle(_Section):
                 raise ValueError("a dynamic obstacle needs exactly one of 'density' and 'mass'")
             if self.motion is not None:
                 raise ValueError("an obstacle is either dynamic or has a prescribed motion, not both")
-        elif self.density is not None or self.mass is not None:
-            raise ValueError("'density' and 'mass' apply only with dynamic = true")
+            if self.drive is not None:
+                free = [a for a, v, f in zip("xyz", self.drive.velocity, self.translation_dof) if v != 0 and f]
+                if free:
+                    raise ValueError(f"drive.velocity moves the body along {free[0]}, a free DOF: hold it "
+                                     f"(translation_dof false on {free[0]}) or set that component to 0")
+        else:
+            given = [k for k in ("density", "mass", "drive") if getattr(self, k) is not None] + [
+                k for k in ("translation_dof", "rotation_dof") if not all(getattr(self, k))]
+            if given:
+                raise ValueError(f"'{given[0]}' applies only with dynamic = true")
         return self
 
 
@@ -607,6 +635,12 @@ class Render(_Section):
         1, ge=1, le=16,
         description="render-time multiplier: jittered copies of each diffuse particle (seeded by its id, so they "
         "keep their place from frame to frame); thickens foam without re-simulating [-]",
+    )
+    droplet_particles: float = Field(
+        0.0, ge=0,
+        description="fluid-mesh pieces holding fewer particles than this (by their volume) are drawn with the spray's "
+        "material: in a scale model a lone particle's blob is a centimetre bead of clear water where the prototype "
+        "throws white spray; 0 = off [-]",
     )
     motion_blur: bool = Field(True, description="motion blur from vertex velocities and object motion")
     shutter: float = Field(0.5, gt=0, le=2, description="shutter open time [frames]")

@@ -164,6 +164,41 @@ WALL_CONTACT_SWEEPS = 8
 #: Without it the last sweeps chase rounding-sized depths on a body resting on a wall
 #: (measured: 1.3 against 0.75 ms a step for a slab lying on the floor).
 WALL_CONTACT_SLOP = 1e-5
+#: A wall contact whose inverse effective mass is below this fraction of 1/M acts only along held
+#: DOFs (the body cannot answer it) and is skipped.
+WALL_CONTACT_MIN_INV_MASS = 1e-9
+
+
+def twist_free(q: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """The orientation q (w, x, y, z) with its turn about every held world axis removed.
+
+    ``free`` masks the axes x, y, z the body may turn about. Angular velocity on a held axis is
+    zero, but turns about two free axes compose into a small turn about the third (the rotations
+    do not commute), so the pose is held too, by the swing–twist split q = s ⊗ t with the twist t
+    about the held axis ê and the swing s turning nothing about ê:
+
+    - two free axes (ê held): q ← s = q ⊗ t⁻¹, t = normalise(w, (v·ê) ê);
+    - one free axis â: q ← its twist about â, normalise(w, (v·â) â);
+    - none: q ← 1.
+    """
+    held = np.flatnonzero(~free)
+    if len(held) == 0:
+        return q
+    if len(held) == 3:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    if len(held) == 1:
+        t = np.zeros(4)
+        t[0], t[1 + held[0]] = q[0], q[1 + held[0]]
+        norm = np.linalg.norm(t)
+        if norm < 1e-12:  # a half turn about an axis normal to ê: no twist to remove
+            return q
+        t /= norm
+        s = quat_mul(q, t * np.array([1.0, -1.0, -1.0, -1.0]))
+        return s / np.linalg.norm(s)
+    a = int(np.flatnonzero(free)[0])
+    t = np.zeros(4)
+    t[0], t[1 + a] = q[0], q[1 + a]
+    return t / np.linalg.norm(t)
 
 
 class RigidBody:
@@ -189,7 +224,18 @@ class RigidBody:
     and then for the pose by sequential impulses (Catto 2005, "Iterative
     dynamics with temporal coherence"; the pose part as split impulses), so
     that a wall acts on the body's rotation as well as on its centre. A body
-    turned against two opposite walls is turned back between them."""
+    turned against two opposite walls is turned back between them.
+
+    Degrees of freedom (``translation_dof``, ``rotation_dof``: masks P_t, P_r of the world axes):
+    a held axis has infinite inertia. The body's inverse mass is P_t/M and its inverse inertia
+    K = E (Eᵀ I E)⁻¹ Eᵀ, E the columns of the free axes (the free block of I inverted, so that a
+    body free to pitch only turns by τ_y / I_yy), in the integration and at the walls alike:
+
+        V ← V + Δt P_t (F/M + g) + (1 − P_t) U(t),   Ω ← Ω + Δt K (τ − Ω × IΩ)
+
+    with U(t) = ramp(t)·U the ``drive`` velocity (0 without one) at the step's end, and the pose
+    kept free of turns about held axes (:func:`twist_free`). The fluid's force along a held axis
+    is taken by the constraint (the drive's thrust); along the free ones the body answers it."""
 
     def __init__(self, mesh, o: Obstacle, gravity, domain_lo, domain_hi, index: int = 0):
         vol = float(mesh.volume)
@@ -214,24 +260,54 @@ class RigidBody:
         self.W = np.zeros(3)
         self.F = np.zeros(3)  # reaction force and torque (about c) of the last step
         self.tau = np.zeros(3)
+        self.t_free = np.asarray(o.translation_dof, bool)
+        self.r_free = np.asarray(o.rotation_dof, bool)
+        self.free = bool(self.t_free.all() and self.r_free.all())  # unconstrained: the plain update
+        self.drive = o.drive
+
+    def drive_velocity(self, t: float | None) -> np.ndarray:
+        """U(t) [m/s]: the drive's velocity eased in by smoothstep(t/ramp); t None: the full speed."""
+        d = self.drive
+        if d is None:
+            return np.zeros(3)
+        ease = 1.0 if t is None or d.ramp <= 0 else smoothstep(t / d.ramp)
+        return ease * np.asarray(d.velocity, np.float64)
+
+    def inverse_inertia(self, R: np.ndarray) -> np.ndarray:
+        """The world-frame inverse inertia at orientation R: I⁻¹ = R I₀⁻¹ Rᵀ when free, else the
+        constrained K = E (Eᵀ I E)⁻¹ Eᵀ (zero on held axes)."""
+        if self.r_free.all():
+            return R @ self.I0_inv @ R.T
+        E = np.eye(3)[:, self.r_free]
+        if not E.shape[1]:
+            return np.zeros((3, 3))
+        return E @ np.linalg.inv(E.T @ (R @ self.I0 @ R.T) @ E) @ E.T
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
         R = quat_matrix(self.q)
         return R, self.c - R @ self.c0
 
-    def advance(self, dt: float) -> None:
-        """One step of the body under gravity and the fluid's last reaction, stopped at the walls."""
+    def advance(self, dt: float, t: float | None = None) -> None:
+        """One step of the body under gravity and the fluid's last reaction, stopped at the walls;
+        ``t`` is the time at the step's end (for the drive's ramp; None: the full speed)."""
         if not (np.isfinite(self.F).all() and np.isfinite(self.tau).all()):
             raise SimulationError(f"{self.name}: the fluid's force on it is not finite (the coupling blew up); "
                                   "check its density or mass and the time step")
         R = quat_matrix(self.q)
         I = R @ self.I0 @ R.T
-        self.V = self.V + dt * (self.F / self.mass + self.g)
-        self.W = self.W + dt * np.linalg.solve(I, self.tau - np.cross(self.W, I @ self.W))
+        if self.free:
+            self.V = self.V + dt * (self.F / self.mass + self.g)
+            self.W = self.W + dt * np.linalg.solve(I, self.tau - np.cross(self.W, I @ self.W))
+        else:
+            self.V = np.where(self.t_free, self.V + dt * (self.F / self.mass + self.g), self.drive_velocity(t))
+            W = self.W + dt * self.inverse_inertia(R) @ (self.tau - np.cross(self.W, I @ self.W))
+            self.W = np.where(self.r_free, W, 0.0)
         self.c = self.c + dt * self.V
         q = self.q + 0.5 * dt * quat_mul(np.array([0.0, *self.W]), self.q)
         self.q = q / np.linalg.norm(q)
         self.collide_walls()
+        if not self.free:
+            self.q = twist_free(self.q, self.r_free)
         if not (np.isfinite(self.c).all() and (self.c >= self.lo).all() and (self.c <= self.hi).all()):
             raise SimulationError(
                 f"{self.name}: left the domain (centre of mass at {np.round(self.c, 4).tolist()}, speed "
@@ -250,21 +326,23 @@ class RigidBody:
         1/m_eff, d), with n the wall's normal, r the lever arm from the centre of mass and
         1/m_eff = 1/M + (r × n)·I⁻¹(r × n) the inverse effective mass along n."""
         R = quat_matrix(self.q)
-        I_inv = R @ self.I0_inv @ R.T
+        I_inv = self.inverse_inertia(R)
         n = np.zeros((len(k), 3))
         n[np.arange(len(k)), w % 3] = np.where(w < 3, 1.0, -1.0)
         rn = np.cross((self.hull[k] - self.c0) @ R.T, n)
         a = rn @ I_inv.T
-        inv_m = 1.0 / self.mass + (rn * a).sum(1)
-        return list(zip(n, rn, a, inv_m.tolist(), depth.tolist()))
+        inv_m = self.t_free[w % 3] / self.mass + (rn * a).sum(1)  # n·(P_t n)/M + (r × n)·K(r × n)
+        rows = zip(n, rn, a, inv_m.tolist(), depth.tolist())
+        # A contact along held DOFs only cannot be answered by the body: skipped, not divided by ~0.
+        return [row for row in rows if row[3] > WALL_CONTACT_MIN_INV_MASS / self.mass]
 
     def collide_walls(self) -> None:
         """Frictionless, inelastic contact of the hull with the domain walls, by sequential impulses:
 
         1. velocity: at each contact whose point moves into its wall (u_n = n·(V + Ω × r) < 0), an
-           impulse j n with j = −u_n·m_eff stops that motion (V += j n/M, Ω += I⁻¹(r × j n));
+           impulse j n with j = −u_n·m_eff stops that motion (V += j P_t n/M, Ω += K(r × j n));
         2. pose: each contact still past its wall by d gets the pseudo-impulse p = d·m_eff, which
-           moves the centre by p n/M and turns the body by I⁻¹(r × p n), so that the vertex lands
+           moves the centre by p P_t n/M and turns the body by K(r × p n), so that the vertex lands
            on the wall (to first order; the depths are measured again each sweep).
 
         Both passes sweep the contacts up to WALL_CONTACT_SWEEPS times (Gauss–Seidel), and stop
@@ -280,7 +358,7 @@ class RigidBody:
                 un = float(n @ self.V + rn @ self.W)  # n·(V + Ω × r), with n·(Ω × r) = Ω·(r × n)
                 if un < 0.0:
                     j = -un / inv_m
-                    self.V = self.V + (j / self.mass) * n
+                    self.V = self.V + (j / self.mass) * (self.t_free * n)
                     self.W = self.W + j * a
                     moved = True
             if not moved:
@@ -294,7 +372,7 @@ class RigidBody:
                 d = depth - float(n @ dc + rn @ dtheta)  # what this sweep's corrections left of the depth
                 if d > 0.0:
                     p = d / inv_m
-                    dc += (p / self.mass) * n
+                    dc += (p / self.mass) * (self.t_free * n)
                     dtheta += p * a
             self.c = self.c + dc
             q = self.q + 0.5 * quat_mul(np.array([0.0, *dtheta]), self.q)

@@ -587,7 +587,7 @@ class ObstacleCollider:
             if body is not None:
                 R0, T0 = body.pose()
                 if dt > 0:
-                    body.advance(dt)
+                    body.advance(dt, t1)
                 R1, T1 = body.pose()
             else:
                 R0, T0 = law.pose(t0)
