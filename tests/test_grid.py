@@ -90,7 +90,7 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     import taichi as ti
 
     from whitecap.diffuse.kernels import fluid_neighbourhood
-    from whitecap.sim.grid import GridQuery
+    from whitecap.sim.grid import GridQuery, gather_vec3
 
     g, _, x = grid_and_points
     rng = np.random.default_rng(2)
@@ -99,6 +99,8 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     v = rng.normal(0, 1, (len(x), 3)).astype(np.float32)
     fv = ti.Vector.ndarray(3, ti.f32, len(x))
     fv.from_numpy(v)
+    vs = ti.Vector.ndarray(3, ti.f32, len(x))  # the velocities in the grid's cell order, as the query reads them
+    gather_vec3(len(x), g.order, fv, vs)
     qs = ti.Vector.ndarray(3, ti.f32, len(q))
     qs.from_numpy(q)
     cnt, vsum, wsum = ti.ndarray(ti.i32, len(q)), ti.Vector.ndarray(3, ti.f32, len(q)), ti.ndarray(ti.f32, len(q))
@@ -107,13 +109,13 @@ def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 
     @ti.kernel
-    def probe(m: ti.i32, qs: F3, grid: GridQuery, scan: ti.template(), h: ti.f32, order: I1, fv: F3, cnt: I1,
-              vsum: F3, wsum: F1):
+    def probe(m: ti.i32, qs: F3, grid: GridQuery, scan: ti.template(), h: ti.f32, vs: F3, cnt: I1, vsum: F3,
+              wsum: F1):
         for p in range(m):
-            c, vs, ws = fluid_neighbourhood(qs[p], grid, scan, h, order, fv)
-            cnt[p], vsum[p], wsum[p] = c, vs, ws
+            c, vv, ws = fluid_neighbourhood(qs[p], grid, scan, h, vs)
+            cnt[p], vsum[p], wsum[p] = c, vv, ws
 
-    probe(len(q), qs, *g.query_args(), H, g.order, fv, cnt, vsum, wsum)
+    probe(len(q), qs, *g.query_args(), H, vs, cnt, vsum, wsum)
     near, edge = _within(q, x)
     sure = ~edge.any(1)
     assert sure.sum() > 400 and near.sum(1).max() > 50

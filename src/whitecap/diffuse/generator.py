@@ -44,7 +44,7 @@ from ..io import ParticleFrame
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY  # noqa: F401 (the codes, for the generator's users)
 from ..progress import console
 from ..sim import runtime
-from ..sim.grid import NeighborGrid, grid_spec
+from ..sim.grid import NeighborGrid, gather_vec3, grid_spec
 from ..sim.scan import SCAN_BLOCKS, exclusive_scan
 from ..timing import timer
 from . import budget as B, kernels as K, splishsplash as SP
@@ -403,7 +403,9 @@ class FoamGenerator:
         fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n)
-        return fx, fv, fid, (*g.query_args(), self.h, g.order, fv)
+        vs = self._buffer("fluid_v_sorted", n, vec=True)
+        gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
+        return fx, fv, fid, (*g.query_args(), self.h, vs)
 
     def _potential_arrays(self, fluid: ParticleFrame, n: int):
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots)."""
@@ -759,7 +761,6 @@ class FoamGenerator:
         chunk = min(total, CANDIDATE_CHUNK)
         up = {"limit": CANDIDATE_CHUNK}  # grown geometrically, never past a chunk
         kd, owner = self._buffer("cand_kind", chunk, ti.i8, **up), self._buffer("cand_owner", chunk, **up)
-        g = self.grid
         box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
                int(p.model == "foamgenerator" and p.wall_correction))
         self._thin = False  # no thinning beyond the limits (yet)
@@ -771,8 +772,7 @@ class FoamGenerator:
             K.chunk_owners(n, base, size, cnt, off, owner)
             K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
                                   p.lifetime_multiplier, self.r, dt, self.seed, frame, cx, cv, cl)
-            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count,
-                                  g.nb, *args[:3], *box, kd)
+            K.classify_candidates(size, base, owner, off, lim, cx, *args[:3], *box, kd)
 
         def thin(base: int, size: int, tally) -> None:
             K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)

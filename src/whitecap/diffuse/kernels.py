@@ -226,25 +226,30 @@ def zero_below(n: ti.i32, nb_count: I1, min_count: ti.i32, a: F1):
 
 
 @ti.func
-def _weigh_fluid(
-    g: ti.template(), s, r2, h, order: I1, fv: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()
-):
-    """Adds fluid particle ``order[s]`` at distance r to the neighbourhood sums, weighted by W̃ = 1 − r/h
-    (``g``, the index of the query point, is always 0: one point a query)."""
-    wt = 1.0 - ti.sqrt(r2) / h
-    cnt += 1
-    vsum += wt * fv[order[s]]
+def _weigh_fluid(g: ti.template(), s, r2, h, h2, vs: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()):
+    """Adds the fluid particle in slot s (velocity vs[s], in the grid's cell order) at distance r to the
+    neighbourhood sums when r² < h², weighted by W̃ = 1 − r/h (``g``, the index of the query point, is always 0:
+    one point a query). Every candidate of the scanned cells is handed in and masked, not branched on: the
+    branch, taken for about a third of them in no order the processor can predict, cost more than the
+    masked work (the velocities are read in the order of the positions, vs, so the extra loads stream).
+    A masked candidate adds exact zeros: the sums are those of the neighbours alone, in the same order."""
+    inside = r2 < h2
+    wt = ti.select(inside, 1.0 - ti.sqrt(r2) / h, 0.0)
+    cnt += ti.cast(inside, ti.i32)
+    vsum += wt * vs[s]
     wsum += wt
 
 
 @ti.func
-def fluid_neighbourhood(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, order: I1, fv: F3):
+def fluid_neighbourhood(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, vs: F3):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
-    :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``: the query and the scan, then h, order)."""
+    :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``: the query and the scan; then h and
+    the fluid's velocities in the grid's cell order, ``vs[s] = v[order[s]]``: read in the order the scan
+    meets them, not gathered through ``order``)."""
     cnt = 0
     vsum = vec3(0.0)
     wsum = 0.0
-    for_each_neighbor([p], h, grid, scan, _weigh_fluid, (h, order, fv, cnt, vsum, wsum), False)
+    for_each_neighbor([p], h, grid, scan, _weigh_fluid, (h, h * h, vs, cnt, vsum, wsum), True)
     return cnt, vsum, wsum
 
 
@@ -282,8 +287,7 @@ def advect_diffuse(
     grid: GridQuery,
     scan: ti.template(),
     h: ti.f32,
-    order: I1,
-    fv: F3,
+    vs: F3,
     g: vec3,
     k_b: ti.f32,
     k_d: ti.f32,
@@ -306,7 +310,7 @@ def advect_diffuse(
     that leave the domain. ``kind`` is the type each particle moved as. ``wall_correction``:
     FoamGenerator's foam-count correction near the domain's faces (see diffuse_type_in_box)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, vs)
         vf = vec3(0.0)
         if wsum > 0.0:
             vf = vsum / wsum
@@ -339,8 +343,7 @@ def classify(
     grid: GridQuery,
     scan: ti.template(),
     h: ti.f32,
-    order: I1,
-    fv: F3,
+    vs: F3,
     spray_below: ti.i32,
     bubble_above: ti.i32,
     lo: vec3,
@@ -350,16 +353,13 @@ def classify(
 ):
     """The type of each diffuse particle from its fluid-neighbour count (see diffuse_type_in_box)."""
     for p in range(nd):
-        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, order, fv)
+        cnt, vsum, wsum = fluid_neighbourhood(xd[p], grid, scan, h, vs)
         kind[p] = diffuse_type_in_box(xd[p], cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
 
 
 # ---------------------------------------------------------------- classifying a frame's candidates
 #: kind of a candidate that no type can keep (see classify_candidates)
 NOT_KEPT = -1
-#: The owner's neighbours are counted within h·(1 − OWNER_SLACK) of a candidate: a strict radius, so
-#: that rounding can never count one that the grid's query (|x_j − x_d|² < h²) leaves out.
-OWNER_SLACK = 1e-4
 
 
 @ti.func
@@ -387,18 +387,6 @@ def fluid_count(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, mo
     cnt = 0
     for_each_neighbor([p], h, grid, scan, _count_fluid, (h * h, cnt, most), True, _counted_past)
     return cnt
-
-
-@ti.func
-def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32) -> ti.i32:
-    """How many of fluid particle i's neighbours (its list nb[i, :nb_count[i]], i itself included)
-    lie within r of the point p. They are distinct fluid particles, so for r ≤ h this never exceeds
-    p's own count of fluid neighbours within h. The whole list is counted, without a branch: stopping
-    at a count would branch on every neighbour, unpredictably (at 800k candidates, 29 ms against 18)."""
-    c = 0
-    for k in range(nb_count[i]):
-        c += ti.cast((x[nb[i, k]] - p).norm_sqr() < r2, ti.i32)
-    return c
 
 
 @ti.kernel
@@ -432,9 +420,6 @@ def classify_candidates(
     offset: I1,
     limit: I2,
     xd: F3,
-    x: F3,
-    nb_count: I1,
-    nb: I2,
     grid: GridQuery,
     scan: ti.template(),
     h: ti.f32,
@@ -451,28 +436,24 @@ def classify_candidates(
     The type is found with the least work that decides this:
     - s at or above every type's limit: never kept, no count;
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
-    - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. The owner's own
-      neighbours within h of the candidate are some of its fluid neighbours: when spray_below of them
-      are, it is not spray (this settles, without the grid's search, most candidates: they are born
-      inside the water, near their fluid particle); else the full count decides.
+    - otherwise only spray (fewer than spray_below fluid neighbours) can keep it: the count need only be
+      known up to spray_below (a query that stops there; most such candidates are born inside the water,
+      near their fluid particle, and the nearest columns of cells settle them). Any count at or above it
+      makes foam or a bubble (the wall correction only raises foam's count), which this slot cannot keep.
     kind[j] is the type of a kept candidate and NOT_KEPT for the others."""
-    r2_owner = (h * (1.0 - OWNER_SLACK)) ** 2
     for j in range(m):
         i = owner[j]
         s = base + j - offset[i]
         t = NOT_KEPT
         if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
             p = xd[j]
-            full = 0
+            most = spray_below - 1
             if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
-                full = 1
-            else:
-                full = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
-            if full:  # one search in the kernel's code (it is inlined where it is called)
-                cnt = fluid_count(p, grid, scan, h, bubble_above)
-                t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
-                if s >= limit[i, t]:
-                    t = NOT_KEPT
+                most = bubble_above
+            cnt = fluid_count(p, grid, scan, h, most)  # one search in the kernel's code (inlined where called)
+            t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
+            if s >= limit[i, t]:
+                t = NOT_KEPT
         kind[j] = ti.cast(t, ti.i8)
 
 
