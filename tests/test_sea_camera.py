@@ -156,18 +156,62 @@ def test_sea_meets_the_water_at_the_wall_and_settles_to_its_level():
     h = lambda x, y: 0.1 + 0.02 * np.sin(6 * x + 3 * y)  # noqa: E731
     v, _ = water_slab(LO, HI, 40, h)
     layout = sea.sea_layout(LO, HI, 0.01, 50.0, fine=0.16 / 12, fine_until=0.5)
-    edge = sea.edge_heights(layout, v, 0.01)
+    edge, inset = sea.edge_heights(layout, v, 0.01, 0.08, reach=0.2)
     walls = layout.wall >= 0
     assert np.allclose(edge[walls], h(layout.base[walls, 0], layout.base[walls, 1]), atol=0.003)
+    assert (inset == 0).all()  # the water touches every wall
     z, s = sea.sea_heights(layout, edge, 0.08, 0.2, 1.0, 0.01, 0.16, 0.0, 9.81)
     n = len(layout.base)
-    assert np.array_equal(z[:n], edge) and (s[:n] == 0).all()
+    assert np.allclose(z[:n], edge, rtol=0, atol=1e-12) and (s[:n] == 0).all()
     zr = z.reshape(len(layout.d), n)
     assert np.abs(zr[layout.d >= 0.2] - 0.08).max() <= 0.005 + 1e-9  # within half the wave height
     assert zr[(layout.d >= 0.2) & (layout.d < 0.3)].std() > 1e-3  # waves where the mesh resolves them
     xy = layout.xy()[layout.faces]
     area = np.cross(xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0])
     assert (area >= -1e-12).all() and layout.d[-1] >= 50.0
+
+
+def test_sea_meets_water_that_leaves_a_wall_where_the_water_is():
+    """Water that stands off the left wall (x = 0) by 0.1 m, as in front of a wave maker, and
+    leaves a stretch of the front wall dry (an obstacle on it): the sea's edge on the left wall
+    moves in to the water's edge (inset 0.1 m, ring 0 there, at the water's height), the dry
+    stretch is bridged without a step, and no sea vertex drops to the floor."""
+    h = lambda x, y: 0.1 + 0.02 * np.sin(6 * x + 3 * y)  # noqa: E731
+    lo = LO + [0.1, 0.0, 0.0]
+    v, _ = water_slab(lo, HI, 40, h)
+    dry = (v[:, 1] < 1e-9) & (v[:, 0] > 0.4) & (v[:, 0] < 0.5)
+    v[dry, 1] = 0.02  # off the front wall there
+    layout = sea.sea_layout(LO, HI, 0.01, 50.0, fine=0.16 / 12, fine_until=0.5)
+    edge, inset = sea.edge_heights(layout, v, 0.01, 0.08, reach=0.2)
+    left = layout.wall == 3
+    assert np.allclose(inset[left], 0.1, atol=1e-6)
+    assert np.allclose(edge[left], h(0.1, layout.base[left, 1]), atol=0.003)
+    xy = sea.sea_xy(layout, inset, 0.2)
+    n = len(layout.base)
+    assert np.allclose(xy[:n][left, 0], 0.1)
+    front = (layout.wall == 0) & (layout.base[:, 0] > 0.12)
+    x, z = layout.base[front, 0], edge[front]
+    assert np.abs(np.diff(z)).max() < 0.004 and np.allclose(z, h(x, 0.0), atol=0.006)
+    zs, _ = sea.sea_heights(layout, edge, 0.08, 0.2, 1.0, 0.0, 0.16, 0.0, 9.81)
+    assert zs.min() > 0.07  # never down to the floor (a dark trough along the wall)
+    area = np.cross(*(xy[layout.faces][:, k] - xy[layout.faces][:, 0] for k in (1, 2)))
+    assert (area >= -1e-12).all()  # the rings stay in order outward
+
+
+def test_edge_jitter_does_not_run_out_across_the_sea():
+    """Edge heights that alternate by ±1 cm from sample to sample (a splash, the mesh's jitter at
+    the wall): ring 0 keeps them, but three detail widths out the sea varies along the wall by
+    well under a millimetre, so no ridges run out from the wall (stepped slabs)."""
+    layout = sea.sea_layout(LO, HI, 0.01, 50.0, fine=0.16 / 12, fine_until=0.5)
+    n = len(layout.base)
+    edge = 0.1 + 0.01 * (-1.0) ** np.arange(n)
+    blend = 0.2
+    z, _ = sea.sea_heights(layout, edge, 0.1, blend, 0.0, 0.0, 0.16, 0.0, 9.81)
+    z = z.reshape(len(layout.d), n)
+    front = layout.wall == 0
+    assert np.allclose(z[0], edge)
+    k = np.searchsorted(layout.d, 3 * sea.EDGE_DETAIL * blend)
+    assert z[k, front].std() < 5e-4, z[k, front].std()
 
 
 def test_still_level_is_the_settled_water():
@@ -211,59 +255,81 @@ print(json.dumps(res))
 """
 
 
-def test_sea_shows_no_seam_at_the_domain_edge(tmp_path):
-    """A preview frame of water that fills the domain, with the sea around it: along the
-    domain's front and right edges, pixels just inside and just outside differ by less than
-    THRESHOLD (8-bit levels). Without the sea (container none) the water's side face shows
-    there as a wall, far above it. No container object is drawn with the sea."""
-    pytest.importorskip("bpy")
+def seam_render(tmp_path, water_hi, variants: dict, level: float, edge_x: float) -> dict:
+    """Preview frames (one per [render] variant) of a water slab over [LO, water_hi] and, per
+    variant, the 8-bit pixel differences between points just inside and just outside the
+    front edge (y = 0) and the water's right edge (x = edge_x), at the water's level."""
     import imageio.v2 as imageio
 
     from whitecap.io import write_mesh
     from whitecap.io.mesh import SurfaceMesh
 
     run = tmp_path / "run"
-    level = 0.1
-    v, f = water_slab(LO, HI, 48, lambda x, y: level + 0.004 * np.sin(14 * x) * np.cos(9 * y))
+    v, f = water_slab(LO, water_hi, 48, lambda x, y: level + 0.004 * np.sin(14 * x) * np.cos(9 * y))
     write_mesh(run / "mesh/fluid_00000.ply", SurfaceMesh(v, f))
     info = run_info()
     info.obstacles = []
     info.set_file(0, "mesh", "mesh/fluid_00000.ply")
     info.save(run)
-    # points just inside / just outside the front (y = 0) and right (x = 0.8) edges, at the water's level
     d = 0.02
     pts, pairs = [], []
-    for x in np.linspace(0.15, 0.7, 12):
+    for x in np.linspace(0.15, edge_x - 0.1, 12):
         pairs.append((len(pts), len(pts) + 1))
         pts += [[x, d, level], [x, -d, level]]
     for y in np.linspace(0.08, 0.35, 8):
         pairs.append((len(pts), len(pts) + 1))
-        pts += [[HI[0] - d, y, level], [HI[0] + d, y, level]]
-    common = {"camera_start": [1.25, -0.55, 0.45], "camera_target": [0.55, 0.2, 0.08]}
-    variants = {"sea": {"sea": True, "sea_level": level, "ground": False, **common},
-                "nosea": {"container": "none", "ground": False, **common}}
+        pts += [[edge_x - d, y, level], [edge_x + d, y, level]]
     out = subprocess.run([sys.executable, "-c", SEAM, run, tmp_path, json.dumps(variants), json.dumps(pts)],
                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads([ln for ln in out.stdout.splitlines() if ln.startswith("{")][-1])
-    assert "container" not in res["sea"]["objects"] and "sea" in res["sea"]["objects"]
-
-    def across(name):
+    diffs = {}
+    for name in variants:
         img = imageio.imread(tmp_path / f"{name}.png")[..., :3].astype(float)
         hgt, wid = img.shape[:2]
-        diffs = []
+        across = []
         for a, b in pairs:
             (ua, va), (ub, vb) = res[name]["uv"][a], res[name]["uv"][b]
             ya, xa, yb, xb = int((1 - va) * hgt), int(ua * wid), int((1 - vb) * hgt), int(ub * wid)
             assert 1 <= ya < hgt - 1 and 1 <= xa < wid - 1 and 1 <= yb < hgt - 1 and 1 <= xb < wid - 1
-            diffs.append(np.abs(img[ya - 1:ya + 2, xa - 1:xa + 2].mean((0, 1))
-                                - img[yb - 1:yb + 2, xb - 1:xb + 2].mean((0, 1))).mean())
-        return np.array(diffs)
+            across.append(np.abs(img[ya - 1:ya + 2, xa - 1:xa + 2].mean((0, 1))
+                                 - img[yb - 1:yb + 2, xb - 1:xb + 2].mean((0, 1))).mean())
+        diffs[name] = (np.array(across), res[name]["objects"])
+    return diffs
 
-    with_sea, without = across("sea"), across("nosea")
+
+SEAM_CAMERA = {"camera_start": [1.25, -0.55, 0.45], "camera_target": [0.55, 0.2, 0.08]}
+
+
+def test_sea_shows_no_seam_at_the_domain_edge(tmp_path):
+    """A preview frame of water that fills the domain, with the sea around it: along the
+    domain's front and right edges, pixels just inside and just outside differ by less than
+    THRESHOLD (8-bit levels). Without the sea (container none) the water's side face shows
+    there as a wall, far above it. No container object is drawn with the sea."""
+    pytest.importorskip("bpy")
+    level = 0.1
+    variants = {"sea": {"sea": True, "sea_level": level, "ground": False, **SEAM_CAMERA},
+                "nosea": {"container": "none", "ground": False, **SEAM_CAMERA}}
+    diffs = seam_render(tmp_path, HI, variants, level, HI[0])
+    (with_sea, objects), (without, _) = diffs["sea"], diffs["nosea"]
+    assert "container" not in objects and "sea" in objects
     print("across the edge, 8-bit levels: sea", with_sea.round(1), "no sea", without.round(1))
     assert np.median(with_sea) < THRESHOLD and with_sea.max() < 2 * THRESHOLD, with_sea
     assert np.median(without) > 2 * THRESHOLD, without
+
+
+def test_sea_shows_no_seam_where_the_water_leaves_a_wall(tmp_path):
+    """Water that stands 0.1 m off the right wall (as in front of a wave maker; scenes/coast.toml's
+    dark band behind the surf): the sea reaches in to the water's edge, so across that edge (and
+    the front edge) pixels differ by less than THRESHOLD as where the water fills the domain. A
+    sea that meets the floor at a wall the water does not touch shows a dark trough there."""
+    pytest.importorskip("bpy")
+    level = 0.1
+    variants = {"sea": {"sea": True, "sea_level": level, "ground": False, **SEAM_CAMERA}}
+    edge_x = HI[0] - 0.1
+    with_sea = seam_render(tmp_path, [edge_x, HI[1], HI[2]], variants, level, edge_x)["sea"][0]
+    print("across the water's edge, 8-bit levels:", with_sea.round(1))
+    assert np.median(with_sea) < THRESHOLD and with_sea.max() < 2 * THRESHOLD, with_sea
 
 
 #: Median pixel difference across the domain's edge with the sea [8-bit levels], set by looking (see the test).

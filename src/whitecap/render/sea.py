@@ -49,6 +49,10 @@ WAVE_HEIGHT_SHARE, WAVE_LENGTH_SHARE, BLEND_SHARE = 0.025, 0.2, 0.25
 WAVES = ((0.0, 1.0, 0.0), (25.0, 0.73, 1.7), (-35.0, 0.52, 4.1), (60.0, 0.37, 2.9))
 #: A wave is drawn in the geometry only where the mesh spacing is below its length over this.
 WAVE_SAMPLES = 6.0
+#: The edge's detail fades outward, and its profile is smoothed along the outline, over this share of the blend.
+EDGE_DETAIL = 0.1
+#: The edge's profile carried out across the blend stays within this many sea wave heights of the level.
+EDGE_PROFILE = 2.0
 #: Point attribute of the sea mesh: 0 at the domain's edge, 1 past the blend; weights the ripple bump.
 RIPPLE_ATTR = "sea_ripple"
 #: Ripple bump: noise feature size as a share of the wave length, and the bump's strength.
@@ -165,38 +169,53 @@ def open_walls(verts: np.ndarray, faces: np.ndarray, lo, hi, r: float) -> np.nda
     return f[~drop]
 
 
-def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float) -> np.ndarray:
-    """The simulated water's height at each outline sample: the highest fluid-mesh vertex on
-    that wall within a sample spacing (at least r) of it. Where the water does not touch the
-    wall, a gap of up to three samples is bridged, a longer one is the floor. Corner samples
-    take the higher of their two walls' nearest heights."""
+def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | None = None,
+                 reach: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(height, inset) of the sea's inner edge at each outline sample [m].
+
+    Where the simulated water touches the wall: the highest fluid-mesh vertex on that wall
+    within a sample spacing (at least r) of the sample, inset 0. A wall the water touches
+    nowhere (a wave maker or an inflow stands between it and the water) is met where the water
+    is: the edge moves ``inset`` inward, up to ``reach``, to the water's nearest vertices in the
+    sample's strip, at the top of the water there (:func:`sea_xy` spreads the move over the
+    blend). Where the water does not reach a wall it touches elsewhere (a beach, a breakwater
+    standing on it), the gap is bridged by a straight line between the samples on either side
+    (a step there would run out across the sea as a slab). Without any water the edge is at
+    ``level`` (the domain's floor without one). Corner samples take the higher of their two
+    walls' nearest heights."""
     lo, hi = layout.lo, layout.hi
     v = np.asarray(verts, float).reshape(-1, 3)
     eps = wall_tolerance(r)
     n = len(layout.base)
     h = np.full(n, np.nan)
+    inset = np.zeros(n)
     planes = [(1, lo[1], 0), (0, hi[0], 1), (1, hi[1], 0), (0, lo[0], 1)]  # (normal axis, plane, along axis)
     for w, (axis, plane, along) in enumerate(planes):
         sel = np.flatnonzero(layout.wall == w)
         if len(sel) == 0 or len(v) == 0:
             continue
-        on = v[np.abs(v[:, axis] - plane) < eps]
-        if len(on) == 0:
-            continue
-        order = np.argsort(on[:, along])
-        u, z = on[order, along], on[order, 2]
         s = layout.base[sel, along]
         half = max(np.abs(np.diff(s)).max() if len(s) > 1 else r, r)
+        inward = (plane - v[:, axis]) * layout.normal[sel[0], axis]  # distance from the wall into the domain
+        touching = np.abs(inward) < eps
+        near = touching if touching.any() else (inward > 0) & (inward <= reach)
+        if not near.any():
+            continue
+        order = np.argsort(v[near, along])
+        u, z, d = v[near, along][order], v[near, 2][order], np.maximum(inward[near][order], 0.0)
         a, b = np.searchsorted(u, s - half), np.searchsorted(u, s + half)
         for i, (ia, ib) in enumerate(zip(a, b)):
             if ib > ia:
-                h[sel[i]] = z[ia:ib].max()
+                d0 = d[ia:ib].min()
+                h[sel[i]] = z[ia:ib][d[ia:ib] <= d0 + 2 * r].max()
+                inset[sel[i]] = d0
     edge = layout.wall >= 0
     known = np.flatnonzero(edge & np.isfinite(h))
-    floor = lo[2]
+    fill = lo[2] if level is None else level
     if len(known) == 0:
-        return np.full(n, floor)
-    # bridge short gaps along the loop (edge samples only), else the floor
+        return np.full(n, fill), inset
+    # bridge the gaps along the loop (edge samples only): a straight line between the known samples
+    # on either side, so the sea's edge has no step where a beach or an obstacle keeps the water off
     idx = np.flatnonzero(edge)
     pos = np.searchsorted(known, idx)
     prev = known[(pos - 1) % len(known)]
@@ -205,12 +224,9 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float) -> np.ndarray:
         if np.isfinite(h[i]):
             continue
         gp, gq = (i - p) % n, (q - i) % n
-        edges_between = (layout.wall[np.arange(p, p + gp + gq + 1) % n] >= 0).sum() - 2
-        if edges_between <= 3:
-            t = gp / max(gp + gq, 1)
-            h[i] = (1 - t) * h[p] + t * h[q]
-        else:
-            h[i] = floor
+        t = gp / max(gp + gq, 1)
+        h[i] = (1 - t) * h[p] + t * h[q]
+        inset[i] = (1 - t) * inset[p] + t * inset[q]
     # corners: the higher of the nearest wall samples on either side
     for i in np.flatnonzero(~edge):
         a = i
@@ -220,7 +236,15 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float) -> np.ndarray:
         while layout.wall[b] < 0:
             b = (b + 1) % n
         h[i] = max(h[a], h[b])
-    return h
+    return h, inset
+
+
+def sea_xy(layout: SeaLayout, inset: np.ndarray, blend: float) -> np.ndarray:
+    """(m·n, 2) vertex positions with each sample's edge moved ``inset`` inward: ring k of sample
+    j at d[k] − inset[j]·(1 − smoothstep(d[k]/blend)) along its normal (still in order outward,
+    since that grows with d)."""
+    d = layout.d[:, None] - inset[None, :] * (1 - smoothstep(layout.d / blend))[:, None]
+    return (layout.base[None, :, :] + d[:, :, None] * layout.normal[None, :, :]).reshape(-1, 2)
 
 
 def smoothstep(x: np.ndarray) -> np.ndarray:
@@ -247,17 +271,39 @@ def waves(xy: np.ndarray, spacing: np.ndarray, t: float, height: float, length: 
     return z
 
 
+def outline_smooth(layout: SeaLayout, h: np.ndarray, width: float) -> np.ndarray:
+    """``h`` (n,) smoothed along the closed outline: a Gaussian of standard deviation ``width`` [m]
+    in the distance along it (corner samples, at one point, are a distance 0 apart)."""
+    if width <= 0 or len(h) < 2:
+        return h.copy()
+    step = np.linalg.norm(np.diff(layout.base, axis=0, append=layout.base[:1]), axis=1)
+    u = np.concatenate([[0.0], np.cumsum(step)[:-1]])
+    perimeter = step.sum()
+    gap = np.abs(u[:, None] - u[None, :])
+    gap = np.minimum(gap, perimeter - gap)
+    w = np.exp(-0.5 * (gap / width) ** 2)
+    return (w @ h) / w.sum(1)
+
+
 def sea_heights(layout: SeaLayout, edge: np.ndarray, level: float, blend: float, t: float, height: float,
                 length: float, direction_deg: float, g: float) -> tuple[np.ndarray, np.ndarray]:
     """(z of every vertex, ripple weight of every vertex), ring by ring: from the simulated
-    water's ``edge`` heights at the wall to ``level`` plus :func:`waves` past ``blend``."""
+    water's ``edge`` heights at the wall to ``level`` plus :func:`waves` past ``blend``. Outward
+    from the wall the edge's detail (sample-to-sample jitter, a splash at the wall) fades over
+    EDGE_DETAIL × blend and only its profile, smoothed along the outline over that width and
+    held within EDGE_PROFILE × ``height`` of the level (a splash on an obstacle at the wall is
+    no swell), carries on, so no ridge or hump runs out from the wall across the blend."""
     m, n = len(layout.d), len(layout.base)
     s = smoothstep(layout.d / blend)[:, None] * np.ones((1, n))
     xy = layout.xy()
     corner = np.where(layout.wall < 0, (math.pi / 2) / CORNER_SAMPLES, 0.0)
     sp = np.maximum(layout.spacing[:, None], layout.d[:, None] * corner[None, :]).ravel()
     w = waves(xy, sp, t, height, length, direction_deg, g)
-    z = (1 - s) * edge[None, :] + s * level + s * w.reshape(m, n)
+    cap = EDGE_PROFILE * height
+    profile = level + np.clip(outline_smooth(layout, edge, EDGE_DETAIL * blend) - level, -cap, cap)
+    keep = np.exp(-layout.d / (EDGE_DETAIL * blend))[:, None]
+    inner = profile[None, :] + keep * (edge - profile)[None, :]
+    z = (1 - s) * inner + s * level + s * w.reshape(m, n)
     return z.ravel(), s.ravel()
 
 
@@ -357,10 +403,10 @@ def add_sea(sc, cfg: Render, info: RunInfo, water, run_dir: Path | None) -> Sea:
 
 def update_sea(sea: Sea, fluid_verts: np.ndarray, t: float) -> None:
     """Shape the sea for a frame at time ``t`` whose fluid mesh has vertices ``fluid_verts``."""
-    edge = edge_heights(sea.layout, fluid_verts, sea.r)
+    edge, inset = edge_heights(sea.layout, fluid_verts, sea.r, sea.level, reach=sea.blend)
     z, s = sea_heights(sea.layout, edge, sea.level, sea.blend, t, sea.height, sea.length, sea.direction, sea.g)
     me = sea.obj.data
-    co = np.column_stack([sea.layout.xy(), z]).astype(np.float32)
+    co = np.column_stack([sea_xy(sea.layout, inset, sea.blend), z]).astype(np.float32)
     me.vertices.foreach_set("co", co.ravel())
     me.attributes[RIPPLE_ATTR].data.foreach_set("value", s.astype(np.float32))
     me.update()
