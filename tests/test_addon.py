@@ -1252,7 +1252,7 @@ def test_splishsplash_rigid_body_bin_poses_as_whitecap_import_records_them(addon
                            atol=2e-5)
         for j, f in enumerate(("1", "29", "30")):
             want = np.eye(4) if shape.poses is None else (
-                T.translation_matrix(shape.poses[j]["position"]) @ T.quaternion_matrix(shape.poses[j]["quaternion"]))
+                T.translation_matrix(shape.poses[j].position) @ T.quaternion_matrix(shape.poses[j].quaternion))
             assert np.allclose(got[f]["matrix"], want, atol=1e-5), (shape.name, f)
     assert case.shapes[1].poses is not None  # the sphere moves
 

@@ -46,7 +46,7 @@ def _snapshot(run: Path) -> dict[str, bytes]:
 
 
 def _listed(run: Path) -> dict[str, int]:
-    return {rel: f["index"] for f in RunInfo.load(run).frames for rel in f["files"].values()}
+    return {rel: f.index for f in RunInfo.load(run).frames for rel in f.files.values()}
 
 
 # ----------------------------------------------------------------------------- FrameWriter itself
@@ -131,7 +131,7 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
     real_save, real_write, real_arrays = RunInfo.save, driver.write, driver.write_arrays
 
     def save(self, run_dir):
-        bad.extend(rel for f in self.frames for rel in f["files"].values() if not (Path(run_dir) / rel).is_file())
+        bad.extend(rel for f in self.frames for rel in f.files.values() if not (Path(run_dir) / rel).is_file())
         real_save(self, run_dir)
 
     def slow_write(path, frame):

@@ -133,7 +133,7 @@ def test_resume_with_a_moving_body_is_byte_identical(tmp_path):
     for i in (3, 4):
         a = (full / f"fluid/fluid_{i:05d}.ply").read_bytes()
         assert a == (part / f"fluid/fluid_{i:05d}.ply").read_bytes(), i
-    assert RunInfo.load(full).frames[4]["bodies"] == RunInfo.load(part).frames[4]["bodies"]
+    assert RunInfo.load(full).frames[4].bodies == RunInfo.load(part).frames[4].bodies
 
 
 def test_friction_acts_relative_to_a_moving_body(tmp_path):
@@ -190,7 +190,7 @@ def test_diffuse_particles_never_inside_a_moving_body(tmp_path):
             close = int((dist < 0.06 + 0.02).sum())
             near += close
             frames_near += close > 0
-    assert info.body_pose(14, 0)["position"][0] == pytest.approx(-0.12 * 14 / 30 / 0.5)  # it moved 11 cm
+    assert info.body_pose(14, 0).position[0] == pytest.approx(-0.12 * 14 / 30 / 0.5)  # it moved 11 cm
     assert total > 0 and near >= 50 and frames_near >= 8, (total, near, frames_near)
 
 
@@ -200,14 +200,14 @@ def test_run_json_records_each_body_pose_per_frame(tmp_path):
     info = simulate(sc, out=tmp_path / "run", show_progress=False)
     info = RunInfo.load(tmp_path / "run")
     o = info.obstacles[0]
-    assert o["mesh"].endswith("paddle.stl") and o["motion"]["kind"] == "piston"
+    assert o.mesh.endswith("paddle.stl") and o.motion["kind"] == "piston"
     law_ = bodies.MotionLaw(sc.obstacle[0])
     for f in info.frames:
-        (b,) = f["bodies"]
-        assert b["quaternion"] == pytest.approx([1, 0, 0, 0])
-        assert b["position"] == pytest.approx(law_.pose(f["time"])[1].tolist(), abs=1e-12)
+        (b,) = f.bodies
+        assert b.quaternion == pytest.approx([1, 0, 0, 0])
+        assert b.position == pytest.approx(law_.pose(f.time)[1].tolist(), abs=1e-12)
     # at t = 0.1 s (a quarter period) the paddle is at its full stroke, S/2 = 6 cm
-    assert info.frames[3]["bodies"][0]["position"][0] == pytest.approx(0.06, rel=1e-6)
+    assert info.frames[3].bodies[0].position[0] == pytest.approx(0.06, rel=1e-6)
     # the world matrix composes the pose with the rest placement: the paddle's centre moved 6 cm in x
     assert obstacle_matrix(o, info.body_pose(3, 0))[:3, 3] == pytest.approx([0.26, 0.06, 0.15])
     # a damaged pose is a one-line error naming the field
@@ -454,8 +454,8 @@ def test_resume_with_a_dynamic_body_is_byte_identical(tmp_path):
     for i in (3, 4):
         assert (full / f"fluid/fluid_{i:05d}.ply").read_bytes() == (part / f"fluid/fluid_{i:05d}.ply").read_bytes(), i
     a, b = RunInfo.load(full), RunInfo.load(part)
-    assert a.frames[4]["bodies"] == b.frames[4]["bodies"]
-    assert a.frames[4]["bodies"][0]["position"][2] < a.frames[0]["bodies"][0]["position"][2]  # it fell in
+    assert a.frames[4].bodies == b.frames[4].bodies
+    assert a.frames[4].bodies[0].position[2] < a.frames[0].bodies[0].position[2]  # it fell in
 
 
 def test_a_body_passing_into_another_is_warned_about(tmp_path, capfd):
@@ -488,10 +488,10 @@ def test_live_view_frames_carry_the_bodies_pose(tmp_path):
     for _ in range(3):
         src.advance()
         fr = src.current()
-        assert fr.bodies[0]["position"] == pytest.approx(law_.pose(src.solver.time)[1].tolist(), abs=1e-12)
-    assert fr.bodies[0]["position"][0] == pytest.approx(0.06, rel=1e-6)  # t = 0.1 s: a quarter period
+        assert fr.bodies[0].position == pytest.approx(law_.pose(src.solver.time)[1].tolist(), abs=1e-12)
+    assert fr.bodies[0].position[0] == pytest.approx(0.06, rel=1e-6)  # t = 0.1 s: a quarter period
     src.reset()
-    assert src.current().bodies[0]["position"] == pytest.approx([0, 0, 0], abs=1e-12)  # reset moves it back
+    assert src.current().bodies[0].position == pytest.approx([0, 0, 0], abs=1e-12)  # reset moves it back
 
 
 def test_bad_piston_csv_is_a_one_line_error_naming_file_and_field(tmp_path):

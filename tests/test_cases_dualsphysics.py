@@ -154,12 +154,12 @@ def test_fit_recovers_known_rotation_and_translation_of_a_noisy_cube():
         M = apply_pose(p, np.eye(3) + c0) - apply_pose(p, np.zeros((1, 3)) + c0)  # rotation's columns
         assert np.abs(M.T - R).max() < 1e-3
     same = fit_pose(cube, cube)
-    assert np.abs(np.array(same["quaternion"]) - [1, 0, 0, 0]).max() < 1e-9
-    assert np.abs(same["position"]).max() < 1e-9
+    assert np.abs(np.array(same.quaternion) - [1, 0, 0, 0]).max() < 1e-9
+    assert np.abs(same.position).max() < 1e-9
     # A spin past 180°: quaternion signs stay continuous from frame to frame (Blender interpolates
     # them per component, so a sign flip would swing the body the long way round between two frames).
     spin = fit_poses(cube, [(cube - c0) @ rotation([0, 0, 50 * k]).T + c0 for k in range(7)])
-    qs = np.array([p["quaternion"] for p in spin])
+    qs = np.array([p.quaternion for p in spin])
     assert (np.sum(qs[1:] * qs[:-1], axis=1) > 0).all()
 
 
@@ -184,21 +184,21 @@ def test_import_fits_the_floating_cube_and_leaves_the_still_body_at_identity(tmp
     out = tmp_path / "run"
     assert main(["import", str(case), "--out", str(out)]) == 0
     info = RunInfo.load(out)
-    names = [o["name"] for o in info.obstacles]
-    roles = {o["name"]: o["role"] for o in info.obstacles}
+    names = [o.name for o in info.obstacles]
+    roles = {o.name: o.role for o in info.obstacles}
     assert names[:2] == ["mk50", "mk60"] and roles["mk50"] == roles["mk60"] == "body"
     assert roles["mk10"] in ("obstacle", "container")
     for o in info.obstacles:
-        assert not Path(o["mesh"]).is_absolute() and (out / o["mesh"]).is_file()
+        assert not Path(o.mesh).is_absolute() and (out / o.mesh).is_file()
     assert len(info.files("fluid")) == N_FRAMES
     for k, f in enumerate(info.frames):
-        assert f["time"] == pytest.approx(0.05 * k)
-        cube_pose, still_pose = f["bodies"]
+        assert f.time == pytest.approx(0.05 * k)
+        cube_pose, still_pose = f.bodies
         err = np.linalg.norm(apply_pose(cube_pose, s["cube"]) - s["moved"][k], axis=1).max()
         assert err < 0.1 * DP, (k, err / DP)
-        assert np.abs(np.array(still_pose["quaternion"]) - [1, 0, 0, 0]).max() < 1e-9
-        assert np.abs(still_pose["position"]).max() < 1e-9
-        assert len(f["bodies"]) == 2  # fixed shapes carry no pose
+        assert np.abs(np.array(still_pose.quaternion) - [1, 0, 0, 0]).max() < 1e-9
+        assert np.abs(still_pose.position).max() < 1e-9
+        assert len(f.bodies) == 2  # fixed shapes carry no pose
 
 
 def test_floating_csv_places_the_body(tmp_path):
@@ -301,17 +301,17 @@ def _mesh(run: Path, name: str):
     import trimesh
 
     info = RunInfo.load(run)
-    o = next(o for o in info.obstacles if o["name"] == name)
-    return o, trimesh.load(run / o["mesh"], force="mesh", process=False)
+    o = next(o for o in info.obstacles if o.name == name)
+    return o, trimesh.load(run / o.mesh, force="mesh", process=False)
 
 
 @needs_shared
 def test_dambreak_tank_and_building_are_separate_obstacles(dambreak_run):
     """Mk 10 is the tank (the container); mk 11 and mk 20, one shape in the XML, are the building."""
     info = RunInfo.load(dambreak_run)
-    got = {o["name"]: (o["role"], o["source"]) for o in info.obstacles}
+    got = {o.name: (o.role, o.source) for o in info.obstacles}
     assert got == {"Box": ("container", "mk 10"), "Building": ("obstacle", "mk 11,20")}
-    assert all("bodies" not in f for f in info.frames)  # nothing moves
+    assert all(f.bodies is None for f in info.frames)  # nothing moves
 
 
 @needs_shared
@@ -408,7 +408,7 @@ for name in ("with", "without"):
     load_frame(h, run, info, 0)
     sc = bpy.context.scene
     objs = {o.name: o for o in sc.objects if o.name.startswith("obstacle_")}
-    k = next(k for k, o in enumerate(info.obstacles) if o["name"] == "Building")
+    k = next(k for k, o in enumerate(info.obstacles) if o.name == "Building")
     b = objs.get(f"obstacle_{k}")
     res[name] = {"objects": sorted(objs), "container": bpy.data.objects.get("container") is not None}
     if b is not None:
@@ -511,10 +511,10 @@ def test_blender_addon_shows_imported_shapes_and_moves_the_body(tmp_path):
     res = json.loads([ln for ln in p.stdout.splitlines() if ln.startswith("{")][-1])
     assert sorted(res) == [f"obstacle_{k}" for k in range(len(info.obstacles))]
     for k, o in enumerate(info.obstacles):
-        m = trimesh.load(run / o["mesh"], force="mesh", process=False)
+        m = trimesh.load(run / o.mesh, force="mesh", process=False)
         assert res[f"obstacle_{k}"]["n"] == len(m.vertices)
-    cube = trimesh.load(run / info.obstacles[0]["mesh"], force="mesh", process=False)
+    cube = trimesh.load(run / info.obstacles[0].mesh, force="mesh", process=False)
     for i, f in enumerate(info.frames):
-        want = apply_pose(f["bodies"][0], np.asarray(cube.vertices[:4], float))
-        got = np.array(res["obstacle_0"]["keys"][str(f["index"])])
+        want = apply_pose(f.bodies[0], np.asarray(cube.vertices[:4], float))
+        got = np.array(res["obstacle_0"]["keys"][str(f.index)])
         assert np.abs(got - want).max() < 1e-5, (i, got, want)

@@ -78,9 +78,9 @@ def inside_counts(run: Path, names: tuple[str, ...]) -> dict[str, int]:
     info = RunInfo.load(run)
     counts = {}
     for name in names:
-        k = next(i for i, o in enumerate(info.obstacles) if o["name"] == name)
+        k = next(i for i, o in enumerate(info.obstacles) if o.name == name)
         o = info.obstacles[k]
-        mesh = read_mesh(run / o["mesh"])
+        mesh = read_mesh(run / o.mesh)
         total = 0
         for index, rel in info.files("diffuse"):
             x = read(run / rel).positions
@@ -121,7 +121,7 @@ def test_foam_on_an_imported_case_leaves_no_diffuse_particle_inside_the_building
     import whitecap.diffuse.driver as driver
 
     info = RunInfo.load(imported)
-    assert {o["name"]: o["role"] for o in info.obstacles} == {"mk50": "body", "mk10": "container",
+    assert {o.name: o.role for o in info.obstacles} == {"mk50": "body", "mk10": "container",
                                                               "mk11": "obstacle"}
     _foam(imported, tmp_path / "with")
     made = sum(len(read(tmp_path / "with" / rel)) for _, rel in RunInfo.load(tmp_path / "with").files("diffuse"))
@@ -142,7 +142,7 @@ def test_a_spray_drop_does_not_fly_through_a_wall_thinner_than_its_flight(import
 
     info = RunInfo.load(imported)
     grids = run_obstacles(imported, info)
-    building = grids[[o["name"] for o in info.obstacles].index("mk11")]
+    building = grids[[o.name for o in info.obstacles].index("mk11")]
     gen = FoamGenerator.__new__(FoamGenerator)  # only what _obstacles reads
     gen.obstacles, gen.r = [building], R
     x0 = np.array([[0.35, 0.2, 0.1]])  # 5 cm before the building's face at x = 0.4
@@ -163,18 +163,18 @@ def test_splishsplash_tank_is_a_wall_around_the_fluid_and_the_sphere_a_moving_so
     import_case(TINY_SPLISHSPLASH, run, show_progress=False)
     info = RunInfo.load(run)
     grids = run_obstacles(run, info)
-    role = [o["role"] for o in info.obstacles]
+    role = [o.role for o in info.obstacles]
     tank, sphere = grids[role.index("container")], grids[role.index("body")]
     for index, rel in info.files("fluid"):
         fluid = read(run / rel).positions
         assert (tank.sample(fluid) > 0).all()  # inside the box: free
-        tank.at_frame(info.frame(index)["time"], info.body_pose(index, tank.index))
-        sphere.at_frame(info.frame(index)["time"], info.body_pose(index, sphere.index))
+        tank.at_frame(info.frame(index).time, info.body_pose(index, tank.index))
+        sphere.at_frame(info.frame(index).time, info.body_pose(index, sphere.index))
         lo, hi = tank.grid.aabb_lo, tank.grid.aabb_hi
         beyond = np.array([hi + 0.5 * R, lo - 0.5 * R, hi + [0, 0, 10.0]])  # in and far beyond the walls
         assert (tank.sample(beyond) < 0).all()
-        centre = info.body_pose(index, sphere.index)["position"]
-        mesh = read_mesh(run / info.obstacles[sphere.index]["mesh"])
+        centre = info.body_pose(index, sphere.index).position
+        mesh = read_mesh(run / info.obstacles[sphere.index].mesh)
         rest_centre = np.asarray(mesh.vertices, np.float64).mean(0)
         M = obstacle_matrix(info.obstacles[sphere.index], info.body_pose(index, sphere.index))
         world_centre = M[:3, :3] @ rest_centre + M[:3, 3]

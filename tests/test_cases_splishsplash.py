@@ -93,9 +93,9 @@ def _check_tank_and_sphere(case, n_frames: int) -> None:
     np.testing.assert_allclose(centre, [0.005, 0.0, 0.99985], atol=2e-3)
     np.testing.assert_allclose(np.linalg.norm(sphere.vertices - centre, axis=1).max(), 0.5, atol=2e-3)
     assert len(sphere.poses) == n_frames
-    assert sphere.poses[0]["position"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-9)  # at rest at the first frame
-    assert sphere.poses[0]["quaternion"] == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-9)
-    assert np.linalg.norm(sphere.poses[-1]["position"]) > 0.1  # it moved
+    assert sphere.poses[0].position == pytest.approx([0.0, 0.0, 0.0], abs=1e-9)  # at rest at the first frame
+    assert sphere.poses[0].quaternion == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-9)
+    assert np.linalg.norm(sphere.poses[-1].position) > 0.1  # it moved
 
 
 def _check_constants(case) -> None:
@@ -344,20 +344,20 @@ def test_import_writes_a_run_with_the_glass_tank_the_moving_sphere_and_the_fluid
     out = tmp_path / "run"
     import_case(TINY, out, show_progress=False)
     info = RunInfo.load(out)
-    roles = {o["role"]: o for o in info.obstacles}
+    roles = {o.role: o for o in info.obstacles}
     assert set(roles) == {"container", "body"}
     # the closed wall box would hide the water if drawn opaque: it is a glass pane
-    assert roles["container"]["material"] == "glass" and roles["body"]["material"] != "glass"
-    tank = read_mesh(out / roles["container"]["mesh"])
+    assert roles["container"].material == "glass" and roles["body"].material != "glass"
+    tank = read_mesh(out / roles["container"].mesh)
     np.testing.assert_allclose(tank.vertices.min(0), [-1.55, -1.55, -0.05], atol=1e-5)
     # the sphere's poses in run.json carry frame 1's exported mesh onto frame 30's
     k_body = info.obstacles.index(roles["body"])
     rest = _z_up(read_mesh(TINY / "obj" / "rb_data_1_1.obj").vertices)
-    pose_30 = info.frame(30)["bodies"][k_body]
+    pose_30 = info.frame(30).bodies[k_body]
     exported_30 = _z_up(read_mesh(TINY / "obj" / "rb_data_1_30.obj").vertices)
     assert np.abs(_posed(pose_30, rest) - exported_30).max() < TOL
     # the fluid files are in id order: across the solver's re-sort each row moves as its velocity says
-    a, b = (read(out / info.frame(k)["files"]["fluid"]) for k in (29, 30))
+    a, b = (read(out / info.frame(k).files["fluid"]) for k in (29, 30))
     np.testing.assert_array_equal(a.ids, b.ids)
     assert np.median(_kinematic_residual(a, b, 0.04)) < MEDIAN_RESIDUAL
 
@@ -430,7 +430,7 @@ def test_viewer_leaves_out_the_glass_tank_and_keeps_the_body(tmp_path):
     import_case(TINY, tmp_path / "run", show_progress=False)
     info = RunInfo.load(tmp_path / "run")
     drawn = load_obstacle_meshes(info.obstacles, [tmp_path / "run"])
-    assert [k for *_, k in drawn] == [i for i, o in enumerate(info.obstacles) if o["role"] == "body"]
+    assert [k for *_, k in drawn] == [i for i, o in enumerate(info.obstacles) if o.role == "body"]
 
 
 def test_an_open_wall_keeps_the_container_look(tmp_path):

@@ -326,8 +326,9 @@ def _potentials(x, v, r=0.01):
     g = gen.grid
     normal, surface = ti.Vector.ndarray(3, ti.f32, n), ti.ndarray(ti.i32, n)
     v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, n) for _ in range(4))
-    K.fluid_potentials(n, fx, fv, g.nb_count, g.nb, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-    K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, gen.h, crest)
+    lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
+    K.fluid_potentials(n, fx, fv, *lists, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+    K.wave_crest(n, fx, fv, *lists, normal, surface, gen.h, crest)
     return v_diff.to_numpy(), crest.to_numpy(), e_k.to_numpy(), surface.to_numpy().astype(bool)
 
 

@@ -143,8 +143,8 @@ def test_resume_with_emitter_and_sink_is_byte_identical(tmp_path):
         for kind in ("fluid", "diffuse"):
             a = (full / f"{kind}/{kind}_{i:05d}.ply").read_bytes()
             assert a == (part / f"{kind}/{kind}_{i:05d}.ply").read_bytes(), (kind, i)
-    counts = [f["particles"] for f in RunInfo.load(full).frames]
-    assert counts == [f["particles"] for f in RunInfo.load(part).frames]
+    counts = [f.particles for f in RunInfo.load(full).frames]
+    assert counts == [f.particles for f in RunInfo.load(part).frames]
     assert len(set(counts)) > 3  # the count did change over the run
     assert counts[0] == 120  # the initial block: 10 x 6 x 2
 

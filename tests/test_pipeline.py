@@ -73,15 +73,15 @@ def test_run_all_stages_with_interrupt_and_resume(tmp_path, monkeypatch, capsys)
 
     # The output contract, stage by stage.
     info = RunInfo.load(out)
-    assert [f["index"] for f in info.frames] == [0, 1, 2, 3]
+    assert [f.index for f in info.frames] == [0, 1, 2, 3]
     for f in info.frames:
-        assert {"fluid", "diffuse", "mesh", "render"} <= set(f["files"])
-        fluid = PlyData.read(str(out / f["files"]["fluid"]))["vertex"].data
+        assert {"fluid", "diffuse", "mesh", "render"} <= set(f.files)
+        fluid = PlyData.read(str(out / f.files["fluid"]))["vertex"].data
         assert fluid.dtype.names[:6] == ("x", "y", "z", "vx", "vy", "vz")
         assert fluid["id"].dtype == np.uint32 and fluid["density"].dtype == np.float32
-        mesh = PlyData.read(str(out / f["files"]["mesh"]))
+        mesh = PlyData.read(str(out / f.files["mesh"]))
         assert {"nx", "vx"} <= set(mesh["vertex"].data.dtype.names) and len(mesh["face"].data) > 100
-        assert (out / f["files"]["render"]).stat().st_size > 1000
+        assert (out / f.files["render"]).stat().st_size > 1000
     assert json.loads((out / "run.json").read_text())["particle_radius"] == 0.01
     import imageio.v2 as imageio
 

@@ -60,7 +60,7 @@ def test_force_makes_mesh_and_export_redo_frames_of_the_old_simulation(tmp_path,
     assert "meshed 3 frames" in capsys.readouterr().out
     assert (run / "mesh" / "fluid_00001.ply").read_bytes() != old_mesh
     info = RunInfo.load(run)
-    assert [f["made_from"]["mesh"] for f in info.frames] == [info.simulation] * 3
+    assert [f.made_from["mesh"] for f in info.frames] == [info.simulation] * 3
     # A rerun now skips them all.
     assert main(["mesh", str(run), "--jobs", "1", "--smoothing-iters", "2"]) == 0
     assert "meshed 0 frames" in capsys.readouterr().out
@@ -81,7 +81,7 @@ def test_foam_records_its_identity_and_a_new_source_makes_mesh_redo(tmp_path, ca
     # On a run: the diffuse frames are stamped with the run's simulation.
     assert main(["foam", str(a)]) == 0
     info = RunInfo.load(a)
-    assert [f["made_from"]["diffuse"] for f in info.frames] == [info.simulation] * 3
+    assert [f.made_from["diffuse"] for f in info.frames] == [info.simulation] * 3
     # A foreign sequence converted into O, meshed, then another sequence into the same O.
     out = tmp_path / "O"
     for src, name in ((a, "seqA"), (b, "seqB")):
@@ -159,7 +159,7 @@ def test_render_redoes_frames_of_the_old_simulation(tmp_path, capsys):
     assert (png.stat().st_mtime_ns, png.stat().st_ino) != before  # rendered again
     assert blend.stat().st_ino != blend_before  # and the saved scene is the new simulation's
     info = RunInfo.load(run)
-    assert info.frame(1)["made_from"]["render"] == info.simulation
+    assert info.frame(1).made_from["render"] == info.simulation
     after, blend_after = (png.stat().st_mtime_ns, png.stat().st_ino), blend.stat().st_ino
     assert main(["render", str(run), "--frames", "1", "--no-movie"]) == 0
     assert (png.stat().st_mtime_ns, png.stat().st_ino) == after  # and now it is current

@@ -96,7 +96,7 @@ def test_mass_and_ids_preserved(tiny_run):
     # The fluid has moved (it is a dam break, not a still image).
     assert frames[-1].positions[:, 0].max() > frames[0].positions[:, 0].max() + 0.02
     assert info.particle_mass > 0 and info.rest_density == 1000.0
-    assert info.frames[3]["time"] == pytest.approx(3 / info.frame_rate)
+    assert info.frames[3].time == pytest.approx(3 / info.frame_rate)
 
 
 # Martin & Moyce (1952), surge front x/a against T = t sqrt(2g/a).

@@ -76,7 +76,7 @@ def test_vtk_series_read_back_with_arrays_and_times(meshed_run, tmp_path):
     written = export(run, to="vtk", out=out, split_types=True, show_progress=False)
     assert set(written) == {"fluid", "diffuse", "diffuse_spray", "diffuse_foam", "diffuse_bubble", "mesh"}
     info = RunInfo.load(run)
-    times = {f["index"]: f["time"] for f in info.frames}
+    times = {f.index: f.time for f in info.frames}
 
     # Every collection lists the frames with their simulated time.
     for name, pvd in written.items():

@@ -26,6 +26,7 @@ import numpy as np
 from ..config import DEFAULT_UP
 
 if TYPE_CHECKING:
+    from ..io.record import Pose
     from ..io.run import RunInfo
 
 #: roles a shape can have in a case
@@ -39,16 +40,16 @@ class CaseShape:
     ``vertices``/``faces`` are the shape's mesh in its rest placement (world
     coordinates at the first frame). ``poses`` is None for a fixed shape;
     otherwise one pose per fluid frame, in frame order, each the rigid motion
-    from the rest placement as ``run.json`` records it:
-    ``{"position": [x, y, z], "quaternion": [w, x, y, z]}``
-    (world = T(position)·R(quaternion)·rest, see ``geometry.obstacle_matrix``).
+    from the rest placement as ``run.json`` records it (:class:`whitecap.io.record.Pose`:
+    position [x, y, z], quaternion [w, x, y, z]; world = T(position)·R(quaternion)·rest,
+    see ``geometry.obstacle_matrix``).
     """
 
     name: str
     vertices: np.ndarray  # (V, 3) float64 [m]
     faces: np.ndarray  # (F, 3) int
     role: str = "obstacle"  # one of ROLES; "container" holds the fluid (a tank)
-    poses: list[dict] | None = None
+    poses: list[Pose] | None = None
     source: str = ""  # where it came from, for messages and run.json (e.g. "mk 10", "rigid body 1")
     look: dict | None = None  # render look ({"material": ..., "color": [r, g, b]}); None: the role's default
 

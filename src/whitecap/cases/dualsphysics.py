@@ -40,6 +40,7 @@ import numpy as np
 
 from ..config import DEFAULT_UP
 from ..errors import InputError
+from ..io.record import Pose
 from ..io.registry import check, find_array
 from ..io.sequence import frame_number
 from ..io.vtk_legacy import DUALSPHYSICS_FLUID_TYPE as FLUID_TYPE
@@ -203,12 +204,12 @@ def _pick_container(case: Case, fixed: list[CaseShape]) -> None:
 
 
 def _fitted_poses(case: Case, bound: dict[int, Path], first_index: int, b0: dict, members: list[int],
-                  sel: np.ndarray, shape: CaseShape) -> list[dict]:
+                  sel: np.ndarray, shape: CaseShape) -> list[Pose]:
     """Per fluid frame, the Kabsch fit of the body's particles (matched by Idp) from the first boundary file."""
     rest_ids = b0["Idp"][sel]
     order = np.argsort(rest_ids)
     rest_ids, rest = rest_ids[order], b0["pos"][sel][order]
-    poses: list[dict] = []
+    poses: list[Pose] = []
     for index, _ in case.fluid:
         path = bound.get(index)
         if path is None:
@@ -320,7 +321,7 @@ def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float) -> N
     if not np.all(np.isfinite(centre[rows + [k0]])):
         raise InputError(f"{path}: a centre value at a frame's time is not a number")
     R0, c0 = rot[k0], centre[k0]
-    poses: list[dict] = []
+    poses: list[Pose] = []
     for k in rows:
         R = rot[k] @ R0.T
         poses.append(pose(R, centre[k] - R @ c0, poses[-1] if poses else None))

@@ -420,9 +420,9 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
     samples = []
     for k in picks:
         fr = reader.read(k, keep=k == 0)
-        fr.time = info.frame(reader.files[k][0])["time"]
+        fr.time = info.frame(reader.files[k][0]).time
         samples.append(fr)
-    times = np.array([info.frame(i)["time"] for i, _ in reader.files], np.float64)
+    times = np.array([info.frame(i).time for i, _ in reader.files], np.float64)
     # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
     n_s = np.array([len(f) for f in samples], np.float64)
     n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
@@ -438,7 +438,7 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
         for k, (index, _) in enumerate(reader.files):
             fr = reader.read(k)
             fr.check_finite()
-            fr.time = info.frame(index)["time"]
+            fr.time = info.frame(index).time
             if convert:
                 rel = frame_name("fluid", index)
                 write(out / rel, fr)

@@ -418,10 +418,9 @@ class FoamGenerator:
             vort.fill(0.0)
             K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
         else:
-            K.fluid_potentials(
-                n, fx, fv, g.nb_count, g.nb, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort,
-            )
-            K.wave_crest(n, fx, fv, g.nb_count, g.nb, normal, surface, self.h, crest)
+            lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
+            K.fluid_potentials(n, fx, fv, *lists, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
+            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest)
         self._pots = {
             "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
             "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],

@@ -17,6 +17,7 @@ import taichi as ti
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
 from ..sim.grid import F1, F3, I1, I2, GridQuery, for_each_neighbor
 from ..sim.obstacles import FAR, sdf_sample
+from ..sim.pbf import padded_count
 from . import splishsplash as SP
 
 vec3 = ti.math.vec3
@@ -63,6 +64,8 @@ def fluid_potentials(
     v: F3,
     nb_count: I1,
     nb: I2,
+    pad: ti.template(),
+    cap: ti.template(),
     h: ti.f32,
     surface_fraction: ti.f32,
     normal: F3,
@@ -73,49 +76,59 @@ def fluid_potentials(
 ):
     """Per fluid particle: surface normal n̂_i (from the colour-field gradient,
     −∇c ∝ Σ_j x̂_ij W̃), trapped-air v_i^diff = Σ_j |v_ij|(1 − v̂_ij·x̂_ij) W̃,
-    kinetic energy per unit mass E_k = ½|v_i|², and |ω_i| ≈ |Σ_j v_ji × x̂_ij W̃|/Σ W̃."""
+    kinetic energy per unit mass E_k = ½|v_i|², and |ω_i| ≈ |Σ_j v_ji × x̂_ij W̃|/Σ W̃.
+    The neighbour loop runs over the padded list (sim.pbf.padded_count: ``pad``, ``cap`` are the grid's
+    NeighborGrid.pad and max_neighbors) and masks, without a branch, the pairs outside 0 < r < h (the pads
+    are i itself, r = 0): so LLVM vectorises it ``pad`` neighbours at a time, as the solver's loops."""
     for i in range(n):
+        xi = x[i]
+        vi = v[i]
         grad = vec3(0.0)
         wsum = 0.0
         vd = 0.0
         w = vec3(0.0)
-        for k in range(nb_count[i]):
+        for k in range(padded_count(nb_count, i, pad, cap)):
             j = nb[i, k]
-            xij = x[i] - x[j]
+            xij = xi - x[j]
             r = xij.norm()
-            if 0.0 < r < h:
-                wt = 1.0 - r / h
-                xh = xij / r
-                grad += xh * wt
-                wsum += wt
-                vij = v[i] - v[j]
-                vl = vij.norm()
-                if vl > 1e-9:
-                    vd += vl * (1.0 - (vij / vl).dot(xh)) * wt
-                w += (v[j] - v[i]).cross(xh) * wt
+            near = (r > 0.0) & (r < h)
+            wt = ti.select(near, 1.0 - r / h, 0.0)
+            xh = xij / ti.select(near, r, 1.0)
+            grad += xh * wt
+            wsum += wt
+            vij = vi - v[j]
+            vl = vij.norm()
+            moving = vl > 1e-9
+            vd += ti.select(moving, vl * (1.0 - (vij / ti.select(moving, vl, 1.0)).dot(xh)), 0.0) * wt
+            w += (v[j] - vi).cross(xh) * wt
         gl = grad.norm()
         normal[i] = grad / gl if gl > 1e-9 else vec3(0.0)
         # A particle is on the surface when its neighbourhood is lopsided.
         surface[i] = 1 if gl > surface_fraction * wsum else 0
         v_diff[i] = vd
-        e_k[i] = 0.5 * v[i].norm_sqr()
+        e_k[i] = 0.5 * vi.norm_sqr()
         vort[i] = w.norm() / (wsum + 1e-9) / h
 
 
 @ti.kernel
-def wave_crest(n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, normal: F3, surface: I1, h: ti.f32, crest: F1):
+def wave_crest(
+    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, pad: ti.template(), cap: ti.template(), normal: F3, surface: I1,
+    h: ti.f32, crest: F1,
+):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
-    δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface."""
+    δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface. Its neighbour loop is masked and
+    padded, as fluid_potentials'."""
     for i in range(n):
         kappa = 0.0
         if surface[i] == 1:
             ni = normal[i]
-            for k in range(nb_count[i]):
+            xi = x[i]
+            for k in range(padded_count(nb_count, i, pad, cap)):
                 j = nb[i, k]
-                xji = x[j] - x[i]
+                xji = x[j] - xi
                 r = xji.norm()
-                if 0.0 < r < h and xji.dot(ni) < 0.0:
-                    kappa += (1.0 - ni.dot(normal[j])) * (1.0 - r / h)
+                take = (r > 0.0) & (r < h) & (xji.dot(ni) < 0.0)
+                kappa += ti.select(take, (1.0 - ni.dot(normal[j])) * (1.0 - r / h), 0.0)
             vl = v[i].norm()
             if vl < 1e-9 or (v[i] / vl).dot(ni) < CREST_MOTION_COS:
                 kappa = 0.0

@@ -164,10 +164,6 @@ if HAVE_PYDANTIC:
         def dump(self) -> dict:
             return self.model_dump()
 
-        def __getitem__(self, key: str) -> Any:
-            """Read access by name, for callers that still treat records as dicts (diffuse/driver.py)."""
-            return getattr(self, key)
-
     class _Run(BaseModel):
         model_config = ConfigDict(validate_assignment=True)
 else:
@@ -196,9 +192,6 @@ else:
         @classmethod
         def model_validate(cls, data: dict):
             return cls(**data)
-
-        def __getitem__(self, key: str) -> Any:
-            return getattr(self, key)
 
     def _hints(cls) -> dict:
         return {k: v for k, v in typing.get_type_hints(cls).items() if not k.startswith("_")}
@@ -240,8 +233,12 @@ class Extra(TypedDict, total=False):
     kernel_support: Number
 
 
-DomainBox = _ordered(Domain)
-ExtraDict = _ordered(Extra)
+if typing.TYPE_CHECKING:  # to a type checker: the typed dicts; ``extra`` takes any key a stage notes
+    DomainBox = Domain
+    ExtraDict = dict[str, Any]
+else:
+    DomainBox = _ordered(Domain)
+    ExtraDict = _ordered(Extra)
 
 
 class Pose(_Record):
