@@ -590,3 +590,26 @@ def test_exposure_and_depth_of_field(meshed_run, tmp_path):
     assert image(tmp_path / "bright.png").mean() > image(tmp_path / "base.png").mean() + 15
     assert s["dof"]["dof"]["use"] and s["dof"]["dof"]["fstop"] == pytest.approx(2.8)
     assert s["dof"]["dof"]["focus"] == pytest.approx([0.1, 0.1, 0.1])
+
+
+def test_small_fluid_pieces_are_found_by_their_volume():
+    """[render] droplet_particles: a fluid mesh of a 0.2 m box of water and two 1 cm cubes (lone
+    particles' blobs): only the cubes' faces are marked, and a threshold below a cube's volume
+    marks none."""
+    from whitecap.render.scene import small_pieces
+
+    def cube(lo, size):
+        c = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * size + lo
+        q = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        return c, np.array([t for a, b, c_, d in q for t in ((a, b, c_), (a, c_, d))])
+
+    parts = [cube([0, 0, 0], 0.2), cube([0.5, 0, 0], 0.01), cube([0.7, 0.1, 0.3], 0.01)]
+    verts, faces, off = [], [], 0
+    for v, f in parts:
+        verts.append(v)
+        faces.append(f + off)
+        off += len(v)
+    verts, faces = np.vstack(verts), np.vstack(faces)
+    small = small_pieces(verts, faces, 8 * 1e-6)  # eight particles of 1e-6 m³
+    assert not small[:12].any() and small[12:].all()
+    assert not small_pieces(verts, faces, 0.5e-6).any()

@@ -19,6 +19,8 @@ WATER_IOR = 1.33
 #: Obstacle presets: (roughness, metallic).
 OBSTACLE_PRESETS = {"stone": (0.8, 0.0), "clay": (0.6, 0.0), "metal": (0.3, 1.0), "plastic": (0.35, 0.0)}
 GLASS_COLOR = (0.93, 0.97, 0.96)
+#: Spray: colour, opacity and glow (emission strength) of the white mist material.
+SPRAY_COLOR, SPRAY_ALPHA, SPRAY_GLOW = (0.9, 0.93, 0.95), 0.6, 0.3
 #: The "glass" preset's Fresnel reflectance: window glass [-].
 THIN_GLASS_IOR = 1.5
 #: Render-time copies of a diffuse particle ([render] diffuse_copies) scatter within this many
@@ -84,10 +86,18 @@ def _foam(mat):
 
 
 def _spray(mat):
+    """Spray is droplets too small to see one by one, thrown up in a cloud: together they scatter
+    light white, as mist does. A white, matte surface, partly see-through, with a faint glow of
+    its own (a storm's dim sky leaves it grey otherwise); no refraction: a clear bead shows the
+    dark sea through itself and reads as a glass ball."""
     _, b = _principled(mat)
-    b.inputs["Base Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    b.inputs["Transmission Weight"].default_value = 0.6
-    b.inputs["Roughness"].default_value = 0.3
+    b.inputs["Base Color"].default_value = (*SPRAY_COLOR, 1.0)
+    b.inputs["Transmission Weight"].default_value = 0.0
+    b.inputs["Roughness"].default_value = 0.5
+    b.inputs["Alpha"].default_value = SPRAY_ALPHA
+    b.inputs["Emission Color"].default_value = (*SPRAY_COLOR, 1.0)
+    b.inputs["Emission Strength"].default_value = SPRAY_GLOW
+    mat.cycles.emission_sampling = "NONE"  # its own brightness, not a light for the scene (as foam)
 
 
 def _bubbles(mat):

@@ -40,6 +40,7 @@ class SceneHandles:
     camera: object
     water: object
     sea: object = None  # sea.Sea with [render] sea = true
+    droplet_volume: float = 0.0  # fluid-mesh pieces smaller than this [m³] get the spray material
 
 
 # ---------------------------------------------------------------------------- meshes
@@ -65,6 +66,27 @@ def fill_mesh(me, verts: np.ndarray, faces: np.ndarray, velocity: np.ndarray | N
     loops, starts = polygons_of(faces)
     arrays = [("velocity", velocity), ("id", None if ids is None else np.asarray(ids, np.int64))]
     return blender_mesh.fill_mesh(me, verts, loops, starts, arrays, normals)
+
+
+def small_pieces(verts: np.ndarray, faces: np.ndarray, volume: float) -> np.ndarray:
+    """Per face, whether it belongs to a connected piece of the mesh enclosing less than
+    ``volume`` [m³] (the divergence theorem over the piece's triangles; a piece cut open by
+    open_walls is a large one anyway)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return np.zeros(0, bool)
+    n = len(verts)
+    a = np.concatenate([f[:, 0], f[:, 1]])
+    b = np.concatenate([f[:, 1], f[:, 2]])
+    _, label = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+    v = np.asarray(verts, float)[f]
+    six_v = np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2]))
+    piece = label[f[:, 0]]
+    enclosed = np.abs(np.bincount(piece, six_v, minlength=label.max() + 1)) / 6
+    return enclosed[piece] < volume
 
 
 def diffuse_radius(cfg: Render, t: int, r: float) -> tuple[float, float]:
@@ -140,6 +162,9 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     fluid = bpy.data.objects.new("fluid", bpy.data.meshes.new("fluid_empty"))
     fluid.data.materials.append(water)
     sc.collection.objects.link(fluid)
+    droplet_volume = cfg.droplet_particles * info.particle_mass / info.rest_density
+    if droplet_volume > 0:
+        fluid.data.materials.append(looks.material("SPRAY"))  # material index 1: small_pieces
     open_sea = sea.add_sea(sc, cfg, info, water, run_dir) if cfg.sea else None
     diffuse = _add_diffuse_objects(sc, cfg, info)
     extra = scene_terrain(info, run_dir)  # an imported run's scene.toml [terrain]
@@ -148,7 +173,8 @@ def build_scene(info: RunInfo, cfg: Render, quality: str, first: int, last: int,
     dress_terrain(sc, info, run_dir, quality == "preview", extra)  # [terrain]: its material (render/terrain.py)
     cam = _add_camera(sc, cfg, info, first, last, run_dir)
     _compositing(sc, cfg)
-    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water, sea=open_sea)
+    return SceneHandles(fluid=fluid, diffuse=diffuse, camera=cam, water=water, sea=open_sea,
+                        droplet_volume=droplet_volume)
 
 
 def _configure_cycles(sc, cfg: Render, preview: bool) -> None:
@@ -296,6 +322,10 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
         if h.sea is not None:  # one open sheet with the sea: the faces on the walls and floor go
             faces = sea.open_walls(verts, faces, info.domain["lower"], info.domain["upper"], info.particle_radius)
         fill_mesh(h.fluid.data, verts, faces, vel, normals=normals)
+        if h.droplet_volume > 0:
+            spray = small_pieces(verts, faces, h.droplet_volume)
+            h.fluid.data.polygons.foreach_set("material_index", spray.astype(np.int32))
+            stats["droplet_faces"] = int(spray.sum())
         stats["triangles"] = len(faces)
     if h.sea is not None:
         sea.update_sea(h.sea, verts if "mesh" in files else np.zeros((0, 3)), info.time(index))
