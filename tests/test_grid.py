@@ -351,3 +351,26 @@ def test_a_tiny_scene_in_a_huge_domain_steps_on_the_cpu():
     assert np.abs(x - x0).max() > 0.01  # the column has begun to fall and spread
     # Same start, same walls nearby: the same motion but for float summation order (other lists' order).
     np.testing.assert_allclose(x, ref, atol=1e-5)
+
+
+@pytest.mark.parametrize("layout", ["dense", "hashed"])
+def test_a_grid_built_without_lists_sorts_as_one_with_them(layout):
+    """build(lists=False) (the foam stage, where no potentials are computed) gives the cell order, the table
+    and the positions in cell order that the queries read, exactly as a full build does, and leaves the lists."""
+    import taichi as ti
+
+    from whitecap.sim import runtime
+    from whitecap.sim.grid import NeighborGrid, grid_spec
+
+    runtime.init("cpu")
+    x = _points(2000, seed=9)
+    xs = ti.Vector.ndarray(3, ti.f32, len(x))
+    xs.from_numpy(x)
+    full, bare = (NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 256, H, layout) for _ in range(2))
+    full.build(xs, len(x))
+    bare.nb_count.fill(-1)
+    assert bare.build(xs, len(x), lists=False) == 0
+    for name in ("order", "start", "x_sorted"):
+        assert (getattr(full, name).to_numpy() == getattr(bare, name).to_numpy()).all(), name
+    assert (full.x_sorted.to_numpy() == x[full.order.to_numpy()]).all()
+    assert (bare.nb_count.to_numpy() == -1).all()  # no lists were built

@@ -426,7 +426,8 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
     # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
     n_s = np.array([len(f) for f in samples], np.float64)
     n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
-    stage.gen.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files])
+    stage.gen.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files],
+                        [reader.files[k][0] for k in picks])
 
 
 def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, convert: bool,

@@ -221,6 +221,9 @@ class FoamGenerator:
         self.last_frame: int | None = None  # the run's last frame index, where known: no peak after it
         self.looked_ahead = False  # post-processing has set 'auto' from the whole run (calibrate)
         self.obstacles = obstacles or []  # sim.obstacles.PosedSDF: see _obstacles, and nothing is born inside
+        # The potentials of frames that calibrate sampled (numpy, by frame number), each dropped when step
+        # uses it: a sampled frame's potentials are computed once, not again when it is processed.
+        self._known: dict[int, dict[str, np.ndarray]] = {}
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -282,13 +285,17 @@ class FoamGenerator:
         return np.linalg.norm(fluid.velocities, axis=1) > B.moving_speed(self.g_norm, self.h)
 
     def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
-                  indices: list[int] | None = None) -> None:
+                  indices: list[int] | None = None, sample_indices: list[int] | None = None) -> None:
         """Post-processing 'auto': thresholds from the potentials pooled over frames sampled
         across the run (``samples``), then the scale that puts the predicted peak on the
         budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``; frame
         numbers ``indices``). As frames are processed their real birth rates replace the
-        interpolated ones and the scale is set again (see _replan)."""
+        interpolated ones and the scale is set again (see _replan). With ``sample_indices`` (the
+        samples' frame numbers), their potentials are kept until :meth:`step` reaches them, which
+        then does not compute them again (see _known)."""
         got = [self.potentials(f) for f in samples]
+        if sample_indices is not None:
+            self._known = {int(i): g[0] for i, g in zip(sample_indices, got)}
         pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
         tau = self._auto_tau(pooled, np.concatenate([g[1] for g in got]))
         self.state.tau = tau
@@ -396,19 +403,27 @@ class FoamGenerator:
             self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), rows, MAX_FLUID_NEIGHBOURS, self.h)
         return self.grid
 
-    def _prepare(self, fluid: ParticleFrame, n: int):
-        """The fluid frame in the kept Taichi arrays, and its neighbour lists."""
+    def _prepare(self, fluid: ParticleFrame, n: int, lists: bool = True):
+        """The fluid frame in the kept Taichi arrays, its neighbour grid and, with ``lists``, its neighbour lists
+        (only the potentials read them)."""
         fx = self._upload("fluid_x", fluid.positions, vec=True)
         fv = self._upload("fluid_v", fluid.velocities, vec=True)
         fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
         g = self._fluid_grid(n)
-        g.build(fx, n)
+        g.build(fx, n, lists)
         vs = self._buffer("fluid_v_sorted", n, vec=True)
         gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
         return fx, fv, fid, (*g.query_args(), self.h, vs)
 
-    def _potential_arrays(self, fluid: ParticleFrame, n: int):
-        """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots)."""
+    def _potential_arrays(self, fluid: ParticleFrame, n: int, known: dict[str, np.ndarray] | None = None):
+        """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots); ``known``: the frame's
+        potentials as calibrate computed them, uploaded instead of computed again (the same values)."""
+        if known is not None and all(len(a) == n for a in known.values()):
+            fx, fv, fid, args = self._prepare(fluid, n, lists=False)
+            self._pots = known
+            pots = tuple(self._upload(k, known[name], ti.f32) for k, name in
+                         (("v_diff", "ta"), ("crest", "wc"), ("e_k", "ke"), ("vort", "vo")))
+            return args, fx, fv, fid, pots
         fx, fv, fid, args = self._prepare(fluid, n)
         g = self.grid
         normal, surface = self._buffer("normal", n, vec=True), self._buffer("surface", n)
@@ -459,7 +474,7 @@ class FoamGenerator:
         if self.capacity is None or n > self._sized_for:
             self._size(n)  # from the first frame, again when the fluid grows (empty first frames, inflow)
         with timer("foam.potentials"):
-            args, fx, fv, fid, pots = self._potential_arrays(fluid, n)
+            args, fx, fv, fid, pots = self._potential_arrays(fluid, n, self._known.pop(index, None))
         with timer("foam.advect"):
             self._age(n)
             self._sync_in()

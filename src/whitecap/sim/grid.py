@@ -761,10 +761,13 @@ class NeighborGrid:
         else:
             rec(_sort_cells, rec["g.ncells"], rec["g.start"], rec["g.order"])
 
-    def record_build(self, rec, x, n) -> None:
-        """Sort, then fill the neighbour lists; overflowing pairs are added to ``overflow_count``."""
+    def record_build(self, rec, x, n, lists: bool = True) -> None:
+        """Sort, then fill the neighbour lists (unless not ``lists``: then only the sort and the positions in
+        cell order, all that :func:`for_each_neighbor` reads); overflowing pairs are added to ``overflow_count``."""
         self.record_sort(rec, x, n)
         rec(gather_vec3, n, rec["g.order"], x, rec["g.x_sorted"])
+        if not lists:
+            return
         rec(
             _build_lists, n, rec["g.lower"], rec["g.inv_cell"], rec["g.dims"], rec["g.x_sorted"], rec["g.start"],
             self.scan, rec["g.h"], rec["g.order"], rec["g.nb_count"], rec["g.nb"], self.max_neighbors,
@@ -775,8 +778,15 @@ class NeighborGrid:
         """Counting sort of the first ``n`` positions of ``x`` into cells."""
         run_direct(lambda rec: self.record_sort(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
 
-    def build(self, x, n: int) -> int:
-        """Sort and fill neighbour lists; returns how many neighbours overflowed."""
+    def build(self, x, n: int, lists: bool = True) -> int:
+        """Sort and fill neighbour lists; returns how many neighbours overflowed. Without ``lists``, only
+        the sort and the positions in cell order (for queries with :func:`for_each_neighbor`; ``nb`` and
+        ``nb_count`` are left as they were); returns 0."""
+        if not lists:
+            run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"], False),
+                       {**self.bindings(), "x": x, "n": n})
+            self.overflow = 0
+            return 0
         before = int(self.overflow_count[0])  # what recorded steps counted and no one took yet stays
         run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
         self.overflow = int(self.overflow_count[0]) - before
