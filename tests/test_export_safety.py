@@ -322,9 +322,9 @@ def meshed_run(tiny_run, tmp_path) -> Path:
     info = RunInfo.load(run)
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     for f in info.frames:
-        rel = f"mesh/fluid_{f['index']:05d}.ply"
+        rel = f"mesh/fluid_{f.index:05d}.ply"
         write_mesh(run / rel, SurfaceMesh(np.asarray(box.vertices), np.asarray(box.faces)))
-        info.set_file(f["index"], "mesh", rel)
+        info.set_file(f.index, "mesh", rel)
     info.save(run)
     return run
 
