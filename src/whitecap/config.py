@@ -14,15 +14,21 @@ unknown keys.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal, get_args
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+Job = TypeVar("Job", bound="DataclassInstance")
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 #: Per world axis x, y, z: a degree of freedom that is free (true) or held (false).
@@ -865,6 +871,16 @@ def choices(model: type[BaseModel], name: str) -> tuple[str, ...]:
     """The allowed values of a Literal field, e.g. ``choices(Foam, "preset")``: the CLI's
     choices come from here, so the scene model stays their one definition."""
     return get_args(model.model_fields[name].annotation)
+
+
+def with_options(cls: type[Job], job: Job | None, options: dict[str, Any]) -> Job:
+    """A stage's options object (a frozen dataclass next to its driver: SimulateJob, RenderJob,
+    ExportJob...): ``job`` with ``options`` (its field names) replacing its fields, or a new one
+    built from them when ``job`` is None. Anything else in place of ``job`` is a TypeError (so a
+    path passed where the job goes does not pass silently)."""
+    if job is not None and not isinstance(job, cls):
+        raise TypeError(f"expected a {cls.__qualname__} (or keyword options), got {type(job).__qualname__}")
+    return cls(**options) if job is None else dataclasses.replace(job, **options)
 
 
 def _drop_none(d: Any) -> Any:

@@ -10,15 +10,13 @@ import dataclasses
 import importlib
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING
 
 from . import timing
-from .config import DEFAULT_ARCH, DEFAULT_UP, Scene, load_scene
+from .config import DEFAULT_ARCH, DEFAULT_UP, Scene, load_scene, with_options
 from .io.run import RunInfo
 
 if TYPE_CHECKING:
-    from _typeshed import DataclassInstance
-
     from .cases import ImportJob
     from .diffuse import FoamJob
     from .export import ExportJob
@@ -27,8 +25,6 @@ if TYPE_CHECKING:
     from .surface.driver import MeshRun
     from .view import ViewJob
 
-J = TypeVar("J", bound="DataclassInstance")
-
 
 def _scene(scene: Scene | str | Path) -> Scene:
     return scene if isinstance(scene, Scene) else load_scene(scene)
@@ -36,14 +32,6 @@ def _scene(scene: Scene | str | Path) -> Scene:
 
 def default_out(scene: Scene) -> Path:
     return Path("out") / scene.name
-
-
-def _job(cls: type[J], job: J | None, options: dict) -> J:
-    """A stage's options object: ``job`` with ``options`` (its field names) replacing its fields,
-    or a new one built from them when ``job`` is None."""
-    if job is not None and not isinstance(job, cls):
-        raise TypeError(f"expected a {cls.__qualname__} (or keyword options), got {type(job).__qualname__}")
-    return cls(**options) if job is None else dataclasses.replace(job, **options)
 
 
 def simulate(scene: Scene | str | Path, job: SimulateJob | None = None, out: str | Path | None = None,
@@ -58,7 +46,7 @@ def simulate(scene: Scene | str | Path, job: SimulateJob | None = None, out: str
     sc = _scene(scene)  # a bad scene file fails before Taichi starts
     from .sim.driver import SimulateJob, run_simulation
 
-    job = _job(SimulateJob, job, options)
+    job = with_options(SimulateJob, job, options)
     out = Path(out) if out is not None else default_out(sc)
     hooks = []
     if job.foam and sc.foam.enabled:
@@ -221,7 +209,7 @@ def export(run: str | Path, job: ExportJob | None = None, out: str | Path | None
     or local, slurm, pbs)."""
     from .export import ExportJob, export as export_run
 
-    return export_run(run, _job(ExportJob, job, options), out)
+    return export_run(run, with_options(ExportJob, job, options), out)
 
 
 # ============================================================================ render
@@ -234,7 +222,7 @@ def render(run: str | Path, job: RenderJob | None = None, **options) -> dict:
     """
     from .render import RenderJob, render_run
 
-    return render_run(run, _job(RenderJob, job, options))
+    return render_run(run, with_options(RenderJob, job, options))
 
 
 def blender_addon(out: str | Path | None = None) -> Path:
@@ -288,7 +276,7 @@ def import_case(case_output: str | Path, out: str | Path, job: ImportJob | None 
     build one, or replace those fields of ``job``."""
     from .cases import ImportJob, import_case as import_into
 
-    return import_into(case_output, out, _job(ImportJob, job, options))
+    return import_into(case_output, out, with_options(ImportJob, job, options))
 
 
 # ============================================================================ view
@@ -304,4 +292,4 @@ def view(target: Scene | str | Path, job: ViewJob | None = None, out: str | Path
     """
     from .view import ViewJob, view as _view
 
-    return _view(target, _job(ViewJob, job, options), out=out)
+    return _view(target, with_options(ViewJob, job, options), out=out)

@@ -17,13 +17,13 @@ its entry points (``pipeline.import_case``, and ``foam`` over a foreign sequence
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import DEFAULT_UP
+from ..config import DEFAULT_UP, with_options
 
 if TYPE_CHECKING:
     from ..io.record import Pose
@@ -98,18 +98,13 @@ class ImportJob:
     show_progress: bool = True
 
 
-def import_job(job: ImportJob | None = None, **options) -> ImportJob:
-    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
-    return ImportJob(**options) if job is None else replace(job, **options)
-
-
 def import_case(src: str | Path, out: str | Path, job: ImportJob | None = None, **options) -> RunInfo:
     """A whole case (or a bare sequence) at ``src`` -> the run directory ``out``, as ``job`` says
     (``options``, its field names, build one or replace its fields). The case is read and checked
     in full (:func:`read_case`) before anything is written (:func:`.run_dir.write_case`)."""
     from .run_dir import write_case
 
-    job = import_job(job, **options)
+    job = with_options(ImportJob, job, options)
     return write_case(read_case(src, job), out, show_progress=job.show_progress, force=job.force)
 
 
@@ -123,7 +118,7 @@ def read_case(src: str | Path, job: ImportJob | None = None, **options) -> Case:
     from ..io.sequence import particle_files
     from . import dualsphysics, sequence, splishsplash
 
-    job = import_job(job, **options)
+    job = with_options(ImportJob, job, options)
     up, xml = job.up, job.xml
     src = Path(src)
     pattern = any(c in str(src) for c in "*?[") and not src.exists()

@@ -13,7 +13,7 @@ Both kinds list their files in ``export.json`` in the output folder (:func:`.ser
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from . import alembic, usd  # noqa: F401  (register the scene formats; pxr and bpy load only when used)
@@ -41,11 +41,6 @@ class ExportJob:
     show_progress: bool = True
     jobs: int = 1
     cluster: str | None = None
-
-
-def export_job(job: ExportJob | None = None, **options) -> ExportJob:
-    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
-    return ExportJob(**options) if job is None else replace(job, **options)
 
 
 def export(run: str | Path, job: ExportJob, out: str | Path | None = None) -> dict[str, Path | str]:

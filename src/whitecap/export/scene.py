@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Render
+from ..config import Render, with_options
 from ..errors import InputError
 from ..geometry import obstacle_transform
 from ..io import read, read_mesh, write_scene
@@ -43,7 +43,7 @@ from ..io.run import RunInfo
 from ..progress import progress
 from ..render import stage
 from ..render.scene import diffuse_radius
-from . import SCENE_TARGETS, ExportJob, export_job
+from . import SCENE_TARGETS, ExportJob
 from .series import export_target, record_planned, replace_previous
 
 #: Bumped when what a frame layer holds changes, so that a rerun rewrites old frame layers.
@@ -180,7 +180,7 @@ def export_scene(run: str | Path, job: ExportJob | None = None, out: str | Path 
     directory) as ``job`` says (``options``, its field names, build one or replace its fields;
     its ``to`` must be usd or abc). Returns {target: path}, plus {"note": ...} when the export
     left something out. ``jobs`` is checked as for the series (one process writes a scene)."""
-    job = export_job(job, **options)
+    job = with_options(ExportJob, job, options)
     to, show_progress = job.to, job.show_progress
     run, out = export_target(run, to, SCENE_TARGETS, out, job.jobs, sub=to)
     with export_locks(run, out, "export"):

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io as wio
+from ..config import with_options
 from ..errors import InputError
 from ..executor import cluster_settings
 from ..io.diffuse_types import TYPE_NAMES
@@ -37,7 +38,7 @@ from ..io.pvd import write_pvd, write_series
 from ..io.run import RunInfo
 from ..io.vtk_xml import write_vtp
 from ..stage_frames import check_jobs, map_over_frames
-from . import SERIES_TARGETS, ExportJob, export_job
+from . import SERIES_TARGETS, ExportJob
 
 TARGETS = SERIES_TARGETS
 MANIFEST = "export.json"
@@ -94,7 +95,7 @@ def export_run(run: str | Path, job: ExportJob | None = None, out: str | Path | 
     local processes, or on Dask with ``cluster``; the collections are written
     here, from the frame list, so they do not depend on which frame finished first.
     """
-    job = export_job(job, **options)
+    job = with_options(ExportJob, job, options)
     run, out = export_target(run, job.to, SERIES_TARGETS, out, job.jobs)
     with export_locks(run, out, "export"):
         return _export(run, job.to, out, job.split_types, kinds, job.show_progress, job.jobs or 1, job.cluster)

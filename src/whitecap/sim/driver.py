@@ -26,12 +26,12 @@ import copy
 import functools
 import time
 import tomllib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..config import DEFAULT_ARCH, Scene, scene_from_dict
+from ..config import DEFAULT_ARCH, Scene, scene_from_dict, with_options
 from ..errors import InputError, WhitecapError
 from ..io import ParticleFrame, write, write_text
 from ..io.atomic import sweep_temps, write_arrays
@@ -309,11 +309,6 @@ class SimulateJob:
     show_progress: bool = True
 
 
-def simulate_job(job: SimulateJob | None = None, **options) -> SimulateJob:
-    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
-    return SimulateJob(**options) if job is None else replace(job, **options)
-
-
 def run_simulation(
     scene: Scene,
     out: str | Path,
@@ -329,7 +324,7 @@ def run_simulation(
     frame is about to be written, so a failing set-up leaves it intact.
     ``hooks`` (:class:`FrameHook`) run after the solver on every frame.
     """
-    job = simulate_job(job, **options)
+    job = with_options(SimulateJob, job, options)
     for h in hooks:
         if not isinstance(h, FrameHook):
             raise TypeError(f"hooks: {type(h).__qualname__} is not a whitecap.sim.driver.FrameHook")

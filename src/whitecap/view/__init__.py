@@ -10,10 +10,10 @@ or a Jupyter notebook (viser, :mod:`.web`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
-from ..config import DEFAULT_ARCH, DEFAULT_UP
+from ..config import DEFAULT_ARCH, DEFAULT_UP, with_options
 from ..errors import InputError
 from .web import DEFAULT_HOST, DEFAULT_PORT, MAX_POINTS
 
@@ -55,11 +55,6 @@ class ViewJob:
             object.__setattr__(self, "size", tuple(self.size))
 
 
-def view_job(job: ViewJob | None = None, **options) -> ViewJob:
-    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
-    return ViewJob(**options) if job is None else replace(job, **options)
-
-
 def view(target, job: ViewJob | None = None, out=None, **options):
     """Show TARGET (scene TOML = live, run directory or sequence = playback) as ``job`` says
     (``options``, its field names, build one or replace its fields).
@@ -67,7 +62,7 @@ def view(target, job: ViewJob | None = None, out=None, **options):
     Headless returns the written PNG paths; interactive returns None when the window closes;
     ``web`` serves until interrupted, after printing the URL.
     """
-    job = view_job(job, **options)
+    job = with_options(ViewJob, job, options)
     if job.web:
         from .web import serve
 
