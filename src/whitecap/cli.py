@@ -121,7 +121,7 @@ def _foam_job(a):
     loads Taichi, which `--help` should not wait for)."""
     from .diffuse import FoamJob
 
-    return FoamJob(preset=a.preset, up=a.up, dt=a.dt, radius=a.radius, seed=a.seed, force=a.force, arch=a.arch)
+    return _from_args(FoamJob, a)
 
 
 # ============================================================================ import
@@ -230,7 +230,7 @@ def _cmd_mesh(a) -> int:
     warnings.simplefilter("default")
     warnings.formatwarning = lambda msg, *args, **kw: f"warning: {msg}\n"
     overrides = {k: getattr(a, k) for k in _MESH_OVERRIDES}
-    stats = pipeline.mesh(a.input, MeshRun(jobs=a.jobs, force=a.force, cluster=a.cluster), out=a.out,
+    stats = pipeline.mesh(a.input, _from_args(MeshRun, a), out=a.out,
                           radius=a.radius, config=a.config, up=a.up, profile=a.profile, **overrides)
     made = [s for s in stats if not s["skipped"]]
     tris = sum(s["faces"] for s in made)
@@ -360,8 +360,7 @@ def _cmd_render(a) -> int:
     from . import pipeline
     from .render import RenderJob
 
-    r = pipeline.render(a.run, RenderJob(quality=a.quality, frames=a.frames, jobs=a.jobs, force=a.force, movie=a.movie,
-                                         device=a.device, cluster=a.cluster))
+    r = pipeline.render(a.run, _from_args(RenderJob, a))
     print(f"rendered {len(r['frames'])} frames to {a.run}/render")
     if r.get("movie"):
         print(f"movie: {r['movie']}")
