@@ -112,13 +112,15 @@ try:
         WrapValidator,
         model_serializer,
         model_validator,
+        with_config,
     )
 
     HAVE_PYDANTIC = True
 except ImportError:  # Blender's Python: plain records, below
     HAVE_PYDANTIC = False
 
-if HAVE_PYDANTIC:
+# To a type checker the records are the pydantic models (the plain ones below share their fields).
+if typing.TYPE_CHECKING or HAVE_PYDANTIC:
     def _checked(check):
         """A value checked by ``check`` and written back as it was read."""
         return (PlainValidator(check), PlainSerializer(lambda v: v))
@@ -166,6 +168,9 @@ if HAVE_PYDANTIC:
 
     class _Run(BaseModel):
         model_config = ConfigDict(validate_assignment=True)
+
+    #: A typed dict that keeps the keys it does not declare.
+    _keeps_extra = with_config(ConfigDict(extra="allow"))
 else:
     Number = PositiveNumber = float
     Integer = FrameIndex = int
@@ -174,6 +179,9 @@ else:
 
     def _ordered(t: Any) -> Any:
         return t
+
+    def _keeps_extra(cls: Any) -> Any:
+        return cls
 
     class _Plain:
         """A record without pydantic: the declared fields (default where missing, nested records
@@ -223,11 +231,10 @@ class Domain(TypedDict):
     upper: Vec3
 
 
+@_keeps_extra
 class Extra(TypedDict, total=False):
     """``extra``: what a stage noted about the run. Its known keys are typed; the rest are free."""
 
-    if HAVE_PYDANTIC:
-        __pydantic_config__ = ConfigDict(extra="allow")
     seed: Integer
     scene_dir: str
     kernel_support: Number
