@@ -196,6 +196,32 @@ def test_in_simulation_equals_post_processing_byte_for_byte(foam_run, tmp_path):
     assert (out / "fluid/fluid_00012.ply").exists()  # a complete run for the next stages
 
 
+def test_sampled_frames_potentials_kept_from_the_look_ahead_give_the_same_bytes(foam_run, tmp_path, monkeypatch):
+    """'auto' post-processing computes the potentials of the frames it samples once: step uses those calibrate
+    kept (and builds their grid without lists) instead of computing them again, with the same result."""
+    from whitecap.diffuse.generator import FoamGenerator
+    from whitecap.sim.grid import NeighborGrid
+
+    builds = []
+    build = NeighborGrid.build
+
+    def counted(self, x, n, lists=True):
+        builds.append(lists)
+        return build(self, x, n, lists)
+
+    monkeypatch.setattr(NeighborGrid, "build", counted)
+    postprocess(foam_run, out=tmp_path / "kept", show_progress=False)
+    assert builds.count(False) >= 3  # the sampled frames' grids, built again without lists when processed
+    calibrate = FoamGenerator.calibrate
+    monkeypatch.setattr(FoamGenerator, "calibrate", lambda self, *a, **kw: calibrate(self, *a[:5]))  # nothing kept
+    builds.clear()
+    postprocess(foam_run, out=tmp_path / "fresh", show_progress=False)
+    assert False not in builds
+    for i in range(13):
+        name = f"diffuse/diffuse_{i:05d}.ply"
+        assert (tmp_path / "kept" / name).read_bytes() == (tmp_path / "fresh" / name).read_bytes(), name
+
+
 THREADS = r"""
 import sys, taichi as ti
 ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[3]), log_level=ti.WARN)
