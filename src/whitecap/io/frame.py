@@ -2,45 +2,60 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import InputError
 
 
-@dataclass
+@dataclass(init=False)
 class ParticleFrame:
     """One frame of particles, SI units, z up.
 
     ``positions`` and ``velocities`` are (N, 3) float32; ``ids`` is (N,) uint32
-    and stays with a particle across frames; ``density`` is (N,) float32 or
-    None when the source has none. ``arrays`` holds any other per-particle
+    and stays with a particle across frames (a frame made without them numbers
+    its rows 0..N-1); ``density`` is (N,) float32 or None when the source has
+    none, as ``velocities`` may be. ``arrays`` holds any other per-particle
     arrays by name (``type``, ``lifetime``, ``radius`` for diffuse particles).
     """
 
     positions: np.ndarray
-    velocities: np.ndarray | None = None
-    ids: np.ndarray | None = None
-    density: np.ndarray | None = None
-    time: float | None = None
-    arrays: dict[str, np.ndarray] = field(default_factory=dict)
-    source: str = "<memory>"
+    velocities: np.ndarray | None
+    ids: np.ndarray
+    density: np.ndarray | None
+    time: float | None
+    arrays: dict[str, np.ndarray]
+    source: str
 
-    def __post_init__(self) -> None:
-        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32).reshape(-1, 3)
+    def __init__(
+        self,
+        positions: np.ndarray,
+        velocities: np.ndarray | None = None,
+        ids: np.ndarray | None = None,
+        density: np.ndarray | None = None,
+        time: float | None = None,
+        arrays: dict[str, np.ndarray] | None = None,
+        source: str = "<memory>",
+    ) -> None:
+        self.source = source
+        self.time = time
+        self.positions = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
         n = len(self.positions)
-        if self.velocities is not None:
-            self.velocities = np.ascontiguousarray(self.velocities, dtype=np.float32).reshape(-1, 3)
+        self.velocities = None
+        if velocities is not None:
+            self.velocities = np.ascontiguousarray(velocities, dtype=np.float32).reshape(-1, 3)
             self._check_len("velocity", self.velocities)
-        if self.ids is None:
+        if ids is None:
             self.ids = np.arange(n, dtype=np.uint32)
         else:
-            self.ids = np.ascontiguousarray(self.ids, dtype=np.uint32).reshape(-1)
+            self.ids = np.ascontiguousarray(ids, dtype=np.uint32).reshape(-1)
             self._check_len("id", self.ids)
-        if self.density is not None:
-            self.density = np.ascontiguousarray(self.density, dtype=np.float32).reshape(-1)
+        self.density = None
+        if density is not None:
+            self.density = np.ascontiguousarray(density, dtype=np.float32).reshape(-1)
             self._check_len("density", self.density)
+        self.arrays = {} if arrays is None else arrays
         for k, a in self.arrays.items():
             self._check_len(k, a)
 

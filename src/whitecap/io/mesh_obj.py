@@ -35,7 +35,7 @@ def read_mesh_obj(path: Path) -> SurfaceMesh:
     import trimesh
 
     try:
-        tm = trimesh.load(str(path), file_type="obj", process=False, force="mesh")
+        tm = trimesh.load_mesh(str(path), file_type="obj", process=False)
     except Exception as exc:
         raise InputError(f"{path}: not a readable OBJ file ({exc})") from None
     if len(tm.vertices) == 0:

@@ -22,5 +22,5 @@ def encode_mp4(pngs: list[Path], path: str | Path, fps: float = 30.0, quality: i
             for p in pngs:
                 img = imageio.imread(p)[..., :3]
                 h, wd = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
-                w.append_data(img[:h, :wd])
+                w.append_data(img[:h, :wd])  # type: ignore[attr-defined]  # typed as imageio's base class
     return path

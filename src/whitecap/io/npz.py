@@ -94,7 +94,7 @@ def read_npz(path: Path, up: str = "z", require_velocity: bool = False) -> Parti
 
 
 def write_npz(path: Path, frame: ParticleFrame) -> None:
-    arrays = dict(positions=frame.positions, ids=frame.ids, **frame.arrays)
+    arrays: dict[str, np.ndarray | np.float64] = dict(positions=frame.positions, ids=frame.ids, **frame.arrays)
     if frame.velocities is not None:
         arrays["velocities"] = frame.velocities
     if frame.density is not None:

@@ -14,6 +14,7 @@ wheel (``whitecap blender-addon``), so plyfile is imported only where a file is 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -194,7 +195,8 @@ def check_ply(path: Path) -> None:
             if f.read().count(b"\n") < rows or not _ends_with_newline(path):
                 read_vertices(path)
         return
-    offset, elements = nl + 1, []
+    offset = nl + 1
+    elements: list[list[Any]] = []  # [name, rows, bytes a row]
     for w in words:
         if w and w[0] == "element" and len(w) == 3 and w[2].isdigit():
             elements.append([w[1], int(w[2]), 0])

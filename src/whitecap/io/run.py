@@ -197,7 +197,7 @@ class RunInfo(RunRecord):
     def set_bodies(self, index: int, bodies: list[Pose | dict]) -> None:
         """Record the pose of every obstacle at this frame (:class:`Pose`, or its dict), in scene
         order: the rigid motion from its rest placement."""
-        self.frame(index).bodies = bodies
+        self.frame(index).bodies = bodies  # type: ignore[assignment]  # validated on assignment: dicts become Poses
 
     def body_pose(self, index: int, k: int) -> Pose | None:
         """Obstacle ``k``'s pose at frame ``index`` (None: static, or not recorded: at rest)."""
@@ -286,7 +286,9 @@ def owned_files(run_dir: str | Path) -> list[Path]:
     for f in data.get("frames") or []:
         if isinstance(f, dict) and isinstance(f.get("files"), dict):
             rels += list(f["files"].values())
-    extra = data.get("extra") if isinstance(data.get("extra"), dict) else {}
+    extra = data.get("extra")
+    if not isinstance(extra, dict):
+        extra = {}
     if "scene_dir" not in extra:  # an imported case: its shapes' meshes are files in the run
         for o in data.get("obstacles") or []:
             if isinstance(o, dict):
@@ -405,15 +407,15 @@ def sequence_bounds(paths: list[Path], **read_kw) -> tuple[np.ndarray, np.ndarra
     reach, which a single frame does not show (a dam break travels far beyond its first frame)."""
     from .registry import read
 
-    lo = hi = None
+    box: tuple[np.ndarray, np.ndarray] | None = None
     for path in paths:
         pos = read(path, **read_kw).positions
         if len(pos):
             if not np.isfinite(pos).all():
                 raise InputError(f"{path}: positions hold NaN or infinite values")
             a, b = pos.min(0).astype(np.float64), pos.max(0).astype(np.float64)
-            lo, hi = (a, b) if lo is None else (np.minimum(lo, a), np.maximum(hi, b))
-    return None if lo is None else (lo, hi)
+            box = (a, b) if box is None else (np.minimum(box[0], a), np.maximum(box[1], b))
+    return box
 
 
 def flow_domain(bounds: tuple[np.ndarray, np.ndarray], r: float) -> dict[str, list[float]]:

@@ -151,9 +151,10 @@ _TYPE_BYTES = {"bit": 0, "unsigned_char": 1, "char": 1, "signed_char": 1, "short
 _CELLS = {b"VERTICES", b"LINES", b"POLYGONS", b"TRIANGLE_STRIPS", b"CELLS"}
 _COORDINATES = {b"X_COORDINATES", b"Y_COORDINATES", b"Z_COORDINATES"}
 _NO_DATA = {b"DATASET", b"DIMENSIONS", b"ORIGIN", b"SPACING", b"ASPECT_RATIO"}
-#: point/cell attributes -> values per point (None: given on the header line)
-_ATTRIBUTES = {b"SCALARS": None, b"VECTORS": 3, b"NORMALS": 3, b"TENSORS": 9, b"TENSORS6": 6,
-               b"GLOBAL_IDS": 1, b"PEDIGREE_IDS": 1, b"TEXTURE_COORDINATES": None, b"COLOR_SCALARS": None}
+#: point/cell attributes -> values per point (0: given on the header line)
+_ATTRIBUTES: dict[bytes, int] = {
+    b"SCALARS": 0, b"VECTORS": 3, b"NORMALS": 3, b"TENSORS": 9, b"TENSORS6": 6,
+    b"GLOBAL_IDS": 1, b"PEDIGREE_IDS": 1, b"TEXTURE_COORDINATES": 0, b"COLOR_SCALARS": 0}
 #: lines of a METADATA block (after an array's data; nothing is counted in them)
 _METADATA = {b"METADATA", b"INFORMATION", b"NAME", b"DATA", b"COMPONENT_NAMES"}
 _KEYWORDS = ({b"POINTS", b"CELL_TYPES", b"POINT_DATA", b"CELL_DATA", b"FIELD", b"LOOKUP_TABLE", b"OFFSETS",
@@ -253,7 +254,7 @@ class _BinaryWalk:
         self.f.seek(start + need)
 
     def walk(self) -> None:
-        pending = "the header"  # a header that promises more to follow
+        pending: str | None = "the header"  # a header that promises more to follow
         while (s := self.line()) is not None:
             pending = None
             parts = s.split()
