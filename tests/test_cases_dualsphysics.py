@@ -518,3 +518,17 @@ def test_blender_addon_shows_imported_shapes_and_moves_the_body(tmp_path):
         want = apply_pose(f.bodies[0], np.asarray(cube.vertices[:4], float))
         got = np.array(res["obstacle_0"]["keys"][str(f.index)])
         assert np.abs(got - want).max() < 1e-5, (i, got, want)
+
+
+@pytest.mark.parametrize("old, new", [('key="TimeOut" value="0.05"', 'key="TimeOut"'),
+                                      ('<gravity x="0"', '<gravity x="down"')])
+def test_case_xml_number_missing_or_not_a_number_is_one_line_error(tmp_path, old, new):
+    from whitecap.cases.dualsphysics_xml import read_xml
+    from whitecap.errors import InputError
+
+    path = tmp_path / "case.xml"
+    path.write_text(XML.replace(old, new))
+    with pytest.raises(InputError) as err:
+        read_xml(path)
+    assert str(path) in str(err.value) and "expected a number" in str(err.value)
+    assert len(str(err.value).splitlines()) == 1

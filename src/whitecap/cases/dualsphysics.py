@@ -139,10 +139,10 @@ def read_output(folder: str | Path, xml: str | Path | None = None, up: str = DEF
     bound = dict(_files(folder, ALL_PREFIX) or _files(folder, BOUND_PREFIX))
     for _, path in fluid + sorted(bound.items()):
         check(path)  # a file cut short is refused now, before anything is written (headers and sizes only)
-    frame_dt = info.time_out if info is not None and info.time_out else None
-    if frame_dt is None:
+    if info is None or not info.time_out:
         raise InputError(f"{folder}: the time between frames is unknown: no case XML with a TimeOut parameter "
                          "beside the files (pass --xml CASE.xml)")
+    frame_dt = info.time_out
     times = [i * frame_dt for i, _ in fluid]
     case = Case(source=folder, solver="dualsphysics", fluid=fluid, frame_dt=frame_dt,
                 particle_radius=info.particle_radius, rest_density=info.rho0, particle_mass=info.mass,
@@ -304,6 +304,7 @@ def _poses_from_csv(case: Case, moving: list, path: Path, rest_time: float) -> N
                              f"({t.min():.6g}..{t.max():.6g} s) must match the fluid frames")
         return k
 
+    assert case.times is not None  # read_output gives every frame's time
     rows = [row_at(tm, f"frame {i}") for tm, (i, _) in zip(case.times, case.fluid)]
     k0 = row_at(rest_time, "the first boundary file")
     centre = np.stack([cols["center.x"], cols["center.y"], cols["center.z"]], 1)

@@ -75,15 +75,15 @@ def read_xml(path: str | Path) -> CaseInfo:
     if d is None or "dp" not in d.attrib:
         raise InputError(f"{p}: missing <definition dp=...> (particle spacing)")
 
-    def vec(e, default=None):
-        return [float(e.get(k)) for k in "xyz"] if e is not None else default
+    def vec(e: ET.Element | None) -> list[float] | None:
+        return [_number(p, e, k) for k in "xyz"] if e is not None else None
 
     rho = root.find(".//constantsdef/rhop0")
     rho = rho if rho is not None else root.find(".//rhop0")
     dt = None
     for par in root.iter("parameter"):
         if par.get("key", "").lower() == "timeout":
-            dt = float(par.get("value"))
+            dt = _number(p, par, "value")
     try:
         kinds, shapes = _boundary_shapes(root, p.stem)
     except ValueError as exc:
@@ -91,16 +91,28 @@ def read_xml(path: str | Path) -> CaseInfo:
     return CaseInfo(
         mk_kinds=kinds,
         shapes=shapes,
-        dp=float(d.get("dp")),
-        rho0=float(rho.get("value")) if rho is not None else 1000.0,
+        dp=_number(p, d, "dp"),
+        rho0=_number(p, rho, "value") if rho is not None else 1000.0,
         time_out=dt,
-        gravity=vec(root.find(".//gravity"), [0.0, 0.0, -9.81]),
+        gravity=vec(root.find(".//gravity")) or [0.0, 0.0, -9.81],
         lower=vec(d.find("pointmin")),
         upper=vec(d.find("pointmax")),
     )
 
 
 BOUNDARY_KINDS = ("fixed", "moving", "floating")
+
+
+def _number(p: Path, e: ET.Element, key: str) -> float:
+    """Attribute ``key`` of element ``e`` as a number; InputError naming the file, element and
+    attribute when it is missing or not a number."""
+    text = e.get(key)
+    if text is not None:
+        try:
+            return float(text)
+        except ValueError:
+            pass
+    raise InputError(f"{p}: <{e.tag} {key}=...>: expected a number, got {text!r}")
 
 
 def _mk_list(text: str) -> list[int]:

@@ -31,6 +31,7 @@ from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
+from ..io.record import Obstacle
 from ..io.run import (
     DOMAIN_RULE,
     RUN_JSON,
@@ -134,10 +135,11 @@ def _new_info(case: Case, identity: str, opts: dict) -> RunInfo:
     return info
 
 
-def _obstacle_entry(shape: CaseShape, rel: str) -> dict:
-    return {"name": shape.name, "role": shape.role, "source": shape.source, "mesh": rel, "render_mesh": rel,
-            "translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0,
-            **ROLE_LOOKS[shape.role], **(shape.look or {})}  # a shape's own look (e.g. glass) wins
+def _obstacle_entry(shape: CaseShape, rel: str) -> Obstacle:
+    return Obstacle.model_validate({
+        "name": shape.name, "role": shape.role, "source": shape.source, "mesh": rel, "render_mesh": rel,
+        "translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0,
+        **ROLE_LOOKS[shape.role], **(shape.look or {})})  # a shape's own look (e.g. glass) wins
 
 
 def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False) -> RunInfo:
@@ -183,7 +185,7 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
     for s, rel in zip(shapes, rels):
         write_mesh(out / rel, SurfaceMesh(np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int32),
                                           source=s.source or s.name))
-    moving = [s for s in shapes if s.poses is not None]
+    moving = [s.poses for s in shapes if s.poses is not None]  # each moving shape's poses by frame
     times = case.times if case.times is not None else [i * case.frame_dt for i, _ in case.fluid]
     done = {i for i, rel in info.files("fluid") if (out / rel).is_file()}
     todo = [(k, i, p) for k, (i, p) in enumerate(case.fluid) if i not in done]
@@ -200,13 +202,13 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
             write(out / rel, fr)
             info.set_file(index, "fluid", rel, fr.time)
             if moving:
-                info.set_bodies(index, [s.poses[k] for s in moving])
+                info.set_bodies(index, [poses[k] for poses in moving])
             info.save(out)  # after every frame: an interrupted import resumes from here
             bar.update(task, advance=1, info=f"{len(fr):,} fluid")
     for k, (index, _) in enumerate(case.fluid):  # poses of frames converted earlier, too
         info.frame(index).time = float(times[k])
         if moving:
-            info.set_bodies(index, [s.poses[k] for s in moving])
+            info.set_bodies(index, [poses[k] for poses in moving])
     info.save(out)
     info.extra["out"] = str(out)  # for the caller's message; not saved
     return info

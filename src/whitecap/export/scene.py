@@ -145,8 +145,9 @@ def build_cache(run_dir: Path, info: RunInfo, cfg: Render) -> SceneCache:
         if any(p is not None for p in found.values()):  # a frame without a pose is at rest
             poses = {i: (list(p.position), list(p.quaternion)) if p is not None else ([0.0] * 3, [1.0, 0.0, 0.0, 0.0])
                      for i, p in found.items()}
+        red, green, blue = entry.color or OBSTACLE_COLOR  # a colour is 3 numbers (record.Vec3)
         obstacles.append(CacheObstacle(f"obstacle_{k}", np.asarray(m.vertices), np.asarray(m.faces),
-                                       tuple(entry.color or OBSTACLE_COLOR), placement, poses))
+                                       (red, green, blue), placement, poses))
         rest = np.asarray(m.vertices) @ placement[:3, :3].T + placement[:3, 3]
         boxes.append(np.array([rest.min(0), rest.max(0)]))
     cache = SceneCache(frame_rate=info.frame_rate, frames=frames, has_mesh=has_mesh, point_sets=point_sets,
