@@ -158,7 +158,11 @@ for preview in (False, True):
     mat = terrain_material(t, (0.0, 0.6), 4.0, preview)
     names = {n.name for n in mat.node_tree.nodes}
     need = {"terrain_sand", "terrain_sand_grain", "terrain_sand_ripples", "terrain_rock_mask", "terrain_rock_cells",
-            "terrain_grass_mask", "terrain_wet", "terrain_wet_colour", "terrain_wet_rough"}
+            "terrain_grass_mask", "terrain_wet", "terrain_wet_colour", "terrain_wet_rough",
+            # rock: cracks, a warm stain, moss on ledges and in crevices; grass: dry and bare patches;
+            # crevices darker and the rock in a channel damp (ambient occlusion)
+            "terrain_rock_cracks", "terrain_rock_warm", "terrain_moss", "terrain_grass_dry_mix",
+            "terrain_grass_earth_mix", "terrain_occlusion", "terrain_crevice", "terrain_damp"}
     assert need <= names, need - names
     assert ("terrain_bump" in names) != preview
     bsdf = mat.node_tree.nodes["Principled BSDF"]
