@@ -28,6 +28,7 @@ import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,9 @@ from ..io.writer import DEFAULT_QUEUE, FrameWriter
 from ..progress import progress
 from ..timing import timer
 from . import runtime
+
+if TYPE_CHECKING:  # a type only: build_solver imports the solver's modules when it runs
+    from .obstacles import Obstacles
 
 #: Write frames, run.json and checkpoints in a background thread: True, False (in the loop), or None:
 #: on a GPU only. On the CPU, Taichi's kernels hold Python's global lock, so the thread could only write
@@ -144,7 +148,7 @@ def build_solver(scene: Scene, arch: str = DEFAULT_ARCH, frames: int | None = No
         )
     runtime.init(arch)
     pos, vel = lattice_points(scene)
-    obstacles = []
+    obstacles: Obstacles | None = None
     if scene.obstacle:
         from .obstacles import load_obstacles
 
@@ -417,8 +421,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         info.extra["scene_sha256"] = scene_sha256(scene_text)
         info.save(out)
     background = BACKGROUND_WRITER if BACKGROUND_WRITER is not None else runtime.current() not in (None, "cpu")
-    writer = FrameWriter(WRITER_QUEUE) if background else _InlineWriter()
-    _WRITER = writer if background else None
+    writer: FrameWriter | _InlineWriter = FrameWriter(WRITER_QUEUE) if background else _InlineWriter()
+    _WRITER = writer if isinstance(writer, FrameWriter) else None
     try:
         _frames(scene, out, nframes, start_frame, from_checkpoint, solver, hooks, emit, show_progress)
         writer.flush()  # every file on disk, or the writer's error (a full disk) raised here

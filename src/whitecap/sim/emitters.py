@@ -142,7 +142,7 @@ class Sources:
         self.sinks = self.gone = None
         if scene.sink:
             lo, hi = np.asarray(scene.domain.lower) - 1.0, np.asarray(scene.domain.upper) + 1.0
-            rows = []
+            rows: list = []  # 4 vectors a sink
             for s in scene.sink:
                 if s.shape == "box":
                     rows += [s.lower, s.upper, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
@@ -197,6 +197,7 @@ class Sources:
         self.emitted = due
         x, v = np.concatenate(xs), np.concatenate(vs)
         ids = np.arange(solver.next_id, solver.next_id + new, dtype=np.int64)
+        assert self.stage_x is not None and self.stage_v is not None and self.stage_id is not None  # made with rates
         if ids[-1] >= 2**31:
             raise SimulationError(f"{self.where}emitter: particle ids ran past 2³¹ at t={t:.4f} s")
         for lo in range(0, new, self.staging_size):  # in batches of the staging arrays' size

@@ -30,6 +30,7 @@ All particle state is plain Taichi ndarrays in :class:`FluidState`.
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import taichi as ti
@@ -41,6 +42,10 @@ from ..timing import timer
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
 from .launch import KernelGraph, permuted, run_direct
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
+
+if TYPE_CHECKING:  # types only: the driver's build_solver sets them
+    from .emitters import Sources
+    from .obstacles import Obstacles
 
 vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
@@ -504,11 +509,11 @@ class PBFSolver:
         ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
         self._upload(positions, velocities, ids)
         self.next_id = int(ids.max()) + 1 if n else 0  # the id the next emitted particle takes
-        self.sources = None  # emitters and sinks (sim/emitters.py), set by build_solver
+        self.sources: Sources | None = None  # emitters and sinks (sim/emitters.py), set by build_solver
         confine_to_domain(n, st.x, self.box)
         self.grid = NeighborGrid(grid_spec(lo, hi, self.h / 2), self.capacity, s.max_neighbors, self.h)
         self.colliders: list = []
-        self.obstacles = None  # the scene's sim.obstacles.Obstacles (set by build_solver), for the frame hooks
+        self.obstacles: Obstacles | None = None  # the scene's (set by build_solver), for the frame hooks
         # The step's phases run as Taichi compute graphs (sim/launch.py), one per phase and
         # structure; off, they launch kernel by kernel (the same launches, for comparison).
         self.use_graph = True
