@@ -504,3 +504,23 @@ def test_window_gets_the_size_and_colour_asked_for(tiny_run, monkeypatch):
     with pytest.raises(Stop):
         main(["view", str(tiny_run), "--size", "321", "243", "--color", "density"])
     assert seen == {"size": (321, 243), "headless": False, "color": "density"}
+
+
+def test_live_view_shows_the_scenes_obstacles(tmp_path):
+    # The live source lists the scene's obstacles as run.json's records, which the mesh loader reads.
+    import types
+
+    import trimesh
+
+    from tests.conftest import tiny_scene_dict
+    from whitecap.config import scene_from_dict
+    from whitecap.view.geometry import load_obstacle_meshes
+    from whitecap.view.sources import LiveSource
+
+    trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(tmp_path / "block.obj")
+    scene = scene_from_dict(tiny_scene_dict(obstacle=[{"mesh": "block.obj", "translate": [0.45, 0.1, 0.1],
+                                                       "color": [0.9, 0.1, 0.1]}]), base_dir=tmp_path)
+    live = types.SimpleNamespace(scene=scene)  # the listing needs no solver
+    ((v, f, _, color, k),) = load_obstacle_meshes(LiveSource.obstacles(live), LiveSource.obstacle_base(live))
+    assert k == 0 and color == (0.9, 0.1, 0.1) and len(f) == 12
+    assert np.allclose(v.mean(0), [0.45, 0.1, 0.1], atol=1e-6)

@@ -94,7 +94,7 @@ class Input:
 
     def __init__(self, window, move_speed: float, extent: float):
         self.window = window
-        self.last_cursor = None
+        self.last_cursor: tuple[float, float] | None = None
         self.move_speed = move_speed * extent
         self.last_t = time.perf_counter()
 

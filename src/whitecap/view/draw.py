@@ -139,10 +139,12 @@ class Renderer:
                                   self.fluid.pos, self.fluid.col)
             else:
                 col = colormap(fluid_scalar(frame.as_dict(), state.color_mode), lo, hi)
+                assert frame.positions is not None  # a frame without a device has its positions
                 n = self.fluid.fill(frame.positions, col)
             sc.particles(self.fluid.pos, radius=self.radius * self.point_scale, per_vertex_color=self.fluid.col,
                          index_count=n)
-        if vis.diffuse and frame.diffuse_positions is not None and len(frame.diffuse_positions):
+        if (vis.diffuse and frame.diffuse_positions is not None and len(frame.diffuse_positions)
+                and frame.diffuse_type is not None):  # sources set the three diffuse arrays together
             t = np.clip(frame.diffuse_type.astype(np.int64), 0, len(DIFFUSE_COLORS) - 1)
             n = self.diffuse.fill(frame.diffuse_positions, DIFFUSE_COLORS[t], frame.diffuse_radius)
             sc.particles(self.diffuse.pos, radius=self.radius, per_vertex_color=self.diffuse.col,

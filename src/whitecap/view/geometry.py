@@ -36,7 +36,7 @@ def load_obstacle_meshes(entries: list[Obstacle],
             log.warning("obstacle mesh %s not found; not shown", path)
             continue
         try:
-            m = trimesh.load(found, force="mesh")
+            m = trimesh.load_mesh(found)
         except Exception as exc:  # a bad mesh must not stop the viewer
             log.warning("obstacle mesh %s unreadable (%s); not shown", found, exc)
             continue

@@ -30,7 +30,7 @@ def _colormap(s, lo, hi):
 
 @ti.kernel
 def fill_fluid_buffer(n: ti.i32, x: F3, v: F3, rho: F1, by_density: ti.i32, lo: ti.f32, hi: ti.f32,
-                      pos: ti.template(), col: ti.template()):
+                      pos: ti.template(), col: ti.template()):  # type: ignore[valid-type]  # taichi's, not a type
     """GGUI vertices of a live solver: positions x_i and the colour of |v_i| or ρ_i,
     written on the compute device (no copy through numpy, which dominated on a GPU)."""
     for i in range(n):

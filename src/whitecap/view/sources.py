@@ -8,15 +8,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..config import DEFAULT_ARCH, DEFAULT_UP
+from ..config import DEFAULT_ARCH, DEFAULT_UP, Scene
 from ..errors import InputError
 from ..io import read
 from ..io.record import Obstacle
 from ..io.run import RUN_JSON, RunInfo
 from ..io.sequence import find_sequence
+
+if TYPE_CHECKING:  # types only: a live source imports the solver and the foam stage when it starts
+    from ..diffuse.driver import FoamStage
+    from ..diffuse.generator import FoamGenerator
 
 
 @dataclass
@@ -24,9 +29,9 @@ class DeviceFluid:
     """A live solver's particle arrays where they live (CPU or GPU memory): the
     viewer colours and draws them with one kernel, without a copy to numpy."""
 
-    x: object  # positions, vec3 ndarray [m]
-    v: object  # velocities, vec3 ndarray [m/s]
-    rho: object  # density, f32 ndarray [kg/m³]; current only when asked for
+    x: Any  # positions, vec3 ndarray [m] (Taichi's ndarrays are typed Any)
+    v: Any  # velocities, vec3 ndarray [m/s]
+    rho: Any  # density, f32 ndarray [kg/m³]; current only when asked for
     n: int
 
     def host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -54,7 +59,10 @@ class Frame:
 
     @property
     def n_fluid(self) -> int:
-        return self.device.n if self.device is not None else len(self.positions)
+        if self.device is not None:
+            return self.device.n
+        assert self.positions is not None  # a frame is live (device) or has its positions
+        return len(self.positions)
 
     def counts(self) -> dict[str, int]:
         from ..io.diffuse_types import TYPE_NAMES
@@ -93,9 +101,9 @@ class PlaybackSource:
             self.diffuse = {i: self.path / rel for i, rel in self.info.files("diffuse")}
             self.times = {f.index: self.info.time(f.index) for f in self.info.frames}
             self.bodies = {f.index: f.bodies for f in self.info.frames if f.bodies}
-            self.radius = float(self.info.particle_radius)
             d = self.info.domain
-            self.bounds = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float))
+            bounds: Bounds | None = Bounds(np.asarray(d["lower"], float), np.asarray(d["upper"], float))
+            radius: float | None = float(self.info.particle_radius)
         else:
             if not self.path.exists() and not any(c in str(path) for c in "*?["):
                 raise InputError(f"{self.path}: no such run directory or particle sequence")
@@ -104,24 +112,26 @@ class PlaybackSource:
             self.files = [q for _, q in seq]
             self.times = {}
             self.bodies = {}
-            self.bounds = None
-            self.radius = None
+            bounds = radius = None
         self._cache: dict[int, Frame] = {}
         first = self.frame(0)
-        if self.bounds is None or self.radius is None:
+        if bounds is None or radius is None:
             # Frame the first frame that has particles; a sequence of empty frames
             # shows an empty unit box.
             first = next((f for f in map(self.frame, range(len(self))) if f.n_fluid), first)
-        if self.bounds is None:
+        positions = first.positions  # a frame read from disk has its positions
+        assert positions is not None
+        if bounds is None:
             if first.n_fluid:
-                lo, hi = first.positions.min(axis=0), first.positions.max(axis=0)
+                lo, hi = positions.min(axis=0), positions.max(axis=0)
             else:
                 lo, hi = np.zeros(3), np.ones(3)
-            self.bounds = Bounds(lo.astype(float), hi.astype(float))
-        if self.radius is None:
+            bounds = Bounds(lo.astype(float), hi.astype(float))
+        if radius is None:
             # Spacing estimate: the cube root of the volume per particle, halved.
-            ext = np.maximum(self.bounds.upper - self.bounds.lower, 1e-6)
-            self.radius = 0.5 * float(np.prod(ext) / max(len(first.positions), 1)) ** (1 / 3)
+            ext = np.maximum(bounds.upper - bounds.lower, 1e-6)
+            radius = 0.5 * float(np.prod(ext) / max(len(positions), 1)) ** (1 / 3)
+        self.bounds, self.radius = bounds, radius
 
     def __len__(self) -> int:
         return len(self.files)
@@ -167,10 +177,10 @@ class PlaybackSource:
 class LiveSource:
     """A solver advanced frame by frame while the viewer shows it."""
 
-    scene: object
+    scene: Scene
     arch: str = DEFAULT_ARCH
     live: bool = True
-    hook: object | None = None
+    hook: FoamStage | None = None
     _initial: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -202,8 +212,13 @@ class LiveSource:
         gen = getattr(self.hook, "gen", None)
         return gen.p if gen is not None else None
 
+    def _generator(self) -> FoamGenerator:
+        """The live foam generator (the scene has [foam] on, and it has not failed)."""
+        assert self.hook is not None and self.hook.gen is not None
+        return self.hook.gen
+
     def set_foam_params(self, **kw) -> None:
-        self.hook.gen.with_params(**kw)
+        self._generator().with_params(**kw)
 
     def __len__(self) -> int:
         return self.index + 1
@@ -237,7 +252,7 @@ class LiveSource:
         if self.hook is not None:
             from ..diffuse import DiffuseState
 
-            self.hook.gen.state = DiffuseState.empty()
+            self._generator().state = DiffuseState.empty()
 
     def current(self, with_density: bool = False) -> Frame:
         """The solver's state as a frame; its arrays stay on the device (see DeviceFluid)."""
@@ -263,9 +278,10 @@ class LiveSource:
 
             pf = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=fr.time)
             dt = 1.0 / self.scene.solver.frame_rate
+            assert self.hook is not None  # stepped only with a foam stage
             for g in self.hook.obstacles or []:  # obstacles (sim.obstacles.PosedSDF) at this pose, from the last
                 g.at_frame(fr.time, fr.bodies[g.index] if fr.bodies else None, dt if self.index > 0 else 0.0)
-            d = self.hook.gen.step(pf, self.index, dt)
+            d = self._generator().step(pf, self.index, dt)
             self._diffuse = (d.positions, np.asarray(d.arrays["type"], np.uint8),
                              np.asarray(d.arrays["radius"], np.float32))
             self._diffuse_index = self.index
@@ -276,7 +292,7 @@ class LiveSource:
             self.hook, self._diffuse = None, None
 
     def obstacles(self) -> list[Obstacle]:
-        return [o.model_dump() for o in self.scene.obstacle]
+        return [Obstacle.model_validate(o.model_dump()) for o in self.scene.obstacle]  # as run.json lists them
 
     def obstacle_base(self) -> list[Path]:
         return [Path(self.scene.base_dir)]

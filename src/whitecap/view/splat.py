@@ -31,6 +31,7 @@ simulation), in the project's style; NumPy cannot scatter a per-pixel minimum wi
 
 import io
 import math
+from typing import Any
 
 import numpy as np
 import taichi as ti
@@ -62,11 +63,18 @@ _L = np.asarray(LIGHT_DIR, np.float64) / np.linalg.norm(LIGHT_DIR)
 _LIGHT = tuple(float(c) for c in _L)
 
 # Pure-Taichi bodies need the runtime; compile once per process on first use.
-_cam_t = ti.types.ndarray(dtype=ti.f32, ndim=1)  # 12 numbers: R (row-major, camera->world), eye
+# The kernels' argument types (typed Any to a type checker: taichi's annotations are not Python types).
+_cam_t: Any = ti.types.ndarray(dtype=ti.f32, ndim=1)  # 12 numbers: R (row-major, camera->world), eye
+_vec3_t: Any = ti.types.ndarray(dtype=ti.math.vec3, ndim=1)
+_f32_t: Any = ti.types.ndarray(dtype=ti.f32, ndim=1)
+_key_t: Any = ti.types.ndarray(dtype=ti.i64, ndim=2)
+_rgb_t: Any = ti.types.ndarray(dtype=ti.u8, ndim=3)
+_depth_t: Any = ti.types.ndarray(dtype=ti.f32, ndim=2)
+_template: Any = ti.template()
 
 
 @ti.func
-def _to_camera(cam: ti.template(), x):
+def _to_camera(cam: _template, x):
     """World point x -> camera coordinates p = Rᵀ (x - eye)."""
     d = x - ti.Vector([cam[9], cam[10], cam[11]])
     return ti.Vector([cam[0] * d[0] + cam[3] * d[1] + cam[6] * d[2],
@@ -75,8 +83,7 @@ def _to_camera(cam: ti.template(), x):
 
 
 @ti.kernel
-def splat_nearest_sphere(pos: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), rad: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                         cam: _cam_t, focal: ti.f32, key: ti.types.ndarray(dtype=ti.i64, ndim=2)):
+def splat_nearest_sphere(pos: _vec3_t, rad: _f32_t, cam: _cam_t, focal: ti.f32, key: _key_t):
     """For every pixel, the nearest sphere surface over it: key = (bits(z) << 32) | i, where
     z = z_i - r_i sqrt(1 - d²) is the surface's distance along the view axis and d the
     pixel centre's offset from the projected centre in units of ρ_i = f r_i / z_i."""
@@ -103,10 +110,8 @@ def splat_nearest_sphere(pos: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), rad:
 
 
 @ti.kernel
-def shade_sphere_pixels(pos: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), rad: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                        col: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), cam: _cam_t, focal: ti.f32,
-                        key: ti.types.ndarray(dtype=ti.i64, ndim=2), bg: ti.math.vec3,
-                        rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), depth: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+def shade_sphere_pixels(pos: _vec3_t, rad: _f32_t, col: _vec3_t, cam: _cam_t, focal: ti.f32, key: _key_t,
+                        bg: ti.math.vec3, rgb: _rgb_t, depth: _depth_t):
     """Each pixel's colour and depth from the sphere that won it: c_i (A + D max(n·l, 0)) with
     n the sphere normal n = (du, dv, -sqrt(1 - d²)) (camera coordinates) and l the light
     direction; the background colour and FAR_DEPTH where no particle is."""
