@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import ErrorDetails
 
 from .errors import InputError
 
@@ -413,7 +414,10 @@ class Emitter(_Section):
 
     def per_second(self, r: float) -> float:
         """Particles entering per second: ``particles_per_second``, or ``rate`` / (2r)³."""
-        return float(self.particles_per_second) if self.rate is None else self.rate / (2 * r) ** 3
+        if self.rate is not None:
+            return self.rate / (2 * r) ** 3
+        assert self.particles_per_second is not None  # the validator asks for exactly one of the two
+        return float(self.particles_per_second)
 
     def emitted_by(self, r: float, t: float) -> int:
         """How many particles the emitter has added by time ``t`` (those due at or before t)."""
@@ -447,8 +451,10 @@ class Sink(_Section):
     def contains(self, p: list[float]) -> bool:
         """Whether the point ``p`` is in the removed region."""
         if self.shape == "box":
-            return all(lo <= x <= hi for lo, x, hi in zip(self.lower, p, self.upper))  # type: ignore[arg-type]
-        return sum((x - q) * n for x, q, n in zip(p, self.point, self.normal)) >= 0  # type: ignore[arg-type]
+            assert self.lower is not None and self.upper is not None  # the validator's box check
+            return all(lo <= x <= hi for lo, x, hi in zip(self.lower, p, self.upper))
+        assert self.point is not None and self.normal is not None  # the validator's plane check
+        return sum((x - q) * n for x, q, n in zip(p, self.point, self.normal)) >= 0
 
 
 # --------------------------------------------------------------------------- foam
@@ -915,7 +921,7 @@ def _model_at(loc: tuple, model: type[BaseModel] = Scene) -> type[BaseModel] | N
     return m
 
 
-def _format_error(err: dict, source: str) -> str:
+def _format_error(err: ErrorDetails, source: str) -> str:
     loc = tuple(err["loc"])
     key = ".".join(str(p) if not isinstance(p, int) else f"[{p}]" for p in loc).replace(".[", "[")
     if err["type"] == "extra_forbidden":

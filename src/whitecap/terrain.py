@@ -190,9 +190,9 @@ def closed_solid(V: np.ndarray, F: np.ndarray, shape: tuple[int, int], base: flo
     flat bottom: a watertight solid with outward normals."""
     nx, ny = shape
     vid = lambda i, j: i * ny + j  # noqa: E731
-    ring = ([vid(i, 0) for i in range(nx - 1)] + [vid(nx - 1, j) for j in range(ny - 1)]
-            + [vid(i, ny - 1) for i in range(nx - 1, 0, -1)] + [vid(0, j) for j in range(ny - 1, 0, -1)])
-    ring = np.asarray(ring)  # the border, counter-clockwise seen from above
+    # the border, counter-clockwise seen from above
+    ring = np.asarray([vid(i, 0) for i in range(nx - 1)] + [vid(nx - 1, j) for j in range(ny - 1)]
+                      + [vid(i, ny - 1) for i in range(nx - 1, 0, -1)] + [vid(0, j) for j in range(ny - 1, 0, -1)])
     n, m = len(V), len(ring)
     bottom = V[ring].copy()
     bottom[:, 2] = base

@@ -257,6 +257,7 @@ def _map_frames(job: MeshJob, todo: list, stats: dict, run: MeshRun) -> None:
 
 def record(job: MeshJob) -> RunInfo:
     """Add the meshes of ``job.stats`` to run.json (main process only)."""
+    assert job.run_dir is not None  # only a run's meshes are recorded
     info = RunInfo.load(job.run_dir)
     made = {s["index"] for s in job.stats}  # meshed now, or skipped as current: never a stale file
     key = settings_key(job.params)

@@ -70,7 +70,7 @@ class MeshParams(Mesh):
         for name, what in (("particle_radius", "particle radius must be a positive length in metres"),
                            ("rest_density", "rest density must be positive")):
             v = data.get(name) if isinstance(data, dict) else None
-            if v is not None and not (isinstance(v, Real) and v > 0 and np.isfinite(v)):
+            if v is not None and not (isinstance(v, Real) and float(v) > 0 and np.isfinite(float(v))):
                 raise InputError(f"mesh: {what} (got {v})")
         return data
 
@@ -167,7 +167,9 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
     except Exception as exc:  # pysplashsurf raises plain exceptions on failures
         raise WhitecapError(f"{source}: splashsurf reconstruction failed: {exc}") from None
     pa = mesh.point_attributes
-    verts = _snap(mesh.mesh.vertices)
+    tri = mesh.mesh
+    assert isinstance(tri, pysplashsurf.TriMesh3d)  # triangles: no quads are asked for
+    verts = _snap(tri.vertices)
     normals = _snap(pa["normals"]) if "normals" in pa else np.zeros_like(verts)
     vel = _snap(pa["velocity"]) if "velocity" in pa else np.zeros_like(verts)
     tie = vel
@@ -178,7 +180,7 @@ def reconstruct(positions: np.ndarray, velocities: np.ndarray | None, params: Me
         verts, normals = close_wall_gap(verts, normals, params.walls, params.particle_radius)
         verts, normals = _snap(verts), _snap(normals)
     with timer("mesh.canonical_order"):
-        order, faces = canonical_order(verts, normals, np.asarray(mesh.mesh.triangles, dtype=np.int64), tie)
+        order, faces = canonical_order(verts, normals, np.asarray(tri.triangles, dtype=np.int64), tie)
     return SurfaceMesh(verts[order], faces, normals[order], {"velocity": vel[order]}, source=source)
 
 
@@ -304,7 +306,7 @@ def mesh_frame(in_path: str | Path, out_path: str | Path, params: MeshParams) ->
     (particles, vertices, faces, seconds).
     """
     t0 = time.perf_counter()
-    opts = {"up": params.up} if params.up != "z" else {}
+    opts: dict[str, Any] = {"up": params.up} if params.up != "z" else {}
     if not params.interpolate_velocity:  # then files without a velocity array are fine
         opts["require_velocity"] = False
     frame = wio.read(in_path, **opts)
