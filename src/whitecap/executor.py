@@ -219,6 +219,7 @@ class ProcessWorkers:
                 procs.append(subprocess.Popen(command(k, share), stdout=subprocess.PIPE, stderr=log, text=True,
                                               env=child_env()))
             for k, p in enumerate(procs):
+                assert p.stdout is not None  # stdout=PIPE
                 for line in p.stdout:  # one line per finished frame, reported at once (resumable)
                     words = line.split()
                     if words[:1] == [self.word]:
@@ -229,7 +230,8 @@ class ProcessWorkers:
                 if p.poll() is None:
                     p.kill()
                 p.wait()
-                p.stdout.close()
+                if p.stdout is not None:
+                    p.stdout.close()
             for log in logs:
                 log.close()
 
@@ -338,16 +340,17 @@ class DaskExecutor:
         from distributed import as_completed
 
         run = uuid.uuid4().hex[:8]
-        futures = {}
+        futures: dict[Any, int] = {}  # distributed's futures, by their frame index
         for index, args in tasks:
             fut = self.client.submit(_shared_task, str(self.probe), self.token, fn, args,
                                      key=f"{key}-{index:05d}-{run}", pure=False)
             futures[fut] = index
         try:
             for fut in as_completed(list(futures), loop=self.client.loop):
-                index = futures.pop(fut, None)
-                if index is None:  # yielded once already
+                done = futures.pop(fut, None)
+                if done is None:  # yielded once already
                     continue
+                index = done
                 # Not fut.status: a worker that dies holding a finished frame's result turns the future back
                 # to pending (or lost) while the scheduler runs the frame again; result() waits for that.
                 try:
@@ -510,6 +513,7 @@ def connect(spec: str, shared: Path, cfg=None, jobs: int | None = None) -> DaskE
             cluster.scale(jobs=jobs or cfg.jobs)
             address = cluster.scheduler_address
         else:
+            assert address is not None  # scheduler_address gives one for any spec but local, slurm, pbs
             check_scheduler(spec, address, cfg.connect_timeout)
     except BaseException:
         give_up()
@@ -664,6 +668,7 @@ def _tcp_greeting(spec: str, address: str, deadline: float, timeout: float) -> i
     starting); an unknown host fails at once.
     """
     host, port = _host_port(address.split("://", 1)[1])
+    assert port is not None  # scheduler_address refused an address without one
     last: OSError | None = None
     while True:
         left = deadline - time.monotonic()
