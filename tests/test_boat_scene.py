@@ -67,3 +67,22 @@ def test_boat_starts_at_the_water_inside_the_domain():
     water = max(f.upper[2] for f in scene.fluid)
     assert lo[2] < water < hi[2]                                         # keel in, deck out
     assert np.all(lo > np.array(scene.domain.lower)) and np.all(hi < np.array(scene.domain.upper))
+
+
+def test_boat_makes_way_into_the_waves_and_stays_in_the_domain():
+    """Driven ahead (toward the wave maker) with surge, sway and yaw held and heave, pitch free, at a
+    speed that leaves it clear of the wave maker and inside the domain at the last frame."""
+    scene = load_scene(SCENE)
+    _, boat = _boat(scene)
+    assert boat.drive is not None
+    assert boat.translation_dof == [False, False, True] and boat.rotation_dof[1] and not boat.rotation_dof[2]
+    u = boat.drive.velocity[0]
+    maker = next(o for o in scene.obstacle if o.motion is not None)
+    assert u < 0 and maker.translate[0] < boat.translate[0]  # toward the waves
+    hull = trimesh.load(SCENE.parent / boat.mesh, force="mesh")
+    hull.apply_transform(obstacle_transform(boat))
+    t_end = scene.output.frames / scene.solver.frame_rate
+    travel = u * (t_end - boat.drive.ramp / 2)  # the smoothstep ramp lags by half its length
+    bow_end = hull.bounds[0][0] + travel
+    assert bow_end > maker.translate[0] + maker.motion.stroke / 2 + 0.2  # 20 cm clear of the paddle's face
+    assert hull.bounds[1][0] < scene.domain.upper[0]
