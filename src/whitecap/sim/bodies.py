@@ -180,6 +180,10 @@ def twist_free(q: np.ndarray, free: np.ndarray) -> np.ndarray:
     - two free axes (ê held): q ← s = q ⊗ t⁻¹, t = normalise(w, (v·ê) ê);
     - one free axis â: q ← its twist about â, normalise(w, (v·â) â);
     - none: q ← 1.
+
+    With z held, a hull's keel heading (the Euler yaw atan2(R₁₀, R₀₀)) then moves only by the
+    geometric coupling φθ/2 of roll φ and pitch θ (1° at 12° and 11° at once) and returns with
+    them: the twist, not the Euler yaw, is what stays zero, so nothing drifts.
     """
     held = np.flatnonzero(~free)
     if len(held) == 0:
