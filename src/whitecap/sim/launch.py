@@ -28,13 +28,17 @@ Taichi 1.7.4 (it takes every argument as a symbolic graph argument)."""
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import taichi as ti
 from taichi.aot.utils import produce_injected_args
 from taichi.lang.matrix import MatrixType
 from taichi.types.annotations import Template
 from taichi.types.ndarray_type import NdarrayType
+
+#: A kernel argument fixed at compile time, ``ti.template()`` (typed Any: Taichi's annotations are not
+#: Python types), for the kernels' signatures.
+TEMPLATE: Any = ti.template()
 
 
 class Ref(NamedTuple):

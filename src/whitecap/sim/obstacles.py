@@ -49,6 +49,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import taichi as ti
@@ -59,12 +60,12 @@ from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..io.atomic import write_arrays
 from ..io.record import Pose
 from ..timing import timer
-from .grid import F1, F3, I1
+from .grid import F1, F3, I1, ivec3, vec3
+from .launch import TEMPLATE
 
-vec3 = ti.math.vec3
-ivec3 = ti.math.ivec3
-IV = ti.types.ndarray(dtype=ivec3, ndim=1)
-M3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
+# ndarrays of bodies' integer vectors and matrices (typed Any: Taichi's annotations are not Python types)
+IV: Any = ti.types.ndarray(dtype=ivec3, ndim=1)
+M3: Any = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
 SDF_CACHE_VERSION = 2  # 2: meshes with inconsistent winding are refused or repaired
 FAR = 1e6  # SDF value outside an obstacle's grid [m]
 # Width of the contact band of the velocity response, × r: a particle counts as touching
@@ -87,7 +88,7 @@ def load_mesh(path: Path, repair: bool = False):
     if not path.is_file():
         raise InputError(f"{path}: obstacle mesh file not found")
     try:
-        m = trimesh.load(str(path), force="mesh", process=False)
+        m = trimesh.load_mesh(str(path), process=False)
     except Exception as exc:
         raise InputError(f"{path}: not a readable mesh ({exc})") from None
     if m is None or len(m.faces) == 0:
@@ -411,13 +412,13 @@ def in_box(p: vec3, lo: vec3, hi: vec3) -> ti.i32:
 
 
 @ti.func
-def to_rest(rot: ti.template(), trans: ti.template(), o: ti.i32, x: vec3) -> vec3:
+def to_rest(rot: TEMPLATE, trans: TEMPLATE, o: ti.i32, x: vec3) -> vec3:
     """x_rest = Rᵀ(x − T): a world point in the obstacle's rest placement, where its SDF lives."""
     return rot[o].transpose() @ (x - trans[o])
 
 
 @ti.func
-def give(imp: ti.template(), mom: ti.template(), body_of: ti.template(), i: ti.i32, o: ti.i32, x: vec3, dmv: vec3):
+def give(imp: TEMPLATE, mom: TEMPLATE, body_of: TEMPLATE, i: ti.i32, o: ti.i32, x: vec3, dmv: vec3):
     """Momentum m·Δv that dynamic body o gave particle i (and its moment x × m·Δv about the origin);
     the body takes the opposite (sim/bodies.RigidBody.set_reaction)."""
     imp[i] += dmv

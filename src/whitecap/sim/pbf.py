@@ -30,7 +30,7 @@ All particle state is plain Taichi ndarrays in :class:`FluidState`.
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 import taichi as ti
@@ -39,15 +39,14 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
-from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec
-from .launch import KernelGraph, permuted, run_direct
+from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
+from .launch import TEMPLATE, KernelGraph, permuted, run_direct
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 if TYPE_CHECKING:  # types only: the driver's build_solver sets them
     from .emitters import Sources
     from .obstacles import Obstacles
 
-vec3 = ti.math.vec3
 PSI_SAMPLES = 128  # samples of the wall density-map table ψ(d), d ∈ [0, h]
 
 # Rows of the solver's ``box`` array, the scene's constant vectors. They reach the
@@ -71,7 +70,7 @@ def apply_external_forces(n: ti.i32, x: F3, v: F3, p: F3, box: F3, dt: ti.f32):
 
 
 @ti.func
-def lookup(table: ti.template(), d: ti.f32, h: ti.f32) -> ti.f32:
+def lookup(table: TEMPLATE, d: ti.f32, h: ti.f32) -> ti.f32:
     """Linear interpolation of a table sampled on d ∈ [0, h]."""
     t = ti.math.clamp(d / h, 0.0, 1.0) * (PSI_SAMPLES - 1)
     k = ti.min(ti.cast(ti.floor(t), ti.i32), PSI_SAMPLES - 2)
@@ -80,7 +79,7 @@ def lookup(table: ti.template(), d: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.func
-def wall_share(pi: vec3, lo: vec3, hi: vec3, h: ti.f32, psi_table: ti.template(), dpsi_table: ti.template()):
+def wall_share(pi: vec3, lo: vec3, hi: vec3, h: ti.f32, psi_table: TEMPLATE, dpsi_table: TEMPLATE):
     """(ψ, ∇ψ) = (Σ_walls ψ(d), Σ_walls ψ'(d) n_wall) of a point, for the six domain walls."""
     s = 0.0
     g = vec3(0.0)
@@ -109,7 +108,7 @@ def wall_density_map(n: ti.i32, p: F3, box: F3, h: ti.f32, psi_table: F1, dpsi_t
 
 
 @ti.func
-def padded_count(nb_count: ti.template(), i, pad: ti.template(), list_capacity: ti.template()):
+def padded_count(nb_count: TEMPLATE, i, pad: TEMPLATE, list_capacity: TEMPLATE):
     """How far the neighbour loops of particle i run: its count rounded up to the
     grid's padding ``pad`` (the row is padded with i itself, see
     :func:`~whitecap.sim.grid._store_list`), at most ``list_capacity``. Both are
@@ -141,8 +140,8 @@ def compute_lambda(
     eps: ti.f32,
     rho: F1,
     lam: F1,
-    pad: ti.template(),
-    list_capacity: ti.template(),
+    pad: TEMPLATE,
+    list_capacity: TEMPLATE,
 ):
     """ρ_i = Σ_j m W(x_ij) + ρ0 ψ_i;  C_i = max(ρ_i/ρ0 − 1, 0);
     λ_i = −C_i / (|∇_i C_i|² + Σ_j |∇_j C_i|² + ε),  ∇_j C_i = −m/ρ0 ∇W(x_ij).
@@ -185,7 +184,7 @@ def correct_positions(
     w_spiky: ti.f32,
     scorr_k: ti.f32,
     scorr_inv_w_dq: ti.f32,
-    scorr_n: ti.template(),
+    scorr_n: TEMPLATE,
     box: F3,
     next_walls: ti.i32,
     psi_table: F1,
@@ -193,8 +192,8 @@ def correct_positions(
     psi: F1,
     grad_psi: F3,
     p_out: F3,
-    pad: ti.template(),
-    list_capacity: ti.template(),
+    pad: TEMPLATE,
+    list_capacity: TEMPLATE,
 ):
     """Δp_i = m/ρ0 Σ_j (λ_i + λ_j + s_corr) ∇W(x_ij) + λ_i ∇ψ_i,
     s_corr = −k (W(x_ij)/W(Δq))ⁿ (tensile-instability correction);
@@ -266,8 +265,8 @@ def compute_vorticity_and_xsph(
     c: ti.f32,
     omega: F3,
     v_out: F3,
-    pad: ti.template(),
-    list_capacity: ti.template(),
+    pad: TEMPLATE,
+    list_capacity: TEMPLATE,
 ):
     """One pass over the neighbours of the updated velocities:
     ω_i = ∇×v = Σ_j (m/ρ_j) ∇W(x_ij) × (v_j − v_i)            (vorticity)
@@ -301,8 +300,8 @@ def apply_vorticity_confinement(
     eps: ti.f32,
     dt: ti.f32,
     v: F3,
-    pad: ti.template(),
-    list_capacity: ti.template(),
+    pad: TEMPLATE,
+    list_capacity: TEMPLATE,
 ):
     """η = ∇|ω| = Σ_j (m/ρ_j)(|ω_j| − |ω_i|) ∇W(x_ij),  N = η/|η|,
     f_vorticity = ε (N × ω_i);  v ← v + Δt f,
@@ -426,18 +425,18 @@ def lattice_calibration(h: float, spacing: float) -> tuple[float, float]:
 # ============================================================================ state
 @dataclass
 class FluidState:
-    """Particle state: plain ndarrays of capacity ``n``."""
+    """Particle state: plain ndarrays of capacity ``n`` (Taichi's, typed Any)."""
 
     n: int
-    x: object  # positions                         vec3 [m]
-    p: object  # predicted positions x*            vec3 [m]
-    v: object  # velocities                        vec3 [m/s]
-    v_tmp: object  # scratch (XSPH output, corrected x*, reorder) vec3
-    grad_psi: object  # ∇ of boundary density share vec3 [1/m]; after the constraints: vorticity ω [1/s]
-    rho: object  # density ρ                        f32 [kg/m³]
-    lam: object  # Lagrange multipliers λ           f32 [m²]
-    psi: object  # boundary density share ψ         f32 [-]
-    ids: object  # persistent particle ids          i32
+    x: Any  # positions                         vec3 [m]
+    p: Any  # predicted positions x*            vec3 [m]
+    v: Any  # velocities                        vec3 [m/s]
+    v_tmp: Any  # scratch (XSPH output, corrected x*, reorder) vec3
+    grad_psi: Any  # ∇ of boundary density share vec3 [1/m]; after the constraints: vorticity ω [1/s]
+    rho: Any  # density ρ                        f32 [kg/m³]
+    lam: Any  # Lagrange multipliers λ           f32 [m²]
+    psi: Any  # boundary density share ψ         f32 [-]
+    ids: Any  # persistent particle ids          i32
 
     @classmethod
     def allocate(cls, n: int) -> "FluidState":
@@ -642,11 +641,11 @@ class PBFSolver:
                 r["mass"], r["h"], r["w_spiky"], r["vorticity_epsilon"], r["dt"], r["v"], self.grid.pad,
                 self.grid.max_neighbors)
 
-    def _phases(self) -> list[tuple[str, tuple, object]]:
+    def _phases(self) -> list[tuple[str, tuple, Callable[[Any], None]]]:
         """(timer name, structure key, record function) of each phase of a step, for the
         current parameters: a phase's graph is compiled once per structure key."""
         s = self.params
-        phases = [
+        phases: list[tuple[str, tuple, Callable[[Any], None]]] = [
             ("pbf.predict", (), self.record_predict),
             ("pbf.neighbours", (), self.record_neighbours),
             ("pbf.constraints", (s.iterations,), lambda rec: self.record_constraints(rec, s.iterations)),
@@ -758,7 +757,7 @@ class PBFSolver:
         self.compute_lambda()
 
     # ---------------------------------------------------------------- io
-    def arrays(self, with_density: bool = True) -> dict[str, np.ndarray]:
+    def arrays(self, with_density: bool = True) -> dict[str, np.ndarray | None]:
         st = self.state
         if with_density:
             self.update_density()
@@ -770,7 +769,7 @@ class PBFSolver:
             "ids": st.ids.to_numpy()[:n].astype(np.uint32),
         }
 
-    def checkpoint(self) -> dict[str, np.ndarray]:
+    def checkpoint(self) -> dict[str, np.ndarray | np.generic]:
         st, n = self.state, self.n
         return {
             "x": st.x.to_numpy()[:n],
