@@ -412,7 +412,7 @@ class DaskLogs:
     #: errors Dask recovers from by itself, or that whitecap reports in its own words (the frame's failure)
     QUIET = ("Couldn't gather keys", "workers died while trying to run it")
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._saved: list[tuple[logging.Logger, list[logging.Handler], bool]] = []
         self._seen: set[str] = set()
         self._lock = threading.Lock()
