@@ -224,6 +224,7 @@ class FoamGenerator:
         # The potentials of frames that calibrate sampled (numpy, by frame number), each dropped when step
         # uses it: a sampled frame's potentials are computed once, not again when it is processed.
         self._known: dict[int, dict[str, np.ndarray]] = {}
+        self._lists = False
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -411,6 +412,7 @@ class FoamGenerator:
         fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
+        self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)
         vs = self._buffer("fluid_v_sorted", n, vec=True)
         gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
         return fx, fv, fid, (*g.query_args(), self.h, vs)
@@ -775,6 +777,7 @@ class FoamGenerator:
         chunk = min(total, CANDIDATE_CHUNK)
         up = {"limit": CANDIDATE_CHUNK}  # grown geometrically, never past a chunk
         kd, owner = self._buffer("cand_kind", chunk, ti.i8, **up), self._buffer("cand_owner", chunk, **up)
+        g = self.grid
         box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
                int(p.model == "foamgenerator" and p.wall_correction))
         self._thin = False  # no thinning beyond the limits (yet)
@@ -786,7 +789,8 @@ class FoamGenerator:
             K.chunk_owners(n, base, size, cnt, off, owner)
             K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
                                   p.lifetime_multiplier, self.r, dt, self.seed, frame, cx, cv, cl)
-            K.classify_candidates(size, base, owner, off, lim, cx, *args[:3], *box, kd)
+            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count, g.nb, int(self._lists), *args[:3],
+                                  *box, kd)
 
         def thin(base: int, size: int, tally) -> None:
             K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)
