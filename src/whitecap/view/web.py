@@ -49,6 +49,7 @@ import logging
 import socket
 import threading
 import time
+from typing import Any, Callable, Literal, cast
 
 import numpy as np
 
@@ -75,7 +76,8 @@ SURFACE_OPACITY = 0.7
 COLORBAR_PX = (16, 256)  # colour bar image height, width [px]
 # Point shapes offered. Discs look like GGUI's spheres; squares skip a per-pixel test (in headless
 # Chromium's software WebGL without multisampling, no measurable gain: 2.7 frames/s for both).
-POINT_SHAPES = ("circle", "square")
+PointShape = Literal["circle", "square"]
+POINT_SHAPES: tuple[PointShape, ...] = ("circle", "square")
 # Headless Chromium's flags for the tests and the benchmark (one place): software WebGL through
 # ANGLE on SwiftShader, the only WebGL this GPU-less machine's Chromium offers (ANGLE on Vulkan
 # through Mesa's lavapipe gives no WebGL context at all in Chromium 156 here). "swiftshader-webgl"
@@ -101,6 +103,12 @@ INSTALL_HINT = "the browser viewer needs viser: pip install 'whitecap[web]'"
 
 def _u8(rgb) -> np.ndarray:
     return np.clip(np.round(np.asarray(rgb, np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _rgb8(rgb) -> tuple[int, int, int]:
+    """One colour as viser takes it: 3 ints 0..255."""
+    r, g, b = (int(c) for c in _u8(rgb))
+    return r, g, b
 
 
 def check_port(port) -> int:
@@ -181,7 +189,7 @@ class WebViewer:
         self.show = {"fluid": True, **{name: True for name in TYPE_NAMES}, "obstacles": True, "domain": True,
                      "surface": False}
         self.point_scale = float(self.cfg.point_scale)
-        self.point_shape = point_shape
+        self.point_shape = cast(PointShape, point_shape)  # one of POINT_SHAPES, checked above
         self.speed_scale = free_fall_speed(self.source.bounds)
         self.drawn_frame: int | None = None  # source frame index of the picture last sent
         self.frames_sent = 0
@@ -191,16 +199,17 @@ class WebViewer:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._drawn_key = None
+        self._drawn_key: tuple | None = None
         self._version = 0  # counts browser changes to what is shown
-        self._surface_index = None
+        self._surface_index: int | None = None
         self._sub_cache: dict[int, np.ndarray | None] = {}
         self._poses: dict[int, dict | None] = {}  # per obstacle, the body pose last sent (absent: at rest)
         self.drawn_on_server: bool | None = None  # where the last frame's particles were drawn
         self._auto_server: bool | None = None  # --points auto: the choice made for this run (module docstring)
         self.passes = 0  # loop passes made (wait_until's waiters count progress by them)
         self._events = threading.Condition()  # notified after each loop pass, drawn frame, connection and picture
-        self.spheres = None  # server drawing: (seq, frame index, positions, radii, colours) of the frame shown
+        # server drawing: (seq, frame index, positions, radii, colours) of the frame shown
+        self.spheres: tuple[int, int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._spheres_seq = 0
         self._pictures: dict[int, "_PagePictures"] = {}  # server drawing: one render thread per connected page
         self._pictures_lock = threading.Lock()
@@ -238,14 +247,17 @@ class WebViewer:
         # precision would halve the bytes but costs more to draw than it saves where WebGL runs
         # in software: Chromium's SwiftShader converts half-float vertices on the CPU.)
         self.origin = 0.5 * (np.asarray(b.lower, float) + np.asarray(b.upper, float))
-        self.precision = "float32"
+        self.precision: Literal["float16", "float32"] = "float32"
         empty = np.zeros((1, 3), np.float32)
-        opts = dict(point_size=self._size(), point_shape=self.point_shape, point_shading="flat", visible=False,
-                    precision=self.precision, position=tuple(self.origin))
-        self.h_fluid = sc.add_point_cloud("/fluid", empty, (0, 0, 0), **opts)
-        self.h_diffuse = [sc.add_point_cloud(f"/diffuse/{name}", empty, tuple(int(c) for c in _u8(DIFFUSE_COLORS[t])),
-                                             **opts)
-                          for t, name in enumerate(TYPE_NAMES)]
+        x0, y0, z0 = (float(c) for c in self.origin)
+
+        def cloud(name: str, color: tuple[int, int, int]):
+            return sc.add_point_cloud(name, empty, color, point_size=self._size(), point_shape=self.point_shape,
+                                      point_shading="flat", visible=False, precision=self.precision,
+                                      position=(x0, y0, z0))
+
+        self.h_fluid = cloud("/fluid", (0, 0, 0))
+        self.h_diffuse = [cloud(f"/diffuse/{name}", _rgb8(DIFFUSE_COLORS[t])) for t, name in enumerate(TYPE_NAMES)]
         # viser's client builds a new point material whenever a cloud's colours change (every frame
         # for the fluid) and disposes the old one; three.js then deletes the shader program, which was
         # the only user, and compiles and links it again for the next frame. A second cloud with
@@ -257,12 +269,12 @@ class WebViewer:
         self.h_program_keeper = sc.add_point_cloud(
             "/program_keeper", np.repeat(corner, 2, 0), np.repeat(np.asarray([DOMAIN_COLOR], np.uint8), 2, 0),
             point_size=0.0, point_shape=self.point_shape, point_shading="flat", precision=self.precision,
-            position=tuple(self.origin))
+            position=(x0, y0, z0))
         self.h_obstacles = []
         for v, f, _, color, k in load_obstacle_meshes(self.source.obstacles(), self.source.obstacle_base()):
-            h = sc.add_mesh_simple(f"/obstacles/{k}", v, f, color=tuple(int(c) for c in _u8(color)), side="double")
+            h = sc.add_mesh_simple(f"/obstacles/{k}", v, f, color=_rgb8(color), side="double")
             self.h_obstacles.append((k, h))
-        self.h_surface = None
+        self.h_surface: Any = None  # viser's mesh handle of the frame's surface
         info = getattr(self.source, "info", None)
         self.surfaces = {i: self.source.path / rel for i, rel in info.files("mesh")} if info is not None else {}
         self._so3 = viser.transforms.SO3
@@ -279,21 +291,22 @@ class WebViewer:
                 self.g_play = g.add_button("play / pause")
                 self.g_step = g.add_button("step")
                 self.g_reset = g.add_button("reset")
+                assert self.scene is not None  # a live view has its scene
                 s = self.scene.solver
-                self.g_solver = {
+                self.g_solver: dict[str, Any] = {  # viser's slider handles
                     "iterations": g.add_slider("iterations", 1, 20, 1, int(s.iterations)),
                     "xsph_c": g.add_slider("XSPH c", 0.0, 0.5, 0.005, float(s.xsph_c)),
                     "vorticity_epsilon": g.add_slider("vorticity eps", 0.0, 0.5, 0.005, float(s.vorticity_epsilon)),
                 }
                 for name, h in self.g_solver.items():
-                    h.on_update(lambda e, name=name, h=h: self._set_pending(("solver", name), h.value))
+                    h.on_update(self._pending_from(("solver", name), h))
                 fp = self.source.foam_params
-                self.g_foam = {}
+                self.g_foam: dict[str, Any] = {}
                 if fp is not None:
                     for name in FOAM_SLIDERS:
                         v = float(getattr(fp, name))
                         h = g.add_slider(name, 0.0, max(4.0 * v, 1.0), max(4.0 * v, 1.0) / 200, v)
-                        h.on_update(lambda e, name=name, h=h: self._set_pending(("foam", name), h.value))
+                        h.on_update(self._pending_from(("foam", name), h))
                         self.g_foam[name] = h
             self.g_reset.on_click(lambda e: self._poke(reset=True))
         else:
@@ -314,11 +327,11 @@ class WebViewer:
             self.g_range = g.add_markdown("")
             self.g_size = g.add_slider("point size", 0.1, 4.0, 0.05, self.point_scale)
             self.g_shape = g.add_dropdown("point shape", POINT_SHAPES, initial_value=self.point_shape)
-            self.g_show = {}
+            self.g_show: dict[str, Any] = {}
             kinds = ["fluid", *TYPE_NAMES, "obstacles", "domain"] + (["surface"] if self.surfaces else [])
             for kind in kinds:
                 h = g.add_checkbox("surface mesh" if kind == "surface" else kind, self.show[kind])
-                h.on_update(lambda e, kind=kind, h=h: self._toggle(kind, h.value))
+                h.on_update(self._toggle_from(kind, h))
                 self.g_show[kind] = h
         self.g_color.on_update(lambda e: self._poke(color_mode=self.g_color.value, color_range=None))
         self.g_size.on_update(lambda e: self._set_size(self.g_size.value))
@@ -351,9 +364,17 @@ class WebViewer:
         self.point_scale = float(scale)
         self._changed()
 
-    def _set_shape(self, shape: str) -> None:
+    def _set_shape(self, shape: PointShape) -> None:
         self.point_shape = shape
         self._changed()
+
+    def _pending_from(self, key: tuple[str, str], h: Any) -> Callable[[Any], None]:
+        """A slider's update callback: its value becomes the pending setting ``key``."""
+        return lambda e: self._set_pending(key, h.value)
+
+    def _toggle_from(self, kind: str, h: Any) -> Callable[[Any], None]:
+        """A checkbox's update callback: show or hide ``kind``."""
+        return lambda e: self._toggle(kind, h.value)
 
     def _set_pending(self, key, value) -> None:
         self._pending[key] = value
@@ -425,6 +446,7 @@ class WebViewer:
         return k if self.live else self.source.indices[k]
 
     def _apply_pending(self) -> None:
+        assert self.scene is not None  # only a live view has settings pending
         while self._pending:
             (group, name), value = self._pending.popitem()
             if group == "solver":
@@ -470,16 +492,17 @@ class WebViewer:
             self._sub_cache[n] = subsample(n, self.max_points)
         return self._sub_cache[n]
 
-    def _fluid_values(self, d) -> np.ndarray:
+    def _fluid_values(self, d) -> tuple[np.ndarray, tuple[float, float]]:
+        """The fluid's colour values and their range (fitted to the first frame drawn, then kept)."""
         st = self.state
         values = fluid_scalar(d, st.color_mode)
         if st.color_range is None:
             st.color_range = fitted_range(values, st.color_mode, self.speed_scale)
-        return values
+        return values, st.color_range
 
     def _draw_in_browser(self, fr) -> list[str]:
         """Send the frame's points; the page draws them with WebGL. Returns notes for the panel."""
-        st, size, notes = self.state, self._size(), []
+        size, notes = self._size(), []
         d = fr.as_dict()
         pos = d["positions"]
         n = len(pos)
@@ -488,13 +511,13 @@ class WebViewer:
             self._wake_pages()
         self.drawn_on_server = False
         if n and self.show["fluid"]:
-            values = self._fluid_values(d)
+            values, (lo, hi) = self._fluid_values(d)
             idx = self._sub(n)
             if idx is not None:
                 pos, values = pos[idx], values[idx]
                 notes.append(f"fluid: drawing {len(idx):,} of {n:,} particles (subsample)")
             self.h_fluid.points = np.asarray(pos - self.origin, np.float32)
-            self.h_fluid.colors = _u8(colormap(values, *st.color_range))
+            self.h_fluid.colors = _u8(colormap(values, lo, hi))
             self.h_fluid.point_size = size
             self.h_fluid.point_shape = self.point_shape
             self.h_fluid.visible = True
@@ -520,12 +543,13 @@ class WebViewer:
     def _draw_on_server(self, fr) -> list[str]:
         """Hand the frame's spheres (every particle, no subsample: the cost of a picture grows
         with the count, not the bytes sent) to the pages' render threads. Returns notes."""
-        st, d = self.state, fr.as_dict()
+        d = fr.as_dict()
         pos, rad, col = [], [], []
         if len(d["positions"]) and self.show["fluid"]:
             pos.append(np.asarray(d["positions"], np.float32))
             rad.append(np.full(len(pos[-1]), self._size(), np.float32))
-            col.append(colormap(self._fluid_values(d), *st.color_range))
+            values, (lo, hi) = self._fluid_values(d)
+            col.append(colormap(values, lo, hi))
         if fr.diffuse_positions is not None:
             for t, name in enumerate(TYPE_NAMES):
                 sel = np.flatnonzero(fr.diffuse_type == t) if self.show[name] else ()
@@ -620,7 +644,7 @@ class WebViewer:
                 lo, hi = st.color_range
                 self.g_range.content = f"{st.color_mode} [{unit}]: {lo:.3g} .. {hi:.3g}"
             if not self.live and int(self.g_frame.value) != st.frame:
-                self.g_frame.value = st.frame
+                self.g_frame.value = st.frame  # type: ignore[misc]  # viser's setter: its props base hides it from mypy
         self.drawn_frame = fr.index
         self.frames_sent += 1
         self._notify()
@@ -687,10 +711,11 @@ class _PagePictures:
         self.seq: int | None = None  # WebViewer.spheres sequence number of the last picture
         self.frame: int | None = None  # source frame index of the last picture
         self.render_s = 0.0  # time spent drawing and encoding pictures [s]
-        self.sent_frames = collections.deque(maxlen=SENT_FRAMES_KEPT)  # source frame of each picture sent (benchmark)
+        # source frame of each picture sent (benchmark)
+        self.sent_frames: collections.deque[int] = collections.deque(maxlen=SENT_FRAMES_KEPT)
         self.acked = 0  # pictures the page has answered for (it has received them)
-        self._key = None
-        self._acked_key = None  # key of the last picture the page answered for
+        self._key: tuple | None = None
+        self._acked_key: tuple | None = None  # key of the last picture the page answered for
         self._closed = threading.Event()
         self._splatter = Splatter()
         client.camera.on_update(self._camera_moved)
