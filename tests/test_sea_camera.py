@@ -198,6 +198,21 @@ def test_sea_meets_water_that_leaves_a_wall_where_the_water_is():
     assert (area >= -1e-12).all()  # the rings stay in order outward
 
 
+def test_a_column_in_a_dry_domain_is_not_the_sea():
+    """A dam-break column 0.3 m high in the left quarter of a dry domain, the sea's level at
+    0.05 m: the walls it touches carry its height, but the sea does not reach in over the dry
+    floor to its far face (no inset) and the dry walls' long gaps are the floor, which a terrain
+    above it hides (as before the sea could move in)."""
+    v, _ = water_slab(LO, [0.2, HI[1], HI[2]], 20, lambda x, y: 0.3 + 0 * x)
+    layout = sea.sea_layout(LO, HI, 0.01, 50.0, fine=0.16 / 12, fine_until=0.5)
+    edge, inset = sea.edge_heights(layout, v, 0.01, 0.05, reach=0.8)
+    assert (inset == 0).all()
+    right = layout.wall == 1
+    assert np.allclose(edge[right], LO[2])
+    left = layout.wall == 3
+    assert np.allclose(edge[left], 0.3, atol=1e-6)
+
+
 def test_edge_jitter_does_not_run_out_across_the_sea():
     """Edge heights that alternate by ±1 cm from sample to sample (a splash, the mesh's jitter at
     the wall): ring 0 keeps them, but three detail widths out the sea varies along the wall by

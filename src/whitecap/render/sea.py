@@ -49,6 +49,8 @@ WAVE_HEIGHT_SHARE, WAVE_LENGTH_SHARE, BLEND_SHARE = 0.025, 0.2, 0.25
 WAVES = ((0.0, 1.0, 0.0), (25.0, 0.73, 1.7), (-35.0, 0.52, 4.1), (60.0, 0.37, 2.9))
 #: A wave is drawn in the geometry only where the mesh spacing is below its length over this.
 WAVE_SAMPLES = 6.0
+#: Water at the domain's edge is the sea's when its top is within this share of the domain's height of the level.
+SEA_WATER = 0.25
 #: The edge's detail fades outward, and its profile is smoothed along the outline, over this share of the blend.
 EDGE_DETAIL = 0.1
 #: The edge's profile carried out across the blend stays within this many sea wave heights of the level.
@@ -178,17 +180,21 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | 
     nowhere (a wave maker or an inflow stands between it and the water) is met where the water
     is: the edge moves ``inset`` inward, up to ``reach``, to the water's nearest vertices in the
     sample's strip, at the top of the water there (:func:`sea_xy` spreads the move over the
-    blend). Where the water does not reach a wall it touches elsewhere (a beach, a breakwater
-    standing on it), the gap is bridged by a straight line between the samples on either side
-    (a step there would run out across the sea as a slab). Without any water the edge is at
-    ``level`` (the domain's floor without one). Corner samples take the higher of their two
-    walls' nearest heights."""
+    blend), where the water there is the sea's (its top within SEA_WATER × the domain's height
+    of ``level``; not a dam-break column standing in a dry domain). Where the water does not
+    reach a wall (a beach, a breakwater standing on it), a gap of up to three samples is bridged
+    by a straight line between the samples on either side, and so is a longer one next to the
+    sea's water (a step there would run out across the sea as a slab); a longer one between
+    water that is not the sea's is the floor (a terrain above it hides the sea there, as the
+    ground of a dry domain). Without any water the edge is at ``level`` (the floor without one).
+    Corner samples take the higher of their two walls' nearest heights."""
     lo, hi = layout.lo, layout.hi
     v = np.asarray(verts, float).reshape(-1, 3)
     eps = wall_tolerance(r)
     n = len(layout.base)
     h = np.full(n, np.nan)
     inset = np.zeros(n)
+    tol = SEA_WATER * (hi[2] - lo[2])
     planes = [(1, lo[1], 0), (0, hi[0], 1), (1, hi[1], 0), (0, lo[0], 1)]  # (normal axis, plane, along axis)
     for w, (axis, plane, along) in enumerate(planes):
         sel = np.flatnonzero(layout.wall == w)
@@ -207,8 +213,10 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | 
         for i, (ia, ib) in enumerate(zip(a, b)):
             if ib > ia:
                 d0 = d[ia:ib].min()
-                h[sel[i]] = z[ia:ib][d[ia:ib] <= d0 + 2 * r].max()
-                inset[sel[i]] = d0
+                top = z[ia:ib][d[ia:ib] <= d0 + 2 * r].max()
+                if d0 > eps and level is not None and abs(top - level) > tol:
+                    continue  # water standing off this wall that is not the sea's: no inset
+                h[sel[i]], inset[sel[i]] = top, d0
     edge = layout.wall >= 0
     known = np.flatnonzero(edge & np.isfinite(h))
     fill = lo[2] if level is None else level
@@ -216,6 +224,7 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | 
         return np.full(n, fill), inset
     # bridge the gaps along the loop (edge samples only): a straight line between the known samples
     # on either side, so the sea's edge has no step where a beach or an obstacle keeps the water off
+    sea_water = np.ones(n, bool) if level is None else np.abs(np.nan_to_num(h, nan=np.inf) - level) <= tol
     idx = np.flatnonzero(edge)
     pos = np.searchsorted(known, idx)
     prev = known[(pos - 1) % len(known)]
@@ -224,6 +233,10 @@ def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | 
         if np.isfinite(h[i]):
             continue
         gp, gq = (i - p) % n, (q - i) % n
+        edges_between = (layout.wall[np.arange(p, p + gp + gq + 1) % n] >= 0).sum() - 2
+        if edges_between > 3 and not (sea_water[p] or sea_water[q]):
+            h[i] = lo[2]
+            continue
         t = gp / max(gp + gq, 1)
         h[i] = (1 - t) * h[p] + t * h[q]
         inset[i] = (1 - t) * inset[p] + t * inset[q]
