@@ -452,7 +452,7 @@ def classify_candidates(
     x: F3,
     nb_count: I1,
     nb: I2,
-    lists: ti.template(),
+    lists: ti.i32,
     grid: GridQuery,
     scan: ti.template(),
     h: ti.f32,
@@ -489,7 +489,7 @@ def classify_candidates(
             search = 1
             if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
                 most = bubble_above
-            elif ti.static(lists):
+            elif lists:
                 search = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
             if search:
                 cnt = fluid_count(p, grid, scan, h, most)  # one search in the kernel's code (inlined where called)
