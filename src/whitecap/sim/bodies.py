@@ -54,7 +54,8 @@ def read_series(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
     """(times, values) from a two-column CSV; a header line is allowed. InputError names the file and line."""
     if not path.is_file():
         raise InputError(f"{path}: {what}: file not found")
-    t, x = [], []
+    t: list[float] = []
+    x: list[float] = []
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -87,7 +88,7 @@ class MotionLaw:
     def __init__(self, o: Obstacle, base_dir: Path | str = ".", index: int = 0):
         self.o = o
         self.m: Motion | None = o.motion
-        self.series = None
+        self.series: tuple[np.ndarray, np.ndarray] | None = None
         m = self.m
         if m is not None and m.kind == "piston" and m.csv is not None:
             p = Path(m.csv)
@@ -97,38 +98,46 @@ class MotionLaw:
     def moving(self) -> bool:
         return self.m is not None
 
-    def _ramp(self, t: float) -> float:
-        m = self.m
+    @staticmethod
+    def _ramp(m: Motion, t: float) -> float:
         return smoothstep(t / m.ramp) if m.ramp > 0 else 1.0
 
     def piston_displacement(self, t: float) -> float:
         """X(t) [m] along the piston's axis."""
-        m = self.m
         if self.series is not None:
             ts, xs = self.series
             return float(np.interp(t, ts, xs))
-        return self._ramp(t) * 0.5 * m.stroke * math.sin(2.0 * math.pi * t / m.period)
+        m = self.m
+        # Motion's validator: a piston without a CSV has a stroke and a period.
+        assert m is not None and m.stroke is not None and m.period is not None, "a piston's motion"
+        return self._ramp(m, t) * 0.5 * m.stroke * math.sin(2.0 * math.pi * t / m.period)
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(R 3×3, T 3) in float64 at time ``t`` [s]."""
         m = self.m
         if m is None:
             return np.eye(3), np.zeros(3)
+        # The fields each law reads below are the ones Motion's validator requires of its kind.
         if m.kind == "piston":
             a = np.asarray(m.axis, np.float64)
             return np.eye(3), self.piston_displacement(t) * a / np.linalg.norm(a)
         if m.kind == "flap":
-            th = self._ramp(t) * math.radians(m.amplitude) * math.sin(2.0 * math.pi * t / m.period)
+            assert m.amplitude is not None and m.period is not None
+            th = self._ramp(m, t) * math.radians(m.amplitude) * math.sin(2.0 * math.pi * t / m.period)
             R = axis_rotation(m.hinge_axis, th)
             p = np.asarray(m.hinge_point, np.float64)
             return R, p - R @ p
         if m.kind == "spin":
+            assert m.rpm is not None
             R = axis_rotation(m.axis, 2.0 * math.pi * m.rpm / 60.0 * t)
             c = np.asarray(m.centre, np.float64)
             return R, c - R @ c
         # keyframes
         keys = m.keyframes
+        assert keys
         times = [k.time for k in keys]
+        d: list[float]
+        ang: list[float]
         if t <= times[0] or len(keys) == 1:
             d, ang = keys[0].translate, keys[0].rotate
         elif t >= times[-1]:
@@ -138,9 +147,9 @@ class MotionLaw:
             u = (t - times[j]) / (times[j + 1] - times[j])
             if m.interpolation == "smooth":
                 u = smoothstep(u)
-            a, b = keys[j], keys[j + 1]
-            d = [(1 - u) * x + u * y for x, y in zip(a.translate, b.translate)]
-            ang = [(1 - u) * x + u * y for x, y in zip(a.rotate, b.rotate)]
+            k0, k1 = keys[j], keys[j + 1]
+            d = [(1 - u) * x + u * y for x, y in zip(k0.translate, k1.translate)]
+            ang = [(1 - u) * x + u * y for x, y in zip(k0.rotate, k1.rotate)]
         c = np.asarray(m.centre if m.centre is not None else self.o.translate, np.float64)
         R = euler_rotation(ang)
         return R, c + np.asarray(d, np.float64) - R @ c
@@ -246,7 +255,11 @@ class RigidBody:
         self.name = f"obstacle[{index}] ({o.mesh})"
         if vol <= 0:
             raise InputError(f"{o.mesh}: a dynamic obstacle needs a closed mesh with positive volume")
-        self.mass = float(o.mass) if o.mass is not None else float(o.density) * vol
+        if o.mass is not None:
+            self.mass = float(o.mass)
+        else:
+            assert o.density is not None  # Obstacle's validator: a dynamic body has a mass or a density
+            self.mass = float(o.density) * vol
         rho = self.mass / vol
         if not BODY_DENSITY[0] <= rho <= BODY_DENSITY[1]:  # the density's own range is checked by the scene
             raise InputError(f"{self.name}: mass: {o.mass:g} kg over the mesh's {vol:.4g} m³ is a density of "
