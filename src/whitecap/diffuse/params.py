@@ -176,6 +176,7 @@ class IniJob:
 
     def frame_path(self, i: int) -> Path:
         """InputDataPath / InputFilesPrefix + the frame number, at least ZeroPadding digits, + .vtk."""
+        assert self.input_dir is not None, "a job's frames need [PATHS] InputDataPath"
         return self.input_dir / f"{self.prefix}{i:0{self.zero_padding}d}.vtk"
 
 
@@ -229,6 +230,13 @@ def resolve(cfg: Foam | None = None, ini: str | Path | IniFile | None = None, pr
     return p
 
 
+class _SpelledParser(configparser.ConfigParser):
+    """A ConfigParser that keeps the keys' spelling (for messages); lookups are case-folded by the reader."""
+
+    def optionxform(self, optionstr: str) -> str:
+        return optionstr
+
+
 def read_ini(path: str | Path) -> IniFile:
     """A DiffuseCalculator-style parameter file or a VisualSPHysics foam-simulator .ini.
 
@@ -237,8 +245,7 @@ def read_ini(path: str | Path) -> IniFile:
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: parameter file not found")
-    cp = configparser.ConfigParser(inline_comment_prefixes=("#", ";"), strict=False, interpolation=None)
-    cp.optionxform = str  # keep the keys' spelling for messages
+    cp = _SpelledParser(inline_comment_prefixes=("#", ";"), strict=False, interpolation=None)
     try:
         text = p.read_text()
         if not text.lstrip().startswith("["):
@@ -297,6 +304,12 @@ def _read_job(p: Path, raw: dict) -> IniJob:
     def get(sec: str, key: str) -> tuple[str, str] | None:
         return raw.get(sec, {}).get(key.lower())
 
+    def named(sec: str, key: str) -> str:
+        """'file: [SECTION] Key' of a key the file gives."""
+        v = get(sec, key)
+        assert v is not None
+        return v[0]
+
     def text(sec, key) -> str:
         v = get(sec, key)
         return v[1] if v else ""
@@ -337,12 +350,12 @@ def _read_job(p: Path, raw: dict) -> IniJob:
 
     pad = integer("paths", "ZeroPadding")
     if pad is not None and not 0 <= pad <= 12:
-        raise InputError(f"{get('paths', 'ZeroPadding')[0]}: expected 0 to 12 digits, got {pad}")
+        raise InputError(f"{named('paths', 'ZeroPadding')}: expected 0 to 12 digits, got {pad}")
     first, last = integer("timesteps", "StartingTimeStep"), integer("timesteps", "EndingTimeStep")
     if first is not None and first < 0:
-        raise InputError(f"{get('timesteps', 'StartingTimeStep')[0]}: expected a frame number >= 0, got {first}")
+        raise InputError(f"{named('timesteps', 'StartingTimeStep')}: expected a frame number >= 0, got {first}")
     if first is not None and last is not None and last < first:
-        raise InputError(f"{get('timesteps', 'EndingTimeStep')[0]}: {last} is before StartingTimeStep {first}")
+        raise InputError(f"{named('timesteps', 'EndingTimeStep')}: {last} is before StartingTimeStep {first}")
     domain = None
     if boolean("domain", "CustomDomain"):
         lo = [number("domain", f"DomainMin{a}") for a in "xyz"]

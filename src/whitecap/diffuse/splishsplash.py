@@ -47,11 +47,9 @@ import math
 import numpy as np
 import taichi as ti
 
-from ..sim.grid import F1, F3, I1, I2
+from ..sim.grid import F1, F3, I1, I2, vec3
 from ..sim.smoothing import cubic_spline, cubic_spline_grad
 from .params import FOAMSCALE  # noqa: F401  (re-exported: the mode's numbers in one place)
-
-vec3 = ti.math.vec3
 
 # The numbers FoamGenerator's automatic mode runs with (its main.cpp and --help);
 # FOAMSCALE (--foamscale, 1000) lives with the presets in .params.
