@@ -51,14 +51,15 @@ import taichi as ti
 
 from ..errors import WhitecapError
 from . import runtime
-from .launch import run_direct
+from .launch import TEMPLATE, run_direct
 
-vec3 = ti.math.vec3
-ivec3 = ti.math.ivec3
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-F3 = ti.types.ndarray(dtype=vec3, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
-I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+# Taichi's vector types and kernel argument annotations (typed Any: they are not Python types).
+vec3: Any = ti.math.vec3
+ivec3: Any = ti.math.ivec3
+F1: Any = ti.types.ndarray(dtype=ti.f32, ndim=1)
+F3: Any = ti.types.ndarray(dtype=vec3, ndim=1)
+I1: Any = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I2: Any = ti.types.ndarray(dtype=ti.i32, ndim=2)
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
 CORNER_SLACK = 0.01  # margin, in cells, of the corner-column test in for_each_neighbor
 #: Hash buckets per particle of capacity, at least (the table is the next power of two, 8–16 per
@@ -108,7 +109,7 @@ class Scan:
 #: The grid's query arguments, one kernel argument (a Taichi argument pack; its arrays are bound, not
 #: copied): the domain's lower corner [m], 1 / cell width [1/m], the cells along x, y, z, the positions in
 #: cell order and each table entry's first slot. :meth:`NeighborGrid.query_args` gives the grid's own.
-GridQuery = ti.types.argpack(lower=vec3, inv_cell=ti.f32, dims=ivec3, x_sorted=F3, start=I1)
+GridQuery: Any = ti.types.argpack(lower=vec3, inv_cell=ti.f32, dims=ivec3, x_sorted=F3, start=I1)
 
 
 class LooseQuery(NamedTuple):
@@ -282,8 +283,8 @@ def gather_i32(n: ti.i32, order: I1, src: I1, dst: I1):
 
 @ti.func
 def for_each_neighbor(
-    ps: ti.template(), h: ti.f32, q: ti.template(), scan: ti.template(), task: ti.template(), args: ti.template(),
-    every_candidate: ti.template(), stop: ti.template() = None,
+    ps: TEMPLATE, h: ti.f32, q: TEMPLATE, scan: TEMPLATE, task: TEMPLATE, args: TEMPLATE,
+    every_candidate: TEMPLATE, stop: TEMPLATE = None,
 ):
     """The one neighbour query: calls ``task(g, s, r², *args)`` for every
     particle within ``h`` of the point ``ps[g]`` (|x_s − ps[g]|² < h²), where
@@ -382,8 +383,8 @@ def nearest_columns(reach: int) -> list[tuple[int, int]]:
 
 @ti.func
 def _corner_beyond(
-    ps: ti.template(), cs: ti.template(), lower: ti.template(), w, dx: ti.template(), dy: ti.template(),
-    reach: ti.template(), h_corner2,
+    ps: TEMPLATE, cs: TEMPLATE, lower: TEMPLATE, w, dx: TEMPLATE, dy: TEMPLATE,
+    reach: TEMPLATE, h_corner2,
 ) -> ti.i32:
     """1 if corner column (dx, dy) of the scan (|dx| = reach; dy = ±reach) can be left out: its nearest edge is at
     least h (grown by CORNER_SLACK cells: h_corner2) from every point ``ps[g]`` (in cell ``cs[g]``) in x-y."""
@@ -404,8 +405,8 @@ def _corner_beyond(
 
 @ti.func
 def _scan_column(
-    ps: ti.template(), cx, cy, z0, z1, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3,
-    start: I1, scan: ti.template(), h2, task: ti.template(), args: ti.template(), every_candidate: ti.template(),
+    ps: TEMPLATE, cx, cy, z0, z1, lower: TEMPLATE, inv_cell: TEMPLATE, dims: TEMPLATE, x_sorted: F3,
+    start: I1, scan: TEMPLATE, h2, task: TEMPLATE, args: TEMPLATE, every_candidate: TEMPLATE,
 ):
     """The cells z0..z1 of column (cx, cy), every candidate offered to ``task`` (see :func:`for_each_neighbor`)."""
     if ti.static(scan.hashed):
@@ -421,7 +422,7 @@ def _scan_column(
 
 
 @ti.func
-def _offer(g: ti.template(), s, r2, h2, task: ti.template(), args: ti.template(), every_candidate: ti.template()):
+def _offer(g: TEMPLATE, s, r2, h2, task: TEMPLATE, args: TEMPLATE, every_candidate: TEMPLATE):
     """Hands candidate slot ``s`` at squared distance r² from point g to ``task`` (see :func:`for_each_neighbor`)."""
     if ti.static(every_candidate):
         task(g, s, r2, *args)
@@ -431,8 +432,8 @@ def _offer(g: ti.template(), s, r2, h2, task: ti.template(), args: ti.template()
 
 @ti.func
 def _scan_hashed_column(
-    ps: ti.template(), cx, cy, z0, z1, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3,
-    start: I1, h2, task: ti.template(), args: ti.template(), every_candidate: ti.template(),
+    ps: TEMPLATE, cx, cy, z0, z1, lower: TEMPLATE, inv_cell: TEMPLATE, dims: TEMPLATE, x_sorted: F3,
+    start: I1, h2, task: TEMPLATE, args: TEMPLATE, every_candidate: TEMPLATE,
 ):
     """The cells z0..z1 of column (cx, cy) of a hashed grid: buckets (H + z0) .. (H + z1) mod T, one run
     of the sorted order (where they wrap round the table's end, its tail and then its head). A particle
@@ -489,7 +490,7 @@ def cpu_gathers() -> bool:
     AVX-512 build vectors from scalar loads). Read from /proc/cpuinfo; False elsewhere."""
     try:
         with open("/proc/cpuinfo") as fh:
-            info = {}
+            info: dict[str, str] = {}
             for line in fh:
                 key, _, value = line.partition(":")
                 info.setdefault(key.strip(), value.strip())
@@ -502,7 +503,7 @@ def cpu_gathers() -> bool:
 
 
 @ti.func
-def _within_spread(cs: ti.template(), spread: ti.template()) -> ti.i32:
+def _within_spread(cs: TEMPLATE, spread: TEMPLATE) -> ti.i32:
     """1 if the cells ``cs`` (of one column) lie at most ``spread`` cells apart along z."""
     z_lo = cs[0].z
     z_hi = cs[0].z
@@ -514,7 +515,7 @@ def _within_spread(cs: ti.template(), spread: ti.template()) -> ti.i32:
 
 @ti.func
 def _append_slot(
-    g: ti.template(), s, r2, slots: ti.template(), h2, bufs: ti.template(), cap: ti.template(), ks: ti.template()
+    g: TEMPLATE, s, r2, slots: TEMPLATE, h2, bufs: TEMPLATE, cap: TEMPLATE, ks: TEMPLATE
 ):
     """Branch-free append of candidate slot ``s`` to the local list ``bufs[g]`` of the
     particle in slot ``slots[g]``: the slot is always written at ``ks[g]`` (at ``cap``,
@@ -527,8 +528,8 @@ def _append_slot(
 
 @ti.kernel
 def _build_lists(
-    n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, scan: ti.template(), h: ti.f32,
-    order: I1, nb_count: I1, nb: I2, cap: ti.template(), overflow: I1, pad: ti.template(), group: ti.template(),
+    n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, scan: TEMPLATE, h: ti.f32,
+    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE,
 ):
     """Fills nb[i, :nb_count[i]] with the neighbours of every particle i, in the
     order :func:`for_each_neighbor` meets them, and the rest of the row up to a
@@ -596,7 +597,7 @@ def _build_lists(
 
 
 @ti.func
-def _one_column(cs: ti.template()) -> ti.i32:
+def _one_column(cs: TEMPLATE) -> ti.i32:
     """1 if the cells ``cs`` lie in one (x, y) column."""
     same = 1
     for g in ti.static(range(1, len(cs))):
@@ -606,8 +607,8 @@ def _one_column(cs: ti.template()) -> ti.i32:
 
 @ti.func
 def _single_list(
-    si, h, h2, lower: ti.template(), inv_cell: ti.template(), dims: ti.template(), x_sorted: F3, start: I1,
-    scan: ti.template(), order: I1, nb_count: I1, nb: I2, cap: ti.template(), overflow: I1, pad: ti.template(),
+    si, h, h2, lower: TEMPLATE, inv_cell: TEMPLATE, dims: TEMPLATE, x_sorted: F3, start: I1,
+    scan: TEMPLATE, order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE,
 ):
     """The neighbour list of the particle in slot ``si`` alone (see :func:`_build_lists`)."""
     buf = ti.Vector([0] * (cap + 1), dt=ti.i32)  # buf[cap]: the sink of the overflow
@@ -619,7 +620,7 @@ def _single_list(
 
 @ti.func
 def _store_list(
-    order: I1, si, buf: ti.template(), k, cap: ti.template(), nb_count: I1, nb: I2, overflow: I1, pad: ti.template()
+    order: I1, si, buf: TEMPLATE, k, cap: TEMPLATE, nb_count: I1, nb: I2, overflow: I1, pad: TEMPLATE
 ):
     """Copies the local list ``buf`` (``k`` candidates counted, at most ``cap`` kept) of the particle
     in slot ``si`` out to its row of ``nb``, as particle indices; counts the excess as overflow.
