@@ -249,10 +249,10 @@ def foam(
     file names the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
     :func:`whitecap.diffuse.postprocess_params_file`.
     """
-    from .diffuse.driver import foam_job
+    from .diffuse.driver import FoamJob
     from .errors import InputError
 
-    job = foam_job(job, **options)
+    job = with_options(FoamJob, job, options)
     if ini is not None:
         from .diffuse import postprocess_params_file
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene
+from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene, with_options
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_text
 from ..io.diffuse_types import COUNT_NAMES
@@ -31,7 +31,7 @@ from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
 from ..progress import console, progress
 from ..sim.driver import FrameHook
 from .generator import DiffuseState, FoamGenerator
-from .params import FoamParams, resolve
+from .params import FoamParams, IniFile, read_ini, resolve
 
 __all__ = ["FoamJob", "simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams",
            "resolve"]
@@ -68,6 +68,12 @@ class FoamStage(FrameHook):
         self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
         self._unwritten: tuple | None = None  # (out, relative path, frame) made by on_frame, for write()
 
+    @property
+    def generator(self) -> FoamGenerator:
+        """The generator :meth:`start` made (the frames, their files and the post-processing passes come after it)."""
+        assert self.gen is not None, "FoamStage.start comes first"
+        return self.gen
+
     def on_start(self, solver, out: Path, info: RunInfo, last_frame: int) -> None:
         self.last_frame = last_frame
         self.start(info, solver)
@@ -99,7 +105,7 @@ class FoamStage(FrameHook):
         if not self.made_any and frame.velocities is not None and len(frame):
             v = frame.velocities  # only while nothing was made: once something is, no warning needs it
             self.max_speed = max(self.max_speed, float(np.sqrt(np.einsum("ij,ij->i", v, v).max())))
-        d = self.gen.step(frame, index, dt)
+        d = self.generator.step(frame, index, dt)
         self.made_any = self.made_any or len(d) > 0
         rel = frame_name("diffuse", index)
         self._unwritten = (out, rel, d)
@@ -114,7 +120,7 @@ class FoamStage(FrameHook):
             out, rel, d = self._unwritten
             self._unwritten = None
             write(out / rel, d)
-            write_counts(out, self.gen.state.counts)
+            write_counts(out, self.generator.state.counts)
 
     def status(self) -> str:
         r = self.gen.state.counts[-1] if self.gen and self.gen.state.counts else (0, 0, 0, 0, 0)
@@ -173,7 +179,8 @@ def obstacle_grids(scene: Scene) -> list:
         return []
     from ..sim.obstacles import load_obstacles
 
-    return load_obstacles(scene).posed_grids()
+    obstacles = load_obstacles(scene)  # None only for a scene without obstacles
+    return obstacles.posed_grids() if obstacles is not None else []
 
 
 def simulation_hook(scene: Scene) -> FoamStage:
@@ -237,17 +244,12 @@ class FoamJob:
     arch: str = DEFAULT_ARCH
 
 
-def foam_job(job: FoamJob | None = None, **options) -> FoamJob:
-    """``job`` with ``options`` (its field names) replacing its fields; a new one when None."""
-    return FoamJob(**options) if job is None else replace(job, **options)
-
-
 def postprocess(
     src: str | Path,
     out: str | Path | None = None,
     job: FoamJob | None = None,
     params: FoamParams | None = None,
-    ini: str | Path | None = None,
+    ini: str | Path | IniFile | None = None,
     case: str | Path | None = None,
     frames: list[tuple[int, Path]] | None = None,
     domain: tuple | None = None,
@@ -271,7 +273,7 @@ def postprocess(
     An ``out`` other than the input follows :func:`whitecap.io.run.claim_run_dir`: a run
     of another simulation there is refused unless ``job.force``, which replaces it whole.
     """
-    job = foam_job(job, **options)
+    job = with_options(FoamJob, job, options)
     src = Path(src)
     if frames is not None or not (src.is_dir() and (src / "run.json").exists()):
         return _postprocess_foreign(src, out, job, params, ini, case, frames, domain, look_ahead)
@@ -355,8 +357,6 @@ def _threshold_names(ini) -> dict[str, str]:
     """Where a parameter file set the thresholds it gives per particle ("f.ini: [DIFFUSE] KEMin"), for messages."""
     if ini is None:
         return {}
-    from .params import IniFile, read_ini
-
     f = ini if isinstance(ini, IniFile) else read_ini(ini)
     return {ours: where for ours, (where, _) in f.joules.items()}
 
@@ -377,8 +377,8 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     stage.last_frame = files[-1][0] if files else None
     stage.start(info)
     if p.model == "foamgenerator":
-        tau = _foamgenerator_limits(stage.gen, files, first, show_progress)
-        stage.gen.state.tau = tau
+        tau = _foamgenerator_limits(stage.generator, files, first, show_progress)
+        stage.generator.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     elif p.auto and look_ahead:
         _calibrate(stage, reader, info, frame_dt)
@@ -426,7 +426,7 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
     # The fluid count between samples is taken as the nearest sample's (it changes only with in- or outflow).
     n_s = np.array([len(f) for f in samples], np.float64)
     n_fluid = n_s[np.abs(times[:, None] - np.array([f.time for f in samples])[None, :]).argmin(1)]
-    stage.gen.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files],
+    stage.generator.calibrate(samples, times, n_fluid, frame_dt, [i for i, _ in reader.files],
                         [reader.files[k][0] for k in picks])
 
 
@@ -447,13 +447,13 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             rel = stage.on_frame(fr, index, frame_dt, out, info)
             stage.write()
             info.set_file(index, "diffuse", rel, fr.time)
-            c = stage.gen.state.counts[-1]
+            c = stage.generator.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
 
 
 def _report(stage: FoamStage) -> None:
     stage.finish()
-    counts = stage.gen.state.counts
+    counts = stage.generator.state.counts
     tot = np.array([r_[2:] for r_ in counts]).sum(0) if counts else np.zeros(3)
     console.print("diffuse particles over the run: " + ", ".join(f"{t} {int(v):,}" for t, v in zip(COUNT_NAMES, tot)))
 
@@ -475,9 +475,8 @@ def postprocess_params_file(
     custom domain. Arguments given here replace the file's.
     """
     from ..io.sequence import find_sequence
-    from .params import read_ini
 
-    run = foam_job(job, **options)
+    run = with_options(FoamJob, job, options)
     f = read_ini(ini)
     spec = f.job
     if spec is None:
