@@ -11,19 +11,23 @@ whatever the thread count.
 """
 
 import math
+from typing import Any
 
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, I2, GridQuery, for_each_neighbor
-from ..sim.obstacles import FAR, sdf_sample
+from ..sim.grid import F1, F3, I1, I2, GridQuery, for_each_neighbor, vec3
+from ..sim.launch import TEMPLATE
+from ..sim.obstacles import FAR, IV, M3, sdf_sample
 from ..sim.pbf import padded_count
 from . import splishsplash as SP
 
-vec3 = ti.math.vec3
-U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
-B1 = ti.types.ndarray(dtype=ti.i8, ndim=1)  # a diffuse type per particle (or NOT_KEPT)
-F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+# Kernel argument annotations (typed Any: Taichi's annotations are not Python types).
+U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)
+B1: Any = ti.types.ndarray(dtype=ti.i8, ndim=1)  # a diffuse type per particle (or NOT_KEPT)
+F2: Any = ti.types.ndarray(dtype=ti.f32, ndim=2)
+U8: Any = ti.types.ndarray(dtype=ti.u8, ndim=1)  # the output's diffuse types
+N1: Any = ti.types.ndarray(ndim=1)  # of any dtype
 
 # δ_vn of the wave-crest potential: a surface particle counts as a crest only
 # while it moves along its normal, v̂_i·n̂_i ≥ this cosine (Ihmsen et al. 2012, Sec. 4.2).
@@ -64,8 +68,8 @@ def fluid_potentials(
     v: F3,
     nb_count: I1,
     nb: I2,
-    pad: ti.template(),
-    cap: ti.template(),
+    pad: TEMPLATE,
+    cap: TEMPLATE,
     h: ti.f32,
     surface_fraction: ti.f32,
     normal: F3,
@@ -112,7 +116,7 @@ def fluid_potentials(
 
 @ti.kernel
 def wave_crest(
-    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, pad: ti.template(), cap: ti.template(), normal: F3, surface: I1,
+    n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, pad: TEMPLATE, cap: TEMPLATE, normal: F3, surface: I1,
     h: ti.f32, crest: F1,
 ):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
@@ -239,7 +243,7 @@ def zero_below(n: ti.i32, nb_count: I1, min_count: ti.i32, a: F1):
 
 
 @ti.func
-def _weigh_fluid(g: ti.template(), s, r2, h, h2, vs: F3, cnt: ti.template(), vsum: ti.template(), wsum: ti.template()):
+def _weigh_fluid(g: TEMPLATE, s, r2, h, h2, vs: F3, cnt: TEMPLATE, vsum: TEMPLATE, wsum: TEMPLATE):
     """Adds the fluid particle in slot s (velocity vs[s], in the grid's cell order) at distance r to the
     neighbourhood sums when r² < h², weighted by W̃ = 1 − r/h (``g``, the index of the query point, is always 0:
     one point a query). Every candidate of the scanned cells is handed in and masked, not branched on: the
@@ -254,7 +258,7 @@ def _weigh_fluid(g: ti.template(), s, r2, h, h2, vs: F3, cnt: ti.template(), vsu
 
 
 @ti.func
-def fluid_neighbourhood(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, vs: F3):
+def fluid_neighbourhood(p: vec3, grid: TEMPLATE, scan: TEMPLATE, h: ti.f32, vs: F3):
     """(fluid neighbour count, Σ W̃ v_f, Σ W̃) around a point, from the fluid's
     :class:`~whitecap.sim.grid.NeighborGrid` (its ``query_args()``: the query and the scan; then h and
     the fluid's velocities in the grid's cell order, ``vs[s] = v[order[s]]``: read in the order the scan
@@ -298,7 +302,7 @@ def advect_diffuse(
     vd: F3,
     life: F1,
     grid: GridQuery,
-    scan: ti.template(),
+    scan: TEMPLATE,
     h: ti.f32,
     vs: F3,
     g: vec3,
@@ -354,7 +358,7 @@ def classify(
     nd: ti.i32,
     xd: F3,
     grid: GridQuery,
-    scan: ti.template(),
+    scan: TEMPLATE,
     h: ti.f32,
     vs: F3,
     spray_below: ti.i32,
@@ -379,20 +383,20 @@ OWNER_SLACK = 1e-4
 
 
 @ti.func
-def _count_fluid(g, s, r2, h2, cnt: ti.template(), most):
+def _count_fluid(g, s, r2, h2, cnt: TEMPLATE, most):
     """Counts a fluid particle met by the scan where r² < h² (every candidate of the scanned cells is
     handed in: no branch on the distance)."""
     cnt += ti.cast(r2 < h2, ti.i32)
 
 
 @ti.func
-def _counted_past(h2, cnt: ti.template(), most) -> ti.i32:
+def _counted_past(h2, cnt: TEMPLATE, most) -> ti.i32:
     """Whether the count is past ``most``: the stop of :func:`fluid_count`'s query."""
     return cnt > most
 
 
 @ti.func
-def fluid_count(p: vec3, grid: ti.template(), scan: ti.template(), h: ti.f32, most: ti.i32) -> ti.i32:
+def fluid_count(p: vec3, grid: TEMPLATE, scan: TEMPLATE, h: ti.f32, most: ti.i32) -> ti.i32:
     """The number of fluid particles within h of a point (as :func:`fluid_neighbourhood` counts them, without
     its velocity sums), exact up to ``most``; above it, some number above ``most``: the query scans the
     nearest columns of cells first and stops once the count passes it (for_each_neighbor's ``stop``).
@@ -494,7 +498,7 @@ def classify_candidates(
     lists: ti.i32,
     reach: F1,
     grid: GridQuery,
-    scan: ti.template(),
+    scan: TEMPLATE,
     h: ti.f32,
     spray_below: ti.i32,
     bubble_above: ti.i32,
@@ -672,7 +676,7 @@ def thin_kept(
 
 
 @ti.kernel
-def tally_kinds(n: ti.i32, kind: ti.types.ndarray(ndim=1), tally: I1):
+def tally_kinds(n: ti.i32, kind: N1, tally: I1):
     """tally[t] += the number of entries of ``kind`` equal to t (t = 0, 1, 2; others not counted)."""
     for k in range(n):
         t = ti.cast(kind[k], ti.i32)
@@ -735,9 +739,7 @@ def scatter_new(
 
 @ti.kernel
 def download_state(
-    n: ti.i32, x: F3, v: F3, life: F1, ids: U1, kind: I1, ox: ti.types.ndarray(dtype=vec3, ndim=1),
-    ov: ti.types.ndarray(dtype=vec3, ndim=1), olife: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    oids: ti.types.ndarray(dtype=ti.u32, ndim=1), okind: ti.types.ndarray(dtype=ti.u8, ndim=1),
+    n: ti.i32, x: F3, v: F3, life: F1, ids: U1, kind: I1, ox: F3, ov: F3, olife: F1, oids: U1, okind: U8,
 ):
     """The first n live particles into host arrays (one copy a frame, for its output)."""
     for p in range(n):
@@ -746,9 +748,7 @@ def download_state(
 
 @ti.kernel
 def upload_state(
-    n: ti.i32, hx: ti.types.ndarray(dtype=vec3, ndim=1), hv: ti.types.ndarray(dtype=vec3, ndim=1),
-    hlife: ti.types.ndarray(dtype=ti.f32, ndim=1), hids: ti.types.ndarray(dtype=ti.u32, ndim=1), x: F3, v: F3,
-    life: F1, ids: U1,
+    n: ti.i32, hx: F3, hv: F3, hlife: F1, hids: U1, x: F3, v: F3, life: F1, ids: U1,
 ):
     """Host state (a resumed checkpoint, a state set by hand) into the live particles' arrays."""
     for p in range(n):
@@ -774,12 +774,10 @@ SPRAY_RESTITUTION = 0.5
 PATH_SAMPLES = 64
 #: Bisection steps of the crossing of a particle's path with an obstacle's surface (2⁻¹⁶ of the path).
 ENTRY_STEPS = 16
-M3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
-IV3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
 
 
 @ti.func
-def obstacle_sdf(values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1, rot: M3, trans: F3, o, x: vec3):
+def obstacle_sdf(values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, beyond: F1, rot: M3, trans: F3, o, x: vec3):
     """Signed distance of obstacle o at world point x, the body at the pose (rot[o], trans[o]), and the
     world gradient: sim.obstacles.sdf_sample at x_rest = Rᵀ(x − T), ``beyond[o]`` outside its grid
     (FAR; −FAR for a wall around the fluid, whose SDF is inverted)."""
@@ -793,7 +791,7 @@ def obstacle_sdf(values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond:
 @ti.kernel
 def obstacles_diffuse(
     nd: ti.i32, x0: F3, x: F3, v: F3, kind: I1, keep: I1,
-    values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1,
+    values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, beyond: F1,
     rot0: M3, trans0: F3, rot1: M3, trans1: F3, carry_a: M3, carry_b: F3, vel_a: M3, vel_b: F3, moved: I1,
     r: ti.f32,
 ):
@@ -870,7 +868,7 @@ def obstacles_diffuse(
 
 @ti.kernel
 def outside_obstacles(
-    n: ti.i32, x: F3, flag: I1, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV3, beyond: F1, rot: M3,
+    n: ti.i32, x: F3, flag: I1, values: F1, off: I1, origin: F3, inv_dx: F1, dims: IV, beyond: F1, rot: M3,
     trans: F3,
 ):
     """flag[p] = 0 where particle p is inside (sdf ≤ 0) an obstacle at this frame's pose."""
