@@ -87,7 +87,7 @@ def body_rest_box(entry: Obstacle, info: RunInfo, run_dir: Path | None) -> tuple
     if path is None:
         c = M[:3, 3]
         return c, c
-    m = trimesh.load(str(path), force="mesh")
+    m = trimesh.load_mesh(str(path))
     v = np.asarray(m.vertices, float) @ M[:3, :3].T + M[:3, 3]
     return v.min(0), v.max(0)
 
@@ -130,8 +130,8 @@ def follow_keys(cfg: Render, info: RunInfo, bounds, first: int, last: int, aspec
         frame_lo, frame_hi = lo, hi
         centre = point
     track = smooth_track(raw, 1.0 / info.frame_rate, cfg.camera_smoothing)
-    level = still_level(cfg, info, run_dir) if cfg.camera_preset == "over_water" else None
     if cfg.camera_preset == "over_water":
+        level = still_level(cfg, info, run_dir)
         width = float(max(frame_hi[0] - frame_lo[0], frame_hi[1] - frame_lo[1]))
         height = cfg.camera_height if cfg.camera_height is not None else OVER_WATER_HEIGHT * width
         if k is None:  # look at the sea surface below the point

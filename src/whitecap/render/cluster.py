@@ -17,6 +17,7 @@ import sys
 import tempfile
 import threading
 from pathlib import Path
+from typing import IO, cast
 
 from distributed import WorkerPlugin, get_worker
 
@@ -31,7 +32,9 @@ class BlenderWorkers(WorkerPlugin):
         self.proc: subprocess.Popen | None = None
 
     def setup(self, worker=None) -> None:
-        self.proc, self.log, self.lock = None, None, threading.Lock()
+        self.proc = None
+        self.log: IO[str] | None = None  # the Blender process's stderr
+        self.lock = threading.Lock()
 
     def teardown(self, worker=None) -> None:
         proc = getattr(self, "proc", None)
@@ -54,12 +57,14 @@ class BlenderWorkers(WorkerPlugin):
         return self.proc
 
     def _expect(self, word: str) -> str:
-        for line in self.proc.stdout:
+        proc, log = self.proc, self.log
+        assert proc is not None and proc.stdout is not None and log is not None  # _start made them, piped
+        for line in proc.stdout:
             if line.startswith(word):
                 return line.strip()
-        self.proc.wait()
-        self.log.seek(0)
-        last = (self.log.read().strip().splitlines() or [f"exit status {self.proc.returncode}"])[-1]
+        proc.wait()
+        log.seek(0)
+        last = (log.read().strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
         self.proc = None
         raise RuntimeError(f"Blender render failed: {last}")
 
@@ -67,21 +72,27 @@ class BlenderWorkers(WorkerPlugin):
         """Send one request to this worker's Blender process (started at the first); returns its pid."""
         with self.lock:
             proc = self.proc if self.proc is not None and self.proc.poll() is None else self._start()
+            assert proc.stdin is not None  # piped
             proc.stdin.write(request + "\n")
             proc.stdin.flush()
             self._expect(answer)
             return proc.pid
 
 
+def _blender(plugin: str) -> BlenderWorkers:
+    """This Dask worker's BlenderWorkers plugin of that name (Dask types its plugins as WorkerPlugin)."""
+    return cast(BlenderWorkers, get_worker().plugins[plugin])
+
+
 def render_frame(plugin: str, index: int) -> dict:
     """A Dask task: render frame ``index`` with this worker's Blender process."""
-    pid = get_worker().plugins[plugin].ask(f"frame {index}", f"rendered {index}")
+    pid = _blender(plugin).ask(f"frame {index}", f"rendered {index}")
     return {"blender_pid": pid}
 
 
 def save_blend(plugin: str) -> dict:
     """A Dask task: save render/scene.blend with this worker's Blender process."""
-    return {"blender_pid": get_worker().plugins[plugin].ask("blend", "saved blend")}
+    return {"blender_pid": _blender(plugin).ask("blend", "saved blend")}
 
 
 def render_on_cluster(ex, run_dir: Path, quality: str, device: str, todo: list[int], need_blend: bool,

@@ -306,7 +306,8 @@ def _render_run(run_dir: Path, job: RenderJob) -> dict:
         from .scene import cycles_device
 
         cycles_device("gpu")
-    size = tuple(cfg.preview_resolution if quality == "preview" else cfg.resolution)
+    width, height = cfg.preview_resolution if quality == "preview" else cfg.resolution
+    size = (width, height)
     current = {i for i, _ in info.files("render")}  # rendered from this simulation
     keys = {i: frame_key(run_dir, info, cfg, quality, i) for i in wanted}
     todo = stage_todo(wanted, lambda i: i in current and info.frame(i).render_key == keys[i]
@@ -464,7 +465,9 @@ def _requirements(dist) -> list[str]:
                     continue
             except ImportError:
                 continue
-        out.append(re.match(r"\s*([A-Za-z0-9._-]+)", name).group(1))
+        m = re.match(r"\s*([A-Za-z0-9._-]+)", name)
+        assert m is not None, text  # a requirement starts with its project's name (PEP 508)
+        out.append(m.group(1))
     return out
 
 
@@ -496,14 +499,14 @@ def addon_wheels() -> dict[str, bytes]:
         tags = [ln.split(":", 1)[1].strip() for ln in wheel_meta.splitlines() if ln.startswith("Tag:")]
         if "Root-Is-Purelib: true" not in wheel_meta or not tags or not tags[0].endswith("-none-any"):
             raise InputError(f"blender-addon: {name} is not a pure-Python package; the extension cannot carry it")
-        base = dist.locate_file("")
+        base = Path(str(dist.locate_file("")))  # a Path (typed as importlib.metadata's SimplePath)
         files = sorted(str(f) for f in dist.files or [] if not str(f).startswith("..") and "__pycache__" not in str(f)
                        and not str(f).endswith((".pyc", "RECORD", "INSTALLER", "REQUESTED", "direct_url.json")))
         info_dir = next(f.split("/")[0] for f in files if f.split("/")[0].endswith(".dist-info"))
         buf, record = _io.BytesIO(), []
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as w:
             for rel in files:
-                data = (Path(base) / rel).read_bytes()
+                data = (base / rel).read_bytes()
                 w.writestr(rel, data)
                 digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
                 record.append(f"{rel},sha256={digest},{len(data)}")

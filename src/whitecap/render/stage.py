@@ -454,8 +454,8 @@ def camera_keys(cfg: Render, info: RunInfo, bounds, first: int, last: int,
     from . import camera_follow
 
     if camera_follow.active(cfg):
-        keys, targets = camera_follow.follow_keys(cfg, info, bounds, first, last, aspect)
-        return keys, targets[first]
+        follow, targets = camera_follow.follow_keys(cfg, info, bounds, first, last, aspect)
+        return follow, targets[first]
     start, end, target = camera_path(cfg, info, bounds, aspect=aspect)
     keys: dict[int, list[float]] = {}
     for frame in range(first, last + 1):

@@ -17,7 +17,7 @@ from bpy.app.handlers import persistent
 from . import paths, readers, sequences
 from .shared import RunInfo, mesh, run
 
-_FRAMES = {}  # (folder, prefix, suffix, run kind) -> {frame: path}; cleared by Refresh
+_FRAMES: dict[tuple, dict[int, str]] = {}  # (folder, prefix, suffix, run kind) -> {frame: path}; cleared by Refresh
 _RENDER = {"on": False, "camera": None}
 
 
