@@ -29,6 +29,7 @@ Node names start with ``terrain_`` so tests and users can find them.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..config import Terrain
@@ -371,7 +372,7 @@ def scene_terrain(info: RunInfo, run_dir: Path | None) -> list[Obstacle]:
 
 
 def dress_terrain(sc, info: RunInfo, run_dir: Path | None, preview: bool = False,
-                  extra: list[Obstacle] = ()) -> list:
+                  extra: Sequence[Obstacle] = ()) -> list:
     """Give the obstacles that are terrain (material "terrain") the terrain material, smooth
     shading and the name ``terrain_K``; remove the ground plane they replace. Returns them.
 
