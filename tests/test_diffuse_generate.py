@@ -189,7 +189,12 @@ def test_candidates_a_chunk_at_a_time_give_the_same_bytes(monkeypatch, preset):
 def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
     """kernels.generate_candidates (what the generator runs, a chunk at a time) writes the bits the reference
     generate (per fluid particle, tests/diffuse_reference.py) writes, for every candidate a type may keep: the
-    classification sees the positions the particles are born at."""
+    classification sees the positions the particles are born at. Not generated: the spray-only slots (only
+    spray's limit above them) of a fluid particle whose reach holds its whole generation cylinder
+    (kernels.owner_reach): none of them can be spray."""
+    from whitecap.diffuse import kernels as K
+    from whitecap.io.diffuse_types import BUBBLE, FOAM, SPRAY
+
     gen = _generator((30.0, 1.0, 1.0))
     frame = _splash()
     gen.step(frame, 0, DT)
@@ -198,8 +203,12 @@ def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_partic
     (x, v, life), _ = _all_candidates(gen, frame, 0)
     owner = np.repeat(np.arange(n), c["counts"])
     slot = np.arange(total) - c["offset"][owner]
-    need = (slot[:, None] < b["limit"].to_numpy()[:n][owner]).any(1)
-    assert need.sum() > 1000
+    lim = b["limit"].to_numpy()[:n][owner]
+    spray_only = (slot >= lim[:, FOAM]) & (slot >= lim[:, BUBBLE]) & (slot < lim[:, SPRAY])
+    reach = b["owner_reach"].to_numpy()[:n * K.REACH_PROBES].reshape(n, K.REACH_PROBES)
+    inside = spray_only & (reach[owner, 0] >= K.REACH_ALL)
+    need = (slot[:, None] < lim).any(1) & ~inside
+    assert need.sum() > 1000 and inside.sum() > 1000
     for ref, got in ((x, "cand_x"), (v, "cand_v"), (life, "cand_life")):
         assert ref[need].tobytes() == b[got].to_numpy()[:total][need].tobytes()
 
@@ -220,3 +229,32 @@ def test_the_candidate_arrays_never_grow_past_a_chunk(monkeypatch):
     assert totals[0] < 3000 < totals[-1]
     for name in ("cand_kind", "cand_owner", "cand_x", "cand_v", "cand_life", "cand_flag", "cand_rank", "cand_pos"):
         assert gen._bufs[name].shape[0] <= 3000, name
+
+
+def test_a_point_within_an_owners_reach_is_not_spray():
+    """kernels.owner_reach's promise, counted by brute force: a point nearer one of a fluid particle's probes (along
+    its generation cylinder's axis) than that probe's reach has at least spray_below fluid particles within h, and
+    so does any point of the generation cylinder (radius r_V about the axis from x to x + Δt v) of a particle
+    whose reach is REACH_ALL."""
+    from whitecap.diffuse import kernels as K
+
+    gen = _generator((30.0, 1.0, 1.0))
+    frame = _splash()
+    gen.step(frame, 0, DT)
+    n, x, h, P = len(frame), frame.positions.astype(np.float64), gen.h, K.REACH_PROBES
+    v = frame.velocities.astype(np.float64)
+    reach = gen._bufs["owner_reach"].to_numpy()[:n * P].reshape(n, P).astype(np.float64)
+    probe = gen._bufs["owner_probe"].to_numpy()[:n * P].reshape(n, P, 3).astype(np.float64)
+    rng = np.random.default_rng(3)
+    some = (reach > 0) & (reach < K.REACH_ALL)
+    assert some.sum() > 50 and (reach[:, 0] >= K.REACH_ALL).sum() > 50
+    for i in np.flatnonzero(reach[:, 0] > 0):
+        if reach[i, 0] >= K.REACH_ALL:  # points of the cylinder
+            d = rng.normal(size=(16, 3))
+            q = x[i] + rng.uniform(0, 1, (16, 1)) * DT * v[i] + d / np.linalg.norm(d, axis=1)[:, None] * gen.r
+        else:  # points just within each probe's reach
+            k = reach[i] > 0
+            d = rng.normal(size=(k.sum(), 3))
+            q = probe[i, k] + d / np.linalg.norm(d, axis=1)[:, None] * reach[i, k, None] * 0.999
+        counts = (np.linalg.norm(x[None, :, :] - q[:, None, :], axis=2) < h).sum(1)
+        assert (counts >= gen.p.spray_below).all(), (i, reach[i], counts)

@@ -785,15 +785,18 @@ class FoamGenerator:
         cx, cv = self._buffer("cand_x", chunk, vec=True, **up), self._buffer("cand_v", chunk, vec=True, **up)
         cl = self._buffer("cand_life", chunk, ti.f32, **up)
 
-        reach = self._buffer("owner_reach", m, ti.f32)
+        probe = self._buffer("owner_probe", m * K.REACH_PROBES, vec=True)
+        reach = self._buffer("owner_reach", m * K.REACH_PROBES, ti.f32)
         if self._lists:  # the owners' reach, for their spray-only candidates (K.owner_reach)
-            K.owner_reach(n, lim, fx, g.nb_count, g.nb, self.h, p.spray_below, reach)
+            K.owner_reach(n, lim, fx, fv, g.nb_count, g.nb, self.h, p.spray_below, self.r, dt, probe, reach)
+        else:
+            reach.fill(-1.0)
 
         def classify(base: int, size: int) -> None:
             K.chunk_owners(n, base, size, cnt, off, owner)
             K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
-                                  p.lifetime_multiplier, self.r, dt, self.seed, frame, cx, cv, cl)
-            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count, g.nb, int(self._lists), reach,
+                                  p.lifetime_multiplier, self.r, dt, self.seed, frame, reach, cx, cv, cl)
+            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count, g.nb, int(self._lists), probe, reach,
                                   *args[:3], *box, kd)
 
         def thin(base: int, size: int, tally) -> None:

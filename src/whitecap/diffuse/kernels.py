@@ -422,63 +422,102 @@ def owner_neighbours_near(i, p: vec3, x: F3, nb_count: I1, nb: I2, r2: ti.f32) -
     return c
 
 
-#: The most fluid neighbours that owner_reach ranks (spray_below − 1 at most, as a sorting network in
-#: registers); a larger spray_below leaves classify_candidates to the owner's list alone.
+#: The most fluid particles that owner_reach ranks about a point (spray_below at most, as a sorting network
+#: in registers); a larger spray_below leaves classify_candidates to the owner's list alone.
 REACH_RANK = 8
+#: Points along a fluid particle's generation cylinder (its axis, from x_i to x_i + Δt v_i) at which
+#: owner_reach measures how far the fluid reaches.
+REACH_PROBES = 9
+#: owner_reach's value for a fluid particle none of whose spray-only candidates can be spray (they are
+#: neither generated nor searched).
+REACH_ALL = 1e30
+#: Rounding allowed for in a candidate's distance from its owner's axis, relative to the largest coordinate:
+#: its position is x_f + off + X_h Δt v_f in f32 (three roundings of half an ulp, 2^-24, each).
+REACH_ROUNDING = 8.0 * 2.0**-23
 
 
 @ti.kernel
-def owner_reach(n: ti.i32, limit: I2, x: F3, nb_count: I1, nb: I2, h: ti.f32, spray_below: ti.i32, reach: F1):
-    """reach[i]: a distance from fluid particle i within which any point surely has spray_below fluid particles
-    within h (so a candidate born there is not spray): i itself and its spray_below − 1 nearest listed
-    neighbours, at d_k ≤ d_(spray_below−1) from it, lie within d + d_(spray_below−1) of a point at d from it
-    (triangle inequality), reach = h·(1 − OWNER_SLACK) − d_(spray_below−1). Negative where i's list has too
-    few neighbours or spray_below − 1 > REACH_RANK; computed only for particles with spray-only slots (slots at
-    or past the foam and bubble limits but below spray's, which classify_candidates settles with it). The
-    listed neighbours are some of the fluid particles within h, so the test never calls spray what the
-    grid's count would not; a candidate beyond the reach goes on to the list and the count, as before."""
-    far = 1e30
+def owner_reach(
+    n: ti.i32, limit: I2, x: F3, v: F3, nb_count: I1, nb: I2, h: ti.f32, spray_below: ti.i32, r_v: ti.f32,
+    dt: ti.f32, probe: F3, reach: F1,
+):
+    """For each fluid particle i with spray-only slots (at or past the foam and bubble limits but below spray's,
+    which classify_candidates settles with this), REACH_PROBES points c_k = x_i + k/(REACH_PROBES − 1) Δt v_i
+    along its generation cylinder's axis (probe[i·REACH_PROBES + k]) and a distance from each (reach[…])
+    within which any point surely has spray_below fluid particles within h, so a candidate born there is not
+    spray: i and its listed neighbours are fluid particles; the spray_below nearest of them to c_k, at most
+    d_(spray_below) from it, lie within d + d_(spray_below) of a point at d from c_k (triangle inequality):
+    reach = h·(1 − OWNER_SLACK) − d_(spray_below). They are some of the fluid particles within h of such a
+    point, so the test never calls spray what the grid's count would not. Where every candidate lies within
+    the reach of its nearest probe (no candidate is further than r_V + half the probes' spacing from it, see
+    new_particle, give or take REACH_ROUNDING), every reach is REACH_ALL: none of i's spray-only candidates
+    can be kept. Negative (no test) for the other particles and where spray_below > REACH_RANK."""
     h_in = h * (1.0 - OWNER_SLACK)
-    need = spray_below - 1  # neighbours needed besides i itself
     for i in range(n):
-        r = -1.0
-        if limit[i, SPRAY] > limit[i, FOAM] and limit[i, SPRAY] > limit[i, BUBBLE]:
-            if need <= 0:
-                r = far
-            elif need <= REACH_RANK:
-                best = ti.Vector([far] * REACH_RANK, ti.f32)  # the REACH_RANK smallest distances, ascending
-                xi = x[i]
-                for k in range(nb_count[i]):
-                    d = (x[nb[i, k]] - xi).norm()
-                    for t in ti.static(range(REACH_RANK)):  # insertion without branches
-                        lo = ti.min(best[t], d)
-                        d = ti.max(best[t], d)
-                        best[t] = lo
-                dk = far
-                for t in ti.static(range(REACH_RANK)):
-                    dk = ti.select(t == need - 1, best[t], dk)
-                r = h_in - dk
-        reach[i] = r
+        spray_only = limit[i, SPRAY] > limit[i, FOAM] and limit[i, SPRAY] > limit[i, BUBBLE]
+        xi, vi = x[i], v[i]
+        all_in = spray_only and spray_below <= REACH_RANK
+        far = r_v + dt * vi.norm() / (2.0 * (REACH_PROBES - 1))
+        far += REACH_ROUNDING * (ti.max(ti.abs(xi).max(), 1.0) + far)
+        for k in ti.static(range(REACH_PROBES)):
+            c = xi + (k / (REACH_PROBES - 1) * dt) * vi
+            r = -1.0
+            if spray_only:
+                if spray_below <= 0:  # nothing is spray
+                    r = REACH_ALL
+                elif spray_below <= REACH_RANK:
+                    best = ti.Vector([REACH_ALL] * REACH_RANK, ti.f32)  # the smallest distances, ascending
+                    best[0] = (xi - c).norm()
+                    for m in range(nb_count[i]):
+                        d = (x[nb[i, m]] - c).norm()
+                        for t in ti.static(range(REACH_RANK)):  # insertion without branches
+                            lo = ti.min(best[t], d)
+                            d = ti.max(best[t], d)
+                            best[t] = lo
+                    dk = REACH_ALL
+                    for t in ti.static(range(REACH_RANK)):
+                        dk = ti.select(t == spray_below - 1, best[t], dk)
+                    r = h_in - dk
+                    all_in = all_in and far < r
+            probe[i * REACH_PROBES + k] = c
+            reach[i * REACH_PROBES + k] = r
+        if all_in:
+            for k in ti.static(range(REACH_PROBES)):
+                reach[i * REACH_PROBES + k] = REACH_ALL
+
+
+@ti.func
+def within_reach(i, p: vec3, probe: F3, reach: F1) -> ti.i32:
+    """Whether the point p lies within the reach of the probe of fluid particle i nearest it along the axis
+    (owner_reach): then it has spray_below fluid particles within h. Any probe would be a sound test; the
+    nearest along the axis is the one most likely to settle it."""
+    b = i * REACH_PROBES
+    c0 = probe[b]
+    axis = probe[b + REACH_PROBES - 1] - c0
+    a = (p - c0).dot(axis) / ti.max(axis.norm_sqr(), 1e-30) * (REACH_PROBES - 1)
+    k = ti.min(ti.max(ti.cast(ti.round(a), ti.i32), 0), REACH_PROBES - 1)
+    return ti.cast((p - probe[b + k]).norm() < reach[b + k], ti.i32)
 
 
 @ti.kernel
 def generate_candidates(
     m: ti.i32, base: ti.i32, owner: I1, offset: I1, limit: I2, x: F3, v: F3, ids: U1, e_k: F1, tau: F1,
     life_min: ti.f32, life_max: ti.f32, life_mult: ti.f32, r_v: ti.f32, dt: ti.f32, seed: ti.u32, frame: ti.u32,
-    out_x: F3, out_v: F3, out_life: F1,
+    reach: F1, out_x: F3, out_v: F3, out_life: F1,
 ):
     """The new particles (:func:`new_particle`) for the chunk of candidates base + j (j < m; candidate k is slot
     k − offset[i] of fluid particle i = owner[j], see chunk_owners), in parallel over them (a splash crowds
     its candidates into a few fluid particles, 800k from 3.6k in the r = 4 mm dam break, which one thread
-    each would share badly); only those a type may keep (the others are never looked at). All three are
-    written: a kernel that kept only the positions would compile them with other roundings (fast math
-    contracts the shared offset into the position), and the classification would not see the positions
-    the particles are born at."""
+    each would share badly); only those a type may keep (the others are never looked at), and of the
+    spray-only slots (at or past the foam and bubble limits) none whose owner's reach is REACH_ALL (owner_reach:
+    none can be spray). All three are written: a kernel that kept only the positions would compile them with
+    other roundings (fast math contracts the shared offset into the position), and the classification would
+    not see the positions the particles are born at."""
     for j in range(m):
         k = base + j
         i = owner[j]
         s = k - offset[i]
-        if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
+        if s < limit[i, FOAM] or s < limit[i, BUBBLE] or (s < limit[i, SPRAY] and reach[i * REACH_PROBES] < REACH_ALL):
             i_k = clamp_phi(e_k[i], tau[4], tau[5])
             out_x[j], out_v[j], out_life[j] = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult,
                                                            r_v, dt, seed, frame)
@@ -496,6 +535,7 @@ def classify_candidates(
     nb_count: I1,
     nb: I2,
     lists: ti.i32,
+    probe: F3,
     reach: F1,
     grid: GridQuery,
     scan: TEMPLATE,
@@ -515,8 +555,8 @@ def classify_candidates(
     - s below the foam or the bubble limit: the full type, from the fluid count within h;
     - otherwise only spray (fewer than spray_below fluid neighbours) can keep it. Where the frame's
       neighbour lists were built (``lists``; x, nb_count, nb: the fluid's positions and the grid's
-      lists), a candidate within the owner's ``reach`` (owner_reach: its nearest neighbours) is not spray,
-      without a loop; else the owner's own neighbours within h of the candidate are some of its fluid
+      lists), a candidate within the reach of its owner's nearest probe (owner_reach, within_reach) is not
+      spray, without a loop; else the owner's own neighbours within h of the candidate are some of its fluid
       neighbours: when spray_below of them are, it is not spray (these settle, without the grid's search,
       most candidates: they are born inside the water, near their fluid particle: on the r = 4 mm dam
       break, classify_candidates took 73 ms a frame without the list test against 54 with it). Else the count
@@ -529,17 +569,19 @@ def classify_candidates(
         s = base + j - offset[i]
         t = NOT_KEPT
         if s < limit[i, SPRAY] or s < limit[i, FOAM] or s < limit[i, BUBBLE]:
-            p = xd[j]
             most = spray_below - 1
             search = 1
             if s < limit[i, FOAM] or s < limit[i, BUBBLE]:
                 most = bubble_above
             elif lists:
-                if (p - x[i]).norm() < reach[i]:  # settled by the owner's nearest neighbours (owner_reach)
+                if reach[i * REACH_PROBES] >= REACH_ALL:  # not generated (generate_candidates): none can be spray
+                    search = 0
+                elif within_reach(i, xd[j], probe, reach):  # settled by the owner's neighbours (owner_reach)
                     search = 0
                 else:
-                    search = ti.cast(owner_neighbours_near(i, p, x, nb_count, nb, r2_owner) < spray_below, ti.i32)
+                    search = ti.cast(owner_neighbours_near(i, xd[j], x, nb_count, nb, r2_owner) < spray_below, ti.i32)
             if search:
+                p = xd[j]
                 cnt = fluid_count(p, grid, scan, h, most)  # one search in the kernel's code (inlined where called)
                 t = diffuse_type_in_box(p, cnt, spray_below, bubble_above, lo, hi, h, wall_correction)
                 if s >= limit[i, t]:
