@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from ..io import read, read_mesh
 from ..io.record import Obstacle
 from ..io.run import RunInfo
 from . import camera_follow, sea, stage
+from .sea import Sea
 from .terrain import dress_terrain, scene_terrain
 
 
@@ -35,11 +37,11 @@ from .terrain import dress_terrain, scene_terrain
 class SceneHandles:
     """The objects that change per frame."""
 
-    fluid: object
-    diffuse: dict  # type index -> object
-    camera: object
-    water: object
-    sea: object = None  # sea.Sea with [render] sea = true
+    fluid: Any  # Blender objects
+    diffuse: dict[int, Any]  # type index -> object
+    camera: Any
+    water: Any
+    sea: Sea | None = None  # with [render] sea = true
     droplet_volume: float = 0.0  # fluid-mesh pieces smaller than this [m³] get the spray material
 
 
@@ -96,7 +98,7 @@ def diffuse_radius(cfg: Render, t: int, r: float) -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------------------- stage
-def _look_at(obj, target) -> None:
+def _look_at(obj, target) -> Any:
     import bpy
 
     empty = bpy.data.objects.new("camera_target", None)
@@ -316,7 +318,7 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
 
     frame = info.frame(index)
     files = frame.files
-    stats = {"triangles": 0, "diffuse": [0, 0, 0]}
+    stats: dict[str, Any] = {"triangles": 0, "diffuse": [0, 0, 0]}
     if "mesh" in files:
         verts, faces, vel, normals = read_surface(run_dir / files["mesh"])
         if h.sea is not None:  # one open sheet with the sea: the faces on the walls and floor go

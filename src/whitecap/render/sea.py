@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -110,14 +111,14 @@ def sea_layout(lo, hi, step: float, extent: float, fine: float | None = None, fi
     walls = [((x0, y0), (x1, y0), (0.0, -1.0)), ((x1, y0), (x1, y1), (1.0, 0.0)),
              ((x1, y1), (x0, y1), (0.0, 1.0)), ((x0, y1), (x0, y0), (-1.0, 0.0))]
     base, normal, wall = [], [], []
-    for w, (a, b, n) in enumerate(walls):
-        a, b = np.array(a), np.array(b)
+    for w, (start, end, out) in enumerate(walls):
+        a, b = np.array(start), np.array(end)
         k = max(2, int(math.ceil(np.linalg.norm(b - a) / step)))
         t = np.arange(1, k) / k
         base += list(a + t[:, None] * (b - a))
-        normal += [n] * (k - 1)
+        normal += [out] * (k - 1)
         wall += [w] * (k - 1)
-        a0 = math.atan2(n[1], n[0])
+        a0 = math.atan2(out[1], out[0])
         for s in np.linspace(0.0, math.pi / 2, CORNER_SAMPLES + 1):
             base.append(b)
             normal.append((math.cos(a0 + s), math.sin(a0 + s)))
@@ -129,10 +130,10 @@ def sea_layout(lo, hi, step: float, extent: float, fine: float | None = None, fi
             return max(step, min(fine, step + GROWTH * x))
         return fine + GROWTH * (x - fine_until)
 
-    d = [0.0]
-    while d[-1] < extent:
-        d.append(d[-1] + gap(d[-1]))
-    d = np.array(d)
+    rings = [0.0]
+    while rings[-1] < extent:
+        rings.append(rings[-1] + gap(rings[-1]))
+    d = np.array(rings)
     spacing = np.array([gap(x) for x in d])
     n, m = len(base), len(d)
     j = np.arange(n)
@@ -348,7 +349,7 @@ def still_level(cfg: Render, info: RunInfo, run_dir: Path | None) -> float:
 # ============================================================================ bpy steps
 @dataclass
 class Sea:
-    obj: object
+    obj: Any  # the sea's Blender object
     layout: SeaLayout
     level: float
     blend: float
@@ -357,7 +358,7 @@ class Sea:
     direction: float
     g: float
     r: float
-    ripple_w: object  # the noise node whose W the frame time drives
+    ripple_w: Any  # the noise node whose W the frame time drives
 
 
 def add_ripples(mat, length: float):
