@@ -195,6 +195,9 @@ def _add_mesh(sub) -> None:
                    help=f"iso-surface threshold ({d['iso_surface_threshold']})")
     p.add_argument("--smoothing-iters", dest="mesh_smoothing_iters", type=int,
                    help=f"mesh smoothing passes ({d['mesh_smoothing_iters']})")
+    p.add_argument("--weights-normalization", dest="mesh_smoothing_weights_normalization", type=float,
+                   help="neighbour count at which a vertex is smoothed fully; lower smooths thin films "
+                   f"({d['mesh_smoothing_weights_normalization']:g})")
     p.add_argument("--normals-smoothing-iters", type=int,
                    help=f"normal smoothing passes ({d['normals_smoothing_iters']})")
     p.add_argument("--no-cleanup", dest="mesh_cleanup", action="store_const", const=False, help="skip mesh cleanup")
@@ -218,7 +221,7 @@ def _add_mesh(sub) -> None:
 
 _MESH_OVERRIDES = ("radius_factor", "smoothing_length", "cube_size", "iso_surface_threshold", "mesh_smoothing_iters",
                    "normals_smoothing_iters", "mesh_cleanup", "mesh_smoothing_weights", "interpolate_velocity",
-                   "format")
+                   "mesh_smoothing_weights_normalization", "format")
 
 
 def _cmd_mesh(a) -> int:

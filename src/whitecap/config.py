@@ -547,6 +547,10 @@ class Foam(_Section):
 
 
 # --------------------------------------------------------------------------- mesh
+#: splashsurf's own smoothing-weight normalization (its CLI's and pysplashsurf's default; Löschner et al. 2023).
+SPLASHSURF_WEIGHTS_NORMALIZATION = 13.0
+
+
 class Mesh(_Section):
     """Surface reconstruction with splashsurf (``whitecap mesh``).
 
@@ -573,6 +577,11 @@ class Mesh(_Section):
     mesh_smoothing_iters: int = Field(15, ge=0, le=1000, description="Laplacian smoothing passes on vertices [-]")
     mesh_smoothing_weights: bool = Field(
         True, description="weight the smoothing so it acts at the surface, not inside thin sheets (Löschner 2023)"
+    )
+    mesh_smoothing_weights_normalization: float = Field(
+        SPLASHSURF_WEIGHTS_NORMALIZATION, gt=0, le=1000.0,
+        description="distance-weighted neighbour count Σ(1 − d²/h_c²) at which a vertex is smoothed fully [-] "
+        "(splashsurf's default 13); fewer neighbours smooth less, so lower it to smooth films a particle or two thick",
     )
     normals_smoothing_iters: int = Field(10, ge=0, le=1000, description="smoothing passes on vertex normals [-]")
     interpolate_velocity: bool = Field(True, description="interpolate particle velocity onto vertices (motion blur)")

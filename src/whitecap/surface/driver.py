@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from ..config import DEFAULT_UP, Cluster, Mesh, load_scene
+from ..config import DEFAULT_UP, SPLASHSURF_WEIGHTS_NORMALIZATION, Cluster, Mesh, load_scene
 from ..errors import InputError
 from ..io.atomic import sweep_temps
 from ..io.lock import read_lock, run_lock
@@ -164,6 +164,9 @@ def settings_key(params: MeshParams) -> str:
     other settings are made again rather than skipped."""
     d = params.as_dict()
     d.pop("multi_threading", None)  # recorded by earlier versions, which threaded splashsurf on one job
+    if d.get("mesh_smoothing_weights_normalization") == SPLASHSURF_WEIGHTS_NORMALIZATION:
+        # earlier versions passed none, so splashsurf used its own: their meshes are still current
+        del d["mesh_smoothing_weights_normalization"]
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

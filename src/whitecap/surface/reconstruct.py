@@ -101,6 +101,7 @@ class MeshParams(Mesh):
             mesh_cleanup=self.mesh_cleanup,
             mesh_smoothing_iters=self.mesh_smoothing_iters or None,
             mesh_smoothing_weights=self.mesh_smoothing_weights,
+            mesh_smoothing_weights_normalization=self.mesh_smoothing_weights_normalization,
             normals_smoothing_iters=self.normals_smoothing_iters or None,
             compute_normals=True,
         )
