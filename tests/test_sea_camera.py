@@ -150,6 +150,29 @@ def test_open_walls_keeps_only_the_free_surface():
     assert len(kept) == 2 * 8 * 8 and (v[kept][:, :, 2] > 0.05).all()
 
 
+def test_wall_normals_are_level_with_the_sea_at_the_side_walls():
+    """The reconstruction's normals lean out over the last few radii before a side wall (no
+    particles beyond it); with the sea they lose their part across the wall there (the sea is the
+    water's mirror, level across the wall), keep it a reach inside, and stay unit length. A
+    normal facing the wall (on a face open_walls drops) points up instead of vanishing."""
+    r = 0.01
+    reach = sea.WALL_NORMAL_REACH * r
+    y = np.array([0.0, 0.3 * reach, reach, 0.2, HI[1] - 0.3 * reach, HI[1]])
+    v = np.column_stack([np.full(len(y), 0.5), y, np.full(len(y), 0.1)])
+    lean = np.array([0.0, -0.6, 0.8])  # leaning out over the y = 0 wall
+    n = np.tile(lean, (len(y), 1))
+    n[-2:] = (0.0, 0.6, 0.8)  # leaning out over the y = HI[1] wall
+    out = sea.wall_normals(v, n, LO, HI, reach)
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0)
+    assert np.allclose(out[[0, -1]], (0.0, 0.0, 1.0))  # at either wall: level
+    assert np.allclose(out[[2, 3]], lean)  # a reach inside and beyond: as reconstructed
+    assert 0 < -out[1, 1] < 0.6 and 0 < out[-2, 1] < 0.6  # in between: part of the lean
+    facing = sea.wall_normals(v[:1], np.array([[0.0, -1.0, 0.0]]), LO, HI, reach)
+    assert np.allclose(facing, (0.0, 0.0, 1.0))
+    corner = sea.wall_normals(np.array([[LO[0], LO[1], 0.1]]), np.array([[-0.5, -0.5, 0.7]]), LO, HI, reach)
+    assert np.allclose(corner, (0.0, 0.0, 1.0))
+
+
 def test_sea_meets_the_water_at_the_wall_and_settles_to_its_level():
     """Ring 0 lies on the walls at the simulated water's height there, faces look up, and past
     the blend the sea is at its level give or take half the wave height."""

@@ -323,6 +323,9 @@ def load_frame(h: SceneHandles, run_dir: Path, info: RunInfo, index: int) -> dic
         verts, faces, vel, normals = read_surface(run_dir / files["mesh"])
         if h.sea is not None:  # one open sheet with the sea: the faces on the walls and floor go
             faces = sea.open_walls(verts, faces, info.domain["lower"], info.domain["upper"], info.particle_radius)
+            if normals is not None:
+                normals = sea.wall_normals(verts, normals, info.domain["lower"], info.domain["upper"],
+                                           sea.WALL_NORMAL_REACH * info.particle_radius)
         fill_mesh(h.fluid.data, verts, faces, vel, normals=normals)
         if h.droplet_volume > 0:
             spray = small_pieces(verts, faces, h.droplet_volume)

@@ -56,6 +56,9 @@ SEA_WATER = 0.25
 EDGE_DETAIL = 0.1
 #: The edge's profile carried out across the blend stays within this many sea wave heights of the level.
 EDGE_PROFILE = 2.0
+#: Near a side wall the fluid mesh's normals lose their part along the wall's normal over this many particle
+#: radii (a little more than the surface kernel's support, 2 × smoothing_length 1.2-1.6 × radius_factor 1.5 r).
+WALL_NORMAL_REACH = 5.0
 #: Point attribute of the sea mesh: 0 at the domain's edge, 1 past the blend; weights the ripple bump.
 RIPPLE_ATTR = "sea_ripple"
 #: Ripple bump: noise feature size as a share of the wave length, and the bump's strength.
@@ -170,6 +173,26 @@ def open_walls(verts: np.ndarray, faces: np.ndarray, lo, hi, r: float) -> np.nda
     up = n[:, 2] > 0.5 * np.linalg.norm(n, axis=1)
     drop = on[f].all(1) & ~up
     return f[~drop]
+
+
+def wall_normals(verts: np.ndarray, normals: np.ndarray, lo, hi, reach: float) -> np.ndarray:
+    """The fluid mesh's vertex normals made level with the sea at the side walls: each normal's
+    component along a side wall's normal is scaled by smoothstep(distance to that wall / ``reach``),
+    then the normal is renormalised. The surface reconstruction sees no particles beyond a wall, so
+    the water's top rounds off toward it and its smoothed normals lean out over the last few radii;
+    the sea continues the water there as the mirror of the inside, whose slope across the wall is
+    zero, so the leaning normals shaded a crease along every wall. A normal that would vanish (one
+    facing the wall, on a face open_walls drops) points up."""
+    v = np.asarray(verts, float)
+    n = np.array(normals, float, copy=True)
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    for axis in (0, 1):
+        n[:, axis] *= smoothstep(np.minimum(v[:, axis] - lo[axis], hi[axis] - v[:, axis]) / reach)
+    norm = np.linalg.norm(n, axis=1)
+    flat = norm < 1e-6
+    n[flat] = (0.0, 0.0, 1.0)
+    norm[flat] = 1.0
+    return n / norm[:, None]
 
 
 def edge_heights(layout: SeaLayout, verts: np.ndarray, r: float, level: float | None = None,
