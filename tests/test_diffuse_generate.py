@@ -191,7 +191,8 @@ def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_partic
     generate (per fluid particle, tests/diffuse_reference.py) writes, for every candidate a type may keep: the
     classification sees the positions the particles are born at. Not generated: the spray-only slots (only
     spray's limit above them) of a fluid particle whose reach holds its whole generation cylinder
-    (kernels.owner_reach): none of them can be spray."""
+    (kernels.owner_reach), and those generate_candidates finds within the reach of their probe (their lifetime
+    SETTLED): none of them can be spray."""
     from whitecap.diffuse import kernels as K
     from whitecap.io.diffuse_types import BUBBLE, FOAM, SPRAY
 
@@ -207,8 +208,9 @@ def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_partic
     spray_only = (slot >= lim[:, FOAM]) & (slot >= lim[:, BUBBLE]) & (slot < lim[:, SPRAY])
     reach = b["owner_reach"].to_numpy()[:n * K.REACH_PROBES].reshape(n, K.REACH_PROBES)
     inside = spray_only & (reach[owner, 0] >= K.REACH_ALL)
-    need = (slot[:, None] < lim).any(1) & ~inside
-    assert need.sum() > 1000 and inside.sum() > 1000
+    settled = spray_only & ~inside & (b["cand_life"].to_numpy()[:total] == K.SETTLED)  # within their probe's reach
+    need = (slot[:, None] < lim).any(1) & ~inside & ~settled
+    assert need.sum() > 1000 and inside.sum() > 1000 and settled.sum() > 100
     for ref, got in ((x, "cand_x"), (v, "cand_v"), (life, "cand_life")):
         assert ref[need].tobytes() == b[got].to_numpy()[:total][need].tobytes()
 

@@ -796,8 +796,8 @@ class FoamGenerator:
             K.chunk_owners(n, base, size, cnt, off, owner)
             K.generate_candidates(size, base, owner, off, lim, fx, fv, fid, e_k, tau, p.lifetime_min, p.lifetime_max,
                                   p.lifetime_multiplier, self.r, dt, self.seed, frame, reach, cx, cv, cl)
-            K.classify_candidates(size, base, owner, off, lim, cx, fx, g.nb_count, g.nb, int(self._lists), probe, reach,
-                                  *args[:3], *box, kd)
+            K.classify_candidates(size, base, owner, off, lim, cx, cl, fx, g.nb_count, g.nb, int(self._lists), probe,
+                                  reach, *args[:3], *box, kd)
 
         def thin(base: int, size: int, tally) -> None:
             K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)

@@ -434,6 +434,9 @@ REACH_ALL = 1e30
 #: Rounding allowed for in a candidate's distance from its owner's axis, relative to the largest coordinate:
 #: its position is x_f + off + X_h Δt v_f in f32 (three roundings of half an ulp, 2^-24, each).
 REACH_ROUNDING = 8.0 * 2.0**-23
+#: generate_candidates' lifetime for a spray-only candidate it found within reach without placing it (a
+#: lifetime is never negative): classify_candidates keeps none of these.
+SETTLED = -1.0
 
 
 @ti.kernel
@@ -517,10 +520,22 @@ def generate_candidates(
         k = base + j
         i = owner[j]
         s = k - offset[i]
-        if s < limit[i, FOAM] or s < limit[i, BUBBLE] or (s < limit[i, SPRAY] and reach[i * REACH_PROBES] < REACH_ALL):
-            i_k = clamp_phi(e_k[i], tau[4], tau[5])
-            out_x[j], out_v[j], out_life[j] = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max, life_mult,
-                                                           r_v, dt, seed, frame)
+        foam_or_bubble = s < limit[i, FOAM] or s < limit[i, BUBBLE]
+        if foam_or_bubble or (s < limit[i, SPRAY] and reach[i * REACH_PROBES] < REACH_ALL):
+            settled = 0
+            if not foam_or_bubble:  # spray-only: within the reach of the probe nearest along the axis?
+                xh = rand01(seed, frame, ids[i], ti.cast(s, ti.u32), ti.u32(3))  # new_particle's X_h
+                at = ti.min(ti.cast(ti.round(xh * (REACH_PROBES - 1)), ti.i32), REACH_PROBES - 1)
+                # |x_d − c_at| ≤ r√X_r + |X_h − at/(P − 1)| Δt|v_f| (the offset off is at most r_V)
+                far = r_v + ti.abs(xh - at / (REACH_PROBES - 1)) * dt * v[i].norm()
+                far += REACH_ROUNDING * (ti.max(ti.abs(x[i]).max(), 1.0) + far)
+                if far < reach[i * REACH_PROBES + at]:
+                    settled = 1
+                    out_life[j] = SETTLED
+            if not settled:
+                i_k = clamp_phi(e_k[i], tau[4], tau[5])
+                out_x[j], out_v[j], out_life[j] = new_particle(x[i], v[i], ids[i], s, i_k, life_min, life_max,
+                                                               life_mult, r_v, dt, seed, frame)
 
 
 @ti.kernel
@@ -531,6 +546,7 @@ def classify_candidates(
     offset: I1,
     limit: I2,
     xd: F3,
+    life: F1,
     x: F3,
     nb_count: I1,
     nb: I2,
@@ -575,6 +591,8 @@ def classify_candidates(
                 most = bubble_above
             elif lists:
                 if reach[i * REACH_PROBES] >= REACH_ALL:  # not generated (generate_candidates): none can be spray
+                    search = 0
+                elif life[j] == SETTLED:  # not placed: generate_candidates found it within reach
                     search = 0
                 elif within_reach(i, xd[j], probe, reach):  # settled by the owner's neighbours (owner_reach)
                     search = 0
