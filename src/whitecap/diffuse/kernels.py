@@ -513,9 +513,10 @@ def generate_candidates(
     its candidates into a few fluid particles, 800k from 3.6k in the r = 4 mm dam break, which one thread
     each would share badly); only those a type may keep (the others are never looked at), and of the
     spray-only slots (at or past the foam and bubble limits) none whose owner's reach is REACH_ALL (owner_reach:
-    none can be spray). All three are written: a kernel that kept only the positions would compile them with
-    other roundings (fast math contracts the shared offset into the position), and the classification would
-    not see the positions the particles are born at."""
+    none can be spray), and none within the reach of its probe, told from its axial draw alone (its lifetime is
+    set to SETTLED instead: classify_candidates keeps none of these). All three are written: a kernel that kept
+    only the positions would compile them with other roundings (fast math contracts the shared offset into the
+    position), and the classification would not see the positions the particles are born at."""
     for j in range(m):
         k = base + j
         i = owner[j]
