@@ -111,17 +111,19 @@ class DiffuseState:
         return cls(z, z.copy(), np.zeros(0, np.float32), np.zeros(0, np.uint32))
 
     def to_arrays(self) -> dict[str, np.ndarray]:
+        """The state as named arrays for a checkpoint; its numbers as 0-d arrays (what a checkpoint file
+        gives back)."""
         d = {
             "positions": self.positions, "velocities": self.velocities, "lifetime": self.lifetime, "ids": self.ids,
-            "next_id": np.int64(self.next_id), "counts": np.asarray(self.counts, np.float64).reshape(-1, 5),
+            "next_id": np.asarray(self.next_id, np.int64), "counts": np.asarray(self.counts, np.float64).reshape(-1, 5),
         }
         if self.tau is not None:
             d["tau"] = self.tau
-        d["scale"], d["history"], d["peaks"] = np.float64(self.scale), self.history, self.peaks
-        d["history_frames"], d["history_stride"] = self.history_frames, np.int64(self.history_stride)
+        d["scale"], d["history"], d["peaks"] = np.asarray(self.scale, np.float64), self.history, self.peaks
+        d["history_frames"], d["history_stride"] = self.history_frames, np.asarray(self.history_stride, np.int64)
         d["type_scale"] = np.asarray(self.type_scale, np.float64)
         d["born"] = np.asarray(self.born, np.float64)
-        d["foam_aging"] = np.float64(self.foam_aging)
+        d["foam_aging"] = np.asarray(self.foam_aging, np.float64)
         return d
 
     @classmethod
@@ -140,7 +142,7 @@ class DiffuseState:
         )
 
 
-def _history(d: dict) -> tuple:
+def _history(d: dict) -> tuple[np.ndarray, np.ndarray, int]:
     """The history from a checkpoint; one from before it was bounded has a row per frame (stride 1)
     and is bounded from here on."""
     if "history_frames" in d:
@@ -149,6 +151,13 @@ def _history(d: dict) -> tuple:
     for row in np.asarray(d.get("history", h[0]), np.float32):  # replayed a frame at a time
         h = B.history_add(*h, lambda m, row=row: row[np.linspace(0, len(row) - 1, m).astype(np.int64)])
     return h
+
+
+def _velocities(fluid: ParticleFrame) -> np.ndarray:
+    """The fluid frame's velocities, which the foam needs (the drivers check their files for them)."""
+    if fluid.velocities is None:
+        raise ValueError(f"{fluid.source}: fluid frame has no velocities")
+    return fluid.velocities
 
 
 def _nd(a: np.ndarray, dtype, vec: bool = False):
@@ -214,7 +223,7 @@ class FoamGenerator:
         self._mirror: tuple | None = None
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
-        self._candidates = None
+        self._candidates: dict | None = None
         self._S = 0
         self.capacity: int | None = None
         self._sized_for = 0  # fluid particle count the capacity was sized for
@@ -283,7 +292,7 @@ class FoamGenerator:
         return self._pots, self._moving(fluid)
 
     def _moving(self, fluid: ParticleFrame) -> np.ndarray:
-        return np.linalg.norm(fluid.velocities, axis=1) > B.moving_speed(self.g_norm, self.h)
+        return np.linalg.norm(_velocities(fluid), axis=1) > B.moving_speed(self.g_norm, self.h)
 
     def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
                   indices: list[int] | None = None, sample_indices: list[int] | None = None) -> None:
@@ -328,6 +337,7 @@ class FoamGenerator:
         surv, rate, n_fluid, pos = plan
         k = pos[index]
         k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
+        assert self.state.tau is not None, "calibrate set the thresholds with the plan"
         rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
         n_fluid[k] = len(self._pots["ta"])  # the real count replaces the one interpolated between samples
         s_past = np.nan_to_num(self._scales[:k])
@@ -357,7 +367,7 @@ class FoamGenerator:
         h = B.history_samples(st.history, st.history_frames, st.history_stride)
         tau = self._auto_tau({k: h[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, h[:, 4] > 0)
         first = st.tau is None
-        st.tau = tau if first else np.maximum(st.tau, tau)
+        st.tau = tau if st.tau is None else np.maximum(st.tau, tau)
         if self._scaled():
             k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
             rates = B.history_rates(st.history, st.history_frames, st.history_stride, st.tau, k0, dt)
@@ -408,7 +418,7 @@ class FoamGenerator:
         """The fluid frame in the kept Taichi arrays, its neighbour grid and, with ``lists``, its neighbour lists
         (only the potentials read them)."""
         fx = self._upload("fluid_x", fluid.positions, vec=True)
-        fv = self._upload("fluid_v", fluid.velocities, vec=True)
+        fv = self._upload("fluid_v", _velocities(fluid), vec=True)
         fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
@@ -428,6 +438,7 @@ class FoamGenerator:
             return args, fx, fv, fid, pots
         fx, fv, fid, args = self._prepare(fluid, n)
         g = self.grid
+        assert g is not None, "_prepare built the fluid grid"
         normal, surface = self._buffer("normal", n, vec=True), self._buffer("surface", n)
         v_diff, e_k, vort, crest = (self._buffer(k, n, ti.f32) for k in ("v_diff", "e_k", "vort", "crest"))
         if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
@@ -447,6 +458,7 @@ class FoamGenerator:
     def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
         """SP.frame_potentials into this generator's kept arrays (v_diff, κ, E; ``normal`` as scratch)."""
         g = self.grid
+        assert g is not None, "_prepare built the fluid grid"
         m = SP.particle_mass(self.r)
         rho = self._buffer("sp_rho", n, ti.f32)
         SP.sph_density(n, fx, g.nb_count, g.nb, self.h, m, rho)
@@ -470,8 +482,7 @@ class FoamGenerator:
 
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
-        if fluid.velocities is None:
-            raise ValueError(f"{fluid.source}: fluid frame has no velocities")
+        _velocities(fluid)  # a frame without velocities stops here, before anything is sized
         n = len(fluid)
         if self.capacity is None or n > self._sized_for:
             self._size(n)  # from the first frame, again when the fluid grows (empty first frames, inflow)
@@ -844,7 +855,9 @@ class FoamGenerator:
     def candidates(self) -> dict:
         """The last frame's candidates (tests): total, each fluid particle's count and offset, and the kept
         (their indices, in candidate order) where one chunk held them all."""
-        c, n = self._candidates, self._candidates["n"]
+        c = self._candidates
+        assert c is not None, "step made the last frame's candidates"
+        n = c["n"]
         total = c["total"]
         out = {
             "total": total, "counts": self._bufs["count"].to_numpy()[:n], "offset": self._bufs["offset"].to_numpy()[:n],
@@ -866,6 +879,7 @@ class FoamGenerator:
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         nd = self._nd
         ns = self._scan(nd, keep, pos)  # the survivors of advection, expiry and the obstacles
+        assert self.capacity is not None, "step sized the capacity (_size) before compacting"
         room = self.capacity - ns
         if nk > room or lost:
             if not self._warned_capacity:
@@ -902,9 +916,9 @@ class FoamGenerator:
         p, st, b = self.p, self.state, self._bufs
         total, chunk, classify, thin = self._chunks
         kd, owner, off, fid = b["cand_kind"], b["cand_owner"], b["offset"], b["fluid_id"]
-        up = {"limit": CANDIDATE_CHUNK}
-        flag, rank = self._buffer("cand_flag", chunk, **up), self._buffer("cand_rank", chunk, **up)
-        at, cx = self._buffer("cand_pos", chunk, **up), b["cand_x"]
+        flag = self._buffer("cand_flag", chunk, limit=CANDIDATE_CHUNK)
+        rank = self._buffer("cand_rank", chunk, limit=CANDIDATE_CHUNK)
+        at, cx = self._buffer("cand_pos", chunk, limit=CANDIDATE_CHUNK), b["cand_x"]
         frame = index & 0xFFFFFFFF
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
