@@ -45,17 +45,17 @@ def time_foam(run: Path, r: float, budget: float | None, arch: str) -> dict:
     from whitecap.diffuse import postprocess, resolve
 
     params = resolve(Foam(preset="auto", **({"budget": budget} if budget else {})))
+    on = {} if arch == "cpu" else {"arch": arch}  # the CPU is the default: older checkouts have no arch option
     files = sorted((run / "fluid").glob("*.ply"))
     with tempfile.TemporaryDirectory() as tmp:
         warm = Path(tmp) / "warm"
         warm.mkdir()
         for f in files[:2]:
             shutil.copy(f, warm / f.name)
-        postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False,
-                    arch=arch)
+        postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False, **on)
         t0, c0 = time.perf_counter(), time.process_time()
         postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
-                    arch=arch)
+                    **on)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
     return {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts}
