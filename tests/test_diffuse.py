@@ -202,14 +202,19 @@ def test_sampled_frames_potentials_kept_from_the_look_ahead_give_the_same_bytes(
     from whitecap.diffuse.generator import FoamGenerator
     from whitecap.sim.grid import NeighborGrid
 
-    builds = []
-    build = NeighborGrid.build
+    builds = []  # per grid build: whether any neighbour list was built for it (all, or the energetic's)
+    build, marked = NeighborGrid.build, NeighborGrid.build_marked
 
     def counted(self, x, n, lists=True):
         builds.append(lists)
         return build(self, x, n, lists)
 
+    def counted_marked(self, *a):
+        builds[-1] = True
+        return marked(self, *a)
+
     monkeypatch.setattr(NeighborGrid, "build", counted)
+    monkeypatch.setattr(NeighborGrid, "build_marked", counted_marked)
     postprocess(foam_run, out=tmp_path / "kept", show_progress=False)
     assert builds.count(False) >= 3  # the sampled frames' grids, built again without lists when processed
     calibrate = FoamGenerator.calibrate
@@ -353,8 +358,9 @@ def _potentials(x, v, r=0.01):
     normal, surface = ti.Vector.ndarray(3, ti.f32, n), ti.ndarray(ti.i32, n)
     v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, n) for _ in range(4))
     lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
-    K.fluid_potentials(n, fx, fv, *lists, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-    K.wave_crest(n, fx, fv, *lists, normal, surface, gen.h, crest)
+    K.fluid_potentials(n, fx, fv, *lists, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, g.nb_count, 0,
+                       False)  # every particle's (no marks)
+    K.wave_crest(n, fx, fv, *lists, normal, surface, gen.h, crest, g.nb_count, 0, False)
     return v_diff.to_numpy(), crest.to_numpy(), e_k.to_numpy(), surface.to_numpy().astype(bool)
 
 

@@ -260,3 +260,45 @@ def test_a_point_within_an_owners_reach_is_not_spray():
             q = probe[i, k] + d / np.linalg.norm(d, axis=1)[:, None] * reach[i, k, None] * 0.999
         counts = (np.linalg.norm(x[None, :, :] - q[:, None, :], axis=2) < h).sum(1)
         assert (counts >= gen.p.spray_below).all(), (i, reach[i], counts)
+
+
+def test_potentials_of_the_energetic_particles_alone_give_the_same_births(monkeypatch):
+    """With fixed thresholds the potentials are computed only where I_k can be > 0 (E_k at least τ_k,min) and
+    for the neighbours whose normals those particles' wave crests read (their lists alone built): the
+    diffuse particles, byte for byte, and those particles' potentials are what every particle's give."""
+    from whitecap.diffuse import generator as G
+
+    def run(every: bool):
+        if every:
+            monkeypatch.setattr(G.FoamGenerator, "_energetic_floor", lambda self: None)
+        gen = _generator((30.0, 1.0, 1.0))
+        ke = 0.5 * (_splash().velocities.astype(np.float64) ** 2).sum(1)
+        # about a third of the water energetic enough; the wave crest weighs as much as the trapped air
+        gen.p = replace(gen.p, ke_min=float(np.quantile(ke, 0.7)), ke_max=float(ke.max()), wc_max=0.2)
+        out, pots, marks = [], [], []
+        for k in range(4):  # the splash moving on: some die, some change type, new ones are born
+            f = _splash()
+            f.positions = f.positions + k * DT * f.velocities
+            out.append(gen.step(f, k, DT))
+            pots.append({name: a.copy() for name, a in gen._pots.items()})
+            if not every:
+                marks.append(gen._bufs["energetic"].to_numpy()[:len(f)])
+        monkeypatch.undo()
+        return out, pots, marks, gen
+
+    part, pots_part, marks, g1 = run(False)
+    every, pots_every, _, g2 = run(True)
+    assert sum(len(d) for d in part) > 1000
+    for a, b in zip(part, every):
+        for x, y in ((a.positions, b.positions), (a.velocities, b.velocities), (a.ids, b.ids),
+                     (a.arrays["type"], b.arrays["type"]), (a.arrays["lifetime"], b.arrays["lifetime"])):
+            assert x.tobytes() == y.tobytes()
+    assert g1.state.counts == g2.state.counts
+    for p1, p2, m in zip(pots_part, pots_every, marks):
+        hot = m == G.K.ENERGETIC
+        assert 0.15 < hot.mean() < 0.6 and (m == G.K.CREST_NEIGHBOUR).any()
+        assert (p1["wc"][hot] > 0).any()  # crests among them, read from the neighbours' normals
+        assert p1["ke"].tobytes() == p2["ke"].tobytes()
+        for name in ("ta", "wc", "vo"):
+            assert p1[name][hot].tobytes() == p2[name][hot].tobytes()
+            assert not p1[name][m == G.K.IDLE].any()  # the others' are 0 (they make nothing)

@@ -427,28 +427,58 @@ class FoamGenerator:
         gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
         return fx, fv, fid, (*g.query_args(), self.h, vs)
 
-    def _potential_arrays(self, fluid: ParticleFrame, n: int, known: dict[str, np.ndarray] | None = None):
+    def _energetic_floor(self) -> float | None:
+        """The kinetic energy below which a fluid particle surely makes nothing this frame (K.mark_energetic),
+        where the thresholds are fixed before the frame's potentials are seen (a preset's, or 'auto' set from
+        the whole run) and Whitecap's own potentials are used; else None: every particle's potentials are
+        computed (the running 'auto' of a simulation pools them all, FoamGenerator's model has its own)."""
+        p = self.p
+        if p.model == "foamgenerator" or (p.auto and not self.looked_ahead):
+            return None
+        tau = np.asarray(self.thresholds(), np.float64)
+        if not (np.isfinite(tau[4:6]).all() and tau[5] > tau[4]):
+            return None
+        return float(np.float32(tau[4]) * (1.0 - K.KE_MARGIN)) if tau[4] > 0 else -1.0
+
+    def _potential_arrays(self, fluid: ParticleFrame, n: int, known: dict[str, np.ndarray] | None = None,
+                          energetic: bool = False):
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots); ``known``: the frame's
-        potentials as calibrate computed them, uploaded instead of computed again (the same values)."""
+        potentials as calibrate computed them, uploaded instead of computed again (the same values). With
+        ``energetic`` and fixed thresholds (_energetic_floor), the potentials other than E_k are computed only
+        where I_k can be > 0 (and the normals of their neighbours that the wave crest reads), 0 elsewhere:
+        the same births, for a fraction of the neighbour lists."""
         if known is not None and all(len(a) == n for a in known.values()):
             fx, fv, fid, args = self._prepare(fluid, n, lists=False)
             self._pots = known
             pots = tuple(self._upload(k, known[name], ti.f32) for k, name in
                          (("v_diff", "ta"), ("crest", "wc"), ("e_k", "ke"), ("vort", "vo")))
             return args, fx, fv, fid, pots
-        fx, fv, fid, args = self._prepare(fluid, n)
+        ke_floor = self._energetic_floor() if energetic else None
+        fx, fv, fid, args = self._prepare(fluid, n, lists=ke_floor is None)
         g = self.grid
         assert g is not None, "_prepare built the fluid grid"
         normal, surface = self._buffer("normal", n, vec=True), self._buffer("surface", n)
         v_diff, e_k, vort, crest = (self._buffer(k, n, ti.f32) for k in ("v_diff", "e_k", "vort", "crest"))
-        if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
+        lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
+        if ke_floor is not None:  # only where I_k can be > 0, and the normals the crests there read
+            mark = self._buffer("energetic", n)
+            K.mark_energetic(n, fv, ke_floor, e_k, mark, normal, surface, v_diff, vort, crest)
+            self._lists = True  # the owners' lists (classify_candidates): every owner is energetic
+            pots = (SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark)
+            g.build_marked(n, mark, K.ENERGETIC)
+            K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC, True)
+            if K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
+                g.build_marked(n, mark, K.CREST_NEIGHBOUR)
+                K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR, True)
+            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC, True)
+        elif self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
             self._foamgenerator_potentials(fx, fv, n, normal, v_diff, crest, e_k)
             vort.fill(0.0)
             K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
         else:
-            lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
-            K.fluid_potentials(n, fx, fv, *lists, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort)
-            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest)
+            K.fluid_potentials(n, fx, fv, *lists, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort,
+                               g.nb_count, 0, False)
+            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, g.nb_count, 0, False)
         self._pots = {
             "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
             "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],
@@ -487,7 +517,7 @@ class FoamGenerator:
         if self.capacity is None or n > self._sized_for:
             self._size(n)  # from the first frame, again when the fluid grows (empty first frames, inflow)
         with timer("foam.potentials"):
-            args, fx, fv, fid, pots = self._potential_arrays(fluid, n, self._known.pop(index, None))
+            args, fx, fv, fid, pots = self._potential_arrays(fluid, n, self._known.pop(index, None), energetic=True)
         with timer("foam.advect"):
             self._age(n)
             self._sync_in()

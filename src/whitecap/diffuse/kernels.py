@@ -77,14 +77,21 @@ def fluid_potentials(
     v_diff: F1,
     e_k: F1,
     vort: F1,
+    mark: I1,
+    value: ti.i32,
+    marked: TEMPLATE,
 ):
     """Per fluid particle: surface normal n̂_i (from the colour-field gradient,
     −∇c ∝ Σ_j x̂_ij W̃), trapped-air v_i^diff = Σ_j |v_ij|(1 − v̂_ij·x̂_ij) W̃,
     kinetic energy per unit mass E_k = ½|v_i|², and |ω_i| ≈ |Σ_j v_ji × x̂_ij W̃|/Σ W̃.
     The neighbour loop runs over the padded list (sim.pbf.padded_count: ``pad``, ``cap`` are the grid's
     NeighborGrid.pad and max_neighbors) and masks, without a branch, the pairs outside 0 < r < h (the pads
-    are i itself, r = 0): so LLVM vectorises it ``pad`` neighbours at a time, as the solver's loops."""
+    are i itself, r = 0): so LLVM vectorises it ``pad`` neighbours at a time, as the solver's loops.
+    With ``marked`` (compile time), only the particles with mark[i] == ``value`` (see mark_energetic)."""
     for i in range(n):
+        if ti.static(marked):
+            if mark[i] != value:
+                continue
         xi = x[i]
         vi = v[i]
         grad = vec3(0.0)
@@ -117,12 +124,15 @@ def fluid_potentials(
 @ti.kernel
 def wave_crest(
     n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, pad: TEMPLATE, cap: TEMPLATE, normal: F3, surface: I1,
-    h: ti.f32, crest: F1,
+    h: ti.f32, crest: F1, mark: I1, value: ti.i32, marked: TEMPLATE,
 ):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
     δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface. Its neighbour loop is masked and
-    padded, as fluid_potentials'."""
+    padded, as fluid_potentials'. With ``marked`` (compile time), only where mark[i] == ``value``."""
     for i in range(n):
+        if ti.static(marked):
+            if mark[i] != value:
+                continue
         kappa = 0.0
         if surface[i] == 1:
             ni = normal[i]
@@ -137,6 +147,55 @@ def wave_crest(
             if vl < 1e-9 or (v[i] / vl).dot(ni) < CREST_MOTION_COS:
                 kappa = 0.0
         crest[i] = kappa
+
+
+#: mark_energetic's marks: a particle whose kinetic energy may reach I_k > 0, one of their neighbours whose
+#: normal the wave crest reads (mark_crest_neighbours), and the others.
+ENERGETIC, CREST_NEIGHBOUR, IDLE = 1, 2, 0
+#: mark_energetic's margin below τ_k,min: E_k at or above (1 − KE_MARGIN) τ_k,min is marked, a superset of
+#: those with I_k > 0 however τ is rounded (f32 on the device, f64 in budget.births).
+KE_MARGIN = 1e-5
+#: mark_crest_neighbours' margin on δ_vn: crests whose motion test passes within it are taken.
+CREST_COS_MARGIN = 1e-3
+
+
+@ti.kernel
+def mark_energetic(
+    n: ti.i32, v: F3, ke_floor: ti.f32, e_k: F1, mark: I1, normal: F3, surface: I1, v_diff: F1, vort: F1, crest: F1,
+):
+    """E_k = ½|v_i|² of every fluid particle and its mark: ENERGETIC where E_k ≥ ``ke_floor`` (just below
+    τ_k,min), IDLE elsewhere. Below τ_k,min, I_k = Φ(E_k, τ_k,min, τ_k,max) is exactly 0, and so is n_d
+    (new_particles): such a particle makes nothing whatever its other potentials, which are set to 0 here
+    (fluid_potentials and wave_crest then compute them for the marked only, the neighbour lists being built
+    for those alone: in a splash a few per cent of the fluid is energetic)."""
+    for i in range(n):
+        ek = 0.5 * v[i].norm_sqr()
+        e_k[i] = ek
+        mark[i] = ENERGETIC if ek >= ke_floor else IDLE
+        normal[i] = vec3(0.0)
+        surface[i] = 0
+        v_diff[i] = 0.0
+        vort[i] = 0.0
+        crest[i] = 0.0
+
+
+@ti.kernel
+def mark_crest_neighbours(n: ti.i32, v: F3, normal: F3, surface: I1, nb_count: I1, nb: I2, mark: I1) -> ti.i32:
+    """Marks CREST_NEIGHBOUR the IDLE neighbours of every ENERGETIC particle whose wave crest counts (on the
+    surface, moving along its normal: δ_vn, with CREST_COS_MARGIN to spare): wave_crest reads their normals.
+    Every writer writes the same mark, so the result does not depend on the threads. Returns how many
+    particles' lists are still to build (an upper bound: a particle met twice is counted twice)."""
+    more = 0
+    for i in range(n):
+        if mark[i] == ENERGETIC and surface[i] == 1:
+            vl = v[i].norm()
+            if vl >= 1e-9 and (v[i] / vl).dot(normal[i]) >= CREST_MOTION_COS - CREST_COS_MARGIN:
+                for k in range(nb_count[i]):
+                    j = nb[i, k]
+                    if mark[j] == IDLE:
+                        mark[j] = CREST_NEIGHBOUR
+                        more += 1
+    return more
 
 
 @ti.func

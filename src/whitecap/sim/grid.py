@@ -560,40 +560,78 @@ def _build_lists(
     for si in range(n):
         # Walk particles in cell order: consecutive ones share their
         # candidate cells, which then stay in cache.
-        h2 = h * h
-        if ti.static(group == 1):
+        _lists_at(si, n, lower, inv_cell, dims, x_sorted, start, scan, h, order, nb_count, nb, cap, overflow, pad,
+                  group, order, 0, False)
+
+
+@ti.kernel
+def _build_marked_lists(
+    n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, scan: TEMPLATE, h: ti.f32,
+    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE, mark: I1,
+    value: ti.i32,
+):
+    """:func:`_build_lists` for the particles i with mark[i] == ``value`` only (the rows of the others are left
+    as they were): a group is built when one of its particles is marked, so a list is the same as the whole
+    build makes it (the lists do not depend on the grouping)."""
+    for si in range(n):
+        _lists_at(si, n, lower, inv_cell, dims, x_sorted, start, scan, h, order, nb_count, nb, cap, overflow, pad,
+                  group, mark, value, True)
+
+
+@ti.func
+def _lists_at(
+    si, n, lower: TEMPLATE, inv_cell: TEMPLATE, dims: TEMPLATE, x_sorted: F3, start: I1, scan: TEMPLATE, h,
+    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE, mark: I1,
+    value, marked: TEMPLATE,
+):
+    """The lists slot ``si`` builds (see :func:`_build_lists`): its own (``group`` 1) or its group's when it
+    leads one. With ``marked`` (compile time), only where a particle of the group (its own, for one) has
+    mark[order[slot]] == value."""
+    h2 = h * h
+    if ti.static(group == 1):
+        if ti.static(not marked):
             _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow,
                          pad)
+        elif mark[order[si]] == value:
+            _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow,
+                         pad)
+    else:
+        c0 = cell_of(x_sorted[si], lower, inv_cell, dims)
+        lead = 0
+        end = n  # one past the last slot a group may take
+        if ti.static(scan.hashed):
+            lead = ti.cast(si % group == 0, ti.i32)  # groups of consecutive slots; one column or one by one
         else:
-            c0 = cell_of(x_sorted[si], lower, inv_cell, dims)
-            lead = 0
-            end = n  # one past the last slot a group may take
-            if ti.static(scan.hashed):
-                lead = ti.cast(si % group == 0, ti.i32)  # groups of consecutive slots; one column or one by one
-            else:
-                column = (c0.x * dims.y + c0.y) * dims.z  # the column's first cell
-                lead = ti.cast((si - start[column]) % group == 0, ti.i32)
-                end = start[column + dims.z]  # one past the column's last slot
+            column = (c0.x * dims.y + c0.y) * dims.z  # the column's first cell
+            lead = ti.cast((si - start[column]) % group == 0, ti.i32)
+            end = start[column + dims.z]  # one past the column's last slot
+        if ti.static(marked):
             if lead:
-                slots = [ti.min(si + g, end - 1) for g in ti.static(range(group))]
-                ps = [x_sorted[slots[g]] for g in ti.static(range(group))]
-                cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(group))]
-                together = _within_spread(cs, GROUP_SPREAD)
-                if ti.static(scan.hashed):
-                    together &= _one_column(cs)
-                if together:
-                    bufs = [ti.Vector([0] * (cap + 1), dt=ti.i32) for _ in ti.static(range(group))]  # [cap]: sink
-                    ks = [0 for _ in ti.static(range(group))]
-                    q = ti.static(LooseQuery(lower, inv_cell, dims, x_sorted, start))
-                    for_each_neighbor(ps, h, q, scan, _append_slot, (slots, h2, bufs, cap, ks), True)
-                    for g in ti.static(range(group)):
-                        if si + g < end:
-                            _store_list(order, slots[g], bufs[g], ks[g], cap, nb_count, nb, overflow, pad)
-                else:
-                    for g in range(group):  # one by one (a loop: one more copy of the scan's code, not four)
-                        if si + g < end:
-                            _single_list(si + g, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order,
-                                         nb_count, nb, cap, overflow, pad)
+                some = 0
+                for g in ti.static(range(group)):
+                    some |= ti.cast(si + g < end, ti.i32) & ti.cast(mark[order[ti.min(si + g, end - 1)]] == value,
+                                                                     ti.i32)
+                lead = some
+        if lead:
+            slots = [ti.min(si + g, end - 1) for g in ti.static(range(group))]
+            ps = [x_sorted[slots[g]] for g in ti.static(range(group))]
+            cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(group))]
+            together = _within_spread(cs, GROUP_SPREAD)
+            if ti.static(scan.hashed):
+                together &= _one_column(cs)
+            if together:
+                bufs = [ti.Vector([0] * (cap + 1), dt=ti.i32) for _ in ti.static(range(group))]  # [cap]: sink
+                ks = [0 for _ in ti.static(range(group))]
+                q = ti.static(LooseQuery(lower, inv_cell, dims, x_sorted, start))
+                for_each_neighbor(ps, h, q, scan, _append_slot, (slots, h2, bufs, cap, ks), True)
+                for g in ti.static(range(group)):
+                    if si + g < end:
+                        _store_list(order, slots[g], bufs[g], ks[g], cap, nb_count, nb, overflow, pad)
+            else:
+                for g in range(group):  # one by one (a loop: one more copy of the scan's code, not four)
+                    if si + g < end:
+                        _single_list(si + g, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order,
+                                     nb_count, nb, cap, overflow, pad)
 
 
 @ti.func
@@ -792,6 +830,14 @@ class NeighborGrid:
         run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
         self.overflow = int(self.overflow_count[0]) - before
         return self.overflow
+
+    def build_marked(self, n: int, mark, value: int) -> None:
+        """After :meth:`build` without lists: the neighbour lists of the particles i with mark[i] == ``value``
+        (and of the others of their groups), the same rows a whole build makes; the other rows are left as
+        they were. Overflowing pairs are added to ``overflow_count`` (a row built twice counts twice)."""
+        _build_marked_lists(n, self.lower, self.inv_cell, self.dims, self.x_sorted, self.start, self.scan, self.h,
+                            self.order, self.nb_count, self.nb, self.max_neighbors, self.overflow_count, self.pad,
+                            self.group, mark, value)
 
     def take_overflow(self) -> int:
         """Neighbour pairs that did not fit since the last call (reads back from the device)."""
