@@ -23,6 +23,8 @@ never mixed in.
 from __future__ import annotations
 
 import contextlib
+import copy
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +33,7 @@ from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
+from ..io.writer import FrameWriter
 from ..io.record import Obstacle
 from ..io.run import (
     DOMAIN_RULE,
@@ -192,18 +195,21 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
     if len(todo) < len(case.fluid):
         console.print(f"import: {len(case.fluid) - len(todo)} of {len(case.fluid)} frames already in {out}")
     bar = progress(disable=not show_progress)
-    with bar:
+    # Frames are written by a thread while the next is read (each file, then the run.json that lists it, in
+    # that order); leaving the block waits for them, so nothing is still being written after an error.
+    with bar, FrameWriter(name="whitecap-import-writer") as writer:
         task = bar.add_task("import", total=len(case.fluid), completed=len(case.fluid) - len(todo), info="")
         for k, index, path in todo:
             fr = read(path, **opts)
             fr.check_finite()
             fr.time = float(times[k])
             rel = frame_name("fluid", index)
-            write(out / rel, fr)
+            writer.submit(functools.partial(write, out / rel, fr), "fluid")
             info.set_file(index, "fluid", rel, fr.time)
             if moving:
                 info.set_bodies(index, [poses[k] for poses in moving])
-            info.save(out)  # after every frame: an interrupted import resumes from here
+            # after every frame, a snapshot (the loop goes on changing info): an interrupted import resumes here
+            writer.submit(functools.partial(copy.deepcopy(info).save, out), "run.json")
             bar.update(task, advance=1, info=f"{len(fr):,} fluid")
     for k, (index, _) in enumerate(case.fluid):  # poses of frames converted earlier, too
         info.frame(index).time = float(times[k])

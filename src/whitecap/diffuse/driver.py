@@ -16,6 +16,7 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -28,6 +29,7 @@ from ..io import ParticleFrame, read, write, write_text
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
 from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
+from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
 from .generator import DiffuseState, FoamGenerator
@@ -42,6 +44,13 @@ def write_counts(out: Path, rows: list) -> None:
         f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
     ]
     write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
+
+
+def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, rows: list) -> None:
+    """One frame's diffuse particles, then the counts up to it (so counts.csv never lists a frame whose
+    file is not written)."""
+    write(out / rel, frame)
+    write_counts(out, rows)
 
 
 class FoamStage(FrameHook):
@@ -113,14 +122,19 @@ class FoamStage(FrameHook):
             console.print(f"frame {index}: {self.status()}")
         return rel
 
-    def write(self) -> None:
+    def write(self, writer=None) -> None:
         """Write the files of the frame :meth:`on_frame` made (its diffuse particles and the counts so
-        far). Apart from on_frame, so that ``--profile`` counts writing as output, not as the foam stage."""
+        far). Apart from on_frame, so that ``--profile`` counts writing as output, not as the foam stage.
+        With ``writer`` (io.writer.FrameWriter), handed to its thread: the frame is this step's own arrays
+        (the generator makes new ones each step) and the counts a copy of the rows so far."""
         if self._unwritten is not None:
             out, rel, d = self._unwritten
             self._unwritten = None
-            write(out / rel, d)
-            write_counts(out, self.generator.state.counts)
+            rows = list(self.generator.state.counts)
+            if writer is None:
+                _write_diffuse(out, rel, d, rows)
+            else:
+                writer.submit(functools.partial(_write_diffuse, out, rel, d, rows), "diffuse")
 
     def status(self) -> str:
         r = self.gen.state.counts[-1] if self.gen and self.gen.state.counts else (0, 0, 0, 0, 0)
@@ -434,7 +448,7 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
                 show_progress: bool) -> None:
     """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
     bar = progress(disable=not show_progress)
-    with bar:
+    with bar, FrameWriter(name="whitecap-foam-writer") as writer:
         task = bar.add_task("foam", total=len(reader.files), info="")
         for k, (index, _) in enumerate(reader.files):
             fr = reader.read(k)
@@ -442,10 +456,10 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             fr.time = info.frame(index).time
             if convert:
                 rel = frame_name("fluid", index)
-                write(out / rel, fr)
+                writer.submit(functools.partial(write, out / rel, fr), "fluid")
                 info.set_file(index, "fluid", rel, fr.time)
             rel = stage.on_frame(fr, index, frame_dt, out, info)
-            stage.write()
+            stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)
             c = stage.generator.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
