@@ -33,7 +33,6 @@ from ..errors import InputError, WhitecapError
 from ..io import read, write, write_mesh
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
-from ..io.writer import FrameWriter
 from ..io.record import Obstacle
 from ..io.run import (
     DOMAIN_RULE,
@@ -47,6 +46,7 @@ from ..io.run import (
     sequence_bounds,
     source_identity,
 )
+from ..io.writer import FrameWriter
 from ..progress import console, progress
 from . import ROLES, Case, CaseShape
 
