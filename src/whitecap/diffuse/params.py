@@ -62,7 +62,7 @@ class FoamParams:
     radius: float  # × fluid radius
     support: float  # × fluid radius
     slots_per_particle: int | None  # at most this many new particles per fluid particle and frame
-    max_particles: int | None  # None: budget.CAPACITY_HEADROOM × budget × fluid particles
+    max_particles: int | None  # None: budget.capacity_for (a little over budget × fluid particles)
     spray_lifetime: tuple | None  # (min, max) [s]; None: no countdown while spray
     bubble_lifetime: tuple | None  # (min, max) [s]; None: no countdown while a bubble
     # Made from [foam]'s other fields (MADE_FROM).
