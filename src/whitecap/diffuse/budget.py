@@ -233,9 +233,14 @@ def history_empty() -> tuple[np.ndarray, np.ndarray, int]:
     return np.zeros((0, HISTORY_SAMPLE, 5), np.float32), np.zeros(0, np.int64), 1
 
 
+def history_per_frame(stride: int) -> int:
+    """Fluid particles sampled from a frame while the history keeps one row per ``stride`` frames."""
+    return max(HISTORY_SAMPLE // stride, 1)
+
+
 def history_add(rows: np.ndarray, frames: np.ndarray, stride: int, frame_sample) -> tuple[np.ndarray, np.ndarray, int]:
     """The history with one frame more; ``frame_sample(m)``: that frame's (m, 5) samples, evenly spread."""
-    per = max(HISTORY_SAMPLE // stride, 1)
+    per = history_per_frame(stride)
     if not len(frames) or frames[-1] >= stride:
         rows = np.concatenate([rows, np.zeros((1, HISTORY_SAMPLE, 5), np.float32)])
         frames = np.concatenate([frames, [0]]).astype(np.int64)
@@ -254,7 +259,7 @@ def history_samples(rows: np.ndarray, frames: np.ndarray, stride: int) -> np.nda
     """All samples kept, each standing for the same share of a frame: (samples, 5)."""
     if not len(frames):
         return np.zeros((0, 5), np.float32)
-    per = max(HISTORY_SAMPLE // stride, 1)
+    per = history_per_frame(stride)
     return np.concatenate([rows[:-1].reshape(-1, 5), rows[-1, : int(frames[-1]) * per]])
 
 
@@ -264,7 +269,7 @@ def history_rates(
     """Each row's births per frame and fluid particle (its frames' mean) with thresholds τ now."""
     if not len(frames):
         return np.zeros(0)
-    per = max(HISTORY_SAMPLE // stride, 1)
+    per = history_per_frame(stride)
     pots = {"ta": rows[:, :, 0], "wc": rows[:, :, 1], "ke": rows[:, :, 2], "vo": rows[:, :, 3]}  # (rows, samples)
     # the last row's unfilled tail holds zero potentials, which make no births (φ(0, τmin, τmax) = 0 for τ ≥ 0)
     return births(pots, tau, k, dt).sum(axis=1).astype(np.float64) / (frames * per)

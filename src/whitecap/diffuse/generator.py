@@ -197,6 +197,11 @@ def uniform(seed: int, frame: int, pid: np.ndarray, slot, draw: int) -> np.ndarr
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
 
 
+def history_picks(n: int, m: int) -> np.ndarray:
+    """The m of n fluid particles (indices) a frame's history sample takes, spread evenly over the frame."""
+    return np.linspace(0, n - 1, m).astype(np.int64)
+
+
 class FoamGenerator:
     def __init__(self, params: FoamParams, radius: float, domain: tuple, gravity, seed: int, arch: str = "cpu",
                  obstacles: list | None = None):
@@ -358,7 +363,7 @@ class FoamGenerator:
             return  # nothing moves yet: nothing would be generated
 
         def sample(m: int) -> np.ndarray:  # m fluid particles spread evenly over the frame
-            pick = np.linspace(0, n - 1, m).astype(np.int64)
+            pick = history_picks(n, m)
             return np.stack([pots[k][pick] for k in ("ta", "wc", "ke", "vo")] + [moving[pick]], 1).astype(np.float32)
 
         st.history, st.history_frames, st.history_stride = B.history_add(
@@ -428,12 +433,13 @@ class FoamGenerator:
         return fx, fv, fid, (*g.query_args(), self.h, vs)
 
     def _energetic_floor(self) -> float | None:
-        """The kinetic energy below which a fluid particle surely makes nothing this frame (K.mark_energetic),
-        where the thresholds are fixed before the frame's potentials are seen (a preset's, or 'auto' set from
-        the whole run) and Whitecap's own potentials are used; else None: every particle's potentials are
-        computed (the running 'auto' of a simulation pools them all, FoamGenerator's model has its own)."""
+        """The kinetic energy below which a fluid particle surely makes nothing this frame (K.mark_energetic):
+        from the thresholds of a preset or of 'auto' set from the whole run, and under a simulation's running
+        'auto' from those of the frames before (they only rise: this frame's are at least these; the particles
+        its history samples are marked as well, _potential_arrays). None where every particle's potentials are
+        computed: FoamGenerator's model (its own potentials), and the running 'auto' until it has thresholds."""
         p = self.p
-        if p.model == "foamgenerator" or (p.auto and not self.looked_ahead):
+        if p.model == "foamgenerator" or (p.auto and not self.looked_ahead and self.state.tau is None):
             return None
         tau = np.asarray(self.thresholds(), np.float64)
         if not (np.isfinite(tau[4:6]).all() and tau[5] > tau[4]):
@@ -454,31 +460,32 @@ class FoamGenerator:
                          (("v_diff", "ta"), ("crest", "wc"), ("e_k", "ke"), ("vort", "vo")))
             return args, fx, fv, fid, pots
         ke_floor = self._energetic_floor() if energetic else None
-        fx, fv, fid, args = self._prepare(fluid, n, lists=ke_floor is None)
+        fx, fv, fid, args = self._prepare(fluid, n, lists=False)
         g = self.grid
         assert g is not None, "_prepare built the fluid grid"
         normal, surface = self._buffer("normal", n, vec=True), self._buffer("surface", n)
         v_diff, e_k, vort, crest = (self._buffer(k, n, ti.f32) for k in ("v_diff", "e_k", "vort", "crest"))
         lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
-        if ke_floor is not None:  # only where I_k can be > 0, and the normals the crests there read
-            mark = self._buffer("energetic", n)
-            K.mark_energetic(n, fv, ke_floor, e_k, mark, normal, surface, v_diff, vort, crest)
-            self._lists = True  # the owners' lists (classify_candidates): every owner is energetic
+        # Only where I_k can be > 0 and the normals the crests there read; without a floor, every particle
+        # (the same kernels: each compiled once, where a run may use both ways).
+        mark = self._buffer("energetic", n)
+        K.mark_energetic(n, fv, -math.inf if ke_floor is None else ke_floor, e_k, mark, normal, surface, v_diff,
+                         vort, crest)
+        if ke_floor is not None and self.p.auto and not self.looked_ahead:  # those the running 'auto' samples
+            picks = history_picks(n, B.history_per_frame(self.state.history_stride))
+            K.mark_rows(len(picks), self._upload("history_picks", picks.astype(np.int32), ti.i32), mark, K.ENERGETIC)
+        g.build_marked(n, mark, K.ENERGETIC)
+        self._lists = True  # the owners' lists (classify_candidates): every owner is marked
+        if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
+            self._foamgenerator_potentials(fx, fv, n, normal, v_diff, crest, e_k)
+            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
+        else:
             pots = (SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark)
-            g.build_marked(n, mark, K.ENERGETIC)
             K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC, True)
-            if K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
+            if ke_floor is not None and K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
                 g.build_marked(n, mark, K.CREST_NEIGHBOUR)
                 K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR, True)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC, True)
-        elif self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
-            self._foamgenerator_potentials(fx, fv, n, normal, v_diff, crest, e_k)
-            vort.fill(0.0)
-            K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
-        else:
-            K.fluid_potentials(n, fx, fv, *lists, self.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort,
-                               g.nb_count, 0, False)
-            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, g.nb_count, 0, False)
         self._pots = {
             "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
             "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],

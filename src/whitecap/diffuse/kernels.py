@@ -180,6 +180,13 @@ def mark_energetic(
 
 
 @ti.kernel
+def mark_rows(m: ti.i32, rows: I1, mark: I1, value: ti.i32):
+    """mark[rows[k]] = ``value`` for k < m."""
+    for k in range(m):
+        mark[rows[k]] = value
+
+
+@ti.kernel
 def mark_crest_neighbours(n: ti.i32, v: F3, normal: F3, surface: I1, nb_count: I1, nb: I2, mark: I1) -> ti.i32:
     """Marks CREST_NEIGHBOUR the IDLE neighbours of every ENERGETIC particle whose wave crest counts (on the
     surface, moving along its normal: δ_vn, with CREST_COS_MARGIN to spare): wave_crest reads their normals.
