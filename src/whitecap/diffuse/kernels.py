@@ -520,10 +520,14 @@ def owner_reach(
     point, so the test never calls spray what the grid's count would not. Where every candidate lies within
     the reach of its nearest probe (no candidate is further than r_V + half the probes' spacing from it, see
     new_particle, give or take REACH_ROUNDING), every reach is REACH_ALL: none of i's spray-only candidates
-    can be kept. Negative (no test) for the other particles and where spray_below > REACH_RANK."""
+    can be kept. Negative (no test) where spray_below > REACH_RANK. Nothing is written for the other particles:
+    only a spray-only slot's candidate reads its owner's probes (generate_candidates, classify_candidates), and
+    nine probes written for every fluid particle (18 MB a frame at 125k) cost more than the probes' work."""
     h_in = h * (1.0 - OWNER_SLACK)
     for i in range(n):
         spray_only = limit[i, SPRAY] > limit[i, FOAM] and limit[i, SPRAY] > limit[i, BUBBLE]
+        if not spray_only:
+            continue
         xi, vi = x[i], v[i]
         all_in = spray_only and spray_below <= REACH_RANK
         far = r_v + dt * vi.norm() / (2.0 * (REACH_PROBES - 1))
