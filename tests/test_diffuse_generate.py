@@ -302,3 +302,40 @@ def test_potentials_of_the_energetic_particles_alone_give_the_same_births(monkey
         for name in ("ta", "wc", "vo"):
             assert p1[name][hot].tobytes() == p2[name][hot].tobytes()
             assert not p1[name][m == G.K.IDLE].any()  # the others' are 0 (they make nothing)
+
+
+def test_a_simulations_running_auto_marks_its_history_sample_and_makes_the_same_particles(monkeypatch):
+    """Under a simulation's running 'auto' (thresholds from the frames so far, which only rise) the potentials
+    are computed from its second moving frame for the energetic particles and for those the history samples
+    alone: the thresholds, the scale and the diffuse particles are those of every particle's potentials."""
+    from whitecap.diffuse import budget as B, generator as G
+
+    def run(every: bool):
+        monkeypatch.setattr(B, "HISTORY_SAMPLE", 128)  # a sample of the splash's 1728 particles, not all of them
+        if every:
+            monkeypatch.setattr(G.FoamGenerator, "_energetic_floor", lambda self: None)
+        gen = _generator((1.0, 1.0, 1.0))
+        ke = 0.5 * (_splash().velocities.astype(np.float64) ** 2).sum(1)
+        # the multipliers set by the budget, the thresholds kept as set (the running 'auto' still samples)
+        names = ("ta_min", "ta_max", "wc_min", "wc_max", "ke_min", "ke_max", "vo_min", "vo_max")
+        gen.p = replace(gen.p, auto=True, budget=4.0, ke_min=float(np.quantile(ke, 0.7)), ke_max=float(ke.max()),
+                        explicit=frozenset(names))
+        gen.last_frame = 4  # the run's end, so the budget's scale is not held down for frames to come
+        out, idle = [], []
+        for k in range(5):
+            f = _splash()
+            f.positions = f.positions + k * DT * f.velocities
+            out.append(gen.step(f, k, DT))
+            idle.append(int((gen._bufs["energetic"].to_numpy()[:len(f)] == G.K.IDLE).sum()))
+        monkeypatch.undo()
+        return out, idle, gen
+
+    part, idle, g1 = run(False)
+    every, idle_every, g2 = run(True)
+    assert idle[0] == 0 and min(idle[1:]) > 100 and not any(idle_every)  # marked from the second frame on
+    assert sum(len(d) for d in part) > 1000
+    for a, b in zip(part, every):
+        for x, y in ((a.positions, b.positions), (a.ids, b.ids), (a.arrays["type"], b.arrays["type"])):
+            assert x.tobytes() == y.tobytes()
+    assert g1.state.tau.tobytes() == g2.state.tau.tobytes() and g1.state.scale == g2.state.scale
+    assert g1.state.history.tobytes() == g2.state.history.tobytes()

@@ -823,7 +823,9 @@ class FoamGenerator:
         lim, want = self._buffer("limit", m, cols=3), self._buffer("want", m, ti.f32, cols=3)
         K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, want, lim)
         chunk = min(total, CANDIDATE_CHUNK)
-        up = {"limit": CANDIDATE_CHUNK}  # grown geometrically, never past a chunk
+        # grown geometrically, never past a chunk; first made for as many as the live particles' capacity (a
+        # splash's candidates grow over its first frames: made at the first frame's count, they grew 5 times)
+        up = self._candidate_sizes()
         kd, owner = self._buffer("cand_kind", chunk, ti.i8, **up), self._buffer("cand_owner", chunk, **up)
         g = self.grid
         box = (p.spray_below, p.bubble_above, ti.math.vec3(*self.lo), ti.math.vec3(*self.hi),
@@ -875,6 +877,10 @@ class FoamGenerator:
                 K.scale_want(n, want, self._upload("cut", np.full(3, max(room, 0) / made.sum(), np.float32), ti.f32))
                 made = self._thinned()
         return int(made.sum()), [int(x) for x in made], lost
+
+    def _candidate_sizes(self) -> dict:
+        """_buffer's sizes for the candidates' arrays: at most a chunk, first made at the live capacity."""
+        return {"limit": CANDIDATE_CHUNK, "start": min(self.capacity or 0, CANDIDATE_CHUNK)}
 
     def _thinned(self) -> np.ndarray:
         """The kept candidates by type under the limits in 'want' (K.thin_kept: in place where one chunk holds
@@ -953,9 +959,10 @@ class FoamGenerator:
         p, st, b = self.p, self.state, self._bufs
         total, chunk, classify, thin = self._chunks
         kd, owner, off, fid = b["cand_kind"], b["cand_owner"], b["offset"], b["fluid_id"]
-        flag = self._buffer("cand_flag", chunk, limit=CANDIDATE_CHUNK)
-        rank = self._buffer("cand_rank", chunk, limit=CANDIDATE_CHUNK)
-        at, cx = self._buffer("cand_pos", chunk, limit=CANDIDATE_CHUNK), b["cand_x"]
+        up = self._candidate_sizes()
+        flag = self._buffer("cand_flag", chunk, **up)
+        rank = self._buffer("cand_rank", chunk, **up)
+        at, cx = self._buffer("cand_pos", chunk, **up), b["cand_x"]
         frame = index & 0xFFFFFFFF
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
