@@ -346,14 +346,16 @@ def for_each_neighbor(
     # Corner test with h grown by a hundredth of a cell, so that rounding in f never drops a column holding a neighbour.
     h_corner2 = (h + CORNER_SLACK * w) ** 2
     if ti.static(_no_stop(stop)):
-        for dx in ti.static(range(-reach, reach + 1)):
+        # A loop at run time over x (LLVM unrolls its 2·reach + 1 steps): one copy of the column scan in the
+        # kernel's source, not 2·reach + 1, which is what Taichi's front end takes its time over.
+        for dx in range(-reach, reach + 1):
             cx = c.x + dx
             if 0 <= cx < q.dims.x:
                 y0 = c.y - reach
                 y1 = c.y + reach
-                if ti.static(abs(dx) == reach):
-                    y0 += _corner_beyond(ps, cs, q.lower, w, dx, -reach, reach, h_corner2)
-                    y1 -= _corner_beyond(ps, cs, q.lower, w, dx, reach, reach, h_corner2)
+                if dx == reach or dx == -reach:
+                    y0 += _corner_beyond_at(ps, cs, q.lower, w, dx, -reach, reach, h_corner2)
+                    y1 -= _corner_beyond_at(ps, cs, q.lower, w, dx, reach, reach, h_corner2)
                 for cy in range(ti.max(y0, 0), ti.min(y1, q.dims.y - 1) + 1):
                     _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2,
                                  task, args, every_candidate)
@@ -398,6 +400,19 @@ def _corner_beyond(
         ey = (reach - 1) * w + f.y
         if ti.static(dy > 0):
             ey = reach * w - f.y
+        if ex * ex + ey * ey < h_corner2:
+            beyond = 0
+    return beyond
+
+
+@ti.func
+def _corner_beyond_at(ps: TEMPLATE, cs: TEMPLATE, lower: TEMPLATE, w, dx, dy, reach: TEMPLATE, h_corner2) -> ti.i32:
+    """:func:`_corner_beyond` for a slice dx known only at run time (|dx| = reach; dy = ±reach)."""
+    beyond = 1
+    for g in ti.static(range(len(ps))):
+        f = ps[g] - (lower + ti.cast(cs[g], ti.f32) * w)  # the point's offset inside its cell
+        ex = ti.select(dx > 0, dx * w - f.x, (-dx - 1) * w + f.x)
+        ey = ti.select(dy > 0, reach * w - f.y, (reach - 1) * w + f.y)
         if ex * ex + ey * ey < h_corner2:
             beyond = 0
     return beyond
