@@ -354,21 +354,48 @@ def for_each_neighbor(
                 y0 = c.y - reach
                 y1 = c.y + reach
                 if dx == reach or dx == -reach:
-                    y0 += _corner_beyond_at(ps, cs, q.lower, w, dx, -reach, reach, h_corner2)
-                    y1 -= _corner_beyond_at(ps, cs, q.lower, w, dx, reach, reach, h_corner2)
+                    y0 += _corner_beyond(ps, cs, q.lower, w, dx, -reach, reach, h_corner2)
+                    y1 -= _corner_beyond(ps, cs, q.lower, w, dx, reach, reach, h_corner2)
                 for cy in range(ti.max(y0, 0), ti.min(y1, q.dims.y - 1) + 1):
                     _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2,
                                  task, args, every_candidate)
     else:
-        for d in ti.static(nearest_columns(reach)):
-            cx = c.x + d[0]
-            cy = c.y + d[1]
-            go = ti.cast((0 <= cx) & (cx < q.dims.x) & (0 <= cy) & (cy < q.dims.y), ti.i32)
-            if ti.static(abs(d[0]) == reach and abs(d[1]) == reach):
-                go = go * (1 - _corner_beyond(ps, cs, q.lower, w, d[0], d[1], reach, h_corner2))
-            if go and not stop(*args):
-                _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2, task,
+        # The nine nearest columns unrolled, nearest first (most queries stop among them); each further ring
+        # of columns (|dx| or |dy| = k > 1) a loop at run time round it: one copy of the column scan for all
+        # of them (unrolled, the 25 copies made fluid_count's kernel the slowest of all to compile).
+        for d in ti.static([d for d in nearest_columns(reach) if max(abs(d[0]), abs(d[1])) <= 1]):
+            if not stop(*args):
+                _stop_column(ps, cs, c.x + d[0], c.y + d[1], d[0], d[1], z0, z1, q, scan, h2, w, h_corner2, task,
                              args, every_candidate)
+        for k in ti.static(range(2, reach + 1)):
+            for t in range(8 * k):  # the ring's columns: its sides along y at dx = ∓k, then along x at dy = ∓k
+                side = t // (2 * k + 1)
+                along = t % (2 * k + 1) - k
+                dx = ti.select(side == 0, -k, ti.select(side == 1, k, 0))
+                dy = along
+                if t >= 2 * (2 * k + 1):  # the rest of the ring: dy = ∓k, dx from −k + 1 to k − 1
+                    u = t - 2 * (2 * k + 1)
+                    dx = u % (2 * k - 1) - (k - 1)
+                    dy = ti.select(u < 2 * k - 1, -k, k)
+                if not stop(*args):
+                    _stop_column(ps, cs, c.x + dx, c.y + dy, dx, dy, z0, z1, q, scan, h2, w, h_corner2, task, args,
+                                 every_candidate)
+
+
+@ti.func
+def _stop_column(
+    ps: TEMPLATE, cs: TEMPLATE, cx, cy, dx, dy, z0, z1, q: TEMPLATE, scan: TEMPLATE, h2, w, h_corner2, task: TEMPLATE,
+    args: TEMPLATE, every_candidate: TEMPLATE,
+):
+    """Column (cx, cy) = the query's cell + (dx, dy) of a query with a ``stop`` (:func:`for_each_neighbor`), where
+    it lies in the grid and, at a corner of the scan, unless beyond h from every point."""
+    reach = ti.static(scan.reach)
+    go = ti.cast((0 <= cx) & (cx < q.dims.x) & (0 <= cy) & (cy < q.dims.y), ti.i32)
+    if (dx == reach or dx == -reach) and (dy == reach or dy == -reach):
+        go = go * (1 - _corner_beyond(ps, cs, q.lower, w, dx, dy, reach, h_corner2))
+    if go:
+        _scan_column(ps, cx, cy, z0, z1, q.lower, q.inv_cell, q.dims, q.x_sorted, q.start, scan, h2, task, args,
+                     every_candidate)
 
 
 def _no_stop(stop) -> bool:
@@ -384,30 +411,9 @@ def nearest_columns(reach: int) -> list[tuple[int, int]]:
 
 
 @ti.func
-def _corner_beyond(
-    ps: TEMPLATE, cs: TEMPLATE, lower: TEMPLATE, w, dx: TEMPLATE, dy: TEMPLATE,
-    reach: TEMPLATE, h_corner2,
-) -> ti.i32:
+def _corner_beyond(ps: TEMPLATE, cs: TEMPLATE, lower: TEMPLATE, w, dx, dy, reach: TEMPLATE, h_corner2) -> ti.i32:
     """1 if corner column (dx, dy) of the scan (|dx| = reach; dy = ±reach) can be left out: its nearest edge is at
     least h (grown by CORNER_SLACK cells: h_corner2) from every point ``ps[g]`` (in cell ``cs[g]``) in x-y."""
-    beyond = 1
-    for g in ti.static(range(len(ps))):
-        f = ps[g] - (lower + ti.cast(cs[g], ti.f32) * w)  # the point's offset inside its cell
-        # Distances from the point to the x slice and to the corner column's nearest edge along y.
-        ex = (-dx - 1) * w + f.x
-        if ti.static(dx > 0):
-            ex = dx * w - f.x
-        ey = (reach - 1) * w + f.y
-        if ti.static(dy > 0):
-            ey = reach * w - f.y
-        if ex * ex + ey * ey < h_corner2:
-            beyond = 0
-    return beyond
-
-
-@ti.func
-def _corner_beyond_at(ps: TEMPLATE, cs: TEMPLATE, lower: TEMPLATE, w, dx, dy, reach: TEMPLATE, h_corner2) -> ti.i32:
-    """:func:`_corner_beyond` for a slice dx known only at run time (|dx| = reach; dy = ±reach)."""
     beyond = 1
     for g in ti.static(range(len(ps))):
         f = ps[g] - (lower + ti.cast(cs[g], ti.f32) * w)  # the point's offset inside its cell
