@@ -1083,3 +1083,30 @@ def test_foam_thins_out_only_in_whitecaps_own_presets_not_in_foamgenerators(pres
     else:
         expected = n * np.exp(-FOAM_DISSIPATION * frames * dt)
         assert abs(len(out) - expected) < 0.15 * n
+
+
+def test_post_processing_reads_each_frame_ahead_once_and_names_a_bad_one(foam_run, tmp_path, monkeypatch):
+    """`whitecap foam` reads frame k + 1 on a thread while frame k is processed: each frame once there, in order
+    (frame 0 the look-ahead kept), and a frame that cannot be read stops the run with its own one-line error,
+    after the frames before it were written."""
+    import threading
+
+    from whitecap.diffuse import driver
+
+    run = tmp_path / "run"
+    shutil.copytree(foam_run, run)
+    reads: list[tuple[str, str]] = []
+    read = driver.read
+    monkeypatch.setattr(driver, "read", lambda p, *a, **kw: reads.append(
+        (Path(p).name, threading.current_thread().name)) or read(p, *a, **kw))
+    postprocess(run, show_progress=False)
+    ahead = [name for name, thread in reads if thread.startswith("whitecap-foam-reader")]
+    assert ahead == [f"fluid_{i:05d}.ply" for i in range(1, 13)]
+    bad = run / "fluid" / "fluid_00006.ply"
+    bad.write_bytes(bad.read_bytes()[:200])  # cut inside its rows
+    for f in (run / "diffuse").glob("diffuse_*.ply"):
+        f.unlink()
+    with pytest.raises(InputError, match="fluid_00006.ply"):
+        postprocess(run, show_progress=False)
+    assert sorted(f.name for f in (run / "diffuse").glob("diffuse_*.ply")) == [
+        f"diffuse_{i:05d}.ply" for i in range(6)]

@@ -16,10 +16,13 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -404,22 +407,49 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
 
 
 class _Reader:
-    """The run's fluid frames, each checked for velocities; the first and the sampled ones are kept."""
+    """The run's fluid frames, each checked for velocities; the first and the sampled ones are kept. With
+    :meth:`ahead`, frame k + 1 is read on a thread while frame k is processed (on a GPU the kernels run
+    meanwhile; on the CPU the file's bytes come in while Taichi's kernels hold the GIL)."""
 
     def __init__(self, files: list[tuple[int, Path]]):
         self.files = files
         self.cache: dict[int, ParticleFrame] = {}
+        self._pool: ThreadPoolExecutor | None = None
+        self._next: tuple[int, Future] | None = None
 
-    def read(self, k: int, keep: bool = False) -> ParticleFrame:
-        if k in self.cache:
-            return self.cache.pop(k) if not keep else self.cache[k]
+    def _load(self, k: int) -> ParticleFrame:
         path = self.files[k][1]
         fr = read(path)
         if fr.velocities is None:
             raise InputError(f"{path}: missing array 'velocity'")
+        return fr
+
+    def read(self, k: int, keep: bool = False) -> ParticleFrame:
+        if k in self.cache:
+            return self.cache.pop(k) if not keep else self.cache[k]
+        if self._next is not None and self._next[0] == k:
+            fr = self._next[1].result()  # its error (a bad file) raised here, for this frame
+            self._next = None
+        else:
+            fr = self._load(k)
         if keep:
             self.cache[k] = fr
         return fr
+
+    @contextlib.contextmanager
+    def ahead(self) -> Iterator["_Reader"]:
+        """Within the block, :meth:`read_next` starts reading a frame on a thread."""
+        with ThreadPoolExecutor(1, thread_name_prefix="whitecap-foam-reader") as pool:
+            self._pool = pool
+            try:
+                yield self
+            finally:
+                self._pool, self._next = None, None
+
+    def read_next(self, k: int) -> None:
+        """Frame k, read on the thread of :meth:`ahead` (unless kept, or past the last)."""
+        if self._pool is not None and k < len(self.files) and k not in self.cache:
+            self._next = (k, self._pool.submit(self._load, k))
 
     def first(self) -> ParticleFrame:
         return self.read(0, keep=True)
@@ -448,10 +478,11 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
                 show_progress: bool) -> None:
     """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
     bar = progress(disable=not show_progress)
-    with bar, FrameWriter(name="whitecap-foam-writer") as writer:
+    with bar, FrameWriter(name="whitecap-foam-writer") as writer, reader.ahead():
         task = bar.add_task("foam", total=len(reader.files), info="")
         for k, (index, _) in enumerate(reader.files):
             fr = reader.read(k)
+            reader.read_next(k + 1)  # on the reader's thread while this frame is processed
             fr.check_finite()
             fr.time = info.frame(index).time
             if convert:
