@@ -771,6 +771,10 @@ class FoamGenerator:
         through a kept numpy array: nothing allocated once the array is large enough."""
         n = len(rows)
         a = self._buffer(name, n, dtype, vec, **kw)
+        shape = tuple(a.shape) + ((3,) if vec else ())
+        if rows.shape == shape and rows.dtype == to_numpy_type(a.dtype) and rows.flags.c_contiguous:
+            a.from_numpy(rows)  # the whole array: straight from the caller's (one copy, not two)
+            return a
         h = self._staging(name, a)
         h[:n] = rows
         h[n:] = 0
