@@ -339,3 +339,47 @@ def test_a_simulations_running_auto_marks_its_history_sample_and_makes_the_same_
             assert x.tobytes() == y.tobytes()
     assert g1.state.tau.tobytes() == g2.state.tau.tobytes() and g1.state.scale == g2.state.scale
     assert g1.state.history.tobytes() == g2.state.history.tobytes()
+
+
+@pytest.mark.parametrize("still_makes", [False, True])
+def test_the_look_ahead_computes_the_moving_particles_potentials_alone(monkeypatch, still_makes):
+    """'auto' from the whole run takes its thresholds from the moving particles: the still ones' potentials
+    are not computed (0), which changes neither the thresholds nor the scale nor a byte of the output, and
+    where a still particle could still make something (τ_k,min set to 0) the frame's potentials are whole."""
+    from whitecap.diffuse import generator as G
+
+    def frames():
+        out = []
+        for k in range(4):
+            f = _splash()
+            f.positions = f.positions + k * DT * f.velocities
+            f.velocities[f.positions[:, 2] < f.positions[:, 2].mean()] = 0.0  # the lower half at rest
+            f.time = k * DT
+            out.append(f)
+        return out
+
+    def run(whole: bool):
+        calls = []
+        pot = G.FoamGenerator.potentials
+        monkeypatch.setattr(G.FoamGenerator, "potentials", lambda self, f, moving_only=False: calls.append(
+            moving_only and not whole) or pot(self, f, moving_only and not whole))
+        gen = _generator((1.0, 1.0, 1.0))
+        fr = frames()
+        ke = 0.5 * (fr[0].velocities.astype(np.float64) ** 2).sum(1)
+        names = ("ta_min", "ta_max", "wc_min", "wc_max", "ke_min", "ke_max", "vo_min", "vo_max")
+        # the thresholds kept as set (the percentiles still computed), the multipliers set by the budget
+        gen.p = replace(gen.p, auto=True, budget=4.0, ke_min=0.0 if still_makes else float(np.quantile(ke, 0.8)),
+                        ke_max=float(ke.max()), explicit=frozenset(names))
+        gen.calibrate([fr[0], fr[3]], np.arange(4) * DT, np.full(4, float(len(fr[0]))), DT, [0, 1, 2, 3], [0, 3])
+        out = [gen.step(f, k, DT) for k, f in enumerate(fr)]
+        monkeypatch.undo()
+        return out, gen, calls
+
+    part, g1, calls = run(False)
+    whole, g2, _ = run(True)
+    assert calls[:2] == [True, True]  # the moving particles' alone first
+    assert (len(calls) > 2) == still_makes  # then whole where a still particle may make something
+    assert g1.state.tau.tobytes() == g2.state.tau.tobytes() and g1.state.scale == g2.state.scale
+    assert sum(len(d) for d in part) > 1000
+    for a, b in zip(part, whole):
+        assert a.positions.tobytes() == b.positions.tobytes() and a.ids.tobytes() == b.ids.tobytes()

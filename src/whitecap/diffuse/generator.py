@@ -291,10 +291,13 @@ class FoamGenerator:
                 tau[k] = base[k]
         return tau
 
-    def potentials(self, fluid: ParticleFrame) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The four potentials per fluid particle and whether it moves: what 'auto' reads from a frame."""
-        self._potential_arrays(fluid, len(fluid))
-        return self._pots, self._moving(fluid)
+    def potentials(self, fluid: ParticleFrame, moving_only: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The four potentials per fluid particle and whether it moves: what 'auto' reads from a frame. With
+        ``moving_only``, those of the particles that do not move are 0 but their kinetic energy (the
+        thresholds are percentiles over the moving ones alone; see calibrate)."""
+        moving = self._moving(fluid)
+        self._potential_arrays(fluid, len(fluid), only=moving if moving_only else None)
+        return self._pots, moving
 
     def _moving(self, fluid: ParticleFrame) -> np.ndarray:
         return np.linalg.norm(_velocities(fluid), axis=1) > B.moving_speed(self.g_norm, self.h)
@@ -308,12 +311,21 @@ class FoamGenerator:
         interpolated ones and the scale is set again (see _replan). With ``sample_indices`` (the
         samples' frame numbers), their potentials are kept until :meth:`step` reaches them, which
         then does not compute them again (see _known)."""
-        got = [self.potentials(f) for f in samples]
-        if sample_indices is not None:
-            self._known = {int(i): g[0] for i, g in zip(sample_indices, got)}
+        got = [self.potentials(f, moving_only=True) for f in samples]
         pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
         tau = self._auto_tau(pooled, np.concatenate([g[1] for g in got]))
         self.state.tau = tau
+        self.looked_ahead = True
+        # The particles that do not move make nothing when their kinetic energy is below the frame's floor
+        # (_energetic_floor: as a still particle's always is, unless τ_k,min was set to about 0): then their
+        # potentials, left 0, change no birth rate here nor any birth when step uses them. Else whole ones.
+        floor = self._energetic_floor()
+        for k, (f, (pots, moving)) in enumerate(zip(samples, got)):
+            still = pots["ke"][~moving]
+            if len(still) and (floor is None or float(still.max()) >= floor):
+                got[k] = self.potentials(f)
+        if sample_indices is not None:
+            self._known = {int(i): g[0] for i, g in zip(sample_indices, got)}
         if self._scaled():
             k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
             t_s = np.array([f.time for f in samples], np.float64)
@@ -322,7 +334,6 @@ class FoamGenerator:
             self._plan = (B.survival_matrix(times, self.p, dt), rate, np.asarray(n_fluid, np.float64),
                           {int(i): k for k, i in enumerate(indices if indices is not None else range(len(times)))})
             self._set_scale()
-        self.looked_ahead = True
         self._say_auto(f"whole run, {len(samples)} frames sampled")
 
     def _set_scale(self) -> None:
@@ -447,7 +458,7 @@ class FoamGenerator:
         return float(np.float32(tau[4]) * (1.0 - K.KE_MARGIN)) if tau[4] > 0 else -1.0
 
     def _potential_arrays(self, fluid: ParticleFrame, n: int, known: dict[str, np.ndarray] | None = None,
-                          energetic: bool = False):
+                          energetic: bool = False, only: np.ndarray | None = None):
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots); ``known``: the frame's
         potentials as calibrate computed them, uploaded instead of computed again (the same values). With
         ``energetic`` and fixed thresholds (_energetic_floor), the potentials other than E_k are computed only
@@ -474,6 +485,9 @@ class FoamGenerator:
         if ke_floor is not None and self.p.auto and not self.looked_ahead:  # those the running 'auto' samples
             picks = history_picks(n, B.history_per_frame(self.state.history_stride))
             K.mark_rows(len(picks), self._upload("history_picks", picks.astype(np.int32), ti.i32), mark, K.ENERGETIC)
+        if only is not None:  # the given particles alone (and the normals their crests read)
+            K.mark_where(n, self._upload("only", only.astype(np.int32), ti.i32), mark)
+        subset = ke_floor is not None or only is not None
         g.build_marked(n, mark, K.ENERGETIC)
         self._lists = True  # the owners' lists (classify_candidates): every owner is marked
         if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)
@@ -482,7 +496,7 @@ class FoamGenerator:
         else:
             pots = (SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark)
             K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC, True)
-            if ke_floor is not None and K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
+            if subset and K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
                 g.build_marked(n, mark, K.CREST_NEIGHBOUR)
                 K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR, True)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC, True)
