@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import subprocess
@@ -358,9 +359,11 @@ def _potentials(x, v, r=0.01):
     normal, surface = ti.Vector.ndarray(3, ti.f32, n), ti.ndarray(ti.i32, n)
     v_diff, e_k, vort, crest = (ti.ndarray(ti.f32, n) for _ in range(4))
     lists = (g.nb_count, g.nb, g.pad, g.max_neighbors)
-    K.fluid_potentials(n, fx, fv, *lists, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, g.nb_count, 0,
-                       False)  # every particle's (no marks)
-    K.wave_crest(n, fx, fv, *lists, normal, surface, gen.h, crest, g.nb_count, 0, False)
+    mark = ti.ndarray(ti.i32, n)
+    K.mark_energetic(n, fv, -math.inf, e_k, mark, normal, surface, v_diff, vort, crest)  # every particle marked
+    K.fluid_potentials(n, fx, fv, *lists, gen.h, SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark,
+                       K.ENERGETIC)
+    K.wave_crest(n, fx, fv, *lists, normal, surface, gen.h, crest, mark, K.ENERGETIC)
     return v_diff.to_numpy(), crest.to_numpy(), e_k.to_numpy(), surface.to_numpy().astype(bool)
 
 

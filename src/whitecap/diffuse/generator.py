@@ -495,11 +495,11 @@ class FoamGenerator:
             K.zero_below(n, g.nb_count, SP.MIN_NEIGHBOURS, e_k)  # too few neighbours: I_k = 0, no generation
         else:
             pots = (SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark)
-            K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC, True)
+            K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC)
             if subset and K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
                 g.build_marked(n, mark, K.CREST_NEIGHBOUR)
-                K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR, True)
-            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC, True)
+                K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
+            K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC)
         self._pots = {
             "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
             "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],
@@ -867,8 +867,10 @@ class FoamGenerator:
             K.classify_candidates(size, base, owner, off, lim, cx, cl, fx, g.nb_count, g.nb, int(self._lists), probe,
                                   reach, *args[:3], *box, kd)
 
-        def thin(base: int, size: int, tally) -> None:
-            K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up, tally)
+        def thin(base: int, size: int, tally=None) -> None:
+            K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up)
+            if tally is not None:
+                K.tally_kinds(size, kd, tally)
 
         self._chunks = (total, chunk, classify, thin)
         tally = self._buffer("tally", 3)
@@ -985,14 +987,13 @@ class FoamGenerator:
         lo, hi = ti.math.vec3(*self.lo), ti.math.vec3(*self.hi)
         rng = [ti.math.vec3(r[0], r[1] - r[0], 1.0) if r is not None else ti.math.vec3(0.0)
                for r in (p.spray_lifetime, p.bubble_lifetime)]
-        scratch = self._buffer("tally_scratch", 3)
         kept_before, placed = 0, 0
         for base in range(0, total, chunk):
             size = min(chunk, total - base)
             if total > chunk:  # the chunk's types again, thinned as _generate thinned them
                 classify(base, size)
                 if self._thin:
-                    thin(base, size, scratch)
+                    thin(base, size)
             K.kept_flags(size, kd, flag)
             kept = self._scan(size, flag, rank)
             if kept:

@@ -79,7 +79,6 @@ def fluid_potentials(
     vort: F1,
     mark: I1,
     value: ti.i32,
-    marked: TEMPLATE,
 ):
     """Per fluid particle: surface normal n̂_i (from the colour-field gradient,
     −∇c ∝ Σ_j x̂_ij W̃), trapped-air v_i^diff = Σ_j |v_ij|(1 − v̂_ij·x̂_ij) W̃,
@@ -87,11 +86,10 @@ def fluid_potentials(
     The neighbour loop runs over the padded list (sim.pbf.padded_count: ``pad``, ``cap`` are the grid's
     NeighborGrid.pad and max_neighbors) and masks, without a branch, the pairs outside 0 < r < h (the pads
     are i itself, r = 0): so LLVM vectorises it ``pad`` neighbours at a time, as the solver's loops.
-    With ``marked`` (compile time), only the particles with mark[i] == ``value`` (see mark_energetic)."""
+    Only the particles with mark[i] == ``value`` (see mark_energetic; there every particle may be marked)."""
     for i in range(n):
-        if ti.static(marked):
-            if mark[i] != value:
-                continue
+        if mark[i] != value:
+            continue
         xi = x[i]
         vi = v[i]
         grad = vec3(0.0)
@@ -124,15 +122,14 @@ def fluid_potentials(
 @ti.kernel
 def wave_crest(
     n: ti.i32, x: F3, v: F3, nb_count: I1, nb: I2, pad: TEMPLATE, cap: TEMPLATE, normal: F3, surface: I1,
-    h: ti.f32, crest: F1, mark: I1, value: ti.i32, marked: TEMPLATE,
+    h: ti.f32, crest: F1, mark: I1, value: ti.i32,
 ):
     """κ_i = Σ_j (1 − n̂_i·n̂_j) W̃ over convex neighbours (x̂_ji·n̂_i < 0), times
     δ_vn = [v̂_i·n̂_i ≥ CREST_MOTION_COS]; zero away from the surface. Its neighbour loop is masked and
-    padded, as fluid_potentials'. With ``marked`` (compile time), only where mark[i] == ``value``."""
+    padded, as fluid_potentials'. Only where mark[i] == ``value``."""
     for i in range(n):
-        if ti.static(marked):
-            if mark[i] != value:
-                continue
+        if mark[i] != value:
+            continue
         kappa = 0.0
         if surface[i] == 1:
             ni = normal[i]
@@ -796,13 +793,11 @@ def kept_flags(total: ti.i32, kind: B1, flag: I1):
 @ti.kernel
 def thin_kept(
     m: ti.i32, base: ti.i32, kind: B1, owner: I1, offset: I1, want: F2, ids: U1, seed: ti.u32, frame: ti.u32,
-    round_half_up: ti.i32, tally: I1,
+    round_half_up: ti.i32,
 ):
     """The keep rule again with lower limits (``want`` after scale_want's cuts for the budget) on the chunk of
     candidates base + j (j < m; their types in kind[j]): a kept candidate whose slot reaches its type's new
-    limit is no longer kept. Adds the kept by type to tally[0..3) (integer sums, per thread as tally_kinds': the
-    same whatever the order)."""
-    c0, c1, c2 = 0, 0, 0
+    limit is no longer kept (tally_kinds counts those still kept)."""
     for j in range(m):
         t = ti.cast(kind[j], ti.i32)
         if t >= 0:
@@ -811,13 +806,6 @@ def thin_kept(
             u0 = rand01(seed, frame, ids[i], ti.u32(ROUNDING_SLOT), ti.u32(0))
             if k - offset[i] >= rounded(want[i, t], u0, round_half_up):
                 kind[j] = ti.cast(NOT_KEPT, ti.i8)
-            else:
-                c0 += ti.cast(t == 0, ti.i32)
-                c1 += ti.cast(t == 1, ti.i32)
-                c2 += ti.cast(t == 2, ti.i32)
-    tally[0] += c0
-    tally[1] += c1
-    tally[2] += c2
 
 
 @ti.kernel

@@ -318,7 +318,7 @@ def for_each_neighbor(
     along z of each (x, y) column are adjacent in the cell numbering (dense) or in
     the buckets (hashed), so one contiguous run of the sorted order covers them,
     read from memory in order (hashed: two where the buckets wrap round the table's end).
-    The loop over x is unrolled at compile time. In the two outer x slices
+    The loop over x runs at run time (one copy of the column scan). In the two outer x slices
     (dx = ±reach) the corner columns (dy = ±reach) are left out when their
     nearest edge is at least h from every point in x-y, which happens about two
     times in three for a point spread evenly in its cell: with cells of h/2 that
@@ -326,8 +326,8 @@ def for_each_neighbor(
     about 10 % less time (measured at 115k particles).
 
     With ``stop`` (compile time: a function of ``*args`` returning whether the
-    query has learnt enough, or None), the columns are scanned nearest first
-    (:func:`nearest_columns`, the same corner test) and ``stop(*args)`` is asked
+    query has learnt enough, or None), the nine nearest columns are scanned nearest
+    first (:func:`nearest_columns`), then each further ring of them, with the same corner test; ``stop(*args)`` is asked
     before each: once it holds, the rest are skipped. Only a task whose result
     does not depend on the order it meets the candidates in can use it (a count
     that need only be known up to a threshold: :func:`~whitecap.diffuse.kernels.fluid_count`)."""
