@@ -374,3 +374,29 @@ def test_a_grid_built_without_lists_sorts_as_one_with_them(layout):
         assert (getattr(full, name).to_numpy() == getattr(bare, name).to_numpy()).all(), name
     assert (full.x_sorted.to_numpy() == x[full.order.to_numpy()]).all()
     assert (bare.nb_count.to_numpy() == -1).all()  # no lists were built
+
+
+def test_an_unfilled_array_is_a_taichi_array_that_kernels_write_and_read():
+    """runtime.empty_ndarray (the neighbour lists, the live diffuse particles): the same types and shapes as
+    ti.ndarray's, and what a kernel writes is what is read back, for scalars, rows and vectors."""
+    import taichi as ti
+
+    from whitecap.sim import runtime
+
+    runtime.init("cpu")
+    rows = runtime.empty_ndarray(ti.i32, (7, 5))
+    vecs = runtime.empty_ndarray(ti.f32, 9, 3)
+    assert isinstance(rows, type(ti.ndarray(ti.i32, (1, 1)))) and rows.shape == (7, 5)
+    assert isinstance(vecs, type(ti.Vector.ndarray(3, ti.f32, 1))) and vecs.shape == (9,) and vecs.n == 3
+
+    @ti.kernel
+    def write(a: ti.types.ndarray(dtype=ti.i32, ndim=2), v: ti.types.ndarray(dtype=ti.math.vec3, ndim=1)):
+        for i, j in a:
+            a[i, j] = 10 * i + j
+        for p in v:
+            v[p] = ti.math.vec3(p, -p, 0.5 * p)
+
+    write(rows, vecs)
+    assert (rows.to_numpy() == 10 * np.arange(7)[:, None] + np.arange(5)).all()
+    p = np.arange(9, dtype=np.float32)
+    assert np.array_equal(vecs.to_numpy(), np.stack([p, -p, 0.5 * p], 1))

@@ -585,9 +585,10 @@ class FoamGenerator:
         for k in ("live_keep", "live_pos"):
             self._bufs.pop(k, None)
         for _ in range(2):
-            self._live.append({"x": ti.Vector.ndarray(3, ti.f32, rows), "v": ti.Vector.ndarray(3, ti.f32, rows),
-                               "life": ti.ndarray(ti.f32, rows), "ids": ti.ndarray(ti.u32, rows),
-                               "kind": ti.ndarray(ti.i32, rows)})
+            # unfilled (runtime.empty_ndarray): the rows past the live count are never read
+            self._live.append({"x": runtime.empty_ndarray(ti.f32, rows, 3), "v": runtime.empty_ndarray(ti.f32, rows, 3),
+                               "life": runtime.empty_ndarray(ti.f32, rows), "ids": runtime.empty_ndarray(ti.u32, rows),
+                               "kind": runtime.empty_ndarray(ti.i32, rows)})
         self._cur = 0
         self._buffer("live_keep", rows)
         self._buffer("live_pos", rows)
@@ -750,12 +751,13 @@ class FoamGenerator:
 
     # ------------------------------------------------------------------ Taichi arrays kept from frame to frame
     def _buffer(self, name: str, size: int, dtype=ti.i32, vec: bool = False, cols: int = 0, start: int = 0,
-                limit: int | None = None):
+                limit: int | None = None, zeroed: bool = True):
         """A Taichi array of at least ``size`` rows kept from frame to frame (in self._bufs), grown
         geometrically (never allocated per frame once the run's largest frame has been seen): ``start`` rows
         at least when first made, and never grown past ``limit`` rows unless ``size`` needs it. (Taichi does
         not give an array's memory back to the process when the array goes: every array made per frame would
-        grow the memory in use, on the CPU and on CUDA.)"""
+        grow the memory in use, on the CPU and on CUDA.) ``zeroed=False``: made unfilled
+        (runtime.empty_ndarray), for an array whose rows are written before they are read."""
         bufs = self._bufs
         a = bufs.get(name)
         if a is None or a.shape[0] < size:
@@ -765,10 +767,13 @@ class FoamGenerator:
             bufs.pop(name, None)  # the old array goes before the new one is made
             self._host.pop(name, None)
             a = None
-            if vec:
+            shape = (rows, cols) if cols else rows
+            if not zeroed:
+                a = runtime.empty_ndarray(ti.f32 if vec else dtype, shape, 3 if vec else 0)
+            elif vec:
                 a = ti.Vector.ndarray(3, ti.f32, rows)
             else:
-                a = ti.ndarray(dtype, (rows, cols) if cols else rows)
+                a = ti.ndarray(dtype, shape)
             bufs[name] = a
         return a
 
@@ -899,8 +904,9 @@ class FoamGenerator:
         return int(made.sum()), [int(x) for x in made], lost
 
     def _candidate_sizes(self) -> dict:
-        """_buffer's sizes for the candidates' arrays: at most a chunk, first made at the live capacity."""
-        return {"limit": CANDIDATE_CHUNK, "start": min(self.capacity or 0, CANDIDATE_CHUNK)}
+        """_buffer's sizes for the candidates' arrays: at most a chunk, first made at the live capacity; unfilled
+        (each kernel writes a chunk's rows before the next reads them)."""
+        return {"limit": CANDIDATE_CHUNK, "start": min(self.capacity or 0, CANDIDATE_CHUNK), "zeroed": False}
 
     def _thinned(self) -> np.ndarray:
         """The kept candidates by type under the limits in 'want' (K.thin_kept: in place where one chunk holds

@@ -779,7 +779,7 @@ class NeighborGrid:
         self.start = ti.ndarray(ti.i32, nc + 1)  # the counts while sorting, then each entry's first slot
         self.bsum = ti.ndarray(ti.i32, len_blocks(nc))
         self.nb_count = ti.ndarray(ti.i32, capacity)
-        self.nb = ti.ndarray(ti.i32, (capacity, max_neighbors))
+        self.nb = runtime.empty_ndarray(ti.i32, (capacity, max_neighbors))  # a row is read up to its written count
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow_count = ti.ndarray(ti.i32, 1)  # pairs that did not fit, added up by _build_lists
         self.overflow_count.fill(0)
