@@ -530,33 +530,31 @@ def owner_reach(
     nine probes written for every fluid particle (18 MB a frame at 125k) cost more than the probes' work."""
     h_in = h * (1.0 - OWNER_SLACK)
     for i in range(n):
-        spray_only = limit[i, SPRAY] > limit[i, FOAM] and limit[i, SPRAY] > limit[i, BUBBLE]
-        if not spray_only:
-            continue
+        if limit[i, SPRAY] <= limit[i, FOAM] or limit[i, SPRAY] <= limit[i, BUBBLE]:
+            continue  # no spray-only slot
         xi, vi = x[i], v[i]
-        all_in = spray_only and spray_below <= REACH_RANK
+        all_in = spray_below <= REACH_RANK
         far = r_v + dt * vi.norm() / (2.0 * (REACH_PROBES - 1))
         far += REACH_ROUNDING * (ti.max(ti.abs(xi).max(), 1.0) + far)
         for k in range(REACH_PROBES):  # (a loop, not unrolled: a ninth of the kernel to compile)
             c = xi + (k / (REACH_PROBES - 1) * dt) * vi
             r = -1.0
-            if spray_only:
-                if spray_below <= 0:  # nothing is spray
-                    r = REACH_ALL
-                elif spray_below <= REACH_RANK:
-                    best = ti.Vector([REACH_ALL] * REACH_RANK, ti.f32)  # the smallest distances, ascending
-                    best[0] = (xi - c).norm()
-                    for m in range(nb_count[i]):
-                        d = (x[nb[i, m]] - c).norm()
-                        for t in ti.static(range(REACH_RANK)):  # insertion without branches
-                            lo = ti.min(best[t], d)
-                            d = ti.max(best[t], d)
-                            best[t] = lo
-                    dk = REACH_ALL
-                    for t in ti.static(range(REACH_RANK)):
-                        dk = ti.select(t == spray_below - 1, best[t], dk)
-                    r = h_in - dk
-                    all_in = all_in and far < r
+            if spray_below <= 0:  # nothing is spray
+                r = REACH_ALL
+            elif spray_below <= REACH_RANK:
+                best = ti.Vector([REACH_ALL] * REACH_RANK, ti.f32)  # the smallest distances, ascending
+                best[0] = (xi - c).norm()
+                for m in range(nb_count[i]):
+                    d = (x[nb[i, m]] - c).norm()
+                    for t in ti.static(range(REACH_RANK)):  # insertion without branches
+                        lo = ti.min(best[t], d)
+                        d = ti.max(best[t], d)
+                        best[t] = lo
+                dk = REACH_ALL
+                for t in ti.static(range(REACH_RANK)):
+                    dk = ti.select(t == spray_below - 1, best[t], dk)
+                r = h_in - dk
+                all_in = all_in and far < r
             probe[i * REACH_PROBES + k] = c
             reach[i * REACH_PROBES + k] = r
         if all_in:
