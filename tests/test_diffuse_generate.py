@@ -341,45 +341,74 @@ def test_a_simulations_running_auto_marks_its_history_sample_and_makes_the_same_
     assert g1.state.history.tobytes() == g2.state.history.tobytes()
 
 
-@pytest.mark.parametrize("still_makes", [False, True])
-def test_the_look_ahead_computes_the_moving_particles_potentials_alone(monkeypatch, still_makes):
-    """'auto' from the whole run takes its thresholds from the moving particles: the still ones' potentials
-    are not computed (0), which changes neither the thresholds nor the scale nor a byte of the output, and
-    where a still particle could still make something (τ_k,min set to 0) the frame's potentials are whole."""
-    from whitecap.diffuse import generator as G
+def test_sample_slots_are_runs_spread_over_the_whole_order():
+    from whitecap.diffuse import budget as B
 
-    def frames():
+    assert (B.sample_slots(1000, 1000) == np.arange(1000)).all() and (B.sample_slots(10, 64) == np.arange(10)).all()
+    n, m = 100_003, 4096
+    s = B.sample_slots(n, m)
+    runs = s.reshape(-1, B.SAMPLE_RUN)
+    assert len(s) == m and len(np.unique(s)) == m and s.min() == 0 and s.max() == n - 1
+    assert (np.diff(runs, axis=1) == 1).all()  # each a run of consecutive slots
+    gaps = runs[1:, 0] - runs[:-1, 0]
+    assert gaps.min() >= B.SAMPLE_RUN and gaps.max() - gaps.min() <= 1  # evenly spread, apart
+
+
+def test_the_look_ahead_takes_the_thresholds_and_births_from_a_sample_of_each_frame(monkeypatch):
+    """'auto' post-processing takes its thresholds from at most LOOK_AHEAD_SAMPLE particles of each sampled
+    frame (in runs of the grid's cell order; E_k's from all): where a frame has no more, they are those of
+    all its moving particles; where it has more, only the lists of the sample and of the particles that can make
+    something are built, the thresholds stay within a few per cent of all particles', and each sampled frame's
+    predicted births are exact: what all particles' potentials give under those thresholds."""
+    from whitecap.diffuse import budget as B
+    from whitecap.sim import grid as grid_mod
+
+    def frames(n):
         out = []
-        for k in range(4):
-            f = _splash()
+        for k in range(3):
+            f = _splash(n)
             f.positions = f.positions + k * DT * f.velocities
-            f.velocities[f.positions[:, 2] < f.positions[:, 2].mean()] = 0.0  # the lower half at rest
+            f.velocities += np.random.default_rng(k).normal(0.0, 0.5, f.velocities.shape).astype(np.float32)
+            f.velocities[f.positions[:, 2] < np.quantile(f.positions[:, 2], 0.3)] = 0.0  # the bottom at rest
             f.time = k * DT
             out.append(f)
         return out
 
-    def run(whole: bool):
-        calls = []
-        pot = G.FoamGenerator.potentials
-        monkeypatch.setattr(G.FoamGenerator, "potentials", lambda self, f, moving_only=False: calls.append(
-            moving_only and not whole) or pot(self, f, moving_only and not whole))
+    def auto():
         gen = _generator((1.0, 1.0, 1.0))
-        fr = frames()
-        ke = 0.5 * (fr[0].velocities.astype(np.float64) ** 2).sum(1)
-        names = ("ta_min", "ta_max", "wc_min", "wc_max", "ke_min", "ke_max", "vo_min", "vo_max")
-        # the thresholds kept as set (the percentiles still computed), the multipliers set by the budget
-        gen.p = replace(gen.p, auto=True, budget=4.0, ke_min=0.0 if still_makes else float(np.quantile(ke, 0.8)),
-                        ke_max=float(ke.max()), explicit=frozenset(names))
-        gen.calibrate([fr[0], fr[3]], np.arange(4) * DT, np.full(4, float(len(fr[0]))), DT, [0, 1, 2, 3], [0, 3])
-        out = [gen.step(f, k, DT) for k, f in enumerate(fr)]
-        monkeypatch.undo()
-        return out, gen, calls
+        gen.p = replace(gen.p, auto=True, budget=4.0)
+        return gen
 
-    part, g1, calls = run(False)
-    whole, g2, _ = run(True)
-    assert calls[:2] == [True, True]  # the moving particles' alone first
-    assert (len(calls) > 2) == still_makes  # then whole where a still particle may make something
-    assert g1.state.tau.tobytes() == g2.state.tau.tobytes() and g1.state.scale == g2.state.scale
-    assert sum(len(d) for d in part) > 1000
-    for a, b in zip(part, whole):
-        assert a.positions.tobytes() == b.positions.tobytes() and a.ids.tobytes() == b.ids.tobytes()
+    def whole(gen, fr, tau=None):  # every particle's potentials: the thresholds of all, the births under tau
+        got = [gen.potentials(f) for f in fr]
+        pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
+        tau_all = gen._auto_tau(pooled, np.concatenate([g[1] for g in got]))
+        tau = tau_all if tau is None else tau
+        return tau_all, [B.birth_rate(g[0], tau, (gen.p.k_ta, gen.p.k_wc, gen.p.k_vo), DT) for g in got]
+
+    built = []
+    marked = grid_mod.NeighborGrid.build_marked
+
+    def counted(self, n, mark, value):
+        built.append(int((mark.to_numpy()[:n] == value).sum()))
+        return marked(self, n, mark, value)
+
+    monkeypatch.setattr(grid_mod.NeighborGrid, "build_marked", counted)
+    small = frames(12)  # 1,728 particles a frame: all taken
+    gen = auto()
+    gen.calibrate(small, np.arange(3) * DT, np.full(3, len(small[0]), float), DT)
+    tau = whole(auto(), small)[0]
+    assert gen.state.tau[[0, 1, 2, 3, 6, 7]].tobytes() == tau[[0, 1, 2, 3, 6, 7]].tobytes()
+    assert np.allclose(gen.state.tau[4:6], tau[4:6], rtol=1e-6)  # E_k's, from f64 (the device's are f32)
+
+    big = frames(30)  # 27,000 a frame, 4,096 taken
+    monkeypatch.setattr(B, "LOOK_AHEAD_SAMPLE", 4096)
+    built.clear()
+    gen = auto()
+    gen.calibrate(big, np.arange(3) * DT, np.full(3, len(big[0]), float), DT)
+    assert sum(built) < 0.3 * 3 * len(big[0])  # of 81,000 (the crests' neighbours' lists included)
+    assert min(built[0::2]) > 4096  # the sample's, and the energetic particles'
+    tau, rates = whole(auto(), big, gen.state.tau)
+    assert np.allclose(gen.state.tau, tau, rtol=0.05) and not np.array_equal(gen.state.tau, tau)
+    assert np.allclose(gen.state.tau[4:6], tau[4:6], rtol=1e-6)  # E_k's from every particle
+    assert np.allclose(gen._plan[1], rates, rtol=1e-9, atol=0) and min(rates) > 1  # each frame's births

@@ -57,6 +57,26 @@ HISTORY_ROWS = 64
 SAMPLE_FRAMES = 12
 SAMPLE_SHARE = 0.25
 MIN_SAMPLE_FRAMES = 3
+# Of each frame it samples, the look-ahead takes the potentials of at most this many fluid particles
+# (4 × the simulation's HISTORY_SAMPLE, since it samples 3-12 frames where the simulation samples every
+# one), in runs of SAMPLE_RUN consecutive ones in the neighbour grid's cell order spread evenly over the
+# frame: whole groups of the grid's list build, and neighbours, which share the normals their wave crests
+# read (evenly spread single particles each took a group of four and their own neighbours). The
+# percentiles then rest on 49k-197k particles whatever the fluid's size. On bench_foam's 98k sequence
+# (3 frames) they were within 0.2-1.9 % of all particles' (at most 3 %, runs placed five ways), as close
+# as a random sample of as many, where the frames sampled move them by several per cent (a run of 4
+# against one of 10 frames: 7 % on τ_ta,max).
+LOOK_AHEAD_SAMPLE = 4 * HISTORY_SAMPLE
+SAMPLE_RUN = 64
+
+
+def sample_slots(n: int, m: int) -> np.ndarray:
+    """m of the slots 0..n-1 (all where m ≥ n): runs of SAMPLE_RUN consecutive slots, spread evenly, apart."""
+    if m >= n:
+        return np.arange(n)
+    run = min(SAMPLE_RUN, m)
+    starts = np.linspace(0, n - run, max(m // run, 1)).astype(np.int64)
+    return (starts[:, None] + np.arange(run)).ravel()
 
 
 def sample_count(frames: int) -> int:

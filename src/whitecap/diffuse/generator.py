@@ -239,6 +239,7 @@ class FoamGenerator:
         # uses it: a sampled frame's potentials are computed once, not again when it is processed.
         self._known: dict[int, dict[str, np.ndarray]] = {}
         self._lists = False
+        self._sampled = np.zeros(0, np.int64)  # the particles _potential_arrays computed for its sample
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -291,45 +292,50 @@ class FoamGenerator:
                 tau[k] = base[k]
         return tau
 
-    def potentials(self, fluid: ParticleFrame, moving_only: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The four potentials per fluid particle and whether it moves: what 'auto' reads from a frame. With
-        ``moving_only``, those of the particles that do not move are 0 but their kinetic energy (the
-        thresholds are percentiles over the moving ones alone; see calibrate)."""
-        moving = self._moving(fluid)
-        self._potential_arrays(fluid, len(fluid), only=moving if moving_only else None)
-        return self._pots, moving
+    def potentials(self, fluid: ParticleFrame) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The four potentials of every fluid particle and whether it moves: what 'auto' reads from a frame."""
+        self._potential_arrays(fluid, len(fluid))
+        return self._pots, self._moving(fluid)
 
     def _moving(self, fluid: ParticleFrame) -> np.ndarray:
         return np.linalg.norm(_velocities(fluid), axis=1) > B.moving_speed(self.g_norm, self.h)
 
     def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
                   indices: list[int] | None = None, sample_indices: list[int] | None = None) -> None:
-        """Post-processing 'auto': thresholds from the potentials pooled over frames sampled
-        across the run (``samples``), then the scale that puts the predicted peak on the
-        budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``; frame
-        numbers ``indices``). As frames are processed their real birth rates replace the
-        interpolated ones and the scale is set again (see _replan). With ``sample_indices`` (the
-        samples' frame numbers), their potentials are kept until :meth:`step` reaches them, which
-        then does not compute them again (see _known)."""
-        got = [self.potentials(f, moving_only=True) for f in samples]
-        pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
-        tau = self._auto_tau(pooled, np.concatenate([g[1] for g in got]))
+        """Post-processing 'auto': thresholds from the potentials of frames sampled across the run
+        (``samples``), of at most B.LOOK_AHEAD_SAMPLE fluid particles of each, in runs of neighbours spread
+        evenly over the frame (_potential_arrays), the moving ones pooled; then the scale that puts the
+        predicted peak on the budget, predicted at every frame time in ``times`` (fluid counts ``n_fluid``;
+        frame numbers ``indices``) from each sample's births under those thresholds. As frames are processed
+        their real birth rates replace the interpolated ones and the scale is set again (see _replan). With
+        ``sample_indices`` (the samples' frame numbers), their potentials are kept until :meth:`step` reaches
+        them, which then does not compute them again (_known).
+
+        τ_k of the kinetic energy comes first, from every particle of the frames (E_k needs no neighbours; here
+        in f64, on the device in f32): the floor below which a particle makes nothing (_energetic_floor) is then
+        known before the other potentials, and one list build a frame serves both the sample and the births,
+        which are exact (those of every particle that can make something)."""
+        moving = [self._moving(f) for f in samples]
+        ke = np.concatenate([0.5 * (_velocities(f).astype(np.float64) ** 2).sum(1) for f in samples])
+        none = np.zeros_like(ke)
+        tau_k = self._auto_tau({"ta": none, "wc": none, "ke": ke, "vo": none}, np.concatenate(moving))
+        floor = self._energetic_floor(tau_k)
+        got, rows = [], []
+        for f in samples:
+            self._potential_arrays(f, len(f), sample=B.LOOK_AHEAD_SAMPLE, ke_floor=floor)
+            got.append(self._pots)
+            rows.append(self._sampled)
+        pooled = {k: np.concatenate([pots[k][r] for pots, r in zip(got, rows)]) for k in ("ta", "wc", "ke", "vo")}
+        tau = self._auto_tau(pooled, np.concatenate([m[r] for m, r in zip(moving, rows)]))
+        tau[4:6] = tau_k[4:6]
         self.state.tau = tau
         self.looked_ahead = True
-        # The particles that do not move make nothing when their kinetic energy is below the frame's floor
-        # (_energetic_floor: as a still particle's always is, unless τ_k,min was set to about 0): then their
-        # potentials, left 0, change no birth rate here nor any birth when step uses them. Else whole ones.
-        floor = self._energetic_floor()
-        for k, (f, (pots, moving)) in enumerate(zip(samples, got)):
-            still = pots["ke"][~moving]
-            if len(still) and (floor is None or float(still.max()) >= floor):
-                got[k] = self.potentials(f)
         if sample_indices is not None:
-            self._known = {int(i): g[0] for i, g in zip(sample_indices, got)}
+            self._known = {int(i): pots for i, pots in zip(sample_indices, got)}
         if self._scaled():
             k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
             t_s = np.array([f.time for f in samples], np.float64)
-            rate_s = np.array([B.birth_rate(g[0], tau, k0, dt) for g in got])
+            rate_s = np.array([B.birth_rate(pots, tau, k0, dt) for pots in got])
             rate = np.interp(times, t_s, rate_s)
             self._plan = (B.survival_matrix(times, self.p, dt), rate, np.asarray(n_fluid, np.float64),
                           {int(i): k for k, i in enumerate(indices if indices is not None else range(len(times)))})
@@ -443,34 +449,40 @@ class FoamGenerator:
         gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
         return fx, fv, fid, (*g.query_args(), self.h, vs)
 
-    def _energetic_floor(self) -> float | None:
+    def _energetic_floor(self, tau: np.ndarray | None = None) -> float | None:
         """The kinetic energy below which a fluid particle surely makes nothing this frame (K.mark_energetic):
         from the thresholds of a preset or of 'auto' set from the whole run, and under a simulation's running
         'auto' from those of the frames before (they only rise: this frame's are at least these; the particles
         its history samples are marked as well, _potential_arrays). None where every particle's potentials are
-        computed: FoamGenerator's model (its own potentials), and the running 'auto' until it has thresholds."""
+        computed: FoamGenerator's model (its own potentials), and the running 'auto' until it has thresholds.
+        With ``tau``, from those thresholds (calibrate's, before it sets them)."""
         p = self.p
-        if p.model == "foamgenerator" or (p.auto and not self.looked_ahead and self.state.tau is None):
+        if p.model == "foamgenerator" or (tau is None and p.auto and not self.looked_ahead and self.state.tau is None):
             return None
-        tau = np.asarray(self.thresholds(), np.float64)
+        tau = np.asarray(self.thresholds() if tau is None else tau, np.float64)
         if not (np.isfinite(tau[4:6]).all() and tau[5] > tau[4]):
             return None
         return float(np.float32(tau[4]) * (1.0 - K.KE_MARGIN)) if tau[4] > 0 else -1.0
 
     def _potential_arrays(self, fluid: ParticleFrame, n: int, known: dict[str, np.ndarray] | None = None,
-                          energetic: bool = False, only: np.ndarray | None = None):
+                          energetic: bool = False, sample: int | None = None, ke_floor: float | None = None):
         """Neighbours and the potentials (Taichi arrays; numpy copies in self._pots); ``known``: the frame's
         potentials as calibrate computed them, uploaded instead of computed again (the same values). With
         ``energetic`` and fixed thresholds (_energetic_floor), the potentials other than E_k are computed only
         where I_k can be > 0 (and the normals of their neighbours that the wave crest reads), 0 elsewhere:
-        the same births, for a fraction of the neighbour lists."""
+        the same births, for a fraction of the neighbour lists. With ``sample`` (a count) and ``ke_floor``,
+        those where E_k ≥ ``ke_floor`` and of ``sample`` particles alone, their indices in self._sampled: all,
+        or the slots B.sample_slots of the grid's cell order (calibrate's births and sample). Runs of slots
+        are whole groups of the lists' build (build_marked) and neighbours, which share the normals their
+        crests read: single particles spread evenly each took a group of four and their own neighbours'."""
         if known is not None and all(len(a) == n for a in known.values()):
             fx, fv, fid, args = self._prepare(fluid, n, lists=False)
             self._pots = known
             pots = tuple(self._upload(k, known[name], ti.f32) for k, name in
                          (("v_diff", "ta"), ("crest", "wc"), ("e_k", "ke"), ("vort", "vo")))
             return args, fx, fv, fid, pots
-        ke_floor = self._energetic_floor() if energetic else None
+        if energetic:
+            ke_floor = self._energetic_floor()
         fx, fv, fid, args = self._prepare(fluid, n, lists=False)
         g = self.grid
         assert g is not None, "_prepare built the fluid grid"
@@ -482,12 +494,16 @@ class FoamGenerator:
         mark = self._buffer("energetic", n)
         K.mark_energetic(n, fv, -math.inf if ke_floor is None else ke_floor, e_k, mark, normal, surface, v_diff,
                          vort, crest)
-        if ke_floor is not None and self.p.auto and not self.looked_ahead:  # those the running 'auto' samples
+        if energetic and ke_floor is not None and self.p.auto and not self.looked_ahead:  # running 'auto' samples
             picks = history_picks(n, B.history_per_frame(self.state.history_stride))
             K.mark_rows(len(picks), self._upload("history_picks", picks.astype(np.int32), ti.i32), mark, K.ENERGETIC)
-        if only is not None:  # the given particles alone (and the normals their crests read)
-            K.mark_where(n, self._upload("only", only.astype(np.int32), ti.i32), mark)
-        subset = ke_floor is not None or only is not None
+        self._sampled = np.arange(n)
+        if sample is not None and ke_floor is not None:  # these too (and the normals their crests read)
+            if n > sample:
+                self._sampled = g.order.to_numpy()[:n][B.sample_slots(n, sample)]
+            K.mark_rows(len(self._sampled), self._upload("sample", self._sampled.astype(np.int32), ti.i32), mark,
+                        K.ENERGETIC)
+        subset = ke_floor is not None
         g.build_marked(n, mark, K.ENERGETIC)
         self._lists = True  # the owners' lists (classify_candidates): every owner is marked
         if self.p.model == "foamgenerator":  # SPlisHSPlasH FoamGenerator's potentials (see .splishsplash)

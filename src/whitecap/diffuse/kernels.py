@@ -177,14 +177,6 @@ def mark_energetic(
 
 
 @ti.kernel
-def mark_where(n: ti.i32, only: I1, mark: I1):
-    """IDLE where only[i] is 0 (the others' marks kept)."""
-    for i in range(n):
-        if only[i] == 0:
-            mark[i] = IDLE
-
-
-@ti.kernel
 def mark_rows(m: ti.i32, rows: I1, mark: I1, value: ti.i32):
     """mark[rows[k]] = ``value`` for k < m."""
     for k in range(m):
