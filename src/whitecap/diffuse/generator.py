@@ -498,12 +498,11 @@ class FoamGenerator:
         if energetic and ke_floor is not None and self.p.auto and not self.looked_ahead:  # running 'auto' samples
             picks = history_picks(n, B.history_per_frame(self.state.history_stride))
             K.mark_rows(len(picks), self._upload("history_picks", picks.astype(np.int32), ti.i32), mark, K.ENERGETIC)
-        self._sampled = np.arange(n)
-        if sample is not None and ke_floor is not None:  # these too (and the normals their crests read)
-            if n > sample:
-                self._sampled = g.order.to_numpy()[:n][B.sample_slots(n, sample)]
-            K.mark_rows(len(self._sampled), self._upload("sample", self._sampled.astype(np.int32), ti.i32), mark,
-                        K.ENERGETIC)
+        if sample is not None:  # these too (and the normals their crests read); without a floor, every particle
+            self._sampled = np.arange(n) if n <= sample else g.order.to_numpy()[:n][B.sample_slots(n, sample)]
+            if ke_floor is not None:
+                K.mark_rows(len(self._sampled), self._upload("sample", self._sampled.astype(np.int32), ti.i32),
+                            mark, K.ENERGETIC)
         subset = ke_floor is not None
         g.build_marked(n, mark, K.ENERGETIC)
         self._lists = True  # the owners' lists (classify_candidates): every owner is marked
