@@ -11,8 +11,9 @@ Each timing runs in its own process (one Taichi runtime each), warmed up first o
 energetic particles only on a frame that 'auto' did not sample: three of four are; warmed on fewer,
 their compilation was timed). ``--against`` times another checkout's package on the same sequence too (e.g.
 ``git worktree add /tmp/old 80c2fce`` then ``--against /tmp/old/src``), the two alternating
-``--repeat`` times, and prints the best wall and CPU time of each and their ratios: on a shared,
-loaded machine the CPU time (both threads) is the steadier figure.
+``--repeat`` times, and prints the best wall and CPU time of each and their ratios, then the median and
+range of the ratios of each back-to-back pair: on a shared, loaded machine the CPU time (both threads)
+and the pairs' median are the steadier figures.
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.
@@ -147,6 +148,11 @@ def main() -> None:
         print(f"against {a.against}: {1e3 * o['wall']:.1f} ms/frame wall, CPU {1e3 * o['cpu']:.1f} ms/frame "
               f"({same} last counts); rate {o['wall'] / t_foam:.2f}x its rate by wall time, "
               f"{o['cpu'] / best['this']['cpu']:.2f}x by CPU time (issue 31's target: 2x)")
+        if a.repeat > 1:  # each repeat times the two back to back: their ratio is steadier than the bests' on a host
+            # whose speed drifts (±10 % from run to run on the shared development machine)
+            for m, what in (("wall", "wall time"), ("cpu", "CPU time")):
+                q = sorted(b[m] / t[m] for t, b in zip(got["this"], got["against"]))
+                print(f"  pair by pair ({len(q)}), {what}: median {np.median(q):.2f}x, {q[0]:.2f}-{q[-1]:.2f}x")
 
 
 if __name__ == "__main__":
