@@ -380,7 +380,10 @@ def test_the_look_ahead_takes_the_thresholds_and_births_from_a_sample_of_each_fr
         return gen
 
     def whole(gen, fr, tau=None):  # every particle's potentials: the thresholds of all, the births under tau
-        got = [gen.potentials(f) for f in fr]
+        got = []
+        for f in fr:
+            gen._potential_arrays(f, len(f))
+            got.append((gen._pots, gen._moving(f)))
         pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
         tau_all = gen._auto_tau(pooled, np.concatenate([g[1] for g in got]))
         tau = tau_all if tau is None else tau

@@ -292,14 +292,12 @@ class FoamGenerator:
                 tau[k] = base[k]
         return tau
 
-    def potentials(self, fluid: ParticleFrame) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The four potentials of every fluid particle and whether it moves: what 'auto' reads from a frame."""
-        self._potential_arrays(fluid, len(fluid))
-        return self._pots, self._moving(fluid)
-
-    def _moving(self, fluid: ParticleFrame) -> np.ndarray:
-        v = _velocities(fluid)
-        return np.einsum("ij,ij->i", v, v) > B.moving_speed(self.g_norm, self.h) ** 2  # |v|² (4× faster than |v|)
+    def _moving(self, fluid: ParticleFrame, speed2: np.ndarray | None = None) -> np.ndarray:
+        """Whether each fluid particle moves, from |v|² (``speed2`` where the caller has it)."""
+        if speed2 is None:
+            v = _velocities(fluid)
+            speed2 = np.einsum("ij,ij->i", v, v)  # 4× faster than |v|
+        return speed2 > B.moving_speed(self.g_norm, self.h) ** 2
 
     def calibrate(self, samples: list[ParticleFrame], times: np.ndarray, n_fluid: np.ndarray, dt: float,
                   indices: list[int] | None = None, sample_indices: list[int] | None = None) -> None:
@@ -316,8 +314,9 @@ class FoamGenerator:
         in f64, on the device in f32): the floor below which a particle makes nothing (_energetic_floor) is then
         known before the other potentials, and one list build a frame serves both the sample and the births,
         which are exact (those of every particle that can make something)."""
-        moving = [self._moving(f) for f in samples]
-        ke = np.concatenate([0.5 * (_velocities(f).astype(np.float64) ** 2).sum(1) for f in samples])
+        speed2 = [(_velocities(f).astype(np.float64) ** 2).sum(1) for f in samples]
+        moving = [self._moving(f, s) for f, s in zip(samples, speed2)]
+        ke = 0.5 * np.concatenate(speed2)
         none = np.zeros_like(ke)
         tau_k = self._auto_tau({"ta": none, "wc": none, "ke": ke, "vo": none}, np.concatenate(moving))
         floor = self._energetic_floor(tau_k)
