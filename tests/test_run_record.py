@@ -162,3 +162,35 @@ print("ok")
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_saving_after_each_frame_dumps_only_the_entries_that_changed(tmp_path, monkeypatch):
+    """Stages save run.json after every frame: the text is that of a whole dump, byte for byte, whatever
+    changed (a field assigned, a file or poses set, frames dropped), yet each save dumps only the new or
+    changed entries, so that a long run's saves do not grow with the frames before them."""
+    _write(tmp_path, _run_json(tmp_path))
+    info = RunInfo.load(tmp_path)
+    whole = lambda: json.dumps(info.model_dump(), indent=1)  # noqa: E731
+    dumped = []
+    frame_dump = Frame.model_dump
+    monkeypatch.setattr(Frame, "model_dump", lambda self, **kw: dumped.append(self.index) or frame_dump(self, **kw))
+    assert info.dumps() == json.dumps(_run_json(tmp_path), indent=1) and dumped == [0, 1]
+    for i in range(2, 40):
+        dumped.clear()
+        info.set_file(i, "fluid", f"fluid/fluid_{i:05d}.ply", i / 30)
+        info.set_bodies(i, [{"position": [0.01 * i, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]}])
+        info.frame(i).particles = 120 + i
+        assert info.dumps() == whole()
+        assert dumped == [i]  # the new entry only (a whole dump does not call Frame.model_dump)
+    changes = [(lambda: setattr(info.frame(7), "time", 0.5), [7]),
+               (lambda: info.set_file(3, "mesh", "m/3.ply"), [3]),
+               (lambda: setattr(info.frame(9), "render_key", "cc"), [9]),
+               (lambda: info.extra.update(k="\0frames\0"), [])]
+    for change, entries in changes:
+        change()
+        dumped.clear()
+        assert info.dumps() == whole() and dumped == entries
+    info.truncate(20)
+    assert info.dumps() == whole()
+    info.save(tmp_path)
+    assert RunInfo.load(tmp_path).dumps() == (tmp_path / "run.json").read_text() == whole()

@@ -23,14 +23,13 @@ never mixed in.
 from __future__ import annotations
 
 import contextlib
-import copy
 import functools
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError, WhitecapError
-from ..io import read, write, write_mesh
+from ..io import read, write, write_mesh, write_text
 from ..io.lock import LOCK_FILE, run_lock
 from ..io.mesh import SurfaceMesh
 from ..io.record import Obstacle
@@ -209,7 +208,7 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
             if moving:
                 info.set_bodies(index, [poses[k] for poses in moving])
             # after every frame, a snapshot (the loop goes on changing info): an interrupted import resumes here
-            writer.submit(functools.partial(copy.deepcopy(info).save, out), "run.json")
+            writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
             bar.update(task, advance=1, info=f"{len(fr):,} fluid")
     for k, (index, _) in enumerate(case.fluid):  # poses of frames converted earlier, too
         info.frame(index).time = float(times[k])

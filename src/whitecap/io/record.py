@@ -295,6 +295,17 @@ class Frame(_Record):
     particles: Integer | None = None
     mesh_settings: str | None = None
     render_key: str | None = None
+    #: the entry's run.json text as RunInfo.dumps last wrote it (None: changed since, written anew)
+    _text: str | None = None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        super().__setattr__(name, value)
+        if not name.startswith("_"):
+            self._text = None  # a field assigned: the text is rewritten on the next save
+
+    def changed(self) -> None:
+        """Say that ``files``, ``made_from`` or a pose was changed in place (an assignment says so itself)."""
+        self._text = None
 
 
 class RunRecord(_Run):

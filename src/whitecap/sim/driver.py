@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import abc
 import contextlib
-import copy
 import functools
 import time
 import tomllib
@@ -403,12 +402,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
             if rel:
                 info.set_file(index, h.name, rel, solver.time)
         with timer("output"):
-            # A snapshot: the loop goes on changing info while the writer saves this one, after the frame's files.
-            if isinstance(writer, _InlineWriter):
-                info.save(out)
-            else:
-                snapshot = copy.deepcopy(info)
-                writer.submit(functools.partial(snapshot.save, out), "run.json")
+            # Its text now (the loop goes on changing info), saved by the writer after the frame's files.
+            writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
 
     scene_text = scene.to_toml()
     if not from_checkpoint:  # else frame start_frame and those before it are done: never recompute them
