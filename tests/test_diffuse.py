@@ -1113,3 +1113,32 @@ def test_post_processing_reads_each_frame_ahead_once_and_names_a_bad_one(foam_ru
         postprocess(run, show_progress=False)
     assert sorted(f.name for f in (run / "diffuse").glob("diffuse_*.ply")) == [
         f"diffuse_{i:05d}.ply" for i in range(6)]
+
+
+def test_counts_csv_lists_every_row_so_far_each_formatted_once(monkeypatch):
+    """counts.csv is rewritten after every frame; its rows are formatted once each, yet the text is always
+    every row of the generator so far, a restored state's (a new list, shorter) included."""
+    from types import SimpleNamespace
+
+    from whitecap.config import Foam
+    from whitecap.diffuse import driver
+
+    stage = driver.FoamStage(resolve(Foam()), seed=0)
+    state = SimpleNamespace(counts=[])
+    stage.gen = SimpleNamespace(state=state)  # type: ignore[assignment]
+    formatted = []
+    line = driver.counts_line
+    monkeypatch.setattr(driver, "counts_line", lambda r: formatted.append(r[0]) or line(r))
+
+    def whole(rows):
+        return "frame,time,spray,foam,bubbles\n" + "".join(f"{r[0]},{r[1]:.6f},{r[2]},{r[3]},{r[4]}\n" for r in rows)
+
+    for i in range(5):
+        state.counts.append((i, i / 30, 10 * i, 20 * i, 30 * i))
+        assert stage._counts_csv() == whole(state.counts)
+    assert formatted == [0, 1, 2, 3, 4]
+    state.counts = [(0, 0.0, 0, 0, 0), (1, 1 / 30, 9, 9, 9)]  # restored from a checkpoint of frame 1
+    formatted.clear()
+    assert stage._counts_csv() == whole(state.counts) and formatted == [0, 1]
+    state.counts.append((2, 2 / 30, 7, 7, 7))
+    assert stage._counts_csv() == whole(state.counts) and formatted == [0, 1, 2]

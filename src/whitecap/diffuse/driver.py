@@ -42,18 +42,19 @@ __all__ = ["FoamJob", "simulation_hook", "postprocess", "postprocess_params_file
            "resolve"]
 
 
-def write_counts(out: Path, rows: list) -> None:
-    lines = [",".join(("frame", "time", *COUNT_NAMES))] + [
-        f"{int(r[0])},{r[1]:.6f},{int(r[2])},{int(r[3])},{int(r[4])}" for r in rows
-    ]
-    write_text(out / "diffuse" / "counts.csv", "\n".join(lines) + "\n")
+COUNTS_HEADER = ",".join(("frame", "time", *COUNT_NAMES))
 
 
-def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, rows: list) -> None:
-    """One frame's diffuse particles, then the counts up to it (so counts.csv never lists a frame whose
-    file is not written)."""
+def counts_line(row) -> str:
+    """A row of diffuse/counts.csv: frame, time [s], then the live spray, foam and bubbles."""
+    return f"{int(row[0])},{row[1]:.6f},{int(row[2])},{int(row[3])},{int(row[4])}"
+
+
+def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, counts_csv: str) -> None:
+    """One frame's diffuse particles, then counts.csv up to it (so it never lists a frame whose file is
+    not written)."""
     write(out / rel, frame)
-    write_counts(out, rows)
+    write_text(out / "diffuse" / "counts.csv", counts_csv)
 
 
 class FoamStage(FrameHook):
@@ -79,6 +80,10 @@ class FoamStage(FrameHook):
         self.particle_mass: float | None = None
         self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
         self._unwritten: tuple | None = None  # (out, relative path, frame) made by on_frame, for write()
+        # counts.csv's lines of the generator's rows so far (``_lines_of``, that list): formatted once each, as
+        # a run's counts are rewritten every frame
+        self._lines: list[str] = []
+        self._lines_of: list | None = None
 
     @property
     def generator(self) -> FoamGenerator:
@@ -129,15 +134,24 @@ class FoamStage(FrameHook):
         """Write the files of the frame :meth:`on_frame` made (its diffuse particles and the counts so
         far). Apart from on_frame, so that ``--profile`` counts writing as output, not as the foam stage.
         With ``writer`` (io.writer.FrameWriter), handed to its thread: the frame is this step's own arrays
-        (the generator makes new ones each step) and the counts a copy of the rows so far."""
+        (the generator makes new ones each step) and the counts the text of the rows so far."""
         if self._unwritten is not None:
             out, rel, d = self._unwritten
             self._unwritten = None
-            rows = list(self.generator.state.counts)
+            csv = self._counts_csv()
             if writer is None:
-                _write_diffuse(out, rel, d, rows)
+                _write_diffuse(out, rel, d, csv)
             else:
-                writer.submit(functools.partial(_write_diffuse, out, rel, d, rows), "diffuse")
+                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv), "diffuse")
+
+    def _counts_csv(self) -> str:
+        """counts.csv's text: the generator's rows so far, each formatted once (a restored state brings a
+        new list of rows: formatted anew)."""
+        rows = self.generator.state.counts
+        if rows is not self._lines_of or len(self._lines) > len(rows):
+            self._lines, self._lines_of = [], rows
+        self._lines.extend(counts_line(r) for r in rows[len(self._lines):])
+        return "\n".join([COUNTS_HEADER, *self._lines]) + "\n"
 
     def status(self) -> str:
         r = self.gen.state.counts[-1] if self.gen and self.gen.state.counts else (0, 0, 0, 0, 0)
