@@ -11,7 +11,12 @@ simulation's thread, then ``json.dumps(model_dump())`` and the write on the writ
 (``dumps`` on the simulation's thread, the write on the writer's), measured in the same run, and the
 ratio.
 
-    python benchmarks/bench_run_json.py [--frames 100 1000 3000] [--repeat 5]
+Then (``--simulate N``, 0 to skip) a whole ``simulate`` with foam of a small dam break (about 300
+particles at r = 2 cm, so that the saves are not hidden behind the solver) over N frames: the median
+time a frame in each sixth of the run, flat when nothing grows with the frames before it; with
+``--against OTHER/src`` the same run with another checkout's package too, and the ratio of the totals.
+
+    python benchmarks/bench_run_json.py [--frames 100 1000 3000] [--repeat 5] [--simulate 1200] [--against SRC]
 """
 
 from __future__ import annotations
@@ -19,6 +24,9 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -52,10 +60,47 @@ def _best(f, repeat: int) -> float:
     return best * 1e3
 
 
+_SIMULATE = """
+import json, sys, tempfile, time
+import numpy as np
+from whitecap.config import scene_from_dict
+from whitecap.pipeline import simulate
+from whitecap.sim import driver
+n = int(sys.argv[1])
+scene = scene_from_dict({
+    "name": "long", "seed": 3, "domain": {"lower": [0, 0, 0], "upper": [0.6, 0.2, 0.4]},
+    "solver": {"particle_radius": 0.02, "iterations": 2}, "fluid": [{"lower": [0, 0, 0], "upper": [0.2, 0.2, 0.3]}],
+    "output": {"frames": n}, "foam": {"enabled": True}})
+ends = []
+step = driver._save_checkpoint
+def stamp(*a, **k):  # called once a frame, after its files and run.json are handed over
+    ends.append(time.perf_counter())
+    return step(*a, **k)
+driver._save_checkpoint = stamp
+with tempfile.TemporaryDirectory() as out:
+    t0 = time.perf_counter()
+    simulate(scene, out=out, show_progress=False)
+    total = time.perf_counter() - t0
+d = np.diff(ends)
+k = max(1, len(d) // 6)
+print(json.dumps({"total": total, "blocks": [float(np.median(d[i:i + k])) for i in range(0, k * 6, k)]}))
+"""
+
+
+def _simulate(n: int, src: str | None) -> dict:
+    env = dict(os.environ, WHITECAP_PROGRESS="0")
+    if src:
+        env["PYTHONPATH"] = src
+    p = subprocess.run([sys.executable, "-c", _SIMULATE, str(n)], env=env, capture_output=True, text=True, check=True)
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, nargs="+", default=[100, 1000, 3000])
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--simulate", type=int, default=1200, help="frames of the whole-run check (0: skip it)")
+    ap.add_argument("--against", help="another checkout's src folder, simulated the same way")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / RUN_JSON
@@ -79,6 +124,15 @@ def main() -> None:
             old, new = old_copy + old_save, new_dumps + new_write
             print(f"{n:>7}  {old_copy:>10.2f} {old_save:>8.2f} {old:>7.2f}   {new_dumps:>10.2f} {new_write:>8.2f} "
                   f"{new:>7.2f}   {old / new:>5.1f}x  {len(text) / 1e6:.2f} MB")
+    if a.simulate:
+        runs = [("this checkout", None)] + ([(a.against, a.against)] if a.against else [])
+        got = {}
+        for name, src in runs:
+            got[name] = r = _simulate(a.simulate, src)
+            sixths = " ".join(f"{1e3 * b:6.1f}" for b in r["blocks"])
+            print(f"simulate, {a.simulate} frames, {name}: {r['total']:.1f} s; ms a frame by sixths of the run: {sixths}")
+        if a.against:
+            print(f"this checkout takes {got['this checkout']['total'] / got[a.against]['total']:.2f}x the time")
 
 
 if __name__ == "__main__":
