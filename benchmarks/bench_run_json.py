@@ -130,7 +130,8 @@ def main() -> None:
         for name, src in runs:
             got[name] = r = _simulate(a.simulate, src)
             sixths = " ".join(f"{1e3 * b:6.1f}" for b in r["blocks"])
-            print(f"simulate, {a.simulate} frames, {name}: {r['total']:.1f} s; ms a frame by sixths of the run: {sixths}")
+            print(f"simulate, {a.simulate} frames, {name}: {r['total']:.1f} s; "
+                  f"ms a frame by sixths of the run: {sixths}")
         if a.against:
             print(f"this checkout takes {got['this checkout']['total'] / got[a.against]['total']:.2f}x the time")
 
