@@ -190,6 +190,9 @@ def test_saving_after_each_frame_dumps_only_the_entries_that_changed(tmp_path, m
         change()
         dumped.clear()
         assert info.dumps() == whole() and dumped == entries
+    info.set_file(45, "fluid", "fluid/fluid_00045.ply")
+    info.set_file(41, "fluid", "fluid/fluid_00041.ply")  # a frame between others: kept in index order
+    assert [f.index for f in info.frames][-3:] == [39, 41, 45] and info.dumps() == whole()
     info.truncate(20)
     assert info.dumps() == whole()
     info.save(tmp_path)

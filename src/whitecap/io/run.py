@@ -201,8 +201,10 @@ class RunInfo(RunRecord):
         if f is not None:
             return f
         f = Frame(index=index, time=index / self.frame_rate, files={}, made_from={})
-        self.frames.append(f)
-        self.frames.sort(key=lambda e: e.index)
+        if not self.frames or self.frames[-1].index < index:
+            self.frames.append(f)  # the usual case, a run's next frame: no sort of the whole table
+        else:
+            bisect.insort(self.frames, f, key=lambda e: e.index)
         return f
 
     def time(self, index: int) -> float:
