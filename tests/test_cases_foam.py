@@ -180,3 +180,26 @@ def test_splishsplash_tank_is_a_wall_around_the_fluid_and_the_sphere_a_moving_so
         world_centre = M[:3, :3] @ rest_centre + M[:3, 3]
         assert sphere.sample(world_centre[None])[0] < -0.1, (index, centre)
         assert sphere.sample(world_centre[None] + [0.0, 0.0, 2.0])[0] > 0  # above it: free
+
+
+def test_foam_into_another_folder_carries_the_cases_shapes_and_lists_only_its_own_files(imported, tmp_path):
+    """`foam RUN --out DIR` of an imported case: DIR is a run of its own, with the case's shape meshes
+    (files of the run) copied along so that its obstacles resolve there, and a run.json that lists only
+    files DIR holds; the diffuse frames are those of foam made in the run itself."""
+    from whitecap.diffuse.driver import postprocess
+    from whitecap.io.run import obstacle_path, owned_files
+
+    out = tmp_path / "copy"
+    postprocess(imported, out=out, show_progress=False)
+    info = RunInfo.load(out)
+    for o in info.obstacles:
+        p = obstacle_path(o.mesh, info, out)
+        assert p is not None and p.parent.parent == out and p.read_bytes() == (imported / o.mesh).read_bytes()
+    listed = [rel for f in info.frames for rel in f.files.values()]
+    assert listed and all((out / rel).is_file() for rel in listed)
+    assert {k for f in info.frames for k in f.files} == {"fluid", "diffuse"}
+    on_disk = {p for p in out.rglob("*") if p.is_file() and p.name != ".whitecap.lock"}
+    assert on_disk == set(owned_files(out)) | {out / "diffuse" / "counts.csv"}  # nothing unrecorded
+    same = _foam(imported, tmp_path / "in_place")
+    for i, rel in same.files("diffuse"):
+        assert (out / rel).read_bytes() == (tmp_path / "in_place" / rel).read_bytes(), i

@@ -382,3 +382,36 @@ def test_frame_entries_are_found_by_index_with_gaps_and_out_of_order_files(tmp_p
     (tmp_path / "run.json").write_text(json.dumps(data))
     back = RunInfo.load(tmp_path)
     assert [info.body_pose(i, 0) for i in range(9)] == [back.body_pose(i, 0) for i in range(9)]
+
+
+def test_foam_into_another_folder_stopped_half_way_is_continued_by_the_same_command(tmp_path, monkeypatch):
+    """`foam RUN --out DIR` stopped at a frame (an error, Ctrl-C) leaves DIR a run whose run.json lists
+    exactly the frames whose files are complete, nothing else in it; the same command again is not
+    refused (its files are whitecap's, recorded) and makes what an uninterrupted one makes, byte for byte."""
+    from whitecap.diffuse import driver
+
+    run = tmp_path / "R"
+    _sim(tiny_scene_dict(output={"frames": 5}, foam={"enabled": False}), run)
+    step = driver.FoamStage.on_frame
+
+    def stop_at_3(self, fr, index, *a, **k):
+        if index == 3:
+            raise KeyboardInterrupt
+        return step(self, fr, index, *a, **k)
+
+    monkeypatch.setattr(driver.FoamStage, "on_frame", stop_at_3)
+    with pytest.raises(KeyboardInterrupt):
+        driver.postprocess(run, out=tmp_path / "O", show_progress=False)
+    info = RunInfo.load(tmp_path / "O")
+    assert info.files("fluid") == [(i, f"fluid/fluid_{i:05d}.ply") for i in range(3)]
+    assert info.files("diffuse") == [(i, f"diffuse/diffuse_{i:05d}.ply") for i in range(3)]
+    on_disk = {str(p.relative_to(tmp_path / "O")) for p in (tmp_path / "O").rglob("*") if p.is_file()}
+    assert on_disk == {rel for f in info.frames for rel in f.files.values()} | {
+        "run.json", "diffuse/counts.csv", LOCK_FILE}
+    monkeypatch.setattr(driver.FoamStage, "on_frame", step)
+    driver.postprocess(run, out=tmp_path / "O", show_progress=False)
+    driver.postprocess(run, out=tmp_path / "whole", show_progress=False)
+    again, whole = RunInfo.load(tmp_path / "O"), RunInfo.load(tmp_path / "whole")
+    assert again.files("diffuse") == whole.files("diffuse") and len(whole.files("diffuse")) == 6
+    for rel in [r for _, r in whole.files("fluid") + whole.files("diffuse")] + ["diffuse/counts.csv"]:
+        assert (tmp_path / "O" / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes(), rel

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import math
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -28,10 +29,11 @@ import numpy as np
 
 from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene, with_options
 from ..errors import InputError
-from ..io import ParticleFrame, read, write, write_text
+from ..io import ParticleFrame, read, write, write_bytes, write_text
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
-from ..io.run import RunInfo, claim_run_dir, frame_name, remove_run
+from ..io.record import relpath_problem
+from ..io.run import RUN_JSON, RunInfo, claim_run_dir, frame_name, own_meshes, remove_run
 from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
@@ -399,8 +401,10 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     reader = _Reader(files)
     first = reader.first()
     # Results go into the run; into another folder, the fluid frames are copied along so the
-    # output is a complete run directory.
+    # output is a complete run directory, which records itself before any file lands in it.
     convert = out.resolve() != src.resolve()
+    if convert:
+        info = _start_copy(info, src, out)
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
     stage = FoamStage(p, seed, verbose=True, obstacles=grids, arch=arch)
@@ -488,9 +492,32 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
                         [reader.files[k][0] for k in picks])
 
 
+def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
+    """The record of the run's copy at ``out`` (another folder), saved there before any file is: the run's
+    constants, obstacles and frames (times, poses, particle counts) without the source's files, nor what
+    describes them (the meshes' settings, the pictures' keys, the Blender scene, the scene file's hash);
+    then an imported case's shape meshes, which are files of the run, copied along. The frames' files are
+    recorded as they land (:func:`_run_frames`), so that a copy stopped half-way is a run whose listed
+    frames are complete, which the same command continues into rather than refuses."""
+    data = json.loads(info.dumps())
+    for f in data["frames"]:
+        f["files"], f["made_from"] = {}, {}
+        f.pop("mesh_settings", None)
+        f.pop("render_key", None)
+    for k in ("blend", "mesh", "scene_sha256"):
+        data["extra"].pop(k, None)
+    copy = RunInfo.model_validate(data)
+    copy.save(out)
+    for rel in own_meshes(copy.obstacles, copy.extra):
+        if relpath_problem(rel) is None and (src / rel).is_file():  # never a path out of either run
+            write_bytes(out / rel, (src / rel).read_bytes())
+    return copy
+
+
 def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, convert: bool,
                 show_progress: bool) -> None:
-    """Every frame through the generator; the fluid copied along into ``out`` when it is another folder."""
+    """Every frame through the generator; the fluid copied along into ``out`` when it is another folder.
+    Each frame's files, then run.json listing them, are handed to the writer in that order."""
     bar = progress(disable=not show_progress)
     with bar, FrameWriter(name="whitecap-foam-writer") as writer, reader.ahead():
         task = bar.add_task("foam", total=len(reader.files), info="")
@@ -499,13 +526,14 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             reader.read_next(k + 1)  # on the reader's thread while this frame is processed
             fr.check_finite()
             fr.time = info.frame(index).time
-            if convert:
-                rel = frame_name("fluid", index)
-                writer.submit(functools.partial(write, out / rel, fr), "fluid")
-                info.set_file(index, "fluid", rel, fr.time)
             rel = stage.on_frame(fr, index, frame_dt, out, info)
+            if convert:  # after the step: a frame that fails there leaves no file of its own behind
+                fluid = frame_name("fluid", index)
+                writer.submit(functools.partial(write, out / fluid, fr), "fluid")
+                info.set_file(index, "fluid", fluid, fr.time)
             stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)
+            writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
             c = stage.generator.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
 

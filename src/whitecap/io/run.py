@@ -316,10 +316,7 @@ def owned_files(run_dir: str | Path) -> list[Path]:
     extra = data.get("extra")
     if not isinstance(extra, dict):
         extra = {}
-    if "scene_dir" not in extra:  # an imported case: its shapes' meshes are files in the run
-        for o in data.get("obstacles") or []:
-            if isinstance(o, dict):
-                rels += [o[k] for k in ("mesh", "render_mesh") if isinstance(o.get(k), str)]
+    rels += own_meshes(data.get("obstacles") or [], extra)
     blend = extra.get("blend")
     if isinstance(blend, dict) and isinstance(blend.get("file"), str):
         rels.append(blend["file"])
@@ -337,6 +334,21 @@ def owned_files(run_dir: str | Path) -> list[Path]:
     if _scene_file_owned(run_dir, data):
         files.append(run_dir / SCENE_FILE)
     return files + [run_dir / RUN_JSON]
+
+
+def own_meshes(obstacles: list, extra: dict) -> list[str]:
+    """The obstacle meshes that are files of the run itself (relative paths as run.json gives them): an
+    imported case's shapes (cases/run_dir.py), in a run without ``extra.scene_dir``. A simulated run's
+    are the scene's, in the scene's directory. ``obstacles``: run.json's entries, as dicts or records."""
+    if "scene_dir" in extra:
+        return []
+    rels = []
+    for o in obstacles:
+        for k in ("mesh", "render_mesh"):
+            v = o.get(k) if isinstance(o, dict) else getattr(o, k, None)
+            if isinstance(v, str) and v not in rels:
+                rels.append(v)
+    return rels
 
 
 def remove_run(run_dir: str | Path) -> list[Path]:
