@@ -415,3 +415,24 @@ def test_foam_into_another_folder_stopped_half_way_is_continued_by_the_same_comm
     assert again.files("diffuse") == whole.files("diffuse") and len(whole.files("diffuse")) == 6
     for rel in [r for _, r in whole.files("fluid") + whole.files("diffuse")] + ["diffuse/counts.csv"]:
         assert (tmp_path / "O" / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes(), rel
+
+
+def test_foam_again_into_a_copy_keeps_the_copys_own_meshes_recorded(tmp_path):
+    """`foam RUN --out DIR`, `mesh DIR`, then `foam RUN --out DIR` again: DIR's meshes (its own files, of
+    the same simulation) stay recorded, and every file in DIR is one run.json records."""
+    from whitecap.diffuse import driver
+    from whitecap.io.run import owned_files
+
+    run, out = tmp_path / "R", tmp_path / "O"
+    _sim(SCENE_A, run)
+    mesh(run, jobs=1, show_progress=False, mesh_smoothing_iters=0)  # the source's meshes: not the copy's
+    driver.postprocess(run, out=out, show_progress=False)
+    assert RunInfo.load(out).files("mesh") == []
+    mesh(out, jobs=1, show_progress=False, mesh_smoothing_iters=0)
+    meshed = RunInfo.load(out).files("mesh")
+    assert len(meshed) == 3
+    driver.postprocess(run, out=out, show_progress=False)
+    info = RunInfo.load(out)
+    assert info.files("mesh") == meshed and "mesh" in info.extra and len(info.files("diffuse")) == 3
+    on_disk = {p for p in out.rglob("*") if p.is_file() and p.name != LOCK_FILE}
+    assert on_disk == set(owned_files(out)) | {out / "diffuse" / "counts.csv"}

@@ -494,19 +494,33 @@ def _calibrate(stage: FoamStage, reader: _Reader, info: RunInfo, frame_dt: float
 
 def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
     """The record of the run's copy at ``out`` (another folder), saved there before any file is: the run's
-    constants, obstacles and frames (times, poses, particle counts) without the source's files, nor what
-    describes them (the meshes' settings, the pictures' keys, the Blender scene, the scene file's hash);
-    then an imported case's shape meshes, which are files of the run, copied along. The frames' files are
-    recorded as they land (:func:`_run_frames`), so that a copy stopped half-way is a run whose listed
-    frames are complete, which the same command continues into rather than refuses."""
+    constants, obstacles and frames (times, poses, particle counts), with none of the source's files nor
+    what describes them (the meshes' settings, the pictures' keys, the Blender scene, the scene file's
+    hash), but those ``out`` already records as its own when it is a copy of this simulation made or begun
+    before (its meshes, its frames until they are replaced); then an imported case's shape meshes, which are
+    files of the run, copied along. The frames' files are recorded as they land (:func:`_run_frames`), so
+    that a copy stopped half-way is a run whose listed frames are complete and whose every file is
+    recorded, which the same command continues into rather than refuses."""
+    own = RunInfo.load(out) if (out / RUN_JSON).is_file() else None  # claimed: this simulation's, or none
+    before = {f.index: json.loads(f.model_dump_json()) for f in own.frames} if own is not None else {}
     data = json.loads(info.dumps())
     for f in data["frames"]:
-        f["files"], f["made_from"] = {}, {}
-        f.pop("mesh_settings", None)
-        f.pop("render_key", None)
+        mine = before.pop(f["index"], {})
+        for k, empty in (("files", {}), ("made_from", {}), ("mesh_settings", None), ("render_key", None)):
+            if mine.get(k, empty) != empty:
+                f[k] = mine[k]
+            elif k in ("files", "made_from"):
+                f[k] = {}
+            else:
+                f.pop(k, None)
+    data["frames"] += [f for f in before.values() if f.get("files")]  # frames only the copy holds: its files
     for k in ("blend", "mesh", "scene_sha256"):
-        data["extra"].pop(k, None)
+        if own is not None and k in own.extra:
+            data["extra"][k] = own.extra[k]
+        else:
+            data["extra"].pop(k, None)
     copy = RunInfo.model_validate(data)
+    copy.frames.sort(key=lambda e: e.index)
     copy.save(out)
     for rel in own_meshes(copy.obstacles, copy.extra):
         if relpath_problem(rel) is None and (src / rel).is_file():  # never a path out of either run
