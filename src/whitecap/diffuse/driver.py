@@ -502,15 +502,14 @@ def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
     that a copy stopped half-way is a run whose listed frames are complete and whose every file is
     recorded, which the same command continues into rather than refuses."""
     own = RunInfo.load(out) if (out / RUN_JSON).is_file() else None  # claimed: this simulation's, or none
-    before = {f.index: json.loads(f.model_dump_json()) for f in own.frames} if own is not None else {}
+    before = {f.index: f.model_dump() for f in own.frames} if own is not None else {}
     data = json.loads(info.dumps())
     for f in data["frames"]:
         mine = before.pop(f["index"], {})
-        for k, empty in (("files", {}), ("made_from", {}), ("mesh_settings", None), ("render_key", None)):
-            if mine.get(k, empty) != empty:
+        f["files"], f["made_from"] = mine.get("files", {}), mine.get("made_from", {})
+        for k in ("mesh_settings", "render_key"):
+            if mine.get(k) is not None:
                 f[k] = mine[k]
-            elif k in ("files", "made_from"):
-                f[k] = {}
             else:
                 f.pop(k, None)
     data["frames"] += [f for f in before.values() if f.get("files")]  # frames only the copy holds: its files

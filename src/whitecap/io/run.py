@@ -158,14 +158,14 @@ class RunInfo(RunRecord):
                if k == "frames" or k in head}
         texts = []
         for f in self.frames:
-            kept = f.__pydantic_private__  # Frame._text, read without BaseModel.__getattr__ (1.3 µs an entry)
-            if kept["_text"] is None:  # type: ignore[index]  # an entry nested two deep: lines indented by 2 more
-                f._text = json.dumps(f.model_dump(), indent=1).replace("\n", "\n  ")
-            texts.append(kept["_text"])  # type: ignore[index]
+            kept: dict = f.__pydantic_private__  # type: ignore[assignment]  # Frame._text, without __getattr__
+            if kept["_text"] is None:  # an entry nested two deep: its lines indented by two more spaces
+                kept["_text"] = json.dumps(f.model_dump(), indent=1).replace("\n", "\n  ")
+            texts.append(kept["_text"])
         frames = "[\n  " + ",\n  ".join(texts) + "\n ]" if texts else "[]"
-        text = json.dumps(top, indent=1)
-        at = text.index(json.dumps(_FRAMES_MARK))  # the first string: only numbers come before "frames"
-        return text[:at] + frames + text[at + len(json.dumps(_FRAMES_MARK)):]
+        text, mark = json.dumps(top, indent=1), json.dumps(_FRAMES_MARK)
+        at = text.index(mark)  # the first such string: only numbers come before "frames"
+        return text[:at] + frames + text[at + len(mark):]
 
     # ------------------------------------------------------------------ walls
     def solid_walls(self) -> list[str]:
