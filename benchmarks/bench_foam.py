@@ -129,7 +129,8 @@ def main() -> None:
                        "--domain", domain]
                 if a.budget:
                     cmd += ["--budget", str(a.budget)]
-                env = dict(os.environ, PYTHONPATH=src)
+                # the package timed first on the path, before what the caller's path holds (its dependencies)
+                env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")])))
                 out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
                 got[name].append(json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:]))
     load = open("/proc/loadavg").read().split()[0] if os.path.exists("/proc/loadavg") else "?"

@@ -63,7 +63,7 @@ def run_one(radius: float, frames: int, arch: str, writer: bool, interval: int |
         wall = time.perf_counter() - t0
         from whitecap.io import read
 
-        n = len(read(Path(tmp, "run", info.frames[0]["files"]["fluid"])))
+        n = len(read(Path(tmp, "run", info.frames[0].files["fluid"])))
         size = sum(p.stat().st_size for p in Path(tmp, "run").rglob("*") if p.is_file())
     return {"timers": {k: v[0] for k, v in timing.TIMERS.items()}, "wall": wall, "n": n, "bytes": size,
             "interval": driver.checkpoint_interval(sc)}

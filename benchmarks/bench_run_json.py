@@ -90,7 +90,7 @@ print(json.dumps({"total": total, "blocks": [float(np.median(d[i:i + k])) for i 
 def _simulate(n: int, src: str | None) -> dict:
     env = dict(os.environ, WHITECAP_PROGRESS="0")
     if src:
-        env["PYTHONPATH"] = src
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")]))
     p = subprocess.run([sys.executable, "-c", _SIMULATE, str(n)], env=env, capture_output=True, text=True, check=True)
     return json.loads(p.stdout.strip().splitlines()[-1])
 

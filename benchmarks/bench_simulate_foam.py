@@ -84,7 +84,8 @@ def main() -> None:
             "--one", mode,
         ]
         here = os.path.dirname(os.path.abspath(__file__))
-        env = dict(os.environ, PYTHONPATH=src + os.pathsep + here) if src else None
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, here, os.environ.get("PYTHONPATH")]))) \
+            if src else None
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
         results[name] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
     for mode, r in results.items():
