@@ -122,21 +122,37 @@ def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
 
 # ----------------------------------------------------------------------------- simulate
 def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
-    """A slow writer: each run.json saved lists only files already on disk, and the checkpoint of
-    frame k is written once run.json lists every frame up to k."""
+    """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, which
+    the writer's thread writes (not the loop's), and the checkpoint of frame k is written once run.json
+    lists every frame up to k."""
+    import whitecap.diffuse.driver as foam_driver
     import whitecap.sim.driver as driver
 
     run = tmp_path / "R"
-    bad = []
-    real_save, real_write, real_arrays = RunInfo.save, driver.write, driver.write_arrays
+    bad, threads = [], set()
+    real_save, real_text, real_write, real_arrays = RunInfo.save, driver.write_text, driver.write, driver.write_arrays
+    real_foam_write = foam_driver.write
 
-    def save(self, run_dir):
-        bad.extend(rel for f in self.frames for rel in f.files.values() if not (Path(run_dir) / rel).is_file())
+    def unwritten(run_dir, frames) -> list:
+        return [rel for f in frames for rel in f["files"].values() if not (Path(run_dir) / rel).is_file()]
+
+    def save(self, run_dir):  # the saves before the first frame
+        bad.extend(unwritten(run_dir, [f.model_dump() for f in self.frames]))
         real_save(self, run_dir)
+
+    def save_text(path, text):  # a frame's run.json, handed to the writer as text
+        if Path(path).name == "run.json":
+            bad.extend(unwritten(Path(path).parent, json.loads(text)["frames"]))
+        real_text(path, text)
 
     def slow_write(path, frame):
         time.sleep(0.05)  # the loop runs ahead of the disk: only the queue's order keeps run.json honest
         real_write(path, frame)
+
+    def slow_foam_write(path, frame):
+        threads.add(threading.current_thread().name)
+        time.sleep(0.05)
+        real_foam_write(path, frame)
 
     def checkpoint(path, data):
         k = int(data["frame"])
@@ -146,11 +162,17 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
         real_arrays(path, data)
 
     monkeypatch.setattr(RunInfo, "save", save)
+    monkeypatch.setattr(driver, "write_text", save_text)
     monkeypatch.setattr(driver, "write", slow_write)
+    monkeypatch.setattr(foam_driver, "write", slow_foam_write)
     monkeypatch.setattr(driver, "write_arrays", checkpoint)
-    simulate(scene_from_dict(SCENE), out=run, show_progress=False, foam=False)
+    scene = tiny_scene_dict(output={"frames": 5, "checkpoint_interval": 2},
+                            foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0})
+    simulate(scene_from_dict(scene), out=run, show_progress=False)
     assert bad == []
-    assert sorted(_listed(run).values()) == [0, 1, 2, 3, 4, 5]
+    listed = _listed(run)
+    assert sorted(set(listed.values())) == [0, 1, 2, 3, 4, 5]
+    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and threads == {"whitecap-writer"}
 
 
 def test_output_is_byte_identical_with_the_writer_on_and_off(tmp_path, monkeypatch):
