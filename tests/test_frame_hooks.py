@@ -39,7 +39,7 @@ class Recorder(FrameHook):
         self.calls.append(("on_frame", index))
         return None
 
-    def write(self, writer=None):
+    def write(self):
         self.calls.append(("write",))
 
     def checkpoint(self):
