@@ -122,13 +122,14 @@ def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
 
 # ----------------------------------------------------------------------------- simulate
 def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
-    """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, and the
-    checkpoint of frame k is written once run.json lists every frame up to k."""
+    """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, which
+    the writer's thread writes (not the loop's), and the checkpoint of frame k is written once run.json
+    lists every frame up to k."""
     import whitecap.diffuse.driver as foam_driver
     import whitecap.sim.driver as driver
 
     run = tmp_path / "R"
-    bad = []
+    bad, threads = [], set()
     real_save, real_text, real_write, real_arrays = RunInfo.save, driver.write_text, driver.write, driver.write_arrays
     real_foam_write = foam_driver.write
 
@@ -149,6 +150,7 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
         real_write(path, frame)
 
     def slow_foam_write(path, frame):
+        threads.add(threading.current_thread().name)
         time.sleep(0.05)
         real_foam_write(path, frame)
 
@@ -170,7 +172,7 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
     assert bad == []
     listed = _listed(run)
     assert sorted(set(listed.values())) == [0, 1, 2, 3, 4, 5]
-    assert sum(rel.startswith("diffuse/") for rel in listed) == 6
+    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and threads == {"whitecap-writer"}
 
 
 def test_output_is_byte_identical_with_the_writer_on_and_off(tmp_path, monkeypatch):
@@ -272,3 +274,29 @@ def test_kill_9_while_a_frame_is_being_written_resumes_byte_identical(tmp_path):
     after = _snapshot(run)
     assert sorted(after) == sorted(full)  # the temporary file is swept
     assert [rel for rel in full if full[rel] != after[rel]] == []
+
+
+def test_device_idle_has_nothing_to_wait_for_on_the_cpu():
+    """On the CPU a kernel is done when its launch returns: runtime.device_idle waits for nothing."""
+    from whitecap.sim import runtime
+
+    runtime.init("cpu")
+    assert runtime.device_idle() is False
+
+
+def test_the_switch_interval_is_short_while_a_writer_runs_and_restored_after():
+    """While any FrameWriter runs, the interpreter's switch interval is writer.SWITCH_INTERVAL (the writer's
+    thread gets the GIL back soon after each call that let it go); after the last one closes, the one before."""
+    import sys
+
+    from whitecap.io import writer as wr
+
+    before = sys.getswitchinterval()
+    a = FrameWriter()
+    b = FrameWriter()
+    assert sys.getswitchinterval() == pytest.approx(min(before, wr.SWITCH_INTERVAL))
+    a.close()
+    assert sys.getswitchinterval() == pytest.approx(min(before, wr.SWITCH_INTERVAL))
+    b.close()
+    b.close()  # twice: no second restore
+    assert sys.getswitchinterval() == pytest.approx(before)

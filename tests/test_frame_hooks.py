@@ -39,7 +39,7 @@ class Recorder(FrameHook):
         self.calls.append(("on_frame", index))
         return None
 
-    def write(self):
+    def write(self, writer=None):
         self.calls.append(("write",))
 
     def checkpoint(self):

@@ -81,3 +81,48 @@ def test_foam_post_processing_on_cuda_matches_the_cpu_in_counts(tiny_run, tmp_pa
         rows[arch] = np.loadtxt(run / "diffuse" / "counts.csv", delimiter=",", skiprows=1)[:, 2:].sum(1)
     assert rows["cpu"].sum() > 0
     assert np.allclose(rows["cuda"], rows["cpu"], rtol=0.1, atol=5)
+
+
+IDLE_SCRIPT = """
+import threading, time
+import taichi as ti
+from whitecap.sim import runtime
+runtime.init("cuda")
+a = ti.ndarray(ti.f32, 1 << 22)
+
+@ti.kernel
+def churn(a: ti.types.ndarray(), rounds: ti.i32):
+    for i in range(a.shape[0]):
+        s = 0.0
+        for k in range(rounds):
+            s = ti.sin(s + i * 1e-6 + k)
+        a[i] = s
+
+churn(a, 1)
+runtime.device_idle()
+ticks = [0]
+stop = threading.Event()
+def count():
+    while not stop.is_set():
+        ticks[0] += 1
+t = threading.Thread(target=count); t.start(); time.sleep(0.05)
+t0 = time.perf_counter(); churn(a, 400000); c0 = ticks[0]
+waited = runtime.device_idle(); c1 = ticks[0]; wait = time.perf_counter() - t0
+stop.set(); t.join()
+print(waited, wait, c1 - c0)
+"""
+
+
+def test_device_idle_waits_for_the_gpu_and_lets_other_threads_run(tmp_path):
+    """runtime.device_idle on CUDA: it returns once the launched kernel is done, and another Python thread
+    (the background writer) goes on running meanwhile, which Taichi's own waits do not allow."""
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    script = tmp_path / "idle.py"  # a file, not -c: Taichi reads a kernel's source
+    script.write_text(IDLE_SCRIPT)
+    out = subprocess.run([sys.executable, str(script)], cwd=root, check=True, capture_output=True,
+                         text=True).stdout.split()
+    waited, wait, ticks = out[-3] == "True", float(out[-2]), int(out[-1])
+    assert waited and wait > 0.02, out  # the kernel took a while, and device_idle waited for it
+    assert ticks > 1000, out  # the counting thread ran during the wait

@@ -8,6 +8,7 @@ import pytest
 from whitecap import io
 from whitecap.cli import main
 from whitecap.errors import InputError
+from whitecap.io import ParticleFrame
 
 
 def frame(n=50, seed=0):
@@ -240,3 +241,51 @@ def test_mesh_check_finite_names_the_file_and_the_bad_vertex_count(tmp_path):
     with pytest.raises(InputError) as e:
         io.read_mesh(tmp_path / "m.ply").check_finite()
     assert str(e.value) == f"{tmp_path / 'm.ply'}: vertices: 1 are NaN or infinite"
+
+
+def _plyfile_reference(frame) -> bytes:
+    """A particle PLY as plyfile writes it from one structured array filled column by column (write_ply's
+    layout: x y z vx vy vz [density] [arrays…] id), to hold write_ply's packing to the same bytes."""
+    import io as _io
+
+    from plyfile import PlyData, PlyElement
+
+    n = len(frame)
+    vel = frame.velocities if frame.velocities is not None else np.zeros((n, 3), np.float32)
+    cols = [("x", frame.positions[:, 0]), ("y", frame.positions[:, 1]), ("z", frame.positions[:, 2]),
+            ("vx", vel[:, 0]), ("vy", vel[:, 1]), ("vz", vel[:, 2])]
+    if frame.density is not None:
+        cols.append(("density", frame.density))
+    cols += list(frame.arrays.items()) + [("id", frame.ids)]
+    kinds = {"float32": "f4", "uint32": "u4", "uint8": "u1", "int32": "i4"}
+    data = np.empty(n, [(k, kinds.get(np.dtype(a.dtype).name, "f4")) for k, a in cols])
+    for k, a in cols:
+        data[k] = a
+    buf = _io.BytesIO()
+    PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(buf)
+    return buf.getvalue()
+
+
+def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path):
+    """write_ply packs vectors three components at a time into a buffer kept between files: the bytes are
+    those of the plain column-by-column layout, for diffuse, fluid, velocity-less, strided, float64 and
+    empty frames, and a smaller file after a larger one holds no bytes of it."""
+    from whitecap.io.ply import write_ply
+
+    rng = np.random.default_rng(3)
+    n = 1000
+    x = rng.random((n, 3), np.float32)
+    ids = np.arange(n, dtype=np.uint32)
+    frames = [
+        ParticleFrame(x, x * 2, ids, arrays={"type": rng.integers(0, 3, n).astype(np.uint8),
+                                             "lifetime": rng.random(n).astype(np.float32),
+                                             "radius": np.full(n, 0.01, np.float32)}),
+        ParticleFrame(x, -x, ids, density=rng.random(n).astype(np.float32)),
+        ParticleFrame(x[:10], None, ids[:10]),
+        ParticleFrame(np.asfortranarray(x), x[:, ::-1], ids),  # neither C-contiguous
+        ParticleFrame(x.astype(np.float64), x, ids),  # cast to float32 as before
+        ParticleFrame(np.zeros((0, 3), np.float32), None, np.zeros(0, np.uint32)),
+    ]
+    for k, f in enumerate(frames):
+        write_ply(tmp_path / f"{k}.ply", f)
+        assert (tmp_path / f"{k}.ply").read_bytes() == _plyfile_reference(f), k

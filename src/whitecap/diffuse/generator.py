@@ -515,6 +515,7 @@ class FoamGenerator:
                 g.build_marked(n, mark, K.CREST_NEIGHBOUR)
                 K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC)
+        runtime.device_idle()  # the potentials run on a GPU while the writer's thread writes (the GIL let go)
         self._pots = {
             "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
             "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],
@@ -638,6 +639,7 @@ class FoamGenerator:
         x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         life, ids, kind = np.empty(n, np.float32), np.empty(n, np.uint32), np.empty(n, np.uint8)
         if n:
+            runtime.device_idle()
             live = self._live[self._cur]
             K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids, kind)
         st.positions, st.velocities, st.lifetime, st.ids = x, v, life, ids

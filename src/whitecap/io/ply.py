@@ -13,6 +13,7 @@ wheel (``whitecap blender-addon``), so plyfile is imported only where a file is 
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -138,33 +139,54 @@ def read_ply(path: Path, up: str = "z", require_velocity: bool = False) -> Parti
     )
 
 
+_PACKING = threading.local()  # each writing thread's record buffer (``buf``), kept from file to file
+
+
+def _records(n: int, dtype: np.dtype) -> np.ndarray:
+    """``n`` records of ``dtype`` in this thread's kept buffer, grown when a file needs more and never shrunk.
+    A new array for every file was a new 100 MB of pages to fault in for each frame of 2.7 M diffuse
+    particles (on an H100 machine 180 ms a diffuse file against 15 ms to write its bytes); kept, they are
+    faulted in once. Per thread: two writers may pack at once."""
+    need = n * dtype.itemsize
+    buf = getattr(_PACKING, "buf", None)
+    if buf is None or buf.nbytes < need:
+        _PACKING.buf = None  # the old buffer goes before the new one is made
+        buf = _PACKING.buf = np.empty(max(need, 1), np.uint8)
+    return buf[:need].view(dtype)
+
+
 def write_ply(path: Path, frame: ParticleFrame) -> None:
     from plyfile import PlyData, PlyElement
 
     n = len(frame)
-    cols: list[tuple[str, np.ndarray]] = [
-        ("x", frame.positions[:, 0]),
-        ("y", frame.positions[:, 1]),
-        ("z", frame.positions[:, 2]),
-    ]
     vel = frame.velocities if frame.velocities is not None else np.zeros((n, 3), np.float32)
-    cols += [("vx", vel[:, 0]), ("vy", vel[:, 1]), ("vz", vel[:, 2])]
+    # (property names, array): a vector's three components side by side, a column's one
+    groups: list[tuple[tuple[str, ...], np.ndarray]] = [(("x", "y", "z"), frame.positions), (("vx", "vy", "vz"), vel)]
     if frame.density is not None:
-        cols.append(("density", frame.density))
-    for k, a in frame.arrays.items():
-        cols.append((k, a))
-    cols.append(("id", frame.ids))
+        groups.append((("density",), frame.density))
+    groups += [((k,), a) for k, a in frame.arrays.items()]
+    groups.append((("id",), frame.ids))
     dtype = []
-    for k, a in cols:
+    for names, a in groups:
         dt = np.dtype(a.dtype)
-        if dt not in _DTYPES:
-            dt = np.dtype(np.float32)
-        dtype.append((k, _DTYPES[dt]))
-    data = np.empty(n, dtype=dtype)
-    for k, a in cols:
-        data[k] = a
+        dtype += [(k, _DTYPES[dt if dt in _DTYPES else np.dtype(np.float32)]) for k in names]
+    data = _records(n, np.dtype(dtype))
+    for names, a in groups:
+        if len(names) == 3 and a.dtype == np.float32 and a.flags.c_contiguous and data.dtype[names[0]] == a.dtype:
+            # the three components as one 12-byte item a row: a third of the copies (fewer turns of the GIL)
+            _field_bytes(data, names[0], 12)[...] = a.reshape(n, 3).view("V12")[:, 0]
+        else:
+            for c, k in enumerate(names):
+                data[k] = a[:, c] if len(names) > 1 else a
     with atomic_path(path) as tmp:
         PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(str(tmp))
+
+
+def _field_bytes(data: np.ndarray, name: str, size: int) -> np.ndarray:
+    """The ``size`` bytes of each record of ``data`` from field ``name`` on, as one void item a row (a view)."""
+    offset = data.dtype.fields[name][1]
+    return data.view(np.dtype({"names": ["b"], "formats": [f"V{size}"], "offsets": [offset],
+                               "itemsize": data.dtype.itemsize}))["b"]
 
 
 _PLY_BYTES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,

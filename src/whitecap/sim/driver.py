@@ -98,8 +98,10 @@ class FrameHook(abc.ABC):
         """Compute frame ``index`` from the fluid ``frame`` (``dt``: the time since the last frame);
         return the path, relative to ``out``, of the file it makes (written by :meth:`write`), or None."""
 
-    def write(self) -> None:
-        """Write the files the last :meth:`on_frame` made (timed as output, apart from on_frame)."""
+    def write(self, writer=None) -> None:
+        """Write the files the last :meth:`on_frame` made (timed as output, apart from on_frame): handed to
+        ``writer`` (io.writer.FrameWriter's ``submit``: the run's writer thread, or at once on the CPU) when
+        given, so that they are written in order with the frame's others and its run.json."""
 
     @abc.abstractmethod
     def checkpoint(self) -> dict[str, np.ndarray]:
@@ -394,11 +396,11 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
                 rel = frame_name("fluid", index, fmt)
                 writer.submit(functools.partial(write, out / rel, frame), "fluid")
                 info.set_file(index, "fluid" if fmt == "ply" else f"fluid_{fmt}", rel, solver.time)
-        for h in hooks:  # on this thread: a hook computes on the device, then writes its own files
+        for h in hooks:  # on this thread: a hook computes on the device, then hands its files to the writer
             with timer(h.name):
                 rel = h.on_frame(frame, index, dt, out, info)
             with timer("output"):
-                h.write()
+                h.write(writer)
             if rel:
                 info.set_file(index, h.name, rel, solver.time)
         with timer("output"):

@@ -39,6 +39,7 @@ from ..config import Scene
 from ..errors import SimulationError, WhitecapError
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
+from . import runtime
 from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
 from .launch import TEMPLATE, KernelGraph, permuted, run_direct
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
@@ -737,6 +738,7 @@ class PBFSolver:
         dt = 1.0 / s.frame_rate / nsub
         for _ in range(nsub):
             self.step(dt)
+        runtime.device_idle()  # the frame's steps run on a GPU while the writer's thread writes (the GIL let go)
         self.take_overflow()
         vmax, bad = self.max_speed()
         self.stats.max_speed = vmax
@@ -761,6 +763,7 @@ class PBFSolver:
         st = self.state
         if with_density:
             self.update_density()
+        runtime.device_idle()
         n = self.n
         return {
             "positions": st.x.to_numpy()[:n],

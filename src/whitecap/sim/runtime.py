@@ -92,3 +92,39 @@ def empty_ndarray(dtype, shape, vec: int = 0):
         return a
     except (ImportError, AttributeError, TypeError):
         return ti.Vector.ndarray(vec, dtype, shape) if vec else ti.ndarray(dtype, shape)
+
+
+
+_LIBCUDA: object = None  # libcuda through ctypes, once looked up (False: not to be had)
+
+
+def device_idle() -> bool:
+    """Wait until the device has run every kernel launched so far, letting other Python threads run meanwhile;
+    True where it waited (CUDA), False where there is nothing to wait for (the CPU: a kernel is done when its
+    launch returns).
+
+    Taichi's own waits (``ti.sync()``, ``to_numpy``, a kernel's return value) keep the GIL while the GPU works,
+    so the background writer's thread stood still for as long as the solver's frame took on an H100 (its
+    files were then written between the loop's calls, in 5 ms turns). The driver's cuCtxSynchronize, called
+    through ctypes (which lets go of the GIL for a foreign call), waits on the same context (the one Taichi
+    made current on this thread); the wait that follows it finds the device idle and returns at once. Where
+    libcuda or a current context cannot be had, nothing is waited for and Taichi's own waits hold as before."""
+    global _LIBCUDA
+    if _ARCH != "cuda":
+        return False
+    if _LIBCUDA is None:
+        import ctypes
+
+        try:
+            _LIBCUDA = ctypes.CDLL("libcuda.so.1")
+        except OSError:
+            _LIBCUDA = False
+    if _LIBCUDA is False:
+        return False
+    import ctypes
+
+    ctx = ctypes.c_void_p()
+    lib = _LIBCUDA
+    if lib.cuCtxGetCurrent(ctypes.byref(ctx)) != 0 or not ctx.value:  # type: ignore[attr-defined]
+        return False
+    return lib.cuCtxSynchronize() == 0  # type: ignore[attr-defined]
