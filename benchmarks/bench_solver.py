@@ -106,6 +106,10 @@ def run_one(n_target: int, arch: str, steps: int, reorder_interval: int | None =
         "bytes_per_particle_rss": (rss1 - rss0) / s.n,  # growth of the peak (set-up copies included)
         "bytes_per_particle_resident": (res1 - res0) / s.n,  # growth of what stays resident while stepping
         "phases_ms_per_step": phases,
+        # the lists' slots (fewer than max_neighbors where 32-bit indices cut them, as at 50 M) and the pairs
+        # a step that did not fit them
+        "list_slots": s.grid.max_neighbors,
+        "overflow_per_step": s.take_overflow() / steps,
     }
 
 
@@ -194,7 +198,8 @@ def main() -> None:
                   "(target ≤ 1.3)")
     for r in results:
         ph = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["phases_ms_per_step"].items(), key=lambda kv: -kv[1]))
-        print(f"  {r['arch']} {r['particles']}: ms/step by phase: {ph}")
+        print(f"  {r['arch']} {r['particles']}: ms/step by phase: {ph}; neighbour lists of {r['list_slots']}, "
+              f"{r['overflow_per_step']:.0f} pairs a step past them")
 
 
 def release_freed_heap() -> None:

@@ -86,6 +86,37 @@ def test_full_lists_count_the_overflow_and_keep_true_neighbours(layout):
         assert near[i, nb[i, : counts[i]]].all()
 
 
+def test_lists_are_cut_to_32_bit_indices_and_the_pairs_past_them_counted(monkeypatch, capsys):
+    """Taichi indexes an array with 32-bit integers: lists of 64 for 50 M particles would pass it. The grid
+    cuts its lists to what fits (42 at 50 M), says so, counts the pairs past them as overflow and keeps true
+    neighbours; under MIN_LIST_SLOTS it refuses with one line."""
+    import taichi as ti
+
+    from whitecap.errors import WhitecapError
+    from whitecap.sim import grid as G, runtime
+
+    assert G.list_slots(50_000_000, 64) == 42 and G.list_slots(30_000_000, 64) == 64
+    with pytest.raises(WhitecapError, match="neighbour lists would hold 15 entries"):
+        G.list_slots(140_000_000, 64)
+    runtime.init("cpu")
+    x = _points(1500, seed=9)
+    monkeypatch.setattr(G, "MAX_NDARRAY_ELEMENTS", len(x) * 40 + 7)  # room for 40 a particle, not 64
+    monkeypatch.setattr(G, "MIN_LIST_SLOTS", 16)
+    g = G.NeighborGrid(G.grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 64, H)
+    assert g.max_neighbors == 40 and g.cut and g.nb.shape == (len(x), 40)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "neighbour lists of 40 entries a particle at 1,500 particles, not 64" in said
+    xs = ti.Vector.ndarray(3, ti.f32, len(x))
+    xs.from_numpy(x)
+    overflow = g.build(xs, len(x))
+    near, edge = _within(x, x)
+    np.fill_diagonal(near, False)
+    true, sure = near.sum(1), ~edge.any(1)
+    assert true.max() > 40  # some lists were cut
+    assert (g.nb_count.to_numpy()[sure] == np.minimum(true[sure], 40)).all()
+    assert overflow == np.maximum(true - 40, 0).sum() > 0
+
+
 def test_fluid_neighbourhood_of_any_point_matches_brute_force(grid_and_points):
     import taichi as ti
 

@@ -429,9 +429,12 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     if solver.stats.neighbor_overflow:
         from ..progress import console
 
+        kept = solver.grid.max_neighbors
         console.print(
             f"[yellow]warning:[/] {solver.stats.neighbor_overflow} neighbour pairs exceeded "
-            f"solver.max_neighbors={scene.solver.max_neighbors}; raise it for accuracy"
+            + (f"solver.max_neighbors={kept}; raise it for accuracy" if not solver.grid.cut else
+               f"the {kept} entries a list holds at {solver.grid.capacity:,} particles (32-bit indices); "
+               "fewer particles keep them all")
         )
     for h in hooks:
         h.finish()

@@ -741,6 +741,28 @@ def hash_buckets(capacity: int, per_particle: int | None = None) -> int:
     return 1 << (want - 1).bit_length()
 
 
+#: Elements an ndarray may hold: Taichi 1.7 indexes them with 32-bit integers (it warns, and the allocation of
+#: 50 M particles' lists of 64 failed on an H100 with 80 GB).
+MAX_NDARRAY_ELEMENTS = 2**31 - 1
+#: Fewest slots a neighbour list may be cut to for that limit (PBF's particles have 25-35 neighbours at rest).
+MIN_LIST_SLOTS = 32
+
+
+def list_slots(capacity: int, max_neighbors: int) -> int:
+    """Slots of a particle's neighbour list: ``max_neighbors``, or as many as keep the lists of ``capacity``
+    particles within MAX_NDARRAY_ELEMENTS (42 at 50 M particles); WhitecapError below MIN_LIST_SLOTS."""
+    fit = MAX_NDARRAY_ELEMENTS // max(int(capacity), 1)
+    if fit >= max_neighbors:
+        return int(max_neighbors)
+    if fit < MIN_LIST_SLOTS:
+        raise WhitecapError(
+            f"{capacity:,} particles: their neighbour lists would hold {fit} entries each (Taichi indexes an "
+            f"array with 32-bit integers, {MAX_NDARRAY_ELEMENTS:,} entries in all), under the {MIN_LIST_SLOTS} "
+            "that PBF needs; use fewer particles (a larger particle_radius)"
+        )
+    return fit
+
+
 class NeighborGrid:
     """Cell-sorted particle order plus fixed-capacity neighbour lists.
 
@@ -759,7 +781,16 @@ class NeighborGrid:
         self.reach = max(1, int(round(h / spec.cell)))
         self.h = float(h)
         self.capacity = int(capacity)
-        self.max_neighbors = int(max_neighbors)
+        self.max_neighbors = list_slots(self.capacity, max_neighbors)  # pairs past it: counted in overflow
+        self.cut = self.max_neighbors < max_neighbors  # the lists are shorter than asked, for 32-bit indices
+        if self.cut:
+            from ..progress import console
+
+            console.print(
+                f"[yellow]note:[/] neighbour lists of {self.max_neighbors} entries a particle at {self.capacity:,} "
+                f"particles, not {max_neighbors} (Taichi indexes an array with 32-bit integers); pairs past them "
+                "are counted and left out", soft_wrap=True,
+            )
         if layout == "auto":
             layout = grid_layout(spec, self.capacity)
         if layout not in ("dense", "hashed"):
@@ -779,7 +810,8 @@ class NeighborGrid:
         self.start = ti.ndarray(ti.i32, nc + 1)  # the counts while sorting, then each entry's first slot
         self.bsum = ti.ndarray(ti.i32, len_blocks(nc))
         self.nb_count = ti.ndarray(ti.i32, capacity)
-        self.nb = runtime.empty_ndarray(ti.i32, (capacity, max_neighbors))  # a row is read up to its written count
+        # a row is read up to its written count
+        self.nb = runtime.empty_ndarray(ti.i32, (capacity, self.max_neighbors))
         self.x_sorted = ti.Vector.ndarray(3, ti.f32, capacity)
         self.overflow_count = ti.ndarray(ti.i32, 1)  # pairs that did not fit, added up by _build_lists
         self.overflow_count.fill(0)
