@@ -43,7 +43,7 @@ step 120 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames" \
 step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
     "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
-step 120 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
+step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.0008 --frames 4
 step 120 "memory over 60 frames with foam on and off, CUDA, r = 2 mm (flat once the budget is reached)" \
     "$PY" benchmarks/bench_memory.py --arch cuda --radius 0.002 --frames 60
