@@ -172,7 +172,7 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
         dtype += [(k, _DTYPES[dt if dt in _DTYPES else np.dtype(np.float32)]) for k in names]
     data = _records(n, np.dtype(dtype))
     for names, a in groups:
-        if len(names) == 3 and a.dtype == np.float32 and a.flags.c_contiguous and data.dtype[names[0]] == a.dtype:
+        if len(names) == 3 and a.dtype == np.float32 and a.flags.c_contiguous:
             # the three components as one 12-byte item a row: a third of the copies (fewer turns of the GIL)
             _field_bytes(data, names[0], 12)[...] = a.reshape(n, 3).view("V12")[:, 0]
         else:

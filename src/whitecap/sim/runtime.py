@@ -6,6 +6,7 @@ GPU) silently truncates long loops, so ``auto`` means CUDA if present else CPU.
 
 from __future__ import annotations
 
+import ctypes
 import os
 
 import taichi as ti
@@ -94,7 +95,6 @@ def empty_ndarray(dtype, shape, vec: int = 0):
         return ti.Vector.ndarray(vec, dtype, shape) if vec else ti.ndarray(dtype, shape)
 
 
-
 _LIBCUDA: object = None  # libcuda through ctypes, once looked up (False: not to be had)
 
 
@@ -113,16 +113,12 @@ def device_idle() -> bool:
     if _ARCH != "cuda":
         return False
     if _LIBCUDA is None:
-        import ctypes
-
         try:
             _LIBCUDA = ctypes.CDLL("libcuda.so.1")
         except OSError:
             _LIBCUDA = False
     if _LIBCUDA is False:
         return False
-    import ctypes
-
     ctx = ctypes.c_void_p()
     lib = _LIBCUDA
     if lib.cuCtxGetCurrent(ctypes.byref(ctx)) != 0 or not ctx.value:  # type: ignore[attr-defined]
