@@ -24,7 +24,7 @@ from whitecap import io
 from whitecap.cli import main
 from whitecap.io.run import RunInfo
 
-from .conftest import write_partio_bgeo
+from .conftest import BPY_END, write_partio_bgeo
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 ADDON = SRC / "whitecap" / "render" / "addon"
@@ -42,7 +42,7 @@ F = _formats()
 
 
 def blender(script: str, *args, timeout=300) -> dict:
-    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", script + BPY_END, *map(str, args)], capture_output=True, text=True,
                          timeout=timeout, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
@@ -351,7 +351,7 @@ def run_blender(body: str, addon_zip: Path, tmp_path: Path, *args, timeout=300) 
     user = tmp_path / "blender_user"
     user.mkdir(exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(SRC), "BLENDER_USER_RESOURCES": str(user)}
-    out = subprocess.run([sys.executable, "-c", PRELUDE + body, str(addon_zip), str(user), *map(str, args)],
+    out = subprocess.run([sys.executable, "-c", PRELUDE + body + BPY_END, str(addon_zip), str(user), *map(str, args)],
                          capture_output=True, text=True, timeout=timeout, env=env)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]

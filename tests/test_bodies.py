@@ -19,6 +19,8 @@ from whitecap.pipeline import simulate
 from whitecap.sim import bodies, obstacles as obs
 from whitecap.sim.driver import build_solver
 
+from .conftest import BPY_END
+
 
 @pytest.fixture(autouse=True)
 def private_cache(tmp_path, monkeypatch):
@@ -250,8 +252,8 @@ def test_render_keyframes_the_moving_body(tmp_path):
     simulate(sc, out=tmp_path / "run", show_progress=False)
     info = RunInfo.load(tmp_path / "run")
     src = str(Path(__file__).resolve().parents[1] / "src")
-    res = subprocess.run([sys.executable, "-c", RENDER_KEYS, str(tmp_path / "run")], capture_output=True, text=True,
-                         env={**os.environ, "PYTHONPATH": src})
+    res = subprocess.run([sys.executable, "-c", RENDER_KEYS + BPY_END, str(tmp_path / "run")], capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": src})
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads([ln for ln in res.stdout.splitlines() if ln.startswith("{")][-1])
     for f in (1, 3):

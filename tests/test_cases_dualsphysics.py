@@ -21,7 +21,7 @@ from whitecap.cases.rigid_fit import apply_pose, fit_pose, fit_poses
 from whitecap.cli import main
 from whitecap.io.run import RunInfo
 
-from .conftest import ADDON_LOAD_SCRIPT
+from .conftest import ADDON_LOAD_SCRIPT, BPY_END
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "dualsphysics_dambreak"
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -447,8 +447,8 @@ def test_preview_shows_the_building_where_it_projects(dambreak_run, tmp_path):
     write_mesh(run / "mesh/fluid_00000.ply", SurfaceMesh(hull.vertices, hull.faces))
     info.set_file(0, "mesh", "mesh/fluid_00000.ply")
     info.save(run)
-    p = subprocess.run([sys.executable, "-c", RENDER, str(run), str(tmp_path)], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(SRC)})
+    p = subprocess.run([sys.executable, "-c", RENDER + BPY_END, str(run), str(tmp_path)], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads([ln for ln in p.stdout.splitlines() if ln.startswith("{")][-1])
     assert res["with"]["objects"] == ["obstacle_0", "obstacle_1"] and not res["with"]["container"]
@@ -505,7 +505,7 @@ def test_blender_addon_shows_imported_shapes_and_moves_the_body(tmp_path):
     shutil.move(tmp_path / "run", run)  # a run directory stays valid when moved
     info = RunInfo.load(run)
     addon = SRC / "whitecap" / "render" / "addon" / "__init__.py"
-    p = subprocess.run([sys.executable, "-c", ADDON, str(addon), str(run)], capture_output=True, text=True,
+    p = subprocess.run([sys.executable, "-c", ADDON + BPY_END, str(addon), str(run)], capture_output=True, text=True,
                        timeout=300, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads([ln for ln in p.stdout.splitlines() if ln.startswith("{")][-1])

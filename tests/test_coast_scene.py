@@ -20,6 +20,8 @@ from whitecap.geometry import obstacle_transform
 from whitecap.sim.obstacles import compute_sdf
 from whitecap.terrain import Heightfield, read_heightmap
 
+from .conftest import BPY_END
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "coast.toml"
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -178,7 +180,7 @@ print("ok")
 
 def test_concrete_and_rock_obstacles_get_the_procedural_materials():
     pytest.importorskip("bpy")
-    out = subprocess.run([sys.executable, "-c", DRESS_SCRIPT], capture_output=True, text=True, timeout=120,
+    out = subprocess.run([sys.executable, "-c", DRESS_SCRIPT + BPY_END], capture_output=True, text=True, timeout=120,
                          env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
 

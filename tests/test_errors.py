@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import sys
 
 import pytest
 
@@ -315,3 +316,46 @@ def test_the_parent_watchdog_alone_ends_an_orphan(tmp_path):
                 os.kill(p, signal.SIGKILL)
             except (OSError, TypeError):
                 pass
+
+
+ENDED = r"""
+import atexit, json, os, sys
+import whitecap.workers as w
+from whitecap.executor import exit_on_os_error
+atexit.register(os.abort)  # a crash in the interpreter's teardown, as bpy's now and then
+def work():
+    print("rendered 3")  # block-buffered into a pipe: only a flush before the exit shows it
+    how = sys.argv[1]
+    if how == "value":
+        raise ValueError("frame 3: no such mesh")
+    if how == "disk":
+        raise OSError(28, "No space left on device", "/out/render/frame_00003.png")
+    if how == "exit":
+        raise SystemExit("alembic_export returned {'CANCELLED'}")
+w.run_then_end(work, exit_on_os_error if sys.argv[1] == "disk" else None)
+"""
+
+
+@pytest.mark.parametrize("how, code, last", [
+    ("ok", 0, None),
+    ("value", 1, "ValueError: frame 3: no such mesh"),
+    ("disk", 5, None),
+    ("exit", 1, "alembic_export returned {'CANCELLED'}"),
+])
+def test_a_worker_ends_with_its_own_status_whatever_the_teardown_does(how, code, last):
+    """workers.run_then_end: a bpy worker's status is its work's (0, 1 with the error on the last line of standard
+    error, the OS-error protocol), and its output reaches the parent, though the interpreter's teardown would
+    abort (bpy's did, now and then, after every frame was written: a finished render reported as failed)."""
+    import subprocess
+
+    from whitecap.executor import worker_os_error
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    res = subprocess.run([sys.executable, "-c", ENDED, how], capture_output=True, text=True, env=env, timeout=60)
+    assert res.returncode == code, res.stderr
+    assert res.stdout.splitlines() == ["rendered 3"]
+    if last is not None:
+        assert res.stderr.strip().splitlines()[-1] == last
+    if how == "disk":
+        err = worker_os_error(res.stderr)
+        assert err is not None and err.errno == 28 and err.filename == "/out/render/frame_00003.png"

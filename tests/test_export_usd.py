@@ -22,6 +22,7 @@ from whitecap.io.mesh import read_mesh
 from whitecap.io.run import RunInfo
 from whitecap.pipeline import export, mesh
 
+from .conftest import BPY_END
 from .test_surface_export import synthetic_diffuse
 
 pxr = pytest.importorskip("pxr")
@@ -134,7 +135,7 @@ print("JSON" + json.dumps(out))
 
 def read_back(path: Path, run: Path) -> dict:
     info = RunInfo.load(run)
-    res = subprocess.run([sys.executable, "-c", READ_BACK, str(path), str(run), str(info.frame_rate),
+    res = subprocess.run([sys.executable, "-c", READ_BACK + BPY_END, str(path), str(run), str(info.frame_rate),
                           *map(str, FRAMES)], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(SRC)})
     assert res.returncode == 0, res.stderr[-3000:]

@@ -23,6 +23,8 @@ from whitecap.cli import main
 from whitecap.errors import MissingDependency
 from whitecap.io.run import RunInfo
 
+from .conftest import BPY_END
+
 pytest.importorskip("bpy")
 SRC = Path(__file__).resolve().parents[1] / "src"
 N_FOAM = {}
@@ -70,7 +72,7 @@ def meshed_run(tiny_run, tmp_path_factory) -> Path:
 
 
 def blender(script: str, *args) -> dict:
-    out = subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", script + BPY_END, *map(str, args)], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stderr[-2000:]
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]

@@ -21,6 +21,8 @@ from whitecap.config import Render
 from whitecap.io.run import RunInfo
 from whitecap.render import camera_follow, sea, stage
 
+from .conftest import BPY_END
+
 SRC = Path(__file__).resolve().parents[1] / "src"
 LO, HI = np.array([0.0, 0.0, 0.0]), np.array([0.8, 0.4, 0.4])
 FPS = 30.0
@@ -317,7 +319,7 @@ def seam_render(tmp_path, water_hi, variants: dict, level: float, edge_x: float)
     for y in np.linspace(0.08, 0.35, 8):
         pairs.append((len(pts), len(pts) + 1))
         pts += [[edge_x - d, y, level], [edge_x + d, y, level]]
-    out = subprocess.run([sys.executable, "-c", SEAM, run, tmp_path, json.dumps(variants), json.dumps(pts)],
+    out = subprocess.run([sys.executable, "-c", SEAM + BPY_END, run, tmp_path, json.dumps(variants), json.dumps(pts)],
                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)})
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads([ln for ln in out.stdout.splitlines() if ln.startswith("{")][-1])

@@ -17,6 +17,8 @@ from whitecap.sim import obstacles as obs
 from whitecap.sim.driver import build_solver
 from whitecap.terrain import Heightfield, read_heightmap, write_heightmap
 
+from .conftest import BPY_END
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 from make_terrain_assets import beach_heights  # noqa: E402
@@ -176,6 +178,6 @@ print("ok")
 
 def test_terrain_material_has_its_layers():
     pytest.importorskip("bpy")
-    out = subprocess.run([sys.executable, "-c", MATERIAL_SCRIPT], capture_output=True, text=True, timeout=120,
+    out = subprocess.run([sys.executable, "-c", MATERIAL_SCRIPT + BPY_END], capture_output=True, text=True, timeout=120,
                          env={**__import__("os").environ, "PYTHONPATH": str(ROOT / "src")})
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]

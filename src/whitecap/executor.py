@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn
 
 from .errors import InputError, MissingDependency, WhitecapError
-from .workers import child_env, die_with_parent
+from .workers import child_env, die_with_parent, end_process
 
 CLUSTER_HINT = "install it with: pip install 'whitecap[cluster]' (dask, distributed, dask-jobqueue)"
 #: the clusters --cluster starts itself; anything else is a scheduler address
@@ -173,8 +173,7 @@ def exit_on_os_error(exc: OSError) -> NoReturn:
     name = exc.filename if isinstance(exc.filename, str) else None
     fields = {"errno": exc.errno, "strerror": exc.strerror or str(exc), "filename": name}
     sys.stderr.write(f"{OS_ERROR_TAG}{json.dumps(fields)}\n")
-    sys.stderr.flush()
-    sys.exit(OS_ERROR_EXIT)
+    end_process(OS_ERROR_EXIT)
 
 
 def worker_os_error(stderr: str) -> OSError | None:

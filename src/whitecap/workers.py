@@ -15,12 +15,15 @@ of megabytes. A worker therefore calls :func:`die_with_parent` first thing:
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
 import sys
 import threading
 import time
+import traceback
+from typing import Callable, NoReturn
 
 #: environment variable that tells a worker started with subprocess its parent's pid
 PARENT_PID_ENV = "WHITECAP_PARENT_PID"
@@ -55,3 +58,39 @@ def _watch(parent_pid: int) -> None:
 def child_env() -> dict[str, str]:
     """The environment for a worker started with subprocess: ours plus our pid."""
     return {**os.environ, PARENT_PID_ENV: str(os.getpid())}
+
+
+def end_process(code: int) -> NoReturn:
+    """End this worker process at once with status ``code``: its standard streams flushed, then ``os._exit``,
+    which skips the interpreter's teardown and with it bpy's (a whole Blender, torn down at exit). That teardown
+    crashed now and then after the work was done (glibc's "tcache_thread_shutdown(): unaligned tcache chunk
+    detected", SIGABRT, met in the test suite's bpy scripts), and a parent that reads the exit status took a
+    render whose frames were all written for a failed one. Nothing is lost by skipping it: a worker's files are
+    complete (written atomically) before it reports them."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a closed pipe: the status still says how the work went
+            stream.flush()
+    os._exit(code)
+
+
+def run_then_end(work: Callable[[], object], on_os_error: Callable[[OSError], NoReturn] | None = None) -> NoReturn:
+    """A worker process's main: ``work()``, then :func:`end_process`: 0 when it returned, and when it raised,
+    1 after its traceback on standard error (the error on the last line, which the parent shows), or
+    ``on_os_error(exc)`` for an OSError (the parent's protocol for a full disk or a read-only folder). A
+    SystemExit keeps its status (its message, if any, printed as the interpreter would)."""
+    try:
+        work()
+    except SystemExit as exc:
+        if exc.code is None or isinstance(exc.code, int):
+            end_process(exc.code or 0)
+        print(exc.code, file=sys.stderr)
+        end_process(1)
+    except OSError as exc:
+        if on_os_error is None:
+            traceback.print_exc()
+            end_process(1)
+        on_os_error(exc)
+    except BaseException:
+        traceback.print_exc()
+        end_process(1)
+    end_process(0)

@@ -135,10 +135,10 @@ def export_in_blender(job: dict) -> None:
 
 
 def main() -> None:
-    from ..workers import die_with_parent
+    from ..workers import die_with_parent, run_then_end
 
     die_with_parent()
-    export_in_blender(json.loads(sys.argv[1]))
+    run_then_end(lambda: export_in_blender(json.loads(sys.argv[1])))  # without Blender's teardown (end_process)
 
 
 register("abc", (".abc",), writer=write_abc, kind=SCENE)

@@ -17,16 +17,13 @@ import sys
 from pathlib import Path
 
 from ..executor import exit_on_os_error
-from ..workers import die_with_parent
+from ..workers import die_with_parent, run_then_end
 from .driver import render_worker, serve_worker
 
 
 def main() -> None:
     die_with_parent()  # a killed `whitecap render` takes its Blender workers with it
-    try:
-        _work()
-    except OSError as exc:
-        exit_on_os_error(exc)
+    run_then_end(_work, exit_on_os_error)  # ends without Blender's teardown (workers.end_process)
 
 
 def _work() -> None:
