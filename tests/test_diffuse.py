@@ -252,6 +252,44 @@ def test_same_seed_same_bytes_whatever_the_thread_count(foam_run, tmp_path):
     assert s9.read_bytes() != t1.read_bytes()
 
 
+@pytest.mark.parametrize("where", ["copy", "in place"])
+def test_a_pass_stopped_half_way_never_lists_an_earlier_pass_s_frames(foam_run, tmp_path, monkeypatch, where):
+    """A foam pass remakes every frame from the first: stopped at frame 8, the run lists its frames 0-7 alone,
+    not beside frames 8-12 of the earlier pass (another seed here; in place, simulate's own foam), whose files
+    and counts.csv are gone; remove_run then leaves no diffuse file behind."""
+    from whitecap.diffuse.generator import FoamGenerator
+    from whitecap.io.run import remove_run
+
+    if where == "copy":
+        out = tmp_path / "o"
+        postprocess(foam_run, out=out, seed=0, show_progress=False)
+        run = foam_run
+    else:
+        out = run = tmp_path / "run"
+        shutil.copytree(foam_run, run)
+    before = {i: (out / rel).read_bytes() for i, rel in RunInfo.load(out).files("diffuse")}
+    assert sorted(before) == list(range(13))
+    step = FoamGenerator.step
+
+    def stopped(self, fluid, index, dt):
+        if index == 8:
+            raise KeyboardInterrupt
+        return step(self, fluid, index, dt)
+
+    monkeypatch.setattr(FoamGenerator, "step", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        postprocess(run, out=out, seed=9, show_progress=False)
+    listed = dict(RunInfo.load(out).files("diffuse"))
+    assert sorted(listed) == list(range(8))
+    made = [i for i in listed if len(before[i]) > 400]  # frames with diffuse particles: this pass's own
+    assert made and all((out / listed[i]).read_bytes() != before[i] for i in made)
+    assert sorted(p.name for p in (out / "diffuse").glob("diffuse_*.ply")) == [f"diffuse_{i:05d}.ply" for i in range(8)]
+    rows = np.loadtxt(out / "diffuse" / "counts.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert rows[:, 0].tolist() == list(range(8))
+    remove_run(out)
+    assert not (out / "diffuse").exists()
+
+
 def test_dualsphysics_partvtk_makes_foam(tmp_path):
     src = DATA / "dualsphysics"
     info = postprocess(src, out=tmp_path, preset="auto", show_progress=False)

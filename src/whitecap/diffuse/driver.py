@@ -33,7 +33,7 @@ from ..io import ParticleFrame, read, write, write_bytes, write_text
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
 from ..io.record import relpath_problem
-from ..io.run import RUN_JSON, RunInfo, claim_run_dir, frame_name, own_meshes, remove_run
+from ..io.run import COUNTS_CSV, RUN_JSON, RunInfo, claim_run_dir, frame_name, own_meshes, remove_run
 from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
@@ -56,7 +56,7 @@ def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, counts_csv: str) -
     """One frame's diffuse particles, then counts.csv up to it (so it never lists a frame whose file is
     not written)."""
     write(out / rel, frame)
-    write_text(out / "diffuse" / "counts.csv", counts_csv)
+    write_text(out / COUNTS_CSV, counts_csv)
 
 
 class FoamStage(FrameHook):
@@ -527,10 +527,28 @@ def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
     return copy
 
 
+def _forget_earlier_pass(info: RunInfo, out: Path) -> None:
+    """Before a pass writes its first frame, the diffuse frames of an earlier one (other settings, another seed,
+    or simulate's own foam) leave run.json, then the run, with their counts.csv. A pass makes every frame anew
+    from the first: one stopped half-way would otherwise list its frames beside the earlier pass's, a sequence
+    made two ways that jumps where they meet (a stage never mixes frames). Only ``out``'s own files go."""
+    old = [(f, f.files.pop("diffuse")) for f in info.frames if "diffuse" in f.files]
+    for f, _ in old:
+        f.made_from.pop("diffuse", None)
+        f.changed()
+    if old:
+        info.save(out)  # first: run.json never lists a file that is gone
+    for _, rel in old:
+        (out / rel).unlink(missing_ok=True)
+    (out / COUNTS_CSV).unlink(missing_ok=True)
+
+
 def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, convert: bool,
                 show_progress: bool) -> None:
     """Every frame through the generator; the fluid copied along into ``out`` when it is another folder.
-    Each frame's files, then run.json listing them, are handed to the writer in that order."""
+    Each frame's files, then run.json listing them, are handed to the writer in that order; an earlier pass's
+    diffuse frames go first (_forget_earlier_pass)."""
+    _forget_earlier_pass(info, out)
     bar = progress(disable=not show_progress)
     with bar, FrameWriter(name="whitecap-foam-writer") as writer, reader.ahead():
         task = bar.add_task("foam", total=len(reader.files), info="")

@@ -260,7 +260,9 @@ CHECKPOINT = "checkpoint.npz"
 #: The resolved scene ``simulate`` writes; whitecap's own only while its SHA-256 is the one run.json records.
 SCENE_FILE = "scene.toml"
 #: Files at the top of a run that whitecap writes under these names and nothing else does.
-OWN_TOP_FILES = (CHECKPOINT, "profile.json", "render/movie.mp4")
+#: The foam stage's live counts by frame (diffuse/driver.py), a file of the run beside its frames.
+COUNTS_CSV = "diffuse/counts.csv"
+OWN_TOP_FILES = (CHECKPOINT, "profile.json", "render/movie.mp4", COUNTS_CSV)
 #: The writer lock's file (io/lock.py; named here too, since io/run.py sits below it).
 _LOCK_FILE = ".whitecap.lock"
 
