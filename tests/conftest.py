@@ -9,10 +9,10 @@ import pytest
 
 os.environ.setdefault("WHITECAP_PROGRESS", "0")
 ROOT = Path(__file__).resolve().parents[1]
-#: Appended to a bpy script run with ``python -c``: its output flushed, then os._exit(0), past bpy's teardown,
-#: which now and then crashed after the script had printed its results (as whitecap.workers.end_process does
-#: for whitecap's own Blender workers). A script that raises still ends with its traceback and status 1.
-BPY_END = "\nimport os as _os, sys as _sys\n_sys.stdout.flush()\n_sys.stderr.flush()\n_os._exit(0)\n"
+#: Appended to a bpy script run with ``python -c`` (whitecap on its path): it ends as whitecap's own Blender
+#: workers do (whitecap.workers.end_process), past bpy's teardown, which now and then crashed after the script
+#: had printed its results. A script that raises still ends with its traceback and status 1.
+BPY_END = "\nfrom whitecap.workers import end_process as _end\n_end(0)\n"
 DATA = Path(__file__).resolve().parent / "data"
 
 
