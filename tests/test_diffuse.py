@@ -290,6 +290,122 @@ def test_a_pass_stopped_half_way_never_lists_an_earlier_pass_s_frames(foam_run, 
     assert not (out / "diffuse").exists()
 
 
+@pytest.mark.parametrize("lost", [0, 3])
+def test_a_stopped_pass_resumes_into_the_same_bytes(foam_run, tmp_path, monkeypatch, capsys, lost):
+    """A pass stopped at frame 8 and run again continues from its last complete frame and makes the bytes an
+    unstopped pass makes: every diffuse frame, counts.csv, the fluid copies and the frames run.json lists. With
+    ``lost``, the last records never reached the disk (a kill -9 between a frame's run.json and its record):
+    the frames listed after the last record are made again. Then, with nothing left to do, nothing is written;
+    another seed starts over."""
+    from whitecap.diffuse import driver
+    from whitecap.diffuse.generator import FoamGenerator
+    from whitecap.io.run import FOAM_RESUME
+
+    whole, out = tmp_path / "whole", tmp_path / "stopped"
+    postprocess(foam_run, out=whole, show_progress=False)
+    step, write_arrays = FoamGenerator.step, driver.write_arrays
+    made = []
+
+    def stopped(self, fluid, index, dt):
+        if index == 8:
+            raise KeyboardInterrupt
+        made.append(index)
+        return step(self, fluid, index, dt)
+
+    def record(path, data):
+        if int(data["frame"]) < 8 - lost:
+            write_arrays(path, data)
+
+    monkeypatch.setattr(FoamGenerator, "step", stopped)
+    monkeypatch.setattr(driver, "write_arrays", record)
+    with pytest.raises(KeyboardInterrupt):
+        postprocess(foam_run, out=out, show_progress=False)
+    assert sorted(dict(RunInfo.load(out).files("diffuse"))) == list(range(8))
+    monkeypatch.undo()
+    monkeypatch.setattr(FoamGenerator, "step", lambda self, fluid, index, dt: made.append(index) or step(
+        self, fluid, index, dt))
+    made.clear()
+    capsys.readouterr()
+    postprocess(foam_run, out=out, show_progress=False)
+    assert made == list(range(8 - lost, 13))
+    assert f"resuming at frame {8 - lost}" in capsys.readouterr().err
+    a, b = RunInfo.load(whole), RunInfo.load(out)
+    assert a.files("diffuse") == b.files("diffuse") and a.files("fluid") == b.files("fluid")
+    assert a.extra["foam_pass"] == b.extra["foam_pass"] and b.extra["foam_pass"]["seed"] == a.extra["seed"]
+    for rel in [r for _, r in a.files("diffuse") + a.files("fluid")] + ["diffuse/counts.csv"]:
+        assert (whole / rel).read_bytes() == (out / rel).read_bytes(), rel
+    # Complete: run again, nothing is made or written.
+    stamp = {q: q.stat().st_mtime_ns for q in out.rglob("*.*") if q.suffix in (".ply", ".csv", ".npz")}
+    listing = (out / "run.json").read_bytes()
+    made.clear()
+    postprocess(foam_run, out=out, show_progress=False)
+    assert made == [] and "nothing to do" in capsys.readouterr().err
+    assert {q: q.stat().st_mtime_ns for q in stamp} == stamp and (out / "run.json").read_bytes() == listing
+    # A listed frame's file gone: the pass is made again whole, the same bytes.
+    (out / "diffuse/diffuse_00003.ply").unlink()
+    postprocess(foam_run, out=out, show_progress=False)
+    assert made == list(range(13))
+    assert (out / "diffuse/diffuse_00003.ply").read_bytes() == (whole / "diffuse/diffuse_00003.ply").read_bytes()
+    # Another seed: a pass of its own from the first frame, recorded with its seed.
+    made.clear()
+    postprocess(foam_run, out=out, seed=5, show_progress=False)
+    assert made == list(range(13)) and RunInfo.load(out).extra["foam_pass"]["seed"] == 5
+    assert (out / FOAM_RESUME).is_file()
+
+
+KILLED_MID_FILE = """
+import sys, time
+sys.path.insert(0, sys.argv[1])
+import whitecap.diffuse.driver as driver
+from whitecap.io.atomic import atomic_path
+real = driver.write
+
+def write(path, frame):
+    if path.name == "diffuse_00006.ply":  # half a file in its temporary name, then wait for SIGKILL
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(b"ply\\nformat binary_little_endian 1.0\\n")
+            open(sys.argv[4], "w").close()
+            time.sleep(600)
+    return real(path, frame)
+
+driver.write = write
+driver.postprocess(sys.argv[2], out=sys.argv[3], show_progress=False)
+"""
+
+
+def test_a_pass_killed_while_writing_a_frame_resumes_into_the_same_bytes(foam_run, tmp_path):
+    """kill -9 while frame 6's diffuse file is half-written: the pass run again sweeps the temporary file,
+    continues after frame 5 and makes the bytes of a pass never stopped."""
+    import signal
+    import time
+
+    whole, out, sig = tmp_path / "whole", tmp_path / "killed", tmp_path / "writing"
+    postprocess(foam_run, out=whole, show_progress=False)
+    src = Path(__file__).resolve().parents[1] / "src"
+    child = subprocess.Popen([sys.executable, "-c", KILLED_MID_FILE, str(src), str(foam_run), str(out), str(sig)],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             env={**os.environ, "WHITECAP_PROGRESS": "0"})
+    try:
+        deadline = time.monotonic() + 300
+        while not sig.exists():
+            assert child.poll() is None, child.stdout.read().decode()
+            assert time.monotonic() < deadline, "the child never reached frame 6's write"
+            time.sleep(0.05)
+        child.send_signal(signal.SIGKILL)
+        child.wait(60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert child.returncode == -signal.SIGKILL
+    assert list((out / "diffuse").glob(".diffuse_00006.*.tmp.ply"))
+    assert sorted(dict(RunInfo.load(out).files("diffuse"))) == list(range(6))
+    postprocess(foam_run, out=out, show_progress=False)
+    names = sorted(q.relative_to(whole) for q in whole.rglob("*") if q.is_file() and q.name != ".whitecap.lock")
+    assert sorted(q.relative_to(out) for q in out.rglob("*") if q.is_file() and q.name != ".whitecap.lock") == names
+    assert [n for n in names if (whole / n).read_bytes() != (out / n).read_bytes()] == []
+
+
 def test_dualsphysics_partvtk_makes_foam(tmp_path):
     src = DATA / "dualsphysics"
     info = postprocess(src, out=tmp_path, preset="auto", show_progress=False)
@@ -917,7 +1033,7 @@ def test_one_command_runs_the_job_the_ini_describes(tmp_path, capsys):
                             xml=str(DATA / "dualsphysics" / "CaseDambreak.xml"), first=13, last=14))
     assert main(["foam", "--params", str(ini)]) == 0
     out = tmp_path / "result"
-    assert str(out) in capsys.readouterr().out
+    assert str(out) in capsys.readouterr().err
     info = RunInfo.load(out)
     assert [i for i, _ in info.files("diffuse")] == [13, 14] and [i for i, _ in info.files("fluid")] == [13, 14]
     assert info.extra["case"].endswith("CaseDambreak.xml") and info.particle_radius == pytest.approx(0.01)

@@ -407,7 +407,7 @@ def test_foam_into_another_folder_stopped_half_way_is_continued_by_the_same_comm
     assert info.files("diffuse") == [(i, f"diffuse/diffuse_{i:05d}.ply") for i in range(3)]
     on_disk = {str(p.relative_to(tmp_path / "O")) for p in (tmp_path / "O").rglob("*") if p.is_file()}
     assert on_disk == {rel for f in info.frames for rel in f.files.values()} | {
-        "run.json", "diffuse/counts.csv", LOCK_FILE}
+        "run.json", "diffuse/counts.csv", "diffuse/resume.npz", LOCK_FILE}
     monkeypatch.setattr(driver.FoamStage, "on_frame", step)
     driver.postprocess(run, out=tmp_path / "O", show_progress=False)
     driver.postprocess(run, out=tmp_path / "whole", show_progress=False)

@@ -86,7 +86,8 @@ def _add_foam(sub) -> None:
         description="Generate spray, foam and air bubbles (Ihmsen et al. 2012) for INPUT: a whitecap run "
         "directory, a DualSPHysics PartVTK folder (its case XML is read when beside the files), "
         "SPlisHSPlasH VTK or partio (.bgeo) output, or numbered PLY/VTU/NPZ files. "
-        "Writes diffuse/diffuse_NNNNN.ply and diffuse/counts.csv.",
+        "Writes diffuse/diffuse_NNNNN.ply and diffuse/counts.csv. A pass stopped half-way continues after its last "
+        "complete frame when run again with the same settings.",
     )
     p.add_argument("input", nargs="?", help="run directory, sequence directory or glob ('frames/*.vtk'); "
                    "may be left out when --params names it ([PATHS] InputDataPath)")

@@ -17,7 +17,9 @@ Output per frame: ``diffuse/diffuse_NNNNN.ply`` (x y z vx vy vz, type u8
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
+import hashlib
 import json
 import math
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -30,10 +32,11 @@ import numpy as np
 from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene, with_options
 from ..errors import InputError
 from ..io import ParticleFrame, read, write, write_bytes, write_text
+from ..io.atomic import sweep_temps, write_arrays
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
 from ..io.record import relpath_problem
-from ..io.run import COUNTS_CSV, RUN_JSON, RunInfo, claim_run_dir, frame_name, own_meshes, remove_run
+from ..io.run import COUNTS_CSV, FOAM_RESUME, RUN_JSON, RunInfo, claim_run_dir, frame_name, own_meshes, remove_run
 from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
@@ -74,7 +77,8 @@ class FoamStage(FrameHook):
         self.seed = seed
         self.obstacles = obstacles
         self.gen: FoamGenerator | None = None
-        self._pending: DiffuseState | None = None
+        self._pending: DiffuseState | None = None  # a restored state (restore before start), with its extras
+        self._pending_extra: dict = {}
         self.verbose = verbose
         self.last_frame: int | None = None  # the run's last frame index, where known
         self.max_speed = 0.0  # the fastest fluid particle seen [m/s]: to say which threshold no flow reached
@@ -95,6 +99,10 @@ class FoamStage(FrameHook):
 
     def on_start(self, solver, out: Path, info: RunInfo, last_frame: int) -> None:
         self.last_frame = last_frame
+        # The simulation's own foam from here on: no post-processing pass continues into its frames.
+        if info.extra.pop("foam_pass", None) is not None:
+            info.save(out)
+        (out / FOAM_RESUME).unlink(missing_ok=True)
         self.start(info, solver)
 
     def start(self, info: RunInfo, solver=None) -> None:
@@ -113,6 +121,7 @@ class FoamStage(FrameHook):
         )
         self.gen.last_frame = self.last_frame
         if self._pending is not None:
+            self.gen.restore_resume(self._pending_extra)  # first: sizing the live arrays keeps what they hold
             self.gen.state = self._pending
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
@@ -160,13 +169,22 @@ class FoamStage(FrameHook):
         return f"spray {int(r[2]):,} foam {int(r[3]):,} bubbles {int(r[4]):,}"
 
     def checkpoint(self) -> dict[str, np.ndarray]:
-        return self.gen.state.to_arrays() if self.gen else {}
+        """The diffuse state and what else the next frame depends on (FoamGenerator.resume_arrays)."""
+        return {**self.gen.state.to_arrays(), **self.gen.resume_arrays()} if self.gen else {}
 
     def restore(self, data: dict[str, np.ndarray]) -> None:
         if data:
             self._pending = DiffuseState.from_arrays(data)
+            self._pending_extra = data
             if self.gen is not None:
+                self.gen.restore_resume(data)
                 self.gen.state = self._pending
+
+    def restore_pass(self, data: dict) -> None:
+        """A post-processing pass's state (:func:`_resume_point`), set after :meth:`start` and the look-ahead."""
+        self.generator.restore_resume(data)  # first: sizing the live arrays keeps what they hold
+        self.generator.state = DiffuseState.from_arrays(data)
+        self.max_speed, self.made_any = float(data.get("max_speed", 0.0)), bool(data.get("made_any", False))
 
     def finish(self) -> None:
         """Warn when no diffuse particle was made, and say the peak diffuse-to-fluid ratio reached (and the
@@ -407,17 +425,36 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
         info = _start_copy(info, src, out)
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
+    for d in (out, out / "diffuse", out / "fluid"):  # temporary files of a writer killed mid-file (kill -9)
+        sweep_temps(d)
     stage = FoamStage(p, seed, verbose=True, obstacles=grids, arch=arch)
     stage.names = names
     stage.last_frame = files[-1][0] if files else None
     stage.start(info)
+    identity = pass_identity(info, p, seed, frame_dt, look_ahead, files)
+    done = _resume_point(out, info, identity, files, convert)
+    if done is not None and done[0] == len(files):
+        console.print(f"foam: {out}: the {len(files)} diffuse frames of this pass (seed {seed}) are complete; "
+                      "nothing to do", soft_wrap=True)
+        info.extra["out"] = str(out)
+        return info
     if p.model == "foamgenerator":
         tau = _foamgenerator_limits(stage.generator, files, first, show_progress)
         stage.generator.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     elif p.auto and look_ahead:
         _calibrate(stage, reader, info, frame_dt)
-    _run_frames(stage, reader, info, out, frame_dt, convert, show_progress)
+    start = 0
+    if done is not None:  # after the look-ahead, which sets the plan the record's corrections go into
+        start, record = done
+        stage.restore_pass(record)
+        reader.cache.clear()  # the frames before ``start`` are not read again
+        console.print(f"foam: resuming at frame {files[start][0]} (frames {files[0][0]}-{files[start - 1][0]} "
+                      "of this pass are complete)")
+    else:
+        _forget_earlier_pass(info, out)
+    info.extra["foam_pass"] = {"identity": identity, "seed": seed}
+    _run_frames(stage, reader, info, out, frame_dt, convert, show_progress, start, identity)
     info.save(out)
     info.extra["out"] = str(out)  # for the caller's message; not saved
     _report(stage)
@@ -513,7 +550,7 @@ def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
             else:
                 f.pop(k, None)
     data["frames"] += [f for f in before.values() if f.get("files")]  # frames only the copy holds: its files
-    for k in ("blend", "mesh", "scene_sha256"):
+    for k in ("blend", "mesh", "scene_sha256", "foam_pass"):  # the copy's own (its pass: its diffuse frames)
         if own is not None and k in own.extra:
             data["extra"][k] = own.extra[k]
         else:
@@ -525,6 +562,71 @@ def _start_copy(info: RunInfo, src: Path, out: Path) -> RunInfo:
         if relpath_problem(rel) is None and (src / rel).is_file():  # never a path out of either run
             write_bytes(out / rel, (src / rel).read_bytes())
     return copy
+
+
+def pass_identity(info: RunInfo, p: FoamParams, seed: int, frame_dt: float, look_ahead: bool,
+                  files: list[tuple[int, Path]]) -> str:
+    """What a post-processing pass's frames are a function of, hashed (SHA-256, 16 hex digits): the run's
+    simulation and frame numbers, the resolved parameters, the seed, the time between frames, whether 'auto'
+    looked ahead, the Taichi arch (CPU and GPU round differently) and whitecap's version. A pass continues only
+    the frames of a pass with the same identity (:func:`_resume_point`)."""
+    from .. import __version__
+    from ..sim import runtime
+
+    def plain(o):  # sets (FoamParams.explicit) in a fixed order; anything else as its text
+        return sorted(o) if isinstance(o, (set, frozenset)) else str(o)
+
+    doc = {"simulation": info.simulation, "frames": [i for i, _ in files], "params": dataclasses.asdict(p),
+           "seed": int(seed), "frame_dt": float(frame_dt), "look_ahead": bool(look_ahead),
+           "arch": runtime.current(), "version": __version__}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=plain).encode()).hexdigest()[:16]
+
+
+#: The state's arrays that the frame's diffuse file holds exactly (float32 x, v, lifetime; uint32 ids): the
+#: resume record (FOAM_RESUME) leaves them out, so that it stays a few kilobytes a frame
+_IN_FRAME_FILE = ("positions", "velocities", "lifetime", "ids")
+
+
+def _resume_record(stage: "FoamStage", index: int, identity: str) -> dict[str, np.ndarray]:
+    """The pass's state after frame ``index`` without the live particles (their frame's file holds them):
+    owned copies, for the writer's thread."""
+    data = {k: np.array(v, copy=True) for k, v in stage.checkpoint().items() if k not in _IN_FRAME_FILE}
+    data.update(frame=np.asarray(index, np.int64), identity=np.asarray(identity),
+                max_speed=np.asarray(stage.max_speed, np.float64), made_any=np.asarray(stage.made_any))
+    return data
+
+
+def _resume_point(out: Path, info: RunInfo, identity: str, files: list[tuple[int, Path]],
+                  convert: bool) -> tuple[int, dict] | None:
+    """Where a pass with this identity, stopped (Ctrl-C, kill -9, a full disk), left off: (the position in
+    ``files`` of the first frame to make, the state to go on from), or None to start over. It continues only
+    when run.json says the listed diffuse frames are this identity's, the record (FOAM_RESUME, written after
+    its frame's run.json) is too, every frame up to the record's is listed and on disk (with its fluid copy, into
+    another folder), and the record's frame's file holds as many particles as it counted."""
+    path = out / FOAM_RESUME
+    if (info.extra.get("foam_pass") or {}).get("identity") != identity or not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+        if str(data.pop("identity")) != identity:
+            return None
+        index = int(data.pop("frame"))
+        order = [i for i, _ in files]
+        pos = order.index(index) if index in order else -1
+        listed = {f.index: f.files for f in info.frames}
+        kinds = ("diffuse", "fluid") if convert else ("diffuse",)
+        if pos < 0 or any(k not in listed.get(i, {}) or not (out / listed[i][k]).is_file()
+                          for i in order[:pos + 1] for k in kinds):
+            return None
+        last = read(out / listed[index]["diffuse"])
+        live = int(np.asarray(data["counts"])[-1][2:].sum())
+        if len(last) != live or "lifetime" not in last.arrays or last.velocities is None:
+            return None
+    except (OSError, ValueError, KeyError, IndexError, InputError):
+        return None  # an unreadable or partial record: the pass starts over
+    data.update(positions=last.positions, velocities=last.velocities, lifetime=last.arrays["lifetime"], ids=last.ids)
+    return pos + 1, data
 
 
 def _forget_earlier_pass(info: RunInfo, out: Path) -> None:
@@ -541,18 +643,19 @@ def _forget_earlier_pass(info: RunInfo, out: Path) -> None:
     for _, rel in old:
         (out / rel).unlink(missing_ok=True)
     (out / COUNTS_CSV).unlink(missing_ok=True)
+    (out / FOAM_RESUME).unlink(missing_ok=True)
 
 
 def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, frame_dt: float, convert: bool,
-                show_progress: bool) -> None:
-    """Every frame through the generator; the fluid copied along into ``out`` when it is another folder.
-    Each frame's files, then run.json listing them, are handed to the writer in that order; an earlier pass's
-    diffuse frames go first (_forget_earlier_pass)."""
-    _forget_earlier_pass(info, out)
+                show_progress: bool, start: int, identity: str) -> None:
+    """The frames from position ``start`` on through the generator; the fluid copied along into ``out`` when it
+    is another folder. Each frame's files, then run.json listing them, then the pass's resume record
+    (FOAM_RESUME) are handed to the writer in that order."""
     bar = progress(disable=not show_progress)
     with bar, FrameWriter(name="whitecap-foam-writer") as writer, reader.ahead():
-        task = bar.add_task("foam", total=len(reader.files), info="")
-        for k, (index, _) in enumerate(reader.files):
+        task = bar.add_task("foam", total=len(reader.files), completed=start, info="")
+        for k in range(start, len(reader.files)):
+            index = reader.files[k][0]
             fr = reader.read(k)
             reader.read_next(k + 1)  # on the reader's thread while this frame is processed
             fr.check_finite()
@@ -565,6 +668,8 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)
             writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
+            writer.submit(functools.partial(write_arrays, out / FOAM_RESUME, _resume_record(stage, index, identity)),
+                          "resume")
             c = stage.generator.state.counts[-1]
             bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
 

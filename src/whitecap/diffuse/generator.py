@@ -547,6 +547,29 @@ class FoamGenerator:
             total += int(np.prod(a.shape)) * vec * np.dtype(to_numpy_type(a.dtype)).itemsize
         return total
 
+    def resume_arrays(self) -> dict[str, np.ndarray]:
+        """What the next step depends on beyond :class:`DiffuseState`: the fluid count the capacity was sized
+        for (:meth:`_size`), and post-processing 'auto''s plan as its frames so far corrected it (:meth:`_replan`:
+        the birth rates and fluid counts, the scales used), so that a resumed run makes the same bytes."""
+        d = {"sized_for": np.asarray(self._sized_for, np.int64)}
+        plan = getattr(self, "_plan", None)
+        if plan is not None:
+            d["plan_rate"], d["plan_fluid"], d["plan_scales"] = plan[1], plan[2], self._scales
+        return d
+
+    def restore_resume(self, d: dict) -> None:
+        """Set what :meth:`resume_arrays` gave (after :meth:`calibrate`, which makes the plan; the state is
+        :attr:`state`'s). A plan of another length (another run's frames) is refused."""
+        sized = int(d.get("sized_for", 0))
+        if sized > 0:
+            self._size(sized)
+        plan = getattr(self, "_plan", None)
+        if plan is not None and "plan_rate" in d:
+            rate, fluid, scales = (np.asarray(d[k], np.float64) for k in ("plan_rate", "plan_fluid", "plan_scales"))
+            if not len(rate) == len(fluid) == len(scales) == len(plan[1]):
+                raise ValueError(f"a plan of {len(rate)} frames for a run of {len(plan[1])}")
+            plan[1][:], plan[2][:], self._scales[:] = rate, fluid, scales
+
     def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
         st = self.state
         _velocities(fluid)  # a frame without velocities stops here, before anything is sized

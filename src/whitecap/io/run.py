@@ -262,7 +262,9 @@ SCENE_FILE = "scene.toml"
 #: Files at the top of a run that whitecap writes under these names and nothing else does.
 #: The foam stage's live counts by frame (diffuse/driver.py), a file of the run beside its frames.
 COUNTS_CSV = "diffuse/counts.csv"
-OWN_TOP_FILES = (CHECKPOINT, "profile.json", "render/movie.mp4", COUNTS_CSV)
+#: Where a `foam` post-processing pass resumes from: its state after its last complete frame (diffuse/driver.py).
+FOAM_RESUME = "diffuse/resume.npz"
+OWN_TOP_FILES = (CHECKPOINT, "profile.json", "render/movie.mp4", COUNTS_CSV, FOAM_RESUME)
 #: The writer lock's file (io/lock.py; named here too, since io/run.py sits below it).
 _LOCK_FILE = ".whitecap.lock"
 
