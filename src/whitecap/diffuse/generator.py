@@ -197,6 +197,11 @@ def uniform(seed: int, frame: int, pid: np.ndarray, slot, draw: int) -> np.ndarr
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
 
 
+def _tally(n: int, kd) -> np.ndarray:
+    """How many of kd[0..n) are spray, foam and bubbles (K.tally_kinds; nothing launched for none)."""
+    return np.array(K.tally_kinds(n, kd), np.float64) if n > 0 else np.zeros(3)
+
+
 def history_picks(n: int, m: int) -> np.ndarray:
     """The m of n fluid particles (indices) a frame's history sample takes, spread evenly over the frame."""
     return np.linspace(0, n - 1, m).astype(np.int64)
@@ -228,6 +233,7 @@ class FoamGenerator:
         self._mirror: tuple | None = None
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
+        self._uploaded: set[str] = set()  # those whose copy in _host is what the Taichi array holds (_upload)
         self._candidates: dict | None = None
         self._S = 0
         self.capacity: int | None = None
@@ -439,9 +445,11 @@ class FoamGenerator:
     def _prepare(self, fluid: ParticleFrame, n: int, lists: bool = True):
         """The fluid frame in the kept Taichi arrays, its neighbour grid and, with ``lists``, its neighbour lists
         (only the potentials read them)."""
-        fx = self._upload("fluid_x", fluid.positions, vec=True)
-        fv = self._upload("fluid_v", _velocities(fluid), vec=True)
-        fid = self._upload("fluid_id", fluid.ids.astype(np.uint32, copy=False), ti.u32)
+        fx, fv = self._buffer("fluid_x", n, vec=True), self._buffer("fluid_v", n, vec=True)
+        fid = self._buffer("fluid_id", n, ti.u32)
+        K.upload_fluid(n, np.ascontiguousarray(fluid.positions, np.float32),
+                       np.ascontiguousarray(_velocities(fluid), np.float32),
+                       np.ascontiguousarray(fluid.ids, np.uint32), fx, fv, fid)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
         self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)
@@ -516,10 +524,9 @@ class FoamGenerator:
                 K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC)
         runtime.device_idle()  # the potentials run on a GPU while the writer's thread writes (the GIL let go)
-        self._pots = {
-            "ta": v_diff.to_numpy()[:n], "wc": crest.to_numpy()[:n],
-            "ke": e_k.to_numpy()[:n], "vo": vort.to_numpy()[:n],
-        }
+        host = np.empty((4, n), np.float32)
+        K.pack_potentials(n, v_diff, crest, e_k, vort, host)
+        self._pots = dict(zip(("ta", "wc", "ke", "vo"), host))
         return args, fx, fv, fid, (v_diff, crest, e_k, vort)
 
     def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
@@ -806,6 +813,7 @@ class FoamGenerator:
                 rows = max(size, min(rows, limit), 1)
             bufs.pop(name, None)  # the old array goes before the new one is made
             self._host.pop(name, None)
+            self._uploaded.discard(name)
             a = None
             shape = (rows, cols) if cols else rows
             if not zeroed:
@@ -825,11 +833,22 @@ class FoamGenerator:
             h = self._host[name] = np.zeros(shape, to_numpy_type(a.dtype))
         return h
 
-    def _upload(self, name: str, rows: np.ndarray, dtype=ti.f32, vec: bool = False, **kw):
+    def _upload(self, name: str, rows: np.ndarray, dtype=ti.f32, vec: bool = False, unless_same: bool = False, **kw):
         """``rows`` into the kept Taichi array ``name`` (see _buffer), the rows after them zero,
-        through a kept numpy array: nothing allocated once the array is large enough."""
+        through a kept numpy array: nothing allocated once the array is large enough. ``unless_same``: not
+        again when the array holds these very rows (a few numbers the kernels only read, such as the
+        thresholds, which are often the same from frame to frame: an upload is a launch)."""
         n = len(rows)
         a = self._buffer(name, n, dtype, vec, **kw)
+        if unless_same:  # through the staging array, which then holds what the device array holds
+            h = self._staging(name, a)
+            cast = np.asarray(rows, h.dtype)
+            if name in self._uploaded and np.array_equal(h[:n], cast) and not h[n:].any():
+                return a
+            h[:n], h[n:] = cast, 0
+            a.from_numpy(h)
+            self._uploaded.add(name)
+            return a
         shape = tuple(a.shape) + ((3,) if vec else ())
         if rows.shape == shape and rows.dtype == to_numpy_type(a.dtype) and rows.flags.c_contiguous:
             a.from_numpy(rows)  # the whole array: straight from the caller's (one copy, not two)
@@ -857,7 +876,7 @@ class FoamGenerator:
             self._running_auto(n, index, dt, fluid)
         elif p.auto and self._scaled():
             self._replan(index, dt)
-        tau = self._upload("tau", self.thresholds(), ti.f32)
+        tau = self._upload("tau", self.thresholds(), ti.f32, unless_same=True)
         mult = self.type_multipliers()
         most = float(mult.max())
         self._candidates = {"total": 0, "n": n}
@@ -881,7 +900,7 @@ class FoamGenerator:
         # particles of a type whose multiplier is unchanged stay exactly the same. The limits
         # (per fluid particle and type) are known before the types, so the classification does
         # only the work that decides whether a candidate is kept.
-        mult32 = self._upload("mult", mult.astype(np.float32), ti.f32)
+        mult32 = self._upload("mult", mult.astype(np.float32), ti.f32, unless_same=True)
         most32 = np.float32(most)
         lim, want = self._buffer("limit", m, cols=3), self._buffer("want", m, ti.f32, cols=3)
         K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, want, lim)
@@ -912,18 +931,14 @@ class FoamGenerator:
             K.classify_candidates(size, base, owner, off, lim, cx, cl, fx, g.nb_count, g.nb, int(self._lists), probe,
                                   reach, *args[:3], *box, kd)
 
-        def thin(base: int, size: int, tally=None) -> None:
+        def thin(base: int, size: int) -> None:
             K.thin_kept(size, base, kd, owner, off, want, fid, self.seed, frame, half_up)
-            if tally is not None:
-                K.tally_kinds(size, kd, tally)
 
         self._chunks = (total, chunk, classify, thin)
-        tally = self._buffer("tally", 3)
-        tally.fill(0)
+        made = np.zeros(3)
         for base in range(0, total, chunk):
             classify(base, min(chunk, total - base))
-            K.tally_kinds(min(chunk, total - base), kd, tally)
-        made = tally.to_numpy()[:3].astype(np.float64)
+            made += _tally(min(chunk, total - base), kd)
         if self._scaled():
             # The type scales can make one frame's births far more than the birth rate foretold
             # (a burst of the type scaled furthest up): never past the budget in one frame, and
@@ -953,13 +968,13 @@ class FoamGenerator:
         them all, thinner limits keep a subset; chunk by chunk, classified again, otherwise)."""
         self._thin = True
         total, chunk, classify, thin = self._chunks
-        tally = self._buffer("tally", 3)
-        tally.fill(0)
+        made = np.zeros(3)
         for base in range(0, total, chunk):
             if total > chunk:
                 classify(base, min(chunk, total - base))
-            thin(base, min(chunk, total - base), tally)
-        return tally.to_numpy()[:3].astype(np.float64)
+            thin(base, min(chunk, total - base))
+            made += _tally(min(chunk, total - base), self._bufs["cand_kind"])
+        return made
 
     def candidates(self) -> dict:
         """The last frame's candidates (tests): total, each fluid particle's count and offset, and the kept
@@ -1013,11 +1028,7 @@ class FoamGenerator:
             st.next_id += min(nk, room)
         self._cur = 1 - self._cur
         self._nd = ns + placed
-        tally = self._buffer("tally", 3)
-        tally.fill(0)
-        if self._nd:
-            K.tally_kinds(self._nd, dst["kind"], tally)
-        return [int(x) for x in tally.to_numpy()[:3]]
+        return [int(x) for x in _tally(self._nd, dst["kind"])]
 
     def _place_new(self, room: int, ns: int, index: int, dst: dict) -> int:
         """The kept candidates that fit ``room``, in the domain and outside the obstacles, into ``dst`` after

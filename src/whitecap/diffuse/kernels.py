@@ -28,6 +28,7 @@ B1: Any = ti.types.ndarray(dtype=ti.i8, ndim=1)  # a diffuse type per particle (
 F2: Any = ti.types.ndarray(dtype=ti.f32, ndim=2)
 U8: Any = ti.types.ndarray(dtype=ti.u8, ndim=1)  # the output's diffuse types
 N1: Any = ti.types.ndarray(ndim=1)  # of any dtype
+COUNTS3: Any = ti.types.vector(3, ti.i32)  # a count per diffuse type (spray, foam, bubbles), returned
 
 # δ_vn of the wave-crest potential: a surface particle counts as a crest only
 # while it moves along its normal, v̂_i·n̂_i ≥ this cosine (Ihmsen et al. 2012, Sec. 4.2).
@@ -799,19 +800,18 @@ def thin_kept(
 
 
 @ti.kernel
-def tally_kinds(n: ti.i32, kind: N1, tally: I1):
-    """tally[t] += the number of entries of ``kind`` equal to t (t = 0, 1, 2; others not counted). Three sums,
+def tally_kinds(n: ti.i32, kind: N1) -> COUNTS3:
+    """The number of entries of ``kind[0..n)`` equal to t, for t = 0, 1, 2 (others not counted). Three sums,
     each a reduction Taichi keeps per thread (an atomic add at an index read from the data made the two
-    threads contend for the three counters: 1.1 ms a frame at bench_foam's 300k candidates)."""
+    threads contend for the three counters: 1.1 ms a frame at bench_foam's 300k candidates); returned, not
+    left in an array: clearing and reading one back were two more launches."""
     c0, c1, c2 = 0, 0, 0
     for k in range(n):
         t = ti.cast(kind[k], ti.i32)
         c0 += ti.cast(t == 0, ti.i32)
         c1 += ti.cast(t == 1, ti.i32)
         c2 += ti.cast(t == 2, ti.i32)
-    tally[0] += c0
-    tally[1] += c1
-    tally[2] += c2
+    return ti.Vector([c0, c1, c2])
 
 
 @ti.kernel
@@ -883,6 +883,26 @@ def upload_state(
     """Host state (a resumed checkpoint, a state set by hand) into the live particles' arrays."""
     for p in range(n):
         x[p], v[p], life[p], ids[p] = hx[p], hv[p], hlife[p], hids[p]
+
+
+@ti.kernel
+def upload_fluid(n: ti.i32, hx: F3, hv: F3, hids: U1, x: F3, v: F3, ids: U1):
+    """A fluid frame (host arrays of n rows) into the kept arrays x, v, ids, their rows past n zero: one launch,
+    where an upload per array took three (a launch costs about 0.1 ms of Python; on the CPU the host arrays are
+    read in place)."""
+    for p in range(x.shape[0]):
+        if p < n:
+            x[p], v[p], ids[p] = hx[p], hv[p], hids[p]
+        else:
+            x[p], v[p], ids[p] = vec3(0.0), vec3(0.0), ti.u32(0)
+
+
+@ti.kernel
+def pack_potentials(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
+    """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of n fluid particles into the rows of one
+    host array, out[0..3, i]: one launch, where reading each back took four."""
+    for i in range(n):
+        out[0, i], out[1, i], out[2, i], out[3, i] = v_diff[i], crest[i], e_k[i], vort[i]
 
 
 # ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)

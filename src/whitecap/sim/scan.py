@@ -15,26 +15,24 @@ SCAN_MIN_BLOCK = 256
 
 
 def scan_block(n: int) -> int:
-    """Elements per block of :func:`scan_sums` / :func:`scan_offsets` for ``n`` elements."""
+    """Elements per block of :func:`prefix_sum` for ``n`` elements."""
     return max(SCAN_MIN_BLOCK, -(-int(n) // SCAN_BLOCKS))
 
 
 @ti.kernel
-def scan_sums(n: ti.i32, block: ti.i32, a: I1, sums: I1):
-    """First half of the exclusive prefix sum of a[0..n) (non-negative integers: counts or keep
-    flags): sums[b] = Σ a over block b (``block`` elements each, see scan_block)."""
-    for b in range((n + block - 1) // block):
+def prefix_sum(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
+    """The exclusive prefix sum of a[0..n) (non-negative integers: counts or keep flags): out[j] = Σ_{k<j} a[k];
+    returns Σ a. Three passes, each a top-level loop (Taichi runs one after the other): sums[b] = Σ a over block
+    b (``block`` elements each, see scan_block), one block per thread; the block sums scanned by one thread;
+    then each block by its own from its offset. Integer sums in a fixed order: the same whatever the thread
+    count. One kernel, not one per pass: a launch costs about 0.1 ms of Python on the host, and the foam stage
+    scans four times a frame."""
+    nb = (n + block - 1) // block
+    for b in range(nb):
         s = 0
         for j in range(b * block, ti.min(n, (b + 1) * block)):
             s += a[j]
         sums[b] = s
-
-
-@ti.kernel
-def scan_offsets(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
-    """Second half: out[j] = Σ_{k<j} a[k]; returns Σ a. The block sums are scanned by one thread,
-    then each block by its own: integer sums in a fixed order, the same whatever the thread count."""
-    nb = (n + block - 1) // block
     for _ in range(1):
         t = 0
         for b in range(nb):
@@ -52,10 +50,8 @@ def scan_offsets(n: ti.i32, block: ti.i32, a: I1, sums: I1, out: I1) -> ti.i32:
 
 
 def exclusive_scan(n: int, a, sums, out) -> int:
-    """out[0..n) = the exclusive prefix sum of the integers a[0..n) (scan_sums, then scan_offsets);
-    returns Σ a. ``sums`` holds at least SCAN_BLOCKS + 1 integers (made once by the caller)."""
+    """out[0..n) = the exclusive prefix sum of the integers a[0..n) (:func:`prefix_sum`); returns Σ a. ``sums``
+    holds at least SCAN_BLOCKS + 1 integers (made once by the caller)."""
     if n <= 0:
         return 0
-    block = scan_block(n)
-    scan_sums(n, block, a, sums)
-    return int(scan_offsets(n, block, a, sums, out))
+    return int(prefix_sum(n, scan_block(n), a, sums, out))
