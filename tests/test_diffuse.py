@@ -353,6 +353,31 @@ def test_a_stopped_pass_resumes_into_the_same_bytes(foam_run, tmp_path, monkeypa
     assert (out / FOAM_RESUME).is_file()
 
 
+def test_simulate_going_on_after_a_foam_pass_never_lists_frames_of_both(tmp_path, capsys):
+    """A run post-processed by `foam` (another seed), then simulated on: with no frame to make, the pass's frames
+    stay as they are; with frames to make, simulate's own foam goes on from its checkpoint and the pass's frames
+    leave the run (never listed beside simulate's), with a note saying so."""
+    d = tiny_scene_dict(output={"frames": 5}, foam=FOAM)
+    run = tmp_path / "run"
+    simulate(scene_from_dict(d), out=run, show_progress=False)
+    postprocess(run, seed=9, show_progress=False)
+    info = RunInfo.load(run)
+    post = {i: (run / rel).read_bytes() for i, rel in info.files("diffuse")}
+    assert sorted(post) == list(range(6)) and info.extra["foam_pass"]["seed"] == 9
+    simulate(scene_from_dict(d), out=run, resume=True, show_progress=False)  # nothing to make
+    info = RunInfo.load(run)
+    assert {i: (run / rel).read_bytes() for i, rel in info.files("diffuse")} == post
+    assert info.extra["foam_pass"]["seed"] == 9 and (run / "diffuse/resume.npz").is_file()
+    capsys.readouterr()
+    d["output"]["frames"] = 8
+    simulate(scene_from_dict(d), out=run, resume=True, show_progress=False)
+    info = RunInfo.load(run)
+    assert sorted(dict(info.files("diffuse"))) == [6, 7, 8] and "foam_pass" not in info.extra
+    assert sorted(q.name for q in (run / "diffuse").iterdir()) == [
+        "counts.csv", "diffuse_00006.ply", "diffuse_00007.ply", "diffuse_00008.ply"]
+    assert "the diffuse frames of `whitecap foam` (seed 9) leave the run" in capsys.readouterr().err
+
+
 KILLED_MID_FILE = """
 import sys, time
 sys.path.insert(0, sys.argv[1])

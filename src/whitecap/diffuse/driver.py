@@ -99,11 +99,23 @@ class FoamStage(FrameHook):
 
     def on_start(self, solver, out: Path, info: RunInfo, last_frame: int) -> None:
         self.last_frame = last_frame
-        # The simulation's own foam from here on: no post-processing pass continues into its frames.
-        if info.extra.pop("foam_pass", None) is not None:
-            info.save(out)
-        (out / FOAM_RESUME).unlink(missing_ok=True)
+        done = max((f.index for f in info.frames), default=-1)  # the frame simulate goes on from
+        if done < last_frame and info.extra.get("foam_pass") is not None:
+            self._end_foam_pass(out, info, done + 1)
         self.start(info, solver)
+
+    @staticmethod
+    def _end_foam_pass(out: Path, info: RunInfo, index: int) -> None:
+        """Inside `simulate`, before it makes frame ``index``: the frames of the `foam` pass that replaced its own
+        foam leave the run (saved before any new frame is handed to the writer), said in a note. Simulate's foam
+        goes on from its checkpoint, so the two are never listed side by side; a simulate with no frame to make
+        leaves them as they are."""
+        were = info.extra.pop("foam_pass")
+        _forget_earlier_pass(info, out)
+        info.save(out)
+        console.print(f"note: {out}: the diffuse frames of `whitecap foam` (seed {were.get('seed')}) leave the run: "
+                      f"simulate goes on with its own foam from frame {index}; `whitecap foam {out}` makes the foam "
+                      "of every frame again", soft_wrap=True)
 
     def start(self, info: RunInfo, solver=None) -> None:
         """The generator for the run ``info`` records; with ``solver``, the obstacles are the solver's
