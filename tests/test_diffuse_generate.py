@@ -280,7 +280,7 @@ def test_potentials_of_the_energetic_particles_alone_give_the_same_births(monkey
             f = _splash()
             f.positions = f.positions + k * DT * f.velocities
             out.append(gen.step(f, k, DT))
-            pots.append({name: a.copy() for name, a in gen._pots.items()})
+            pots.append({name: a.copy() for name, a in gen._host_potentials().items()})
             if not every:
                 marks.append(gen._bufs["energetic"].to_numpy()[:len(f)])
         monkeypatch.undo()
@@ -383,7 +383,7 @@ def test_the_look_ahead_takes_the_thresholds_and_births_from_a_sample_of_each_fr
         got = []
         for f in fr:
             gen._potential_arrays(f, len(f))
-            got.append((gen._pots, gen._moving(f)))
+            got.append((gen._host_potentials(), gen._moving(f)))
         pooled = {k: np.concatenate([g[0][k] for g in got]) for k in ("ta", "wc", "ke", "vo")}
         tau_all = gen._auto_tau(pooled, np.concatenate([g[1] for g in got]))
         tau = tau_all if tau is None else tau
@@ -415,3 +415,25 @@ def test_the_look_ahead_takes_the_thresholds_and_births_from_a_sample_of_each_fr
     assert np.allclose(gen.state.tau, tau, rtol=0.05) and not np.array_equal(gen.state.tau, tau)
     assert np.allclose(gen.state.tau[4:6], tau[4:6], rtol=1e-6)  # E_k's from every particle
     assert np.allclose(gen._plan[1], rates, rtol=1e-9, atol=0) and min(rates) > 1  # each frame's births
+
+
+def test_the_birth_rate_summed_on_the_device_is_the_hosts():
+    """budget.birth_rate's G, summed on the device by blocks (K.birth_sums) where the potentials are, is the sum
+    of the same f32 births NumPy makes on the host, to f32 rounding, for any multipliers: the 'auto' budget reads
+    it every frame without reading the frame's potentials back."""
+    from whitecap.diffuse import budget as B
+
+    gen = _generator((1.0, 1.0, 1.0))
+    f = _splash()
+    gen._potential_arrays(f, len(f))
+    pots = gen._host_potentials()
+    assert len(pots["ta"]) == len(f) > 1000 and (pots["ke"] > 0).mean() > 0.5
+    tau = np.array([np.quantile(pots[k][pots[k] > 0], q) for k in ("ta", "wc", "ke", "vo") for q in (0.2, 0.9)])
+    for k0 in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (4000.0, 50000.0, 20.0)):
+        host = float(B.births(pots, tau, k0, DT).astype(np.float64).sum())
+        assert host > 0
+        assert gen._birth_rate(tau, k0, DT) == pytest.approx(host, rel=1e-5)
+    assert gen._birth_rate(tau * 1e6, (1.0, 1.0, 1.0), DT) == 0.0  # no particle above any threshold
+    # The rows of a history sample, read back alone, are those of the whole read-back.
+    rows = np.array([0, 7, len(f) - 1])
+    np.testing.assert_array_equal(gen._potentials_at(rows), np.stack([pots[k][rows] for k in ("ta", "wc", "ke", "vo")]))

@@ -246,6 +246,11 @@ class FoamGenerator:
         self._known: dict[int, dict[str, np.ndarray]] = {}
         self._lists = False
         self._sampled = np.zeros(0, np.int64)  # the particles _potential_arrays computed for its sample
+        # the last potentials (_potential_arrays): their Taichi arrays (v_diff, crest, e_k, vort), their count, and
+        # their host copy once read back (_host_potentials)
+        self._pot_arrays: tuple = ()
+        self._pot_n = 0
+        self._pots: dict[str, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ thresholds and multipliers
     def base_thresholds(self) -> np.ndarray:
@@ -329,7 +334,7 @@ class FoamGenerator:
         got, rows = [], []
         for f in samples:
             self._potential_arrays(f, len(f), sample=B.LOOK_AHEAD_SAMPLE, ke_floor=floor)
-            got.append(self._pots)
+            got.append(self._host_potentials())
             rows.append(self._sampled)
         pooled = {k: np.concatenate([pots[k][r] for pots, r in zip(got, rows)]) for k in ("ta", "wc", "ke", "vo")}
         tau = self._auto_tau(pooled, np.concatenate([m[r] for m, r in zip(moving, rows)]))
@@ -366,8 +371,8 @@ class FoamGenerator:
         k = pos[index]
         k0 = (self.p.k_ta, self.p.k_wc, self.p.k_vo)
         assert self.state.tau is not None, "calibrate set the thresholds with the plan"
-        rate[k] = B.birth_rate(self._pots, self.state.tau, k0, dt)
-        n_fluid[k] = len(self._pots["ta"])  # the real count replaces the one interpolated between samples
+        rate[k] = self._birth_rate(self.state.tau, k0, dt)
+        n_fluid[k] = self._pot_n  # the real count replaces the one interpolated between samples
         s_past = np.nan_to_num(self._scales[:k])
         counts = self.state.counts
         alive = float(sum(counts[-1][2:])) if counts and k > 0 else 0.0
@@ -380,14 +385,13 @@ class FoamGenerator:
         has shown so far, and the scale follows them (see budget.running_peak); the birth rates
         of past frames are recomputed with today's thresholds from their sampled potentials."""
         st = self.state
-        pots = self._pots
         moving = self._moving(fluid)
         if moving.sum() < B.MIN_SAMPLES:
             return  # nothing moves yet: nothing would be generated
 
-        def sample(m: int) -> np.ndarray:  # m fluid particles spread evenly over the frame
+        def sample(m: int) -> np.ndarray:  # m fluid particles spread evenly over the frame (their rows alone read back)
             pick = history_picks(n, m)
-            return np.stack([pots[k][pick] for k in ("ta", "wc", "ke", "vo")] + [moving[pick]], 1).astype(np.float32)
+            return np.concatenate([self._potentials_at(pick), moving[pick][None]]).T.astype(np.float32)
 
         st.history, st.history_frames, st.history_stride = B.history_add(
             st.history, st.history_frames, st.history_stride, sample)
@@ -406,7 +410,7 @@ class FoamGenerator:
             peak = B.running_peak(rates, self.p, dt, left, st.history_frames)
             if peak > 0:
                 st.scale = self.p.budget / peak
-                st.scale = B.within_budget(st.scale, B.birth_rate(pots, st.tau, k0, dt) * self._boost(), alive, n,
+                st.scale = B.within_budget(st.scale, self._birth_rate(st.tau, k0, dt) * self._boost(), alive, n,
                                            self.p.budget)
         if first:
             self._say_auto(f"running estimate from frame {index}; it only rises")
@@ -485,9 +489,9 @@ class FoamGenerator:
         crests read: single particles spread evenly each took a group of four and their own neighbours'."""
         if known is not None and all(len(a) == n for a in known.values()):
             fx, fv, fid, args = self._prepare(fluid, n, lists=False)
-            self._pots = known
             pots = tuple(self._upload(k, known[name], ti.f32) for k, name in
                          (("v_diff", "ta"), ("crest", "wc"), ("e_k", "ke"), ("vort", "vo")))
+            self._pots, self._pot_arrays, self._pot_n = known, pots, n
             return args, fx, fv, fid, pots
         if energetic:
             ke_floor = self._energetic_floor()
@@ -524,10 +528,40 @@ class FoamGenerator:
                 K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC)
         runtime.device_idle()  # the potentials run on a GPU while the writer's thread writes (the GIL let go)
-        host = np.empty((4, n), np.float32)
-        K.pack_potentials(n, v_diff, crest, e_k, vort, host)
-        self._pots = dict(zip(("ta", "wc", "ke", "vo"), host))
+        self._pots, self._pot_arrays, self._pot_n = None, (v_diff, crest, e_k, vort), n  # read back only if asked
         return args, fx, fv, fid, (v_diff, crest, e_k, vort)
+
+    def _host_potentials(self) -> dict[str, np.ndarray]:
+        """The last _potential_arrays' potentials on the host (numpy, by name: ta, wc, ke, vo), read back once."""
+        if self._pots is None:
+            host = self._potentials_at(np.zeros(0, np.int32), self._pot_n)
+            self._pots = dict(zip(("ta", "wc", "ke", "vo"), host))
+        return self._pots
+
+    def _potentials_at(self, rows: np.ndarray, n: int | None = None) -> np.ndarray:
+        """The potentials (I_ta, I_wc, E_k, I_vo: 4 rows) of the fluid particles ``rows``, or of the first ``n``
+        where ``rows`` is empty, read back in one launch (K.pack_potentials)."""
+        m = len(rows) if len(rows) else int(n or 0)
+        out = np.empty((4, m), np.float32)
+        if m:
+            K.pack_potentials(m, np.ascontiguousarray(rows, np.int32), *self._pot_arrays, out)
+        return out
+
+    def _birth_rate(self, tau: np.ndarray, k0: tuple, dt: float) -> float:
+        """G, the particles the last potentials give in one frame with multipliers ``k0`` and thresholds ``tau``
+        (budget.birth_rate), summed on the device (K.birth_sums): the potentials stay there."""
+        n = self._pot_n
+        if n <= 0:
+            return 0.0
+        blocks = -(-n // K.BIRTH_BLOCK) + 1
+        part = self._bufs.get("birth_part")
+        if part is None or part.shape[0] < blocks:
+            self._bufs.pop("birth_part", None)  # the old array goes before the new one is made
+            rows = max(blocks, 2 * part.shape[0] if part is not None else 0)
+            part = self._bufs["birth_part"] = ti.Vector.ndarray(3, ti.f64, rows)
+        s = K.birth_sums(n, *self._pot_arrays, self._upload("tau_rate", np.asarray(tau), ti.f32, unless_same=True),
+                         dt, part)
+        return float(k0[0] * s[0] + k0[1] * s[1] + k0[2] * s[2])
 
     def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
         """SP.frame_potentials into this generator's kept arrays (v_diff, κ, E; ``normal`` as scratch)."""

@@ -898,11 +898,43 @@ def upload_fluid(n: ti.i32, hx: F3, hv: F3, hids: U1, x: F3, v: F3, ids: U1):
 
 
 @ti.kernel
-def pack_potentials(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
-    """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of n fluid particles into the rows of one
-    host array, out[0..3, i]: one launch, where reading each back took four."""
-    for i in range(n):
-        out[0, i], out[1, i], out[2, i], out[3, i] = v_diff[i], crest[i], e_k[i], vort[i]
+def pack_potentials(m: ti.i32, rows: I1, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
+    """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of the fluid particles i = rows[j] (j < m),
+    or of i = j where ``rows`` is empty, into one host array, out[0..3, j]: one launch, where reading each back
+    took four, and only the rows the host needs (a frame's history sample under the running 'auto')."""
+    picked = rows.shape[0] > 0
+    for j in range(m):
+        i = rows[j] if picked else j
+        out[0, j], out[1, j], out[2, j], out[3, j] = v_diff[i], crest[i], e_k[i], vort[i]
+
+
+#: Fluid particles per block of birth_sums (the last block may be shorter): a few thousand blocks at 1 M.
+BIRTH_BLOCK = 256
+F64V: Any = ti.types.ndarray(dtype=ti.types.vector(3, ti.f64), ndim=1)
+SUMS3: Any = ti.types.vector(3, ti.f64)
+
+
+@ti.kernel
+def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, part: F64V) -> SUMS3:
+    """The frame's births per unit multiplier (Ihmsen et al. 2012, eq. 8 summed over the fluid): Σ_i I_k·φ_ta·Δt,
+    Σ_i I_k·φ_wc·Δt and Σ_i I_k·φ_vo·Δt, so that G = k_ta·S_ta + k_wc·S_wc + k_vo·S_vo for any multipliers (the
+    'auto' budget's birth rate, budget.birth_rate). Each term in f32, as the births are drawn; summed in f64 by
+    blocks of BIRTH_BLOCK particles, one thread a block, then the blocks in order by one thread: the same sum
+    whatever the thread count, and nothing of the frame's potentials read back to the host."""
+    nb = (n + BIRTH_BLOCK - 1) // BIRTH_BLOCK
+    for b in range(nb):
+        s = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+        for i in range(b * BIRTH_BLOCK, ti.min(n, (b + 1) * BIRTH_BLOCK)):
+            w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
+            s += ti.cast(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
+                                    w * clamp_phi(vort[i], tau[6], tau[7])]), ti.f64)
+        part[b] = s
+    for _ in range(1):
+        t = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+        for b in range(nb):
+            t += part[b]
+        part[nb] = t
+    return part[nb]
 
 
 # ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)
