@@ -378,6 +378,36 @@ def test_simulate_going_on_after_a_foam_pass_never_lists_frames_of_both(tmp_path
     assert "the diffuse frames of `whitecap foam` (seed 9) leave the run" in capsys.readouterr().err
 
 
+def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run, tmp_path, monkeypatch):
+    """Inside simulate the foam stage copies the solver's arrays on the device (K.copy_fluid) instead of uploading
+    the frame it was handed: the same particles in the same order, so the same diffuse bytes as the upload."""
+    from whitecap.diffuse import driver, kernels as K
+
+    used = []
+    real = K.copy_fluid
+    monkeypatch.setattr(K, "copy_fluid", lambda *a: used.append(a[0]) or real(*a))
+    again = tmp_path / "again"
+    simulate(scene_from_dict(tiny_scene_dict(output={"frames": 12}, foam=FOAM)), out=again, show_progress=False)
+    assert len(used) == 13
+    start = driver.FoamStage.start
+
+    def host_only(self, info, solver=None):
+        start(self, info, solver)
+        self.gen.fluid_on_device = None
+
+    monkeypatch.setattr(driver.FoamStage, "start", host_only)
+    used.clear()
+    uploaded = tmp_path / "uploaded"
+    simulate(scene_from_dict(tiny_scene_dict(output={"frames": 12}, foam=FOAM)), out=uploaded, show_progress=False)
+    assert used == []
+    made = 0
+    for i, rel in RunInfo.load(again).files("diffuse"):
+        a, b = (again / rel).read_bytes(), (uploaded / rel).read_bytes()
+        assert a == b == (foam_run / rel).read_bytes(), rel
+        made += len(a) > 400
+    assert made >= 6
+
+
 KILLED_MID_FILE = """
 import sys, time
 sys.path.insert(0, sys.argv[1])

@@ -132,6 +132,8 @@ class FoamStage(FrameHook):
             arch=self.arch or "cpu", obstacles=self.obstacles,
         )
         self.gen.last_frame = self.last_frame
+        if solver is not None:  # each frame on_frame is given is the solver's state as it stands (sim.driver's emit)
+            self.gen.fluid_on_device = lambda: (solver.state.x, solver.state.v, solver.state.ids)
         if self._pending is not None:
             self.gen.restore_resume(self._pending_extra)  # first: sizing the live arrays keeps what they hold
             self.gen.state = self._pending

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 import taichi as ti
@@ -249,6 +250,9 @@ class FoamGenerator:
         # the last potentials (_potential_arrays): their Taichi arrays (v_diff, crest, e_k, vort), their count, and
         # their host copy once read back (_host_potentials)
         self._pot_arrays: tuple = ()
+        # Inside simulate: the solver's (positions, velocities, ids) Taichi arrays, whose first n rows are the frame
+        # each step is given (FoamStage.on_start), copied on the device instead of uploaded from the host.
+        self.fluid_on_device: Callable[[], tuple] | None = None
         self._pot_n = 0
         self._pots: dict[str, np.ndarray] | None = None
 
@@ -451,9 +455,12 @@ class FoamGenerator:
         (only the potentials read them)."""
         fx, fv = self._buffer("fluid_x", n, vec=True), self._buffer("fluid_v", n, vec=True)
         fid = self._buffer("fluid_id", n, ti.u32)
-        K.upload_fluid(n, np.ascontiguousarray(fluid.positions, np.float32),
-                       np.ascontiguousarray(_velocities(fluid), np.float32),
-                       np.ascontiguousarray(fluid.ids, np.uint32), fx, fv, fid)
+        if self.fluid_on_device is not None:  # the solver's arrays hold this very frame (simulate)
+            K.copy_fluid(n, *self.fluid_on_device(), fx, fv, fid)
+        else:
+            K.upload_fluid(n, np.ascontiguousarray(fluid.positions, np.float32),
+                           np.ascontiguousarray(_velocities(fluid), np.float32),
+                           np.ascontiguousarray(fluid.ids, np.uint32), fx, fv, fid)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
         self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)

@@ -898,6 +898,18 @@ def upload_fluid(n: ti.i32, hx: F3, hv: F3, hids: U1, x: F3, v: F3, ids: U1):
 
 
 @ti.kernel
+def copy_fluid(n: ti.i32, sx: F3, sv: F3, sids: I1, x: F3, v: F3, ids: U1):
+    """The solver's fluid (its first n particles, in its order: the frame just written) into the kept arrays, rows
+    past n zero, as upload_fluid from the same frame on the host: inside `simulate` the frame never goes up again
+    (1 M particles: 28 MB over the bus each way, Taichi copying a host array back after each launch)."""
+    for p in range(x.shape[0]):
+        if p < n:
+            x[p], v[p], ids[p] = sx[p], sv[p], ti.cast(sids[p], ti.u32)
+        else:
+            x[p], v[p], ids[p] = vec3(0.0), vec3(0.0), ti.u32(0)
+
+
+@ti.kernel
 def pack_potentials(m: ti.i32, rows: I1, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
     """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of the fluid particles i = rows[j] (j < m),
     or of i = j where ``rows`` is empty, into one host array, out[0..3, j]: one launch, where reading each back
