@@ -198,6 +198,13 @@ def uniform(seed: int, frame: int, pid: np.ndarray, slot, draw: int) -> np.ndarr
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)
 
 
+def _rows(a: np.ndarray, dtype) -> np.ndarray:
+    """``a`` as a contiguous host array for a kernel, with one zero row where it has none (the kernels read only
+    the first n rows; an empty array is never handed to a kernel, which CUDA's launches would allocate at 0 bytes)."""
+    a = np.ascontiguousarray(a, dtype)
+    return a if len(a) else np.zeros((1, *a.shape[1:]), dtype)
+
+
 def _tally(n: int, kd) -> np.ndarray:
     """How many of kd[0..n) are spray, foam and bubbles (K.tally_kinds; nothing launched for none)."""
     return np.array(K.tally_kinds(n, kd), np.float64) if n > 0 else np.zeros(3)
@@ -458,9 +465,8 @@ class FoamGenerator:
         if self.fluid_on_device is not None:  # the solver's arrays hold this very frame (simulate)
             K.copy_fluid(n, *self.fluid_on_device(), fx, fv, fid)
         else:
-            K.upload_fluid(n, np.ascontiguousarray(fluid.positions, np.float32),
-                           np.ascontiguousarray(_velocities(fluid), np.float32),
-                           np.ascontiguousarray(fluid.ids, np.uint32), fx, fv, fid)
+            K.upload_fluid(n, _rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
+                           _rows(fluid.ids, np.uint32), fx, fv, fid)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
         self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)
@@ -550,8 +556,9 @@ class FoamGenerator:
         where ``rows`` is empty, read back in one launch (K.pack_potentials)."""
         m = len(rows) if len(rows) else int(n or 0)
         out = np.empty((4, m), np.float32)
-        if m:
-            K.pack_potentials(m, np.ascontiguousarray(rows, np.int32), *self._pot_arrays, out)
+        if m:  # never an empty array handed to a kernel (``rows`` stands in for none with one row unread)
+            picked = _rows(rows, np.int32)
+            K.pack_potentials(m, int(len(rows) > 0), picked, *self._pot_arrays, out)
         return out
 
     def _birth_rate(self, tau: np.ndarray, k0: tuple, dt: float) -> float:

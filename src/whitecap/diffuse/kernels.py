@@ -910,11 +910,10 @@ def copy_fluid(n: ti.i32, sx: F3, sv: F3, sids: I1, x: F3, v: F3, ids: U1):
 
 
 @ti.kernel
-def pack_potentials(m: ti.i32, rows: I1, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
-    """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of the fluid particles i = rows[j] (j < m),
-    or of i = j where ``rows`` is empty, into one host array, out[0..3, j]: one launch, where reading each back
-    took four, and only the rows the host needs (a frame's history sample under the running 'auto')."""
-    picked = rows.shape[0] > 0
+def pack_potentials(m: ti.i32, picked: ti.i32, rows: I1, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
+    """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of the fluid particles i = rows[j] (j < m)
+    where ``picked``, else of i = j, into one host array, out[0..3, j]: one launch, where reading each back took
+    four, and only the rows the host needs (a frame's history sample under the running 'auto')."""
     for j in range(m):
         i = rows[j] if picked else j
         out[0, j], out[1, j], out[2, j], out[3, j] = v_diff[i], crest[i], e_k[i], vort[i]
