@@ -112,8 +112,10 @@ def _cmd_foam(a) -> int:
     from . import pipeline
 
     info = pipeline.foam(a.input, _foam_job(a), out=a.out, ini=a.params, case=a.case)
-    print(f"wrote diffuse particles for {len(info.files('diffuse'))} frames to "
-          f"{info.extra.get('out', a.out or a.input)}")
+    made, listed = info.extra.get("made"), len(info.files("diffuse"))
+    if made != 0:  # 0: a complete pass, which said so
+        some = f"{made} of {listed}" if made is not None and made != listed else f"{listed}"
+        print(f"wrote diffuse particles for {some} frames to {info.extra.get('out', a.out or a.input)}")
     return 0
 
 

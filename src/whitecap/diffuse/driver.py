@@ -450,7 +450,7 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     if done is not None and done[0] == len(files):
         console.print(f"foam: {out}: the {len(files)} diffuse frames of this pass (seed {seed}) are complete; "
                       "nothing to do", soft_wrap=True)
-        info.extra["out"] = str(out)
+        info.extra["out"], info.extra["made"] = str(out), 0
         return info
     if p.model == "foamgenerator":
         tau = _foamgenerator_limits(stage.generator, files, first, show_progress)
@@ -470,7 +470,7 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     info.extra["foam_pass"] = {"identity": identity, "seed": seed}
     _run_frames(stage, reader, info, out, frame_dt, convert, show_progress, start, identity)
     info.save(out)
-    info.extra["out"] = str(out)  # for the caller's message; not saved
+    info.extra["out"], info.extra["made"] = str(out), len(files) - start  # for the caller's message; not saved
     _report(stage)
     return info
 
