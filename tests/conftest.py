@@ -16,6 +16,27 @@ BPY_END = "\nfrom whitecap.workers import end_process as _end\n_end(0)\n"
 DATA = Path(__file__).resolve().parent / "data"
 
 
+def kill_when(child, signal_file: Path, what: str) -> None:
+    """SIGKILL the subprocess ``child`` once it has made ``signal_file`` (it waits there, mid-write: ``what``);
+    its output is the error where it ends first. Returns once it is dead, killed by that signal."""
+    import signal
+    import time
+
+    try:
+        deadline = time.monotonic() + 300
+        while not signal_file.exists():
+            assert child.poll() is None, child.stdout.read().decode()
+            assert time.monotonic() < deadline, f"the child never reached {what}"
+            time.sleep(0.05)
+        child.send_signal(signal.SIGKILL)
+        child.wait(60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert child.returncode == -signal.SIGKILL
+
+
 def tiny_scene_dict(**over) -> dict:
     """A small dam break: about 2.3k particles, r = 1 cm, 3 frames at 30 fps."""
     d = {

@@ -7,7 +7,6 @@ from __future__ import annotations
 import errno
 import json
 import os
-import signal
 import subprocess
 import sys
 import textwrap
@@ -25,7 +24,7 @@ from whitecap.io.run import RunInfo
 from whitecap.io.writer import FrameWriter
 from whitecap.pipeline import simulate
 
-from .conftest import ROOT, tiny_scene_dict
+from .conftest import ROOT, kill_when, tiny_scene_dict
 
 
 @pytest.fixture(autouse=True)
@@ -249,19 +248,7 @@ def test_kill_9_while_a_frame_is_being_written_resumes_byte_identical(tmp_path):
     code = CHILD.format(src=str(ROOT / "src"), signal=str(sig), scene=json.dumps(SCENE), out=str(run))
     child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                              env={**os.environ, "WHITECAP_PROGRESS": "0"})
-    try:
-        deadline = time.monotonic() + 300
-        while not sig.exists():
-            assert child.poll() is None, child.stdout.read().decode()
-            assert time.monotonic() < deadline, "the child never reached frame 3's write"
-            time.sleep(0.05)
-        child.send_signal(signal.SIGKILL)
-        child.wait(60)
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
-    assert child.returncode == -signal.SIGKILL
+    kill_when(child, sig, "frame 3's write")
     # Killed mid-file: its temporary file is there, the file itself is not, and run.json does not list it.
     assert list((run / "fluid").glob(".fluid_00003.*.tmp.ply")) and not (run / "fluid" / "fluid_00003.ply").exists()
     listed = _listed(run)

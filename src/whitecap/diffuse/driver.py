@@ -77,8 +77,7 @@ class FoamStage(FrameHook):
         self.seed = seed
         self.obstacles = obstacles
         self.gen: FoamGenerator | None = None
-        self._pending: DiffuseState | None = None  # a restored state (restore before start), with its extras
-        self._pending_extra: dict = {}
+        self._restored: dict | None = None  # a checkpoint's arrays (restore), set on the generator by start
         self.verbose = verbose
         self.last_frame: int | None = None  # the run's last frame index, where known
         self.max_speed = 0.0  # the fastest fluid particle seen [m/s]: to say which threshold no flow reached
@@ -134,9 +133,8 @@ class FoamStage(FrameHook):
         self.gen.last_frame = self.last_frame
         if solver is not None:  # each frame on_frame is given is the solver's state as it stands (sim.driver's emit)
             self.gen.fluid_on_device = lambda: (solver.state.x, solver.state.v, solver.state.ids)
-        if self._pending is not None:
-            self.gen.restore_resume(self._pending_extra)  # first: sizing the live arrays keeps what they hold
-            self.gen.state = self._pending
+        if self._restored is not None:
+            self._apply(self._restored)
 
     def on_frame(self, frame: ParticleFrame, index: int, dt: float, out: Path, info: RunInfo) -> str:
         t = frame.time if frame.time is not None else index * dt
@@ -183,19 +181,22 @@ class FoamStage(FrameHook):
         return f"spray {int(r[2]):,} foam {int(r[3]):,} bubbles {int(r[4]):,}"
 
     def checkpoint(self) -> dict[str, np.ndarray]:
-        """The diffuse state and what else the next frame depends on (FoamGenerator.resume_arrays)."""
-        return {**self.gen.state.to_arrays(), **self.gen.resume_arrays()} if self.gen else {}
+        """The diffuse state, what else the next frame depends on (FoamGenerator.resume_arrays) and what the
+        end-of-run warning reads."""
+        if self.gen is None:
+            return {}
+        return {**self.gen.state.to_arrays(), **self.gen.resume_arrays(),
+                "max_speed": np.asarray(self.max_speed, np.float64), "made_any": np.asarray(self.made_any)}
 
     def restore(self, data: dict[str, np.ndarray]) -> None:
+        """A checkpoint's state: set on the generator now where there is one (a post-processing pass resumed,
+        after its look-ahead made the plan), else by :meth:`start`."""
         if data:
-            self._pending = DiffuseState.from_arrays(data)
-            self._pending_extra = data
+            self._restored = data
             if self.gen is not None:
-                self.gen.restore_resume(data)
-                self.gen.state = self._pending
+                self._apply(data)
 
-    def restore_pass(self, data: dict) -> None:
-        """A post-processing pass's state (:func:`_resume_point`), set after :meth:`start` and the look-ahead."""
+    def _apply(self, data: dict) -> None:
         self.generator.restore_resume(data)  # first: sizing the live arrays keeps what they hold
         self.generator.state = DiffuseState.from_arrays(data)
         self.max_speed, self.made_any = float(data.get("max_speed", 0.0)), bool(data.get("made_any", False))
@@ -461,7 +462,7 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     start = 0
     if done is not None:  # after the look-ahead, which sets the plan the record's corrections go into
         start, record = done
-        stage.restore_pass(record)
+        stage.restore(record)
         reader.cache.clear()  # the frames before ``start`` are not read again
         console.print(f"foam: resuming at frame {files[start][0]} (frames {files[0][0]}-{files[start - 1][0]} "
                       "of this pass are complete)")
@@ -605,8 +606,7 @@ def _resume_record(stage: "FoamStage", index: int, identity: str) -> dict[str, n
     """The pass's state after frame ``index`` without the live particles (their frame's file holds them):
     owned copies, for the writer's thread."""
     data = {k: np.array(v, copy=True) for k, v in stage.checkpoint().items() if k not in _IN_FRAME_FILE}
-    data.update(frame=np.asarray(index, np.int64), identity=np.asarray(identity),
-                max_speed=np.asarray(stage.max_speed, np.float64), made_any=np.asarray(stage.made_any))
+    data.update(frame=np.asarray(index, np.int64), identity=np.asarray(identity))
     return data
 
 

@@ -463,10 +463,11 @@ class FoamGenerator:
         fx, fv = self._buffer("fluid_x", n, vec=True), self._buffer("fluid_v", n, vec=True)
         fid = self._buffer("fluid_id", n, ti.u32)
         if self.fluid_on_device is not None:  # the solver's arrays hold this very frame (simulate)
-            K.copy_fluid(n, *self.fluid_on_device(), fx, fv, fid)
+            source = self.fluid_on_device()
         else:
-            K.upload_fluid(n, _rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
-                           _rows(fluid.ids, np.uint32), fx, fv, fid)
+            source = (_rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
+                      _rows(fluid.ids, np.uint32))
+        K.copy_fluid(n, *source, fx, fv, fid)
         g = self._fluid_grid(n)
         g.build(fx, n, lists)
         self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)
@@ -547,18 +548,17 @@ class FoamGenerator:
     def _host_potentials(self) -> dict[str, np.ndarray]:
         """The last _potential_arrays' potentials on the host (numpy, by name: ta, wc, ke, vo), read back once."""
         if self._pots is None:
-            host = self._potentials_at(np.zeros(0, np.int32), self._pot_n)
-            self._pots = dict(zip(("ta", "wc", "ke", "vo"), host))
+            self._pots = dict(zip(("ta", "wc", "ke", "vo"), self._potentials_at(None)))
         return self._pots
 
-    def _potentials_at(self, rows: np.ndarray, n: int | None = None) -> np.ndarray:
-        """The potentials (I_ta, I_wc, E_k, I_vo: 4 rows) of the fluid particles ``rows``, or of the first ``n``
-        where ``rows`` is empty, read back in one launch (K.pack_potentials)."""
-        m = len(rows) if len(rows) else int(n or 0)
+    def _potentials_at(self, rows: np.ndarray | None) -> np.ndarray:
+        """The last potentials (I_ta, I_wc, E_k, I_vo: 4 rows) of the fluid particles ``rows``, or of all where
+        None, read back in one launch (K.pack_potentials)."""
+        m = self._pot_n if rows is None else len(rows)
         out = np.empty((4, m), np.float32)
-        if m:  # never an empty array handed to a kernel (``rows`` stands in for none with one row unread)
-            picked = _rows(rows, np.int32)
-            K.pack_potentials(m, int(len(rows) > 0), picked, *self._pot_arrays, out)
+        if m:  # never an empty array handed to a kernel (all: one row stands in for ``rows``, unread)
+            picked = _rows(np.zeros(0) if rows is None else rows, np.int32)
+            K.pack_potentials(m, int(rows is not None), picked, *self._pot_arrays, out)
         return out
 
     def _birth_rate(self, tau: np.ndarray, k0: tuple, dt: float) -> float:
@@ -567,12 +567,7 @@ class FoamGenerator:
         n = self._pot_n
         if n <= 0:
             return 0.0
-        blocks = -(-n // K.BIRTH_BLOCK) + 1
-        part = self._bufs.get("birth_part")
-        if part is None or part.shape[0] < blocks:
-            self._bufs.pop("birth_part", None)  # the old array goes before the new one is made
-            rows = max(blocks, 2 * part.shape[0] if part is not None else 0)
-            part = self._bufs["birth_part"] = ti.Vector.ndarray(3, ti.f64, rows)
+        part = self._buffer("birth_part", -(-n // K.BIRTH_BLOCK) + 1, ti.f64, cols=3, zeroed=False)
         s = K.birth_sums(n, *self._pot_arrays, self._upload("tau_rate", np.asarray(tau), ti.f32, unless_same=True),
                          dt, part)
         return float(k0[0] * s[0] + k0[1] * s[1] + k0[2] * s[2])

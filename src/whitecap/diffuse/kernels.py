@@ -886,22 +886,12 @@ def upload_state(
 
 
 @ti.kernel
-def upload_fluid(n: ti.i32, hx: F3, hv: F3, hids: U1, x: F3, v: F3, ids: U1):
-    """A fluid frame (host arrays of n rows) into the kept arrays x, v, ids, their rows past n zero: one launch,
-    where an upload per array took three (a launch costs about 0.1 ms of Python; on the CPU the host arrays are
-    read in place)."""
-    for p in range(x.shape[0]):
-        if p < n:
-            x[p], v[p], ids[p] = hx[p], hv[p], hids[p]
-        else:
-            x[p], v[p], ids[p] = vec3(0.0), vec3(0.0), ti.u32(0)
-
-
-@ti.kernel
-def copy_fluid(n: ti.i32, sx: F3, sv: F3, sids: I1, x: F3, v: F3, ids: U1):
-    """The solver's fluid (its first n particles, in its order: the frame just written) into the kept arrays, rows
-    past n zero, as upload_fluid from the same frame on the host: inside `simulate` the frame never goes up again
-    (1 M particles: 28 MB over the bus each way, Taichi copying a host array back after each launch)."""
+def copy_fluid(n: ti.i32, sx: F3, sv: F3, sids: N1, x: F3, v: F3, ids: U1):
+    """A fluid frame's first n particles into the kept arrays x, v, ids (ids of any integer type), their rows past
+    n zero: one launch for the three. From host arrays (post-processing; on the CPU read in place), or, inside
+    `simulate`, from the solver's own arrays, which hold the frame just written in the same order, so that it
+    never goes up again (1 M particles: 28 MB over the bus each way, Taichi copying a host array back after each
+    launch)."""
     for p in range(x.shape[0]):
         if p < n:
             x[p], v[p], ids[p] = sx[p], sv[p], ti.cast(sids[p], ti.u32)
@@ -921,12 +911,12 @@ def pack_potentials(m: ti.i32, picked: ti.i32, rows: I1, v_diff: F1, crest: F1, 
 
 #: Fluid particles per block of birth_sums (the last block may be shorter): a few thousand blocks at 1 M.
 BIRTH_BLOCK = 256
-F64V: Any = ti.types.ndarray(dtype=ti.types.vector(3, ti.f64), ndim=1)
+D2: Any = ti.types.ndarray(dtype=ti.f64, ndim=2)
 SUMS3: Any = ti.types.vector(3, ti.f64)
 
 
 @ti.kernel
-def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, part: F64V) -> SUMS3:
+def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, part: D2) -> SUMS3:
     """The frame's births per unit multiplier (Ihmsen et al. 2012, eq. 8 summed over the fluid): Σ_i I_k·φ_ta·Δt,
     Σ_i I_k·φ_wc·Δt and Σ_i I_k·φ_vo·Δt, so that G = k_ta·S_ta + k_wc·S_wc + k_vo·S_vo for any multipliers (the
     'auto' budget's birth rate, budget.birth_rate). Each term in f32, as the births are drawn; summed in f64 by
@@ -939,13 +929,13 @@ def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt:
             w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
             s += ti.cast(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
                                     w * clamp_phi(vort[i], tau[6], tau[7])]), ti.f64)
-        part[b] = s
+        part[b, 0], part[b, 1], part[b, 2] = s[0], s[1], s[2]
     for _ in range(1):
         t = ti.Vector([0.0, 0.0, 0.0], ti.f64)
         for b in range(nb):
-            t += part[b]
-        part[nb] = t
-    return part[nb]
+            t += ti.Vector([part[b, 0], part[b, 1], part[b, 2]])
+        part[nb, 0], part[nb, 1], part[nb, 2] = t[0], t[1], t[2]
+    return ti.Vector([part[nb, 0], part[nb, 1], part[nb, 2]])
 
 
 # ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)
