@@ -60,8 +60,8 @@ MIN_SAMPLE_FRAMES = 3
 # Of each frame it samples, the look-ahead takes the potentials of at most this many fluid particles
 # (4 × the simulation's HISTORY_SAMPLE, since it samples 3-12 frames where the simulation samples every
 # one), in runs of SAMPLE_RUN consecutive ones in the neighbour grid's cell order spread evenly over the
-# frame: whole groups of the grid's list build, and neighbours, which share the normals their wave crests
-# read (evenly spread single particles each took a group of four and their own neighbours). The
+# frame: neighbours, which share the normals their wave crests read (evenly spread single particles each took
+# their own neighbours' lists as well; when the lists were built in groups of four, a group too). The
 # percentiles then rest on 49k-197k particles whatever the fluid's size. On bench_foam's 98k sequence
 # (3 frames) they were within 0.2-1.9 % of all particles' (at most 3 %, runs placed five ways), as close
 # as a random sample of as many, where the frames sampled move them by several per cent (a run of 4

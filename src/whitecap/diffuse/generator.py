@@ -499,8 +499,8 @@ class FoamGenerator:
         the same births, for a fraction of the neighbour lists. With ``sample`` (a count) and ``ke_floor``,
         those where E_k ≥ ``ke_floor`` and of ``sample`` particles alone, their indices in self._sampled: all,
         or the slots B.sample_slots of the grid's cell order (calibrate's births and sample). Runs of slots
-        are whole groups of the lists' build (build_marked) and neighbours, which share the normals their
-        crests read: single particles spread evenly each took a group of four and their own neighbours'."""
+        are neighbours, which share the normals their crests read: single particles spread evenly each took
+        their own neighbours' lists as well."""
         if known is not None and all(len(a) == n for a in known.values()):
             fx, fv, fid, args = self._prepare(fluid, n, lists=False)
             pots = tuple(self._upload(k, known[name], ti.f32) for k, name in
