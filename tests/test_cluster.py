@@ -25,6 +25,7 @@ from plyfile import PlyData  # noqa: E402
 from whitecap import pipeline  # noqa: E402
 from whitecap.cli import main  # noqa: E402
 from whitecap.config import Cluster  # noqa: E402
+from whitecap.executor import NO_DASHBOARD  # noqa: E402
 from whitecap.io.run import RunInfo  # noqa: E402
 
 FRAMES = 3  # frames 0, 1, 2 of the tiny run
@@ -34,7 +35,7 @@ FRAMES = 3  # frames 0, 1, 2 of the tiny run
 def cluster():
     """Two worker processes, one thread each (the frame functions bring their own threads)."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=50) as c:
+                                  silence_logs=50, scheduler_kwargs=NO_DASHBOARD) as c:
         yield c
 
 

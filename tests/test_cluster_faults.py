@@ -35,6 +35,7 @@ distributed = pytest.importorskip("distributed")
 
 from whitecap import pipeline  # noqa: E402
 from whitecap.cli import main  # noqa: E402
+from whitecap.executor import NO_DASHBOARD  # noqa: E402  (test clusters start as whitecap's: no fixed port)
 from whitecap.io import ParticleFrame, read_mesh, write as write_particles  # noqa: E402
 from whitecap.io.run import RunInfo  # noqa: E402
 
@@ -45,7 +46,7 @@ from .test_cluster import _files, _small_run  # noqa: E402  (a copy of the tiny 
 def worker_processes():
     """One Dask worker in its own process, as on a real cluster (one thread: frames bring their own)."""
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=logging.CRITICAL) as c:
+                                  silence_logs=logging.CRITICAL, scheduler_kwargs=NO_DASHBOARD) as c:
         yield c
 
 
@@ -426,7 +427,7 @@ def test_a_frame_whose_result_was_lost_and_made_again_is_delivered(tmp_path, mon
 def in_process_cluster():
     """Two worker threads in this process: a frame's writing can be slowed from the test."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None,
-                                  silence_logs=logging.CRITICAL) as c:
+                                  silence_logs=logging.CRITICAL, scheduler_kwargs=NO_DASHBOARD) as c:
         yield c
 
 
