@@ -407,6 +407,50 @@ def test_a_grid_built_without_lists_sorts_as_one_with_them(layout):
     assert (bare.nb_count.to_numpy() == -1).all()  # no lists were built
 
 
+@pytest.mark.parametrize("layout", ["dense", "hashed"])
+def test_marked_lists_are_the_rows_a_whole_build_makes(layout):
+    """build_marked (the foam stage's lists, of the energetic particles alone) writes each marked particle's row as
+    the whole build does, whether its group of the cell order is scanned at once (MARKED_GROUP marked or more) or
+    it alone: marks in runs (whole groups), in pairs and single, and on particles outside the domain."""
+    import taichi as ti
+
+    from whitecap.sim import runtime
+    from whitecap.sim.grid import GROUP, MARKED_GROUP, NeighborGrid, grid_spec
+
+    runtime.init("cpu")
+    x = _points(2000, seed=11)
+    x[:40] += np.float32(0.3)  # some beyond the domain's upper faces (in its border cells)
+    xs = ti.Vector.ndarray(3, ti.f32, len(x))
+    xs.from_numpy(x)
+    full, part = (NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), len(x), 256, H, layout) for _ in range(2))
+    full.build(xs, len(x))
+    part.build(xs, len(x), lists=False)
+    part.nb_count.fill(-1)
+    order = part.order.to_numpy()
+    rng = np.random.default_rng(3)
+    mark = np.zeros(len(x), np.int32)
+    mark[order[200:264]] = 1  # a run of slots: whole groups
+    mark[order[rng.choice(np.arange(300, 2000, GROUP), 150, replace=False)]] = 1  # one of a group
+    mark[order[np.arange(1000, 1400, 3 * GROUP)[:, None] + np.arange(MARKED_GROUP)].ravel()] = 1  # a few of a group
+    mark[:40:3] = 1  # outside the domain
+    mark[rng.choice(len(x), 100, replace=False)] = 2  # another value: not built
+    marks = ti.ndarray(ti.i32, len(x))
+    marks.from_numpy(mark)
+    part.build_marked(len(x), marks, 1)
+    want_n, want = full.nb_count.to_numpy(), full.nb.to_numpy()
+    got_n, got = part.nb_count.to_numpy(), part.nb.to_numpy()
+    rows = np.flatnonzero(mark == 1)
+    assert (got_n[rows] == want_n[rows]).all()
+    for i in rows:
+        assert (got[i, : got_n[i]] == want[i, : want_n[i]]).all(), f"particle {i}"
+    # the others are left as they were, unless their group was scanned at once: then their rows are right too
+    other = np.flatnonzero(mark != 1)
+    kept = got_n[other] == -1
+    assert kept.mean() > 0.9
+    for i in other[~kept]:
+        assert (got[i, : got_n[i]] == want[i, : want_n[i]]).all(), f"particle {i}"
+
+
 def test_an_unfilled_array_is_a_taichi_array_that_kernels_write_and_read():
     """runtime.empty_ndarray (the neighbour lists, the live diffuse particles): the same types and shapes as
     ti.ndarray's, and what a kernel writes is what is read back, for scalars, rows and vectors."""

@@ -495,6 +495,13 @@ def _scan_hashed_column(
 #: 16.5–16.8 ms there, and 3.0 → 2.2 ms on frame 20 of the bunny demo.
 GROUP = 4
 GROUP_SPREAD = 8
+#: The marked particles of a group at least, for a marked build (_build_marked_lists) to scan the group at once;
+#: fewer, each is scanned alone. The foam stage marks a few per cent of the particles, mostly one in a group:
+#: scanning its group made four lists where one was wanted. On bench_foam's 98k sequence (2 cores, Python's
+#: clock round the launches): the builds of its 10 frames took 28-30 ms with 2, 31-33 with each marked particle
+#: alone, 37 when any one marked made the group's scan; the calibration's (3 frames, a fifth of the particles
+#: marked, in runs of 64 slots) 32-36 ms with 2, 43-44 alone, 40 with any one.
+MARKED_GROUP = 2
 #: Neighbour rows are padded to a multiple of this many entries on a CPU whose
 #: vector gathers LLVM uses (:func:`cpu_gathers`): the 8 single-precision lanes
 #: that it vectorises the solver's neighbour loops with. Measured on λ at 115k
@@ -582,37 +589,41 @@ def _build_lists(
         # Walk particles in cell order: consecutive ones share their
         # candidate cells, which then stay in cache.
         _lists_at(si, n, lower, inv_cell, dims, x_sorted, start, scan, h, order, nb_count, nb, cap, overflow, pad,
-                  group)
+                  group, order, 0, False)
 
 
 @ti.kernel
 def _build_marked_lists(
     n: ti.i32, lower: vec3, inv_cell: ti.f32, dims: ivec3, x_sorted: F3, start: I1, scan: TEMPLATE, h: ti.f32,
-    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, mark: I1, value: ti.i32,
+    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE, mark: I1,
+    value: ti.i32,
 ):
     """:func:`_build_lists` for the particles i with mark[i] == ``value`` only (the rows of the others are left
-    as they were), each its own list: the same list as the whole build makes (the lists do not depend on the
-    grouping). Not in groups (:data:`GROUP`): the foam stage marks a few per cent of the particles, mostly one in a
-    group, and a group's scan made four lists where one was wanted. On bench_foam's 98k sequence (2 cores) the
-    marked builds took 51 ms over its 13 frames against 68 ms in groups; the calibration's builds, with a fifth of
-    the particles marked, were as fast or faster too."""
-    h2 = h * h
+    as they were, but those of a group built in one scan): a group is scanned at once where MARKED_GROUP of its
+    particles are marked, else each marked one alone; a list is the same either way (the lists do not depend on
+    the grouping)."""
     for si in range(n):
-        if mark[order[si]] == value:
-            _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow,
-                         pad)
+        _lists_at(si, n, lower, inv_cell, dims, x_sorted, start, scan, h, order, nb_count, nb, cap, overflow, pad,
+                  group, mark, value, True)
 
 
 @ti.func
 def _lists_at(
     si, n, lower: TEMPLATE, inv_cell: TEMPLATE, dims: TEMPLATE, x_sorted: F3, start: I1, scan: TEMPLATE, h,
-    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE,
+    order: I1, nb_count: I1, nb: I2, cap: TEMPLATE, overflow: I1, pad: TEMPLATE, group: TEMPLATE, mark: I1,
+    value, marked: TEMPLATE,
 ):
     """The lists slot ``si`` builds (see :func:`_build_lists`): its own (``group`` 1) or its group's when it
-    leads one."""
+    leads one. With ``marked`` (compile time), only those of particles with mark[order[slot]] == value: the
+    group's in one scan where MARKED_GROUP of them are, else each marked one's alone."""
     h2 = h * h
     if ti.static(group == 1):
-        _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow, pad)
+        if ti.static(not marked):
+            _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow,
+                         pad)
+        elif mark[order[si]] == value:
+            _single_list(si, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order, nb_count, nb, cap, overflow,
+                         pad)
     else:
         c0 = cell_of(x_sorted[si], lower, inv_cell, dims)
         lead = 0
@@ -623,7 +634,21 @@ def _lists_at(
             column = (c0.x * dims.y + c0.y) * dims.z  # the column's first cell
             lead = ti.cast((si - start[column]) % group == 0, ti.i32)
             end = start[column + dims.z]  # one past the column's last slot
-        if lead:
+        some = group  # marked particles in the group
+        if ti.static(marked):
+            if lead:
+                some = 0
+                for g in ti.static(range(group)):
+                    some += ti.cast(si + g < end, ti.i32) & ti.cast(mark[order[ti.min(si + g, end - 1)]] == value,
+                                                                     ti.i32)
+                if 0 < some < MARKED_GROUP:
+                    lead = 0
+                    for g in range(group):  # a loop: one more copy of the scan's code, not four
+                        if si + g < end:
+                            if mark[order[si + g]] == value:
+                                _single_list(si + g, h, h2, lower, inv_cell, dims, x_sorted, start, scan, order,
+                                             nb_count, nb, cap, overflow, pad)
+        if lead and some > 0:
             slots = [ti.min(si + g, end - 1) for g in ti.static(range(group))]
             ps = [x_sorted[slots[g]] for g in ti.static(range(group))]
             cs = [cell_of(ps[g], lower, inv_cell, dims) for g in ti.static(range(group))]
@@ -880,7 +905,7 @@ class NeighborGrid:
         they were. Overflowing pairs are added to ``overflow_count`` (a row built twice counts twice)."""
         _build_marked_lists(n, self.lower, self.inv_cell, self.dims, self.x_sorted, self.start, self.scan, self.h,
                             self.order, self.nb_count, self.nb, self.max_neighbors, self.overflow_count, self.pad,
-                            mark, value)
+                            self.group, mark, value)
 
     def take_overflow(self) -> int:
         """Neighbour pairs that did not fit since the last call (reads back from the device)."""
