@@ -469,10 +469,13 @@ class FoamGenerator:
                       _rows(fluid.ids, np.uint32))
         K.copy_fluid(n, *source, fx, fv, fid)
         g = self._fluid_grid(n)
-        g.build(fx, n, lists)
+        vs = self._buffer("fluid_v_sorted", n, vec=True)  # the velocities in cell order, as the queries meet them
+        if lists:
+            g.build(fx, n)
+            gather_vec3(n, g.order, fv, vs)
+        else:
+            g.build_sorted(fx, n, fv, vs)
         self._lists = lists  # whether this frame's neighbour lists were built (classify_candidates reads them)
-        vs = self._buffer("fluid_v_sorted", n, vec=True)
-        gather_vec3(n, g.order, fv, vs)  # the velocities in cell order, as the queries meet them
         return fx, fv, fid, (*g.query_args(), self.h, vs)
 
     def _energetic_floor(self, tau: np.ndarray | None = None) -> float | None:

@@ -51,7 +51,7 @@ import taichi as ti
 
 from ..errors import WhitecapError
 from . import runtime
-from .launch import TEMPLATE, run_direct
+from .launch import TEMPLATE, KernelGraph, run_direct
 
 # Taichi's vector types and kernel argument annotations (typed Any: they are not Python types).
 vec3: Any = ti.math.vec3
@@ -837,6 +837,8 @@ class NeighborGrid:
         self.query = GridQuery(
             lower=self.lower, inv_cell=self.inv_cell, dims=self.dims, x_sorted=self.x_sorted, start=self.start
         )
+        self._sorted_graph: KernelGraph | None = None  # build_sorted's launches, compiled at its first call
+        self._graphs = True  # False once the backend turned a compute graph down
 
     def nbytes(self) -> int:
         nc = self.table_size
@@ -898,6 +900,27 @@ class NeighborGrid:
         run_direct(lambda rec: self.record_build(rec, rec["x"], rec["n"]), {**self.bindings(), "x": x, "n": n})
         self.overflow = int(self.overflow_count[0]) - before
         return self.overflow
+
+    def build_sorted(self, x, n: int, v, v_sorted) -> None:
+        """:meth:`build` without lists, and ``v_sorted[s] = v[order[s]]``: a second array (the velocities) in cell
+        order, as the queries meet the particles. Ten launches, as one Taichi compute graph where the backend has
+        them: launched from C++, each costs about 55 µs less than from Python (the foam stage's sort of a 98k
+        frame, 2 cores: 2.2 against 1.65 ms)."""
+        bindings = {**self.bindings(), "x": x, "n": n, "v": v, "vs": v_sorted}
+        if self._sorted_graph is None and self._graphs:
+            try:
+                self._sorted_graph = KernelGraph(self._record_sorted)
+            except Exception:  # a backend without compute graphs: the same launches one by one
+                self._graphs = False
+        if self._sorted_graph is not None:
+            self._sorted_graph.run(bindings)
+        else:
+            run_direct(self._record_sorted, bindings)
+        self.overflow = 0
+
+    def _record_sorted(self, rec) -> None:
+        self.record_build(rec, rec["x"], rec["n"], False)
+        rec(gather_vec3, rec["n"], rec["g.order"], rec["v"], rec["vs"])
 
     def build_marked(self, n: int, mark, value: int) -> None:
         """After :meth:`build` without lists: the neighbour lists of the particles i with mark[i] == ``value``
