@@ -204,17 +204,22 @@ def test_sampled_frames_potentials_kept_from_the_look_ahead_give_the_same_bytes(
     from whitecap.sim.grid import NeighborGrid
 
     builds = []  # per grid build: whether any neighbour list was built for it (all, or the energetic's)
-    build, marked = NeighborGrid.build, NeighborGrid.build_marked
+    build, marked, bare = NeighborGrid.build, NeighborGrid.build_marked, NeighborGrid.build_sorted
 
     def counted(self, x, n, lists=True):
         builds.append(lists)
         return build(self, x, n, lists)
+
+    def counted_bare(self, *a):
+        builds.append(False)
+        return bare(self, *a)
 
     def counted_marked(self, *a):
         builds[-1] = True
         return marked(self, *a)
 
     monkeypatch.setattr(NeighborGrid, "build", counted)
+    monkeypatch.setattr(NeighborGrid, "build_sorted", counted_bare)
     monkeypatch.setattr(NeighborGrid, "build_marked", counted_marked)
     postprocess(foam_run, out=tmp_path / "kept", show_progress=False)
     assert builds.count(False) >= 3  # the sampled frames' grids, built again without lists when processed
