@@ -289,3 +289,35 @@ def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path):
     for k, f in enumerate(frames):
         write_ply(tmp_path / f"{k}.ply", f)
         assert (tmp_path / f"{k}.ply").read_bytes() == _plyfile_reference(f), k
+
+
+@pytest.mark.parametrize("layout", ["little", "big", "ascii", "float64", "reordered", "padded"])
+def test_ply_vectors_read_alike_from_every_layout(tmp_path, layout):
+    """read_ply copies x y z (and vx vy vz) as one 12-byte item a row where they are little-endian float32 side
+    by side, and stacks the columns otherwise: the same (N, 3) float32 positions and velocities from a file
+    written either way, big-endian, ASCII, in float64, with the components in another order or apart."""
+    from plyfile import PlyData, PlyElement
+
+    rng = np.random.default_rng(8)
+    n = 257
+    x = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    v = rng.normal(0, 3, (n, 3)).astype(np.float32)
+    f4 = "f8" if layout == "float64" else "f4"
+    names = ["x", "y", "z", "vx", "vy", "vz"]
+    if layout == "reordered":
+        names = ["y", "x", "z", "vz", "vy", "vx"]
+    if layout == "padded":
+        names = ["x", "y", "pad", "z", "vx", "vy", "vz"]
+    cols = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
+            "pad": np.zeros(n, np.float32)}
+    data = np.empty(n, [(k, f4) for k in names] + [("id", "u4")])
+    for k in names:
+        data[k] = cols[k]
+    data["id"] = np.arange(n)
+    path = tmp_path / "frame.ply"
+    PlyData([PlyElement.describe(data, "vertex")], text=layout == "ascii",
+            byte_order=">" if layout == "big" else "<").write(str(path))
+    fr = io.read(path)
+    assert fr.positions.dtype == np.float32 and fr.positions.shape == (n, 3) and fr.positions.flags.c_contiguous
+    assert (fr.positions == x).all() and (fr.velocities == v).all()
+    assert (fr.ids == np.arange(n)).all()
