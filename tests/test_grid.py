@@ -411,16 +411,16 @@ def test_a_grid_built_without_lists_sorts_as_one_with_them(layout):
 def test_a_sorted_build_is_a_bare_build_and_a_gather_in_one_graph(layout):
     """build_sorted (the foam stage's frame: the sort and the velocities in cell order) gives the same cell order,
     table, positions and gathered array as build(lists=False) and gather_vec3, frame after frame with new
-    arrays bound, and on the CPU runs as one compute graph (compiled once)."""
+    arrays bound, and on the CPU runs as one compute graph (compiled once a process, for every grid)."""
     import taichi as ti
 
-    from whitecap.sim import runtime
+    from whitecap.sim import grid as grid_mod, runtime
     from whitecap.sim.grid import NeighborGrid, gather_vec3, grid_spec
 
     runtime.init("cpu")
-    ref, g = (NeighborGrid(grid_spec((0, 0, 0), (1, 1, 1), H / 2), 2000, 256, H, layout) for _ in range(2))
     graphs = []
-    for seed, n in ((21, 2000), (22, 1500)):
+    for seed, n, top in ((21, 2000, 1.0), (22, 1500, 1.3)):  # the second frame: another grid, another domain
+        ref, g = (NeighborGrid(grid_spec((0, 0, 0), (top, 1, top), H / 2), n, 256, H, layout) for _ in range(2))
         x, v = _points(n, seed), np.random.default_rng(seed).normal(0, 1, (n, 3)).astype(np.float32)
         xs, vs = ti.Vector.ndarray(3, ti.f32, n), ti.Vector.ndarray(3, ti.f32, n)
         xs.from_numpy(x)
@@ -433,7 +433,7 @@ def test_a_sorted_build_is_a_bare_build_and_a_gather_in_one_graph(layout):
             assert (getattr(ref, name).to_numpy()[:n] == getattr(g, name).to_numpy()[:n]).all(), name
         assert (got.to_numpy() == want.to_numpy()).all()
         assert (got.to_numpy() == v[g.order.to_numpy()[:n]]).all()
-        graphs.append(g._sorted_graph)
+        graphs.append(grid_mod._SORTED_GRAPHS.get(g.hashed))
     assert graphs[0] is not None and graphs[1] is graphs[0]
 
 

@@ -837,8 +837,6 @@ class NeighborGrid:
         self.query = GridQuery(
             lower=self.lower, inv_cell=self.inv_cell, dims=self.dims, x_sorted=self.x_sorted, start=self.start
         )
-        self._sorted_graph: KernelGraph | None = None  # build_sorted's launches, compiled at its first call
-        self._graphs = True  # False once the backend turned a compute graph down
 
     def nbytes(self) -> int:
         nc = self.table_size
@@ -907,13 +905,14 @@ class NeighborGrid:
         them: launched from C++, each costs about 55 µs less than from Python (the foam stage's sort of a 98k
         frame, 2 cores: 2.2 against 1.65 ms)."""
         bindings = {**self.bindings(), "x": x, "n": n, "v": v, "vs": v_sorted}
-        if self._sorted_graph is None and self._graphs:
-            try:
-                self._sorted_graph = KernelGraph(self._record_sorted)
+        graph = _SORTED_GRAPHS.get(self.hashed)
+        if graph is None and _SORTED_GRAPHS.get("none") is None:
+            try:  # once a process for each table layout: the graph takes every array as an argument
+                graph = _SORTED_GRAPHS[self.hashed] = KernelGraph(self._record_sorted)
             except Exception:  # a backend without compute graphs: the same launches one by one
-                self._graphs = False
-        if self._sorted_graph is not None:
-            self._sorted_graph.run(bindings)
+                _SORTED_GRAPHS["none"] = True
+        if graph is not None:
+            graph.run(bindings)
         else:
             run_direct(self._record_sorted, bindings)
         self.overflow = 0
@@ -942,6 +941,11 @@ class NeighborGrid:
         :meth:`build`: ``query`` a :data:`GridQuery` (made once with the grid), ``scan`` a :class:`Scan`,
         a compile-time template (the reach and the table's layout)."""
         return self.query, self.scan
+
+
+#: build_sorted's compute graph for each table layout (hashed or not), made at its first call in the process;
+#: "none" once a backend turned one down
+_SORTED_GRAPHS: dict = {}
 
 
 def len_blocks(nc: int) -> int:
