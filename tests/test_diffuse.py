@@ -383,6 +383,17 @@ def test_simulate_going_on_after_a_foam_pass_never_lists_frames_of_both(tmp_path
         "counts.csv", "diffuse_00006.ply", "diffuse_00007.ply", "diffuse_00008.ply"]
     assert "the diffuse frames of `whitecap foam` (seed 9) leave the run" in capsys.readouterr().err
 
+    def counted():  # counts.csv's frames, each with the live count its file holds
+        rows = [ln.split(",") for ln in (run / "diffuse/counts.csv").read_text().splitlines()[1:]]
+        for r in rows:
+            assert len(io.read(run / f"diffuse/diffuse_{int(r[0]):05d}.ply")) == sum(map(int, r[2:])), r
+        return [int(r[0]) for r in rows]
+
+    assert counted() == [6, 7, 8]  # not simulate's rows of frames 0-5, whose files went with the pass's
+    d["output"]["frames"] = 9
+    simulate(scene_from_dict(d), out=run, resume=True, show_progress=False)  # resumed again: the same rule
+    assert counted() == [6, 7, 8, 9]
+
 
 def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run, tmp_path, monkeypatch):
     """Inside simulate the foam stage copies the solver's arrays on the device (K.copy_fluid) instead of uploading

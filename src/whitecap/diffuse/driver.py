@@ -85,10 +85,12 @@ class FoamStage(FrameHook):
         self.particle_mass: float | None = None
         self.names: dict[str, str] = {}  # where a threshold was set, e.g. {"ke_min": "f.ini: [DIFFUSE] KEMin"}
         self._unwritten: tuple | None = None  # (out, relative path, frame) made by on_frame, for write()
-        # counts.csv's lines of the generator's rows so far (``_lines_of``, that list): formatted once each, as
-        # a run's counts are rewritten every frame
+        # counts.csv's lines of the generator's rows so far (``_lines_of``, that list; ``_taken`` of its rows
+        # looked at): formatted once each, as a run's counts are rewritten every frame
         self._lines: list[str] = []
         self._lines_of: list | None = None
+        self._taken = 0
+        self._counts_from = 0  # the first frame counts.csv lists (on_start)
 
     @property
     def generator(self) -> FoamGenerator:
@@ -101,6 +103,9 @@ class FoamStage(FrameHook):
         done = max((f.index for f in info.frames), default=-1)  # the frame simulate goes on from
         if done < last_frame and info.extra.get("foam_pass") is not None:
             self._end_foam_pass(out, info, done + 1)
+        # counts.csv lists the frames whose diffuse files the run lists: after a pass's frames left (and on
+        # every resume after that), the rows of the frames before them, restored with simulate's state, stay out
+        self._counts_from = min((i for i, _ in info.files("diffuse")), default=done + 1)
         self.start(info, solver)
 
     @staticmethod
@@ -168,12 +173,13 @@ class FoamStage(FrameHook):
                 writer.submit(functools.partial(_write_diffuse, out, rel, d, csv), "diffuse")
 
     def _counts_csv(self) -> str:
-        """counts.csv's text: the generator's rows so far, each formatted once (a restored state brings a
-        new list of rows: formatted anew)."""
+        """counts.csv's text: the generator's rows so far from frame ``_counts_from`` on, each formatted once (a
+        restored state brings a new list of rows: formatted anew)."""
         rows = self.generator.state.counts
-        if rows is not self._lines_of or len(self._lines) > len(rows):
-            self._lines, self._lines_of = [], rows
-        self._lines.extend(counts_line(r) for r in rows[len(self._lines):])
+        if rows is not self._lines_of or self._taken > len(rows):
+            self._lines, self._lines_of, self._taken = [], rows, 0
+        self._lines.extend(counts_line(r) for r in rows[self._taken:] if r[0] >= self._counts_from)
+        self._taken = len(rows)
         return "\n".join([COUNTS_HEADER, *self._lines]) + "\n"
 
     def status(self) -> str:
