@@ -197,3 +197,28 @@ def test_a_full_capacity_stops_the_run_in_one_line():
         for _ in range(400):
             s.step(1 / 240)
     assert "solver.max_particles" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_particles_in_use_are_read_back_alone_and_the_checkpoint_takes_them():
+    """With an emitter the solver's arrays hold room for the particles to come: arrays() reads back the n in use
+    (not the capacity's rows), as new arrays each call, with the density and uint32 ids; the checkpoint handed
+    them holds what one reading the device anew holds."""
+    s = build_solver(scene_from_dict(flow_scene()))
+    for _ in range(12):
+        s.step(1 / 240)
+    n = s.n
+    assert s.capacity > n > 0
+    a = s.arrays()
+    st = s.state
+    assert a["positions"].shape == (n, 3) and a["velocities"].shape == (n, 3) and a["density"].shape == (n,)
+    assert (a["positions"] == st.x.to_numpy()[:n]).all() and (a["velocities"] == st.v.to_numpy()[:n]).all()
+    assert (a["density"] == st.rho.to_numpy()[:n]).all()
+    assert a["ids"].dtype == np.uint32 and (a["ids"] == st.ids.to_numpy()[:n]).all()
+    b = s.arrays(with_density=False)
+    assert b["density"] is None and b["positions"] is not a["positions"]  # new arrays: the writer may keep a's
+    kept, fresh = s.checkpoint(a), s.checkpoint()
+    assert kept.keys() == fresh.keys()
+    for k in kept:
+        x, y = np.asarray(kept[k]), np.asarray(fresh[k])
+        assert x.dtype == y.dtype and x.shape == y.shape and (x == y).all(), k
+    assert kept["ids"].dtype == np.int32

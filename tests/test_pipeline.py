@@ -45,8 +45,8 @@ def test_run_all_stages_with_interrupt_and_resume(tmp_path, monkeypatch, capsys)
 
     real = driver._save_checkpoint
 
-    def crash_after_2(o, index, solver, hooks):
-        real(o, index, solver, hooks)
+    def crash_after_2(o, index, solver, hooks, host=None):
+        real(o, index, solver, hooks, host)
         if index == 2:
             raise Interrupt
 

@@ -310,8 +310,8 @@ def test_resume_from_checkpoint_0_is_byte_identical(tmp_path, monkeypatch):
     _sim(d, full)
     real = driver._save_checkpoint
 
-    def crash_after_0(o, index, solver, hooks):
-        real(o, index, solver, hooks)
+    def crash_after_0(o, index, solver, hooks, host=None):
+        real(o, index, solver, hooks, host)
         if index == 0:
             raise Interrupt
 

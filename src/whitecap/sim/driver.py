@@ -187,10 +187,11 @@ def check_fluid_blocks(scene: Scene, obstacles=None) -> None:
             raise InputError(f"{where}: lies entirely inside the obstacles, so it holds no particle; move it out")
 
 
-def _save_checkpoint(out: Path, index: int, solver, hooks) -> None:
+def _save_checkpoint(out: Path, index: int, solver, hooks, host: dict | None = None) -> None:
     """The state at frame ``index`` to ``checkpoint.npz``: gathered here, written by the running
-    simulation's background writer (after every file handed to it before), else at once."""
-    data = {f"solver/{k}": v for k, v in solver.checkpoint().items()}
+    simulation's background writer (after every file handed to it before), else at once. ``host``: the
+    solver's particles as that frame's output read them back (PBFSolver.arrays)."""
+    data = {f"solver/{k}": v for k, v in solver.checkpoint(host).items()}
     for h in hooks:
         data.update({f"{h.name}/{k}": v for k, v in h.checkpoint().items()})
     data["frame"] = np.int64(index)
@@ -384,8 +385,9 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
 
     bodies = next((c for c in solver.colliders if getattr(c, "moving", False)), None)
 
-    def emit(index: int, dt: float) -> None:
-        """Frame ``index``: its files and its run.json, handed to ``writer`` in that order."""
+    def emit(index: int, dt: float) -> dict:
+        """Frame ``index``: its files and its run.json, handed to ``writer`` in that order; returns the solver's
+        particles as read back for it (PBFSolver.arrays), which the frame's checkpoint takes too."""
         if bodies is not None:  # moving bodies: their pose at this frame, as run.json records it
             info.set_bodies(index, bodies.body_records())
         with timer("output"):
@@ -406,6 +408,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         with timer("output"):
             # Its text now (the loop goes on changing info), saved by the writer after the frame's files.
             writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
+        return a
 
     scene_text = scene.to_toml()
     if not from_checkpoint:  # else frame start_frame and those before it are done: never recompute them
@@ -472,9 +475,9 @@ def _frames(scene: Scene, out: Path, nframes: int, start_frame: int, from_checkp
     frame_dt = 1.0 / scene.solver.frame_rate
     interval = checkpoint_interval(scene)
     if not from_checkpoint:
-        emit(0, frame_dt)
+        host = emit(0, frame_dt)
         with timer("checkpoint"):
-            _save_checkpoint(out, 0, solver, hooks)
+            _save_checkpoint(out, 0, solver, hooks, host)
     bar = progress(disable=not show_progress)
     with bar:
         task = bar.add_task("simulate", total=nframes, completed=start_frame, info="")
@@ -482,10 +485,10 @@ def _frames(scene: Scene, out: Path, nframes: int, start_frame: int, from_checkp
         for index in range(start_frame + 1, nframes + 1):
             with timer("step"):
                 solver.advance_frame(index)
-            emit(index, frame_dt)
+            host = emit(index, frame_dt)
             if index % interval == 0 or index == nframes:
                 with timer("checkpoint"):
-                    _save_checkpoint(out, index, solver, hooks)
+                    _save_checkpoint(out, index, solver, hooks, host)
             el = time.perf_counter() - t0
             sps = (solver.step_count - steps0) / el if el > 0 else 0.0
             extra = "".join(f"  {text}" for h in hooks if (text := h.status()))

@@ -30,7 +30,7 @@ All particle state is plain Taichi ndarrays in :class:`FluidState`.
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 import numpy as np
 import taichi as ti
@@ -61,6 +61,22 @@ BOX_ROWS = 5
 
 
 # ============================================================================ kernels
+#: ids as the host sees them (the solver keeps them as i32; the files, as uint32)
+U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)
+
+
+@ti.kernel
+def copy_out(n: ti.i32, x: F3, v: F3, rho: F1, ids: I1, with_rho: ti.i32, xo: F3, vo: F3, rho_o: F1, ids_o: U1):
+    """The first n particles' x, v, ρ (with ``with_rho``) and ids into arrays of n rows (host arrays): one
+    launch, and only the rows in use of the capacity's."""
+    for i in range(n):
+        xo[i] = x[i]
+        vo[i] = v[i]
+        ids_o[i] = ti.cast(ids[i], ti.u32)
+        if with_rho:
+            rho_o[i] = rho[i]
+
+
 @ti.kernel
 def apply_external_forces(n: ti.i32, x: F3, v: F3, p: F3, box: F3, dt: ti.f32):
     """v ← v + Δt g;  x* ← x + Δt v, kept inside the walls."""
@@ -760,24 +776,29 @@ class PBFSolver:
 
     # ---------------------------------------------------------------- io
     def arrays(self, with_density: bool = True) -> dict[str, np.ndarray | None]:
-        st = self.state
+        """The particles in use as new host arrays (positions, velocities, density or None, uint32 ids): read
+        back in one launch, n rows (not the capacity's, which an emitter's scene keeps for the particles to come).
+        :meth:`checkpoint` can be handed them (``host``) rather than read the device anew."""
+        st, n = self.state, self.n
         if with_density:
             self.update_density()
         runtime.device_idle()
-        n = self.n
-        return {
-            "positions": st.x.to_numpy()[:n],
-            "velocities": st.v.to_numpy()[:n],
-            "density": st.rho.to_numpy()[:n] if with_density else None,
-            "ids": st.ids.to_numpy()[:n].astype(np.uint32),
-        }
+        x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        rho, ids = np.empty(n if with_density else 0, np.float32), np.empty(n, np.uint32)
+        if n:  # (never an empty array handed to a kernel: a row stands in for the unread density)
+            copy_out(n, st.x, st.v, st.rho, st.ids, int(with_density), x, v,
+                     rho if with_density else np.empty(1, np.float32), ids)
+        return {"positions": x, "velocities": v, "density": rho if with_density else None, "ids": ids}
 
-    def checkpoint(self) -> dict[str, np.ndarray | np.generic]:
-        st, n = self.state, self.n
+    def checkpoint(self, host: dict[str, np.ndarray | None] | None = None) -> dict[str, np.ndarray | np.generic]:
+        """The state to resume from. ``host``: what :meth:`arrays` returned for the state as it stands (the
+        frame just written), taken instead of reading the particles back again."""
+        a = host if host is not None else self.arrays(with_density=False)
+        x, v, ids = (cast(np.ndarray, a[k]) for k in ("positions", "velocities", "ids"))
         return {
-            "x": st.x.to_numpy()[:n],
-            "v": st.v.to_numpy()[:n],
-            "ids": st.ids.to_numpy()[:n],
+            "x": x,
+            "v": v,
+            "ids": ids.view(np.int32),  # the solver's own type (restore reads them as such)
             "next_id": np.int64(self.next_id),
             "step_count": np.int64(self.step_count),
             "time": np.float64(self.time),
