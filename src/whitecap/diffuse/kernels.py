@@ -16,14 +16,13 @@ from typing import Any
 import taichi as ti
 
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY
-from ..sim.grid import F1, F3, I1, I2, GridQuery, for_each_neighbor, vec3
+from ..sim.grid import F1, F3, I1, I2, U1, GridQuery, for_each_neighbor, vec3
 from ..sim.launch import TEMPLATE
 from ..sim.obstacles import FAR, IV, M3, sdf_sample
 from ..sim.pbf import padded_count
 from . import splishsplash as SP
 
 # Kernel argument annotations (typed Any: Taichi's annotations are not Python types).
-U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)
 B1: Any = ti.types.ndarray(dtype=ti.i8, ndim=1)  # a diffuse type per particle (or NOT_KEPT)
 F2: Any = ti.types.ndarray(dtype=ti.f32, ndim=2)
 U8: Any = ti.types.ndarray(dtype=ti.u8, ndim=1)  # the output's diffuse types

@@ -60,6 +60,7 @@ F1: Any = ti.types.ndarray(dtype=ti.f32, ndim=1)
 F3: Any = ti.types.ndarray(dtype=vec3, ndim=1)
 I1: Any = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2: Any = ti.types.ndarray(dtype=ti.i32, ndim=2)
+U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)  # ids as the files hold them
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
 CORNER_SLACK = 0.01  # margin, in cells, of the corner-column test in for_each_neighbor
 #: Hash buckets per particle of capacity, at least (the table is the next power of two, 8–16 per
@@ -904,13 +905,14 @@ class NeighborGrid:
         order, as the queries meet the particles. Ten launches, as one Taichi compute graph where the backend has
         them: launched from C++, each costs about 55 µs less than from Python (the foam stage's sort of a 98k
         frame, 2 cores: 2.2 against 1.65 ms)."""
+        global _GRAPHS_REFUSED
         bindings = {**self.bindings(), "x": x, "n": n, "v": v, "vs": v_sorted}
         graph = _SORTED_GRAPHS.get(self.hashed)
-        if graph is None and _SORTED_GRAPHS.get("none") is None:
+        if graph is None and not _GRAPHS_REFUSED:
             try:  # once a process for each table layout: the graph takes every array as an argument
                 graph = _SORTED_GRAPHS[self.hashed] = KernelGraph(self._record_sorted)
             except Exception:  # a backend without compute graphs: the same launches one by one
-                _SORTED_GRAPHS["none"] = True
+                _GRAPHS_REFUSED = True
         if graph is not None:
             graph.run(bindings)
         else:
@@ -943,9 +945,9 @@ class NeighborGrid:
         return self.query, self.scan
 
 
-#: build_sorted's compute graph for each table layout (hashed or not), made at its first call in the process;
-#: "none" once a backend turned one down
-_SORTED_GRAPHS: dict = {}
+#: build_sorted's compute graph for each table layout (hashed or not), made at its first call in the process
+_SORTED_GRAPHS: dict[bool, KernelGraph] = {}
+_GRAPHS_REFUSED = False  # the backend turned a compute graph down: build_sorted launches one by one
 
 
 def len_blocks(nc: int) -> int:

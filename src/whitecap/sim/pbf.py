@@ -40,7 +40,7 @@ from ..errors import SimulationError, WhitecapError
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
 from . import runtime
-from .grid import F1, F3, I1, I2, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
+from .grid import F1, F3, I1, I2, U1, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
 from .launch import TEMPLATE, KernelGraph, permuted, run_direct
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
@@ -61,10 +61,6 @@ BOX_ROWS = 5
 
 
 # ============================================================================ kernels
-#: ids as the host sees them (the solver keeps them as i32; the files, as uint32)
-U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)
-
-
 @ti.kernel
 def copy_out(n: ti.i32, x: F3, v: F3, rho: F1, ids: I1, with_rho: ti.i32, xo: F3, vo: F3, rho_o: F1, ids_o: U1):
     """The first n particles' x, v, ρ (with ``with_rho``) and ids into arrays of n rows (host arrays): one
