@@ -126,3 +126,58 @@ def test_device_idle_waits_for_the_gpu_and_lets_other_threads_run(tmp_path):
     waited, wait, ticks = out[-3] == "True", float(out[-2]), int(out[-1])
     assert waited and wait > 0.02, out  # the kernel took a while, and device_idle waited for it
     assert ticks > 1000, out  # the counting thread ran during the wait
+
+
+ROWS_SCRIPT = """
+import numpy as np, taichi as ti
+from whitecap.config import Foam, scene_from_dict
+from whitecap.diffuse import resolve
+from whitecap.diffuse.generator import FoamGenerator
+from whitecap.sim import runtime
+from whitecap.sim.driver import build_solver
+from tests.conftest import tiny_scene_dict
+s = build_solver(scene_from_dict(tiny_scene_dict()), arch="cuda")
+for f in range(1, 4):
+    s.advance_frame(f)
+n = s.n
+a = s.arrays()
+assert np.array_equal(a["positions"], s.state.x.to_numpy()[:n])
+assert np.array_equal(a["velocities"], s.state.v.to_numpy()[:n])
+assert np.array_equal(a["ids"], s.state.ids.to_numpy()[:n].astype(np.uint32))
+assert np.array_equal(a["density"], s.state.rho.to_numpy()[:n])
+try:
+    runtime.rows_to_host((np.empty((s.state.x.shape[0] + 1, 3), np.float32), s.state.x))
+    raise SystemExit("rows_to_host read past the ndarray")
+except ValueError:
+    pass
+# the diffuse particles of a frame: the same arrays through the driver's copies and through the kernel's
+box = ([0, 0, 0], [0.6, 0.2, 0.4])
+gen = FoamGenerator(resolve(Foam(preset="auto")), 0.01, box, (0, 0, -9.81), seed=1, arch="cuda")
+from whitecap.io.frame import ParticleFrame
+for f in range(4, 10):
+    s.advance_frame(f)
+    a = s.arrays()
+    d = gen.step(ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"]), f, 1 / 30)
+assert len(d) > 0, "no diffuse particle to compare"
+direct = gen._download()
+runtime.rows_to_host = lambda *pairs: False
+kernel = gen._download()
+for k in ("positions", "velocities", "ids"):
+    assert np.array_equal(getattr(direct, k), getattr(kernel, k)), k
+for k in ("type", "lifetime", "radius"):
+    assert direct.arrays[k].dtype == kernel.arrays[k].dtype and np.array_equal(direct.arrays[k], kernel.arrays[k]), k
+print("ROWS OK", n, len(d))
+"""
+
+
+def test_rows_read_back_by_the_driver_equal_the_kernels(tmp_path):
+    """runtime.rows_to_host on CUDA (one cuMemcpyDtoH an array, the GIL let go): the solver's frame and the diffuse
+    particles read back equal what Taichi's own reads give, row for row, and a host array longer than the ndarray
+    is refused."""
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    script = tmp_path / "rows.py"
+    script.write_text(ROWS_SCRIPT)
+    out = subprocess.run([sys.executable, str(script)], cwd=root, check=True, capture_output=True, text=True).stdout
+    assert "ROWS OK" in out, out

@@ -717,7 +717,14 @@ class FoamGenerator:
         if n:
             runtime.device_idle()
             live = self._live[self._cur]
-            K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids, kind)
+            kind32 = np.empty(n, np.int32) if runtime.current() == "cuda" else None
+            if kind32 is not None and runtime.rows_to_host(
+                (x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]), (kind32, live["kind"])
+            ):  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
+                kind[:] = kind32
+            else:
+                K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids,
+                                 kind)
         st.positions, st.velocities, st.lifetime, st.ids = x, v, life, ids
         self._mirror = (x, v, life, ids)
         return ParticleFrame(positions=x, velocities=v, ids=ids, time=None,

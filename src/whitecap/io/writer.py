@@ -14,7 +14,8 @@
 - **Bounded.** The queue holds at most ``maxsize`` jobs; :meth:`submit` blocks
   while it is full, so a slow disk slows the caller down instead of letting
   copies of frames pile up in memory. The time spent blocked is the phase
-  timer ``output wait``.
+  timer ``output.wait``, counted inside the caller's own phase (``output`` or
+  ``checkpoint``), not beside it.
 - **Errors are not lost.** The first exception of a job (a full disk: an OSError
   naming the file) is raised in the caller's thread by the next :meth:`submit`
   or :meth:`flush`. Jobs after a failed one are skipped: a later ``run.json``
@@ -37,7 +38,7 @@ from .. import timing
 
 #: Jobs waiting at most (besides the one being written): each may hold a copy of a frame or of the state.
 DEFAULT_QUEUE = 2
-WAIT_TIMER = "output wait"
+WAIT_TIMER = "output.wait"
 #: The interpreter's switch interval while a writer runs [s] (Python's default is 5 ms). The writer's thread
 #: takes the GIL back after each call that let it go (a numpy copy, a write to the file), some 20 times a
 #: file, and waited up to the whole interval each time while the loop's thread ran Python (launching

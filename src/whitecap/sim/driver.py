@@ -425,7 +425,8 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     _WRITER = writer if isinstance(writer, FrameWriter) else None
     try:
         _frames(scene, out, nframes, start_frame, from_checkpoint, solver, hooks, emit, show_progress)
-        writer.flush()  # every file on disk, or the writer's error (a full disk) raised here
+        with timer("output"):  # (its wait is output.wait, as a full queue's is)
+            writer.flush()  # every file on disk, or the writer's error (a full disk) raised here
     finally:
         _WRITER = None
         writer.close()  # on an error or Ctrl-C, what was handed over is still written (each file whole)

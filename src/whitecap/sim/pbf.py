@@ -781,7 +781,10 @@ class PBFSolver:
         runtime.device_idle()
         x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         rho, ids = np.empty(n if with_density else 0, np.float32), np.empty(n, np.uint32)
-        if n:  # (never an empty array handed to a kernel: a row stands in for the unread density)
+        # on CUDA straight from the device, one copy each (the solver's int32 ids keep their bits as uint32)
+        rows = [(x, st.x), (v, st.v), (ids, st.ids)] + ([(rho, st.rho)] if with_density else [])
+        if n and not runtime.rows_to_host(*rows):
+            # (never an empty array handed to a kernel: a row stands in for the unread density)
             copy_out(n, st.x, st.v, st.rho, st.ids, int(with_density), x, v,
                      rho if with_density else np.empty(1, np.float32), ids)
         return {"positions": x, "velocities": v, "density": rho if with_density else None, "ids": ids}
