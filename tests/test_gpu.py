@@ -129,6 +129,8 @@ def test_device_idle_waits_for_the_gpu_and_lets_other_threads_run(tmp_path):
 
 
 ROWS_SCRIPT = """
+import os, sys
+sys.path.insert(0, os.getcwd())  # tests.conftest, from the repository's root (a script's own folder is the path)
 import numpy as np, taichi as ti
 from whitecap.config import Foam, scene_from_dict
 from whitecap.diffuse import resolve
@@ -179,5 +181,5 @@ def test_rows_read_back_by_the_driver_equal_the_kernels(tmp_path):
     root = Path(__file__).parents[1]
     script = tmp_path / "rows.py"
     script.write_text(ROWS_SCRIPT)
-    out = subprocess.run([sys.executable, str(script)], cwd=root, check=True, capture_output=True, text=True).stdout
-    assert "ROWS OK" in out, out
+    run = subprocess.run([sys.executable, str(script)], cwd=root, capture_output=True, text=True)
+    assert run.returncode == 0 and "ROWS OK" in run.stdout, run.stderr[-3000:]

@@ -266,11 +266,19 @@ def _plyfile_reference(frame) -> bytes:
     return buf.getvalue()
 
 
-def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path):
+@pytest.mark.parametrize("threads", [1, 3])
+def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path, monkeypatch, threads):
     """write_ply packs vectors three components at a time into a buffer kept between files: the bytes are
     those of the plain column-by-column layout, for diffuse, fluid, velocity-less, strided, float64 and
-    empty frames, and a smaller file after a larger one holds no bytes of it."""
+    empty frames, and a smaller file after a larger one holds no bytes of it; also where a large file's rows
+    are packed and written in parts by several threads (here parts of 4 kB, three threads)."""
+    from whitecap.io import ply
     from whitecap.io.ply import write_ply
+
+    monkeypatch.setattr(ply, "WRITE_THREADS", threads)
+    monkeypatch.setattr(ply, "PART_BYTES", 4096)
+    if threads > 1:
+        assert len(ply._parts(1000, 37)) == 3 and ply._parts(10, 37) == [(0, 10)]
 
     rng = np.random.default_rng(3)
     n = 1000
