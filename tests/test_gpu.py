@@ -152,6 +152,9 @@ try:
     raise SystemExit("rows_to_host read past the ndarray")
 except ValueError:
     pass
+up = ti.Vector.ndarray(3, ti.f32, n + 5)
+assert runtime.rows_to_device((up, a["positions"]))
+assert np.array_equal(up.to_numpy()[:n], a["positions"])
 # the diffuse particles of a frame: the same arrays through the driver's copies and through the kernel's
 box = ([0, 0, 0], [0.6, 0.2, 0.4])
 gen = FoamGenerator(resolve(Foam(preset="auto")), 0.01, box, (0, 0, -9.81), seed=1, arch="cuda")
@@ -175,7 +178,7 @@ print("ROWS OK", n, len(d))
 def test_rows_read_back_by_the_driver_equal_the_kernels(tmp_path):
     """runtime.rows_to_host on CUDA (one cuMemcpyDtoH an array, the GIL let go): the solver's frame and the diffuse
     particles read back equal what Taichi's own reads give, row for row, and a host array longer than the ndarray
-    is refused."""
+    is refused; rows_to_device puts a frame's rows up as they are."""
     from pathlib import Path
 
     root = Path(__file__).parents[1]

@@ -467,7 +467,13 @@ class FoamGenerator:
         else:
             source = (_rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
                       _rows(fluid.ids, np.uint32))
-        K.copy_fluid(n, *source, fx, fv, fid)
+            if runtime.current() == "cuda":  # up in one copy each (runtime.rows_to_device), the rest zeroed there
+                runtime.device_idle()
+                if runtime.rows_to_device((fx, source[0]), (fv, source[1]), (fid, source[2])):
+                    K.clear_fluid_rows(n, fx, fv, fid)
+                    source = ()
+        if source:
+            K.copy_fluid(n, *source, fx, fv, fid)
         g = self._fluid_grid(n)
         vs = self._buffer("fluid_v_sorted", n, vec=True)  # the velocities in cell order, as the queries meet them
         if lists:

@@ -899,6 +899,13 @@ def copy_fluid(n: ti.i32, sx: F3, sv: F3, sids: N1, x: F3, v: F3, ids: U1):
 
 
 @ti.kernel
+def clear_fluid_rows(n: ti.i32, x: F3, v: F3, ids: U1):
+    """Rows n.. of the kept fluid arrays zero, as copy_fluid leaves them (the first n copied up without a kernel)."""
+    for p in range(n, x.shape[0]):
+        x[p], v[p], ids[p] = vec3(0.0), vec3(0.0), ti.u32(0)
+
+
+@ti.kernel
 def pack_potentials(m: ti.i32, picked: ti.i32, rows: I1, v_diff: F1, crest: F1, e_k: F1, vort: F1, out: F2):
     """The potentials I_ta (v_diff), I_wc (crest), E_k and I_vo (vort) of the fluid particles i = rows[j] (j < m)
     where ``picked``, else of i = j, into one host array, out[0..3, j]: one launch, where reading each back took

@@ -107,6 +107,7 @@ def _cuda_driver():
         try:
             lib = ctypes.CDLL("libcuda.so.1")
             lib.cuMemcpyDtoH_v2.argtypes = [ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t]
+            lib.cuMemcpyHtoD_v2.argtypes = [ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t]
             _LIBCUDA = lib
         except (OSError, AttributeError):
             _LIBCUDA = False
@@ -144,6 +145,18 @@ def rows_to_host(*pairs) -> bool:
     bus twice while the background writer's thread stood still. The rows of an ndarray lie at the start of its
     allocation (``Program.get_ndarray_data_ptr_as_int``: the device pointer on CUDA), so one copy each suffices.
     Call :func:`device_idle` first: the copy is ordered after the kernels on Taichi's stream, not after all."""
+    return _copy_rows(pairs, to_host=True)
+
+
+def rows_to_device(*pairs) -> bool:
+    """Copy each (Taichi ndarray, host array) pair's host array into the leading bytes of the ndarray with the CUDA
+    driver (cuMemcpyHtoD, the GIL let go); False, copying nothing, where that cannot be done (the CPU, where a kernel
+    reads a host array in place). As :func:`rows_to_host`, without Taichi's copy back of the host array after a
+    launch; call :func:`device_idle` first where a kernel still running may read the ndarray."""
+    return _copy_rows([(host, nd) for nd, host in pairs], to_host=False)
+
+
+def _copy_rows(pairs, to_host: bool) -> bool:
     lib = _cuda_driver()
     if lib is None:
         return False
@@ -152,8 +165,15 @@ def rows_to_host(*pairs) -> bool:
     prog = impl.get_runtime().prog
     for host, nd in pairs:
         if not host.flags.c_contiguous or host.nbytes > nd.arr.nelement() * nd.arr.element_size():
-            raise ValueError(f"rows_to_host: a host array of {host.nbytes} bytes for an ndarray of {nd.shape}")
-        if host.nbytes and lib.cuMemcpyDtoH_v2(host.ctypes.data, prog.get_ndarray_data_ptr_as_int(nd.arr),
-                                                host.nbytes) != 0:
-            raise WhitecapError(f"reading {host.nbytes} bytes back from the GPU failed (cuMemcpyDtoH)")
+            raise ValueError(f"a host array of {host.nbytes} bytes for an ndarray of {nd.shape}")
+        if not host.nbytes:
+            continue
+        dev = prog.get_ndarray_data_ptr_as_int(nd.arr)
+        if to_host:
+            failed = lib.cuMemcpyDtoH_v2(host.ctypes.data, dev, host.nbytes)
+        else:
+            failed = lib.cuMemcpyHtoD_v2(dev, host.ctypes.data, host.nbytes)
+        if failed:
+            way = "back from" if to_host else "to"
+            raise WhitecapError(f"copying {host.nbytes} bytes {way} the GPU failed (CUDA error {failed})")
     return True
