@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -297,6 +299,38 @@ def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path, monkeypatc
     for k, f in enumerate(frames):
         write_ply(tmp_path / f"{k}.ply", f)
         assert (tmp_path / f"{k}.ply").read_bytes() == _plyfile_reference(f), k
+
+
+def test_a_full_disk_while_threads_write_a_ply_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
+    """A large PLY written in parts by several threads (os.pwrite) on a full disk: one OSError naming the file asked
+    for, as the one-thread write gives, no temporary file left and the earlier file kept whole."""
+    import errno
+
+    from whitecap.io import ply
+    from whitecap.io.ply import write_ply
+
+    monkeypatch.setattr(ply, "WRITE_THREADS", 3)
+    monkeypatch.setattr(ply, "PART_BYTES", 4096)
+    n = 1000
+    x = np.random.default_rng(1).random((n, 3), np.float32)
+    frame = ParticleFrame(x, x, np.arange(n, dtype=np.uint32))
+    target = tmp_path / "fluid_00001.ply"
+    write_ply(target, frame)
+    before = target.read_bytes()
+    calls = []
+    real = os.pwrite
+
+    def full(fd, data, offset):
+        calls.append(offset)
+        if len(calls) > 2:  # the header and a part get through, then the disk is full
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(ply.os, "pwrite", full)
+    with pytest.raises(OSError) as err:
+        write_ply(target, ParticleFrame(x * 2, x, np.arange(n, dtype=np.uint32)))
+    assert err.value.filename == str(target) and "No space left" in str(err.value)
+    assert len(calls) >= 3 and target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == [target.name]
 
 
 @pytest.mark.parametrize("layout", ["little", "big", "ascii", "float64", "reordered", "padded"])

@@ -163,7 +163,7 @@ def _records(n: int, dtype: np.dtype) -> np.ndarray:
 PART_BYTES = 16 << 20
 #: threads that pack and write the parts of one large file (never more than the machine's cores)
 WRITE_THREADS = min(8, os.cpu_count() or 1)
-_POOL: list = []  # the pool of those threads, made on the first large file
+_POOL: dict = {}  # the pool of those threads by process id, made on a process's first large file
 
 
 def _parts(n: int, itemsize: int) -> list[tuple[int, int]]:
@@ -174,11 +174,15 @@ def _parts(n: int, itemsize: int) -> list[tuple[int, int]]:
 
 
 def _pool():
-    if not _POOL:
+    """This process's writing threads (a child forked by a process pool has none of its parent's threads, so it
+    makes its own rather than queue parts for threads that do not run there)."""
+    pid = os.getpid()
+    if pid not in _POOL:
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL.append(ThreadPoolExecutor(max_workers=WRITE_THREADS, thread_name_prefix="whitecap-ply"))
-    return _POOL[0]
+        _POOL.clear()
+        _POOL[pid] = ThreadPoolExecutor(max_workers=WRITE_THREADS, thread_name_prefix="whitecap-ply")
+    return _POOL[pid]
 
 
 def _pack(data: np.ndarray, groups: list, a: int, b: int) -> None:
@@ -237,8 +241,11 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
                 _pack(data, groups, a, b)
                 _pwrite_all(fd, data[a:b].view(np.uint8), len(head) + a * data.dtype.itemsize)
 
-            for _ in _pool().map(part, parts):
-                pass
+            jobs = [_pool().submit(part, ab) for ab in parts]
+            for job in jobs:  # every part done (or failed) before the file is closed: no write after the close
+                job.exception()
+            for job in jobs:
+                job.result()  # the first part's error (a full disk), raised here
         finally:
             os.close(fd)
 
