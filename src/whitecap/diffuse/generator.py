@@ -314,10 +314,10 @@ class FoamGenerator:
                 tau[k] = base[k]
         return tau
 
-    def _moving(self, fluid: ParticleFrame, speed2: np.ndarray | None = None) -> np.ndarray:
-        """Whether each fluid particle moves, from |v|² (``speed2`` where the caller has it)."""
+    def _moving(self, fluid: ParticleFrame, speed2: np.ndarray | None = None, rows=slice(None)) -> np.ndarray:
+        """Whether each fluid particle (of ``rows``) moves, from |v|² (``speed2`` where the caller has it)."""
         if speed2 is None:
-            v = _velocities(fluid)
+            v = _velocities(fluid)[rows]
             speed2 = np.einsum("ij,ij->i", v, v)  # 4× faster than |v|
         return speed2 > B.moving_speed(self.g_norm, self.h) ** 2
 
@@ -396,21 +396,16 @@ class FoamGenerator:
         has shown so far, and the scale follows them (see budget.running_peak); the birth rates
         of past frames are recomputed with today's thresholds from their sampled potentials."""
         st = self.state
-        v = _velocities(fluid)
-
-        def moving(rows) -> np.ndarray:  # whether the fluid particles ``rows`` move (_moving's test, row by row)
-            vr = v[rows]
-            return np.einsum("ij,ij->i", vr, vr) > B.moving_speed(self.g_norm, self.h) ** 2
-
         # Only the sampled rows' flags are kept, so the whole frame's |v|² (5 ms a frame at 1 M particles, on the
         # loop's thread while the GPU waits) is computed only where an even sample finds too few moving.
         spread = slice(None, None, max(1, n // 65536))
-        if np.count_nonzero(moving(spread)) < B.MIN_SAMPLES and np.count_nonzero(moving(slice(None))) < B.MIN_SAMPLES:
+        if all(np.count_nonzero(self._moving(fluid, rows=r)) < B.MIN_SAMPLES for r in (spread, slice(None))):
             return  # nothing moves yet: nothing would be generated
 
         def sample(m: int) -> np.ndarray:  # m fluid particles spread evenly over the frame (their rows alone read back)
             pick = history_picks(n, m)
-            return np.concatenate([self._potentials_at(pick), moving(pick)[None]]).T.astype(np.float32)
+            return np.concatenate([self._potentials_at(pick), self._moving(fluid, rows=pick)[None]]).T.astype(
+                np.float32)
 
         st.history, st.history_frames, st.history_stride = B.history_add(
             st.history, st.history_frames, st.history_stride, sample)
@@ -471,17 +466,14 @@ class FoamGenerator:
         fx, fv = self._buffer("fluid_x", n, vec=True), self._buffer("fluid_v", n, vec=True)
         fid = self._buffer("fluid_id", n, ti.u32)
         if self.fluid_on_device is not None:  # the solver's arrays hold this very frame (simulate)
-            source = self.fluid_on_device()
+            K.copy_fluid(n, *self.fluid_on_device(), fx, fv, fid)
         else:
-            source = (_rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
-                      _rows(fluid.ids, np.uint32))
-            if runtime.current() == "cuda":  # up in one copy each (runtime.rows_to_device), the rest zeroed there
-                runtime.device_idle()
-                if runtime.rows_to_device((fx, source[0]), (fv, source[1]), (fid, source[2])):
-                    K.clear_fluid_rows(n, fx, fv, fid)
-                    source = ()
-        if source:
-            K.copy_fluid(n, *source, fx, fv, fid)
+            x, v, ids = (_rows(fluid.positions, np.float32), _rows(_velocities(fluid), np.float32),
+                         _rows(fluid.ids, np.uint32))
+            if runtime.rows_to_device((fx, x), (fv, v), (fid, ids)):  # CUDA: up in one copy each, the rest zeroed
+                K.clear_fluid_rows(n, fx, fv, fid)
+            else:
+                K.copy_fluid(n, x, v, ids, fx, fv, fid)
         g = self._fluid_grid(n)
         vs = self._buffer("fluid_v_sorted", n, vec=True)  # the velocities in cell order, as the queries meet them
         if lists:
@@ -729,12 +721,10 @@ class FoamGenerator:
         x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         life, ids, kind = np.empty(n, np.float32), np.empty(n, np.uint32), np.empty(n, np.uint8)
         if n:
-            runtime.device_idle()
             live = self._live[self._cur]
-            kind32 = np.empty(n, np.int32) if runtime.current() == "cuda" else None
-            if kind32 is not None and runtime.rows_to_host(
-                (x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]), (kind32, live["kind"])
-            ):  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
+            kind32 = np.empty(n, np.int32)  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
+            if runtime.rows_to_host((x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]),
+                                    (kind32, live["kind"])):
                 kind[:] = kind32
             else:
                 K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids,

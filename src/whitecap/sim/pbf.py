@@ -778,7 +778,6 @@ class PBFSolver:
         st, n = self.state, self.n
         if with_density:
             self.update_density()
-        runtime.device_idle()
         x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         rho, ids = np.empty(n if with_density else 0, np.float32), np.empty(n, np.uint32)
         # on CUDA straight from the device, one copy each (the solver's int32 ids keep their bits as uint32)

@@ -144,7 +144,7 @@ def rows_to_host(*pairs) -> bool:
     held throughout. A frame's read-back (1 M fluid particles, 2.5 M diffuse particles: 120 MB) then crossed the
     bus twice while the background writer's thread stood still. The rows of an ndarray lie at the start of its
     allocation (``Program.get_ndarray_data_ptr_as_int``: the device pointer on CUDA), so one copy each suffices.
-    Call :func:`device_idle` first: the copy is ordered after the kernels on Taichi's stream, not after all."""
+    The device's work so far is waited for first (as :func:`device_idle`), the GIL let go then too."""
     return _copy_rows(pairs, to_host=True)
 
 
@@ -152,7 +152,7 @@ def rows_to_device(*pairs) -> bool:
     """Copy each (Taichi ndarray, host array) pair's host array into the leading bytes of the ndarray with the CUDA
     driver (cuMemcpyHtoD, the GIL let go); False, copying nothing, where that cannot be done (the CPU, where a kernel
     reads a host array in place). As :func:`rows_to_host`, without Taichi's copy back of the host array after a
-    launch; call :func:`device_idle` first where a kernel still running may read the ndarray."""
+    launch; after the device's work so far, which may still read the ndarray."""
     return _copy_rows([(host, nd) for nd, host in pairs], to_host=False)
 
 
@@ -160,6 +160,7 @@ def _copy_rows(pairs, to_host: bool) -> bool:
     lib = _cuda_driver()
     if lib is None:
         return False
+    lib.cuCtxSynchronize()  # type: ignore[attr-defined]  # the kernels before, on any stream, done (GIL let go)
     from taichi.lang import impl
 
     prog = impl.get_runtime().prog
