@@ -287,3 +287,41 @@ def test_the_switch_interval_is_short_while_a_writer_runs_and_restored_after():
     b.close()
     b.close()  # twice: no second restore
     assert sys.getswitchinterval() == pytest.approx(before)
+
+
+def test_a_diffuse_frame_still_coming_back_from_the_device_is_written_and_checkpointed_whole(tmp_path, monkeypatch):
+    """On CUDA the foam stage leaves each frame's read-back running on a thread of its own while the next frame
+    is computed (runtime.rows_to_host_later, FoamGenerator.pending). Here a stand-in makes that copy late, on
+    another thread, into host arrays first filled with 0xFF: the diffuse files and checkpoints must be the same
+    bytes as those of the copy made at once, so the writer and the checkpoint wait for it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from whitecap.sim import runtime
+
+    scene = scene_from_dict(tiny_scene_dict(output={"frames": 8, "checkpoint_interval": 3}, foam={"enabled": True}))
+    simulate(scene, out=tmp_path / "now", show_progress=False)
+    pool, late = ThreadPoolExecutor(max_workers=1), []
+
+    def rows_to_host_later(*pairs, then=None):
+        rows = [(host, nd.to_numpy()[: len(host)]) for host, nd in pairs]  # the device's rows as they are now
+        for host, _ in rows:
+            host.view(np.uint8).fill(0xFF)  # what a read before the copy would see
+
+        def copy() -> bool:
+            time.sleep(0.05)
+            for host, r in rows:
+                host[...] = r
+            if then is not None:
+                then()
+            return True
+
+        late.append(sum(len(h) for h, _ in rows))
+        return pool.submit(copy)
+
+    monkeypatch.setattr(runtime, "rows_to_host_later", rows_to_host_later)
+    simulate(scene, out=tmp_path / "late", show_progress=False)
+    pool.shutdown()
+    assert sum(late) > 0, "no diffuse particle was read back late"
+    now, later = _snapshot(tmp_path / "now"), _snapshot(tmp_path / "late")
+    assert any(k.startswith("diffuse/") for k in now) and "checkpoint.npz" in now
+    assert later == now

@@ -276,10 +276,10 @@ def test_a_pass_stopped_half_way_never_lists_an_earlier_pass_s_frames(foam_run, 
     assert sorted(before) == list(range(13))
     step = FoamGenerator.step
 
-    def stopped(self, fluid, index, dt):
+    def stopped(self, fluid, index, dt, **kw):
         if index == 8:
             raise KeyboardInterrupt
-        return step(self, fluid, index, dt)
+        return step(self, fluid, index, dt, **kw)
 
     monkeypatch.setattr(FoamGenerator, "step", stopped)
     with pytest.raises(KeyboardInterrupt):
@@ -311,11 +311,11 @@ def test_a_stopped_pass_resumes_into_the_same_bytes(foam_run, tmp_path, monkeypa
     step, write_arrays = FoamGenerator.step, driver.write_arrays
     made = []
 
-    def stopped(self, fluid, index, dt):
+    def stopped(self, fluid, index, dt, **kw):
         if index == 8:
             raise KeyboardInterrupt
         made.append(index)
-        return step(self, fluid, index, dt)
+        return step(self, fluid, index, dt, **kw)
 
     def record(path, data):
         if int(data["frame"]) < 8 - lost:
@@ -327,8 +327,8 @@ def test_a_stopped_pass_resumes_into_the_same_bytes(foam_run, tmp_path, monkeypa
         postprocess(foam_run, out=out, show_progress=False)
     assert sorted(dict(RunInfo.load(out).files("diffuse"))) == list(range(8))
     monkeypatch.undo()
-    monkeypatch.setattr(FoamGenerator, "step", lambda self, fluid, index, dt: made.append(index) or step(
-        self, fluid, index, dt))
+    monkeypatch.setattr(FoamGenerator, "step", lambda self, fluid, index, dt, **kw: made.append(index) or step(
+        self, fluid, index, dt, **kw))
     made.clear()
     capsys.readouterr()
     postprocess(foam_run, out=out, show_progress=False)

@@ -55,9 +55,11 @@ def counts_line(row) -> str:
     return f"{int(row[0])},{row[1]:.6f},{int(row[2])},{int(row[3])},{int(row[4])}"
 
 
-def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, counts_csv: str) -> None:
+def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, counts_csv: str, ready: Future | None = None) -> None:
     """One frame's diffuse particles, then counts.csv up to it (so it never lists a frame whose file is
-    not written)."""
+    not written); once ``ready`` (the frame's read-back from the GPU, FoamGenerator.pending) is done."""
+    if ready is not None:
+        ready.result()
     write(out / rel, frame)
     write_text(out / COUNTS_CSV, counts_csv)
 
@@ -150,10 +152,12 @@ class FoamStage(FrameHook):
         if not self.made_any and frame.velocities is not None and len(frame):
             v = frame.velocities  # only while nothing was made: once something is, no warning needs it
             self.max_speed = max(self.max_speed, float(np.sqrt(np.einsum("ij,ij->i", v, v).max())))
-        d = self.generator.step(frame, index, dt)
+        # deferred: on CUDA the frame comes back from the device while the next one is computed (its file is
+        # written once it is whole: write's ``ready``)
+        d = self.generator.step(frame, index, dt, defer=True)
         self.made_any = self.made_any or len(d) > 0
         rel = frame_name("diffuse", index)
-        self._unwritten = (out, rel, d)
+        self._unwritten = (out, rel, d, self.generator.pending)
         if self.verbose:
             console.print(f"frame {index}: {self.status()}")
         return rel
@@ -164,13 +168,13 @@ class FoamStage(FrameHook):
         With ``writer`` (io.writer.FrameWriter), handed to its thread: the frame is this step's own arrays
         (the generator makes new ones each step) and the counts the text of the rows so far."""
         if self._unwritten is not None:
-            out, rel, d = self._unwritten
+            out, rel, d, ready = self._unwritten
             self._unwritten = None
             csv = self._counts_csv()
             if writer is None:
-                _write_diffuse(out, rel, d, csv)
+                _write_diffuse(out, rel, d, csv, ready)
             else:
-                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv), "diffuse")
+                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv, ready), "diffuse")
 
     def _counts_csv(self) -> str:
         """counts.csv's text: the generator's rows so far from frame ``_counts_from`` on, each formatted once (a
@@ -186,11 +190,14 @@ class FoamStage(FrameHook):
         r = self.gen.state.counts[-1] if self.gen and self.gen.state.counts else (0, 0, 0, 0, 0)
         return f"spray {int(r[2]):,} foam {int(r[3]):,} bubbles {int(r[4]):,}"
 
-    def checkpoint(self) -> dict[str, np.ndarray]:
+    def checkpoint(self, live: bool = True) -> dict[str, np.ndarray]:
         """The diffuse state, what else the next frame depends on (FoamGenerator.resume_arrays) and what the
-        end-of-run warning reads."""
+        end-of-run warning reads. ``live``: the live particles' arrays are read (so their read-back is waited
+        for); without, they must be left out by the caller."""
         if self.gen is None:
             return {}
+        if live:
+            self.gen.settle()
         return {**self.gen.state.to_arrays(), **self.gen.resume_arrays(),
                 "max_speed": np.asarray(self.max_speed, np.float64), "made_any": np.asarray(self.made_any)}
 
@@ -611,7 +618,7 @@ _IN_FRAME_FILE = ("positions", "velocities", "lifetime", "ids")
 def _resume_record(stage: "FoamStage", index: int, identity: str) -> dict[str, np.ndarray]:
     """The pass's state after frame ``index`` without the live particles (their frame's file holds them):
     owned copies, for the writer's thread."""
-    data = {k: np.array(v, copy=True) for k, v in stage.checkpoint().items() if k not in _IN_FRAME_FILE}
+    data = {k: np.array(v, copy=True) for k, v in stage.checkpoint(live=False).items() if k not in _IN_FRAME_FILE}
     data.update(frame=np.asarray(index, np.int64), identity=np.asarray(identity))
     return data
 

@@ -34,6 +34,7 @@ instead of central differences, and a path is sampled at most half a cell apart 
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -239,6 +240,7 @@ class FoamGenerator:
         self._cur = 0
         self._nd = 0
         self._mirror: tuple | None = None
+        self.pending: Future | None = None  # the last frame's read-back while it runs (step's ``defer``; settle)
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._uploaded: set[str] = set()  # those whose copy in _host is what the Taichi array holds (_upload)
@@ -629,7 +631,13 @@ class FoamGenerator:
                 raise ValueError(f"a plan of {len(rate)} frames for a run of {len(plan[1])}")
             plan[1][:], plan[2][:], self._scales[:] = rate, fluid, scales
 
-    def step(self, fluid: ParticleFrame, index: int, dt: float) -> ParticleFrame:
+    def step(self, fluid: ParticleFrame, index: int, dt: float, defer: bool = False) -> ParticleFrame:
+        """The diffuse particles after frame ``index`` of the fluid (``dt`` since the last frame). With ``defer``,
+        on CUDA, the returned frame's arrays (and the state's host view) are still being read back from the
+        device when step returns, by a thread of its own (runtime.rows_to_host_later): the caller waits for
+        :attr:`pending` before it reads them (or calls :meth:`settle`); the next step, a checkpoint's state and
+        anything else here that reads them waits first. Elsewhere, or without ``defer``, the frame is whole."""
+        self.settle()
         st = self.state
         _velocities(fluid)  # a frame without velocities stops here, before anything is sized
         n = len(fluid)
@@ -645,7 +653,7 @@ class FoamGenerator:
             nk, born, lost = self._generate(fluid, fx, fv, fid, args, pots, n, index, dt)
         with timer("foam.compact"):
             c = self._compact(nk, lost, index)
-            frame = self._download()
+            frame = self._download(later=defer)
         time_ = fluid.time if fluid.time is not None else index * dt
         frame.time = time_
         if self._scaled():
@@ -678,6 +686,7 @@ class FoamGenerator:
         rows = max(int(rows), 1)
         if self._live and self._live[0]["x"].shape[0] >= rows:
             return
+        self.settle()
         keep = self._download() if self._live and self._nd else None
         self._live = []  # the old arrays go before the new ones are made
         for k in ("live_keep", "live_pos"):
@@ -697,6 +706,7 @@ class FoamGenerator:
     def _sync_in(self) -> None:
         """The host's state into the live arrays where it is not the one this generator last handed out
         (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home."""
+        self.settle()
         st = self.state
         host = (st.positions, st.velocities, st.lifetime, st.ids)
         if self._mirror is not None and all(a is b for a, b in zip(host, self._mirror)):
@@ -714,26 +724,42 @@ class FoamGenerator:
         self._nd = n
         self._mirror = host
 
-    def _download(self) -> ParticleFrame:
+    def _download(self, later: bool = False) -> ParticleFrame:
         """The live particles as this frame's ParticleFrame (one copy from the device, new host arrays, so a
-        frame handed out is never changed by a later step); they are also the state's host view."""
+        frame handed out is never changed by a later step); they are also the state's host view. ``later``: on
+        CUDA the copies are left running (:attr:`pending`; see :meth:`step`)."""
         st, n = self.state, self._nd
         x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         life, ids, kind = np.empty(n, np.float32), np.empty(n, np.uint32), np.empty(n, np.uint8)
+        radius = np.empty(n, np.float32)
         if n:
             live = self._live[self._cur]
             kind32 = np.empty(n, np.int32)  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
-            if runtime.rows_to_host((x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]),
-                                    (kind32, live["kind"])):
+            rows = ((x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]), (kind32, live["kind"]))
+
+            def narrow() -> None:
                 kind[:] = kind32
+                radius.fill(self.p.radius * self.r)
+
+            if later and (pending := runtime.rows_to_host_later(*rows, then=narrow)) is not None:
+                self.pending = pending
+            elif runtime.rows_to_host(*rows):
+                narrow()
             else:
                 K.download_state(n, live["x"], live["v"], live["life"], live["ids"], live["kind"], x, v, life, ids,
                                  kind)
+                radius.fill(self.p.radius * self.r)
         st.positions, st.velocities, st.lifetime, st.ids = x, v, life, ids
         self._mirror = (x, v, life, ids)
         return ParticleFrame(positions=x, velocities=v, ids=ids, time=None,
-                             arrays={"type": kind, "lifetime": life,
-                                     "radius": np.full(n, self.p.radius * self.r, np.float32)})
+                             arrays={"type": kind, "lifetime": life, "radius": radius})
+
+    def settle(self) -> None:
+        """Wait for the last frame's read-back where :meth:`step` left it running (``defer``): its arrays and the
+        state's host view whole from here on, or the copy's error raised."""
+        pending, self.pending = self.pending, None
+        if pending is not None:
+            pending.result()
 
     def _scan(self, n: int, a, out) -> int:
         """out[0..n) = the exclusive prefix sum of the integers a[0..n) (sim.scan); returns Σ a."""

@@ -159,10 +159,13 @@ def _records(n: int, dtype: np.dtype) -> np.ndarray:
 #: Rows of a PLY packed and written by several threads at once above this many bytes a part: each thread packs a
 #: run of rows into the kept buffer and writes it at its own offset of the temporary file (os.pwrite). One thread
 #: packing and writing a 2.5 M-particle diffuse file (111 MB) took 150-210 ms on an H100 machine, longer than the
-#: solver's frame, so the background writer set the pace of `simulate` with foam there.
-PART_BYTES = 16 << 20
-#: threads that pack and write the parts of one large file (never more than the machine's cores)
-WRITE_THREADS = min(8, os.cpu_count() or 1)
+#: solver's frame, so the background writer set the pace of `simulate` with foam there. On that machine (16 cores,
+#: ext4 on a virtual disk), parts of 4 MB against 16: a 1 M-particle fluid file 35-40 against
+#: 62-66 ms (8 parts, not 2), a 2.7 M diffuse file 117-124 against 121-132 ms with 16 threads; on 2 cores the same.
+PART_BYTES = 4 << 20
+#: threads that pack and write the parts of one large file (never more than the machine's cores); 16 against 8:
+#: 117-124 against 124-132 ms a 2.7 M diffuse file on the H100 machine
+WRITE_THREADS = min(16, os.cpu_count() or 1)
 _POOL: dict = {}  # the pool of those threads by process id, made on a process's first large file
 
 
