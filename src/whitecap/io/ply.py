@@ -161,8 +161,11 @@ def _records(n: int, dtype: np.dtype) -> np.ndarray:
 #: packing and writing a 2.5 M-particle diffuse file (111 MB) took 150-210 ms on an H100 machine, longer than the
 #: solver's frame, so the background writer set the pace of `simulate` with foam there. On that machine (16 cores,
 #: ext4 on a virtual disk), parts of 4 MB against 16: a 1 M-particle fluid file 35-40 against
-#: 62-66 ms (8 parts, not 2), a 2.7 M diffuse file 117-124 against 121-132 ms with 16 threads; on 2 cores the same.
-PART_BYTES = 4 << 20
+#: 62-66 ms (8 parts, not 2), a 2.7 M diffuse file 117-124 against 121-132 ms with 16 threads. With few cores the
+#: parts' threads take them from the stage's own: on 2 cores `whitecap foam` at 100k (10 MB diffuse files, 2 parts
+#: of 4 MB against one write) ran at 0.92x and 0.96x the rate with 16 MB parts (`bench_foam.py`, pairs' medians of
+#: two runs), so there the parts stay at 16 MB.
+PART_BYTES = (4 << 20) if (os.cpu_count() or 1) >= 8 else (16 << 20)
 #: threads that pack and write the parts of one large file (never more than the machine's cores); 16 against 8:
 #: 117-124 against 124-132 ms a 2.7 M diffuse file on the H100 machine
 WRITE_THREADS = min(16, os.cpu_count() or 1)
