@@ -363,3 +363,20 @@ def test_ply_vectors_read_alike_from_every_layout(tmp_path, layout):
     assert fr.positions.dtype == np.float32 and fr.positions.shape == (n, 3) and fr.positions.flags.c_contiguous
     assert (fr.positions == x).all() and (fr.velocities == v).all()
     assert (fr.ids == np.arange(n)).all()
+
+
+def test_a_process_pool_is_kept_by_name_and_made_anew_in_a_forked_child(monkeypatch):
+    """io.threads.process_pool (the PLY writer's parts, the GPU read-back thread): one pool per name and process,
+    kept; a child (another pid) gets its own and drops the parent's, whose threads do not run there."""
+    from whitecap.io import threads
+
+    monkeypatch.setattr(threads, "_POOLS", {})
+    a = threads.process_pool("whitecap-test", 2)
+    assert threads.process_pool("whitecap-test", 2) is a and threads.process_pool("whitecap-other", 1) is not a
+    assert a.submit(lambda: 7).result() == 7
+    parent = os.getpid()
+    monkeypatch.setattr(threads.os, "getpid", lambda: parent + 1)
+    b = threads.process_pool("whitecap-test", 2)
+    assert b is not a and list(threads._POOLS) == [(parent + 1, "whitecap-test")]
+    a.shutdown()
+    b.shutdown()

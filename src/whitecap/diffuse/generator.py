@@ -705,8 +705,8 @@ class FoamGenerator:
 
     def _sync_in(self) -> None:
         """The host's state into the live arrays where it is not the one this generator last handed out
-        (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home."""
-        self.settle()
+        (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home. Its callers
+        have waited for a deferred read-back first (step, _allocate_live)."""
         st = self.state
         host = (st.positions, st.velocities, st.lifetime, st.ids)
         if self._mirror is not None and all(a is b for a, b in zip(host, self._mirror)):
@@ -737,7 +737,7 @@ class FoamGenerator:
             kind32 = np.empty(n, np.int32)  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
             rows = ((x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]), (kind32, live["kind"]))
 
-            def narrow() -> None:
+            def narrow() -> None:  # after the driver's copies (on the read-back thread where deferred)
                 kind[:] = kind32
                 radius.fill(self.p.radius * self.r)
 

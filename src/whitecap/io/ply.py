@@ -24,6 +24,7 @@ from ..errors import InputError
 from .atomic import atomic_path
 from .frame import ParticleFrame
 from .registry import register
+from .threads import process_pool
 
 _CORE = ("x", "y", "z", "vx", "vy", "vz", "density", "id")
 _DTYPES = {np.dtype(np.float32): "f4", np.dtype(np.uint32): "u4", np.dtype(np.uint8): "u1", np.dtype(np.int32): "i4"}
@@ -169,7 +170,6 @@ PART_BYTES = (4 << 20) if (os.cpu_count() or 1) >= 8 else (16 << 20)
 #: threads that pack and write the parts of one large file (never more than the machine's cores); 16 against 8:
 #: 117-124 against 124-132 ms a 2.7 M diffuse file on the H100 machine
 WRITE_THREADS = min(16, os.cpu_count() or 1)
-_POOL: dict = {}  # the pool of those threads by process id, made on a process's first large file
 
 
 def _parts(n: int, itemsize: int) -> list[tuple[int, int]]:
@@ -177,18 +177,6 @@ def _parts(n: int, itemsize: int) -> list[tuple[int, int]]:
     k = max(1, min(WRITE_THREADS, (n * itemsize) // PART_BYTES))
     edges = [n * i // k for i in range(k + 1)]
     return list(zip(edges[:-1], edges[1:]))
-
-
-def _pool():
-    """This process's writing threads (a child forked by a process pool has none of its parent's threads, so it
-    makes its own rather than queue parts for threads that do not run there)."""
-    pid = os.getpid()
-    if pid not in _POOL:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL.clear()
-        _POOL[pid] = ThreadPoolExecutor(max_workers=WRITE_THREADS, thread_name_prefix="whitecap-ply")
-    return _POOL[pid]
 
 
 def _pack(data: np.ndarray, groups: list, a: int, b: int) -> None:
@@ -247,7 +235,8 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
                 _pack(data, groups, a, b)
                 _pwrite_all(fd, data[a:b].view(np.uint8), len(head) + a * data.dtype.itemsize)
 
-            jobs = [_pool().submit(part, ab) for ab in parts]
+            pool = process_pool("whitecap-ply", WRITE_THREADS)
+            jobs = [pool.submit(part, ab) for ab in parts]
             for job in jobs:  # every part done (or failed) before the file is closed: no write after the close
                 job.exception()
             for job in jobs:

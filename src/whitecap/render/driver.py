@@ -529,7 +529,8 @@ ADDON_SHARED = ("errors.py", "io/diffuse_types.py", "io/record.py", "io/run.py",
                 "cases/rigid_bin.py", "cases/rigid_fit.py",
                 # the add-on's readers parse with whitecap's own format modules (numpy, plyfile),
                 # with what they import
-                "io/bgeo.py", "io/ply.py", "io/vtu.py", "io/vtk_xml.py", "io/registry.py", "io/frame.py", "io/axes.py")
+                "io/bgeo.py", "io/ply.py", "io/threads.py", "io/vtu.py", "io/vtk_xml.py", "io/registry.py",
+                "io/frame.py", "io/axes.py")
 
 
 def addon_shared_files() -> dict[str, bytes]:

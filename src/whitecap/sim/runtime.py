@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import threading
 from concurrent.futures import Future
 from typing import Callable
 
@@ -16,6 +15,7 @@ import taichi as ti
 
 from ..config import ARCHES, DEFAULT_ARCH
 from ..errors import WhitecapError
+from ..io.threads import process_pool
 
 _ARCH: str | None = None
 
@@ -180,39 +180,25 @@ def rows_to_host_later(*pairs, then: Callable[[], None] | None = None) -> Future
         return None
     ctx = ctypes.c_void_p()
     lib.cuCtxGetCurrent(ctypes.byref(ctx))  # type: ignore[attr-defined]
-    jobs = _device_rows(lib, [(host, nd) for host, nd in pairs])
-    return _later_pool().submit(_copy_later, lib, ctx, jobs, then)
+    jobs = _device_rows(lib, pairs)
+    return process_pool("whitecap-readback", 1).submit(_copy_later, lib, ctx, jobs, then)
 
 
 #: CU_STREAM_NON_BLOCKING (cuda.h): the stream's work does not wait for the legacy default stream's, nor it for this
 _STREAM_NON_BLOCKING = 1
-_LATER: dict[int, object] = {}  # the read-back thread (a ThreadPoolExecutor of one), per process
-_STREAMS = threading.local()  # that thread's stream, per CUDA context
-
-
-def _later_pool():
-    pid = os.getpid()
-    pool = _LATER.get(pid)
-    if pool is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        pool = _LATER[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="whitecap-readback")
-    return pool
+_STREAMS: dict[int, ctypes.c_void_p] = {}  # the read-back thread's stream by CUDA context (only it uses them)
 
 
 def _copy_later(lib, ctx, jobs, then) -> bool:
     """On the read-back thread: each job's copy on this thread's stream of ``ctx``, then ``then``."""
     if lib.cuCtxSetCurrent(ctx) != 0:
         raise WhitecapError("reading back from the GPU failed: its context could not be made current")
-    streams = getattr(_STREAMS, "by_ctx", None)
-    if streams is None:
-        streams = _STREAMS.by_ctx = {}
-    stream = streams.get(ctx.value)
+    stream = _STREAMS.get(ctx.value)
     if stream is None:
         stream = ctypes.c_void_p()
         if lib.cuStreamCreate(ctypes.byref(stream), _STREAM_NON_BLOCKING) != 0:
             raise WhitecapError("reading back from the GPU failed: no stream could be made")
-        streams[ctx.value] = stream
+        _STREAMS[ctx.value] = stream
     for host, dev, _nd in jobs:
         failed = lib.cuMemcpyDtoHAsync_v2(host.ctypes.data, dev, host.nbytes, stream)
         if failed:
