@@ -98,15 +98,68 @@ def phi(i: np.ndarray, tmin: float, tmax: float) -> np.ndarray:
     return (np.minimum(i, tmax) - np.minimum(i, tmin)) / (tmax - tmin)
 
 
+# top_percentiles: values are pre-selected above a bound read from every TOP_STRIDE-th value (at least
+# TOP_SAMPLE of them), at TOP_MARGIN of the values below the lowest rank asked for: about 3 standard
+# deviations of the sample's rank error at 4096 values, so the bound is almost never too high (then all the
+# values are partitioned, as np.percentile does). Below TOP_MIN values np.percentile is called as it is.
+TOP_SAMPLE = 4096
+TOP_MARGIN = 0.01
+TOP_MIN = 32768
+
+
+def top_percentiles(values: np.ndarray, keep: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
+    """``np.percentile(values[keep], q)`` (its 'linear' method), the same bits, for percentiles near the top.
+
+    np.percentile partitions all n values for the few order statistics it reads (those at ranks ⌊q (n − 1)⌋ and
+    the next, and the largest). Here only the values at or above a bound L are gathered and partitioned, about
+    (1 − q_min + TOP_MARGIN) n of them, when at least n − k_min are (k_min the lowest rank read): the values at
+    those ranks are then the same. L is the (k_min/n − TOP_MARGIN) quantile of an even sample; where it is too
+    high, the values are partitioned whole. The interpolation is np.percentile's own (numpy's _lerp, and its
+    indexes: the float32 difference b − a, then a + (b − a)γ, or b − (b − a)(1 − γ) where γ ≥ ½, in float64).
+    The simulation's running 'auto' takes τ from up to 262k samples every frame: there the percentiles of the
+    four potentials took 9-11 ms a frame of the loop's thread on 2 cores, as much again as the rest of it."""
+    n = int(np.count_nonzero(keep))
+    if n < TOP_MIN:
+        return np.percentile(values[keep], q)
+    virtual = (n - 1) * np.asanyarray(np.true_divide(q, 100))  # as numpy's _quantile, its 'linear' method
+    prev = np.floor(virtual)
+    nxt = prev + 1
+    prev[virtual >= n - 1] = -1  # the largest value (numpy's _get_indexes)
+    nxt[virtual >= n - 1] = -1
+    prev[virtual < 0] = 0
+    nxt[virtual < 0] = 0
+    gamma = virtual - prev
+    ranks = np.concatenate([prev, nxt]).astype(np.intp) % n  # -1: the last
+    k_min = int(ranks.min())
+    stride = max(1, len(values) // TOP_SAMPLE)
+    sample = values[::stride][keep[::stride]]
+    cut = int((k_min / n - TOP_MARGIN) * len(sample))
+    sel = None
+    if cut > 0:
+        bound = np.partition(sample, cut)[cut]
+        sel = keep & (values >= bound)
+    m = int(np.count_nonzero(sel)) if sel is not None else 0
+    if m < n - k_min:  # the bound is above a rank read (or too few sampled): all of them
+        return np.percentile(values[keep], q)
+    sub = values[sel]  # the m largest of the n, ties at the bound included
+    at = ranks - (n - m)
+    sub.partition(np.unique(np.concatenate([at, [m - 1]])))
+    a, b = sub[at[: len(prev)]], sub[at[len(prev):]]
+    diff = np.subtract(b, a)
+    out = np.asanyarray(np.add(a, diff * gamma))
+    np.subtract(b, diff * (1 - gamma), out=out, where=gamma >= 0.5, casting="unsafe", dtype=out.dtype)
+    return out
+
+
 def percentile_thresholds(pots: dict[str, np.ndarray], moving: np.ndarray, base: np.ndarray) -> np.ndarray:
     """τ (8 values: ta, wc, ke, vo min/max) from the moving particles' potentials; ``base`` where too few."""
     tau = base.copy()
     for k, name in enumerate(("ta", "wc", "ke", "vo")):
-        vals = pots[name][moving]
-        vals = vals[vals > 0]
-        if len(vals) < MIN_SAMPLES:
+        pot = pots[name]
+        keep = moving & (pot > 0)
+        if np.count_nonzero(keep) < MIN_SAMPLES:
             continue
-        lo, hi = np.percentile(vals, AUTO_PERCENTILES)
+        lo, hi = top_percentiles(pot, keep, AUTO_PERCENTILES)
         tmin = max(float(lo), float(base[2 * k]) * THRESHOLD_FLOOR)
         if name == "ke":
             tmin = max(tmin, 0.5 * AIR_ENTRAINMENT_SPEED**2)
