@@ -108,7 +108,8 @@ TOP_MIN = 32768
 
 
 def top_percentiles(values: np.ndarray, keep: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
-    """``np.percentile(values[keep], q)`` (its 'linear' method), the same bits, for percentiles near the top.
+    """``np.percentile(values[keep], q)`` (its 'linear' method), the same bits, for percentiles near the top; the
+    kept values are numbers (NaN fails every comparison with the bound: percentile_thresholds keeps only v > 0).
 
     np.percentile partitions all n values for the few order statistics it reads (those at ranks ⌊q (n − 1)⌋ and
     the next, and the largest). Here only the values at or above a bound L are gathered and partitioned, about
