@@ -70,9 +70,15 @@ def run_one(radius: float, frames: int, arch: str, foam: bool) -> dict:
     return {"timers": t, "n": n, "wall": wall}
 
 
+def _top(t: dict) -> dict:
+    """The simulation loop's top-level phases (not the nested ``x.y``, nor the writer thread's)."""
+    return {k: v for k, v in t.items() if "." not in k and not k.startswith("writer")}
+
+
 def _loop(t: dict) -> float:
-    """The simulation loop's time: its top-level phases (not the nested ``x.y``, nor the writer thread's)."""
-    return sum(v for k, v in t.items() if "." not in k and not k.startswith("writer"))
+    """The simulation loop's time: its top-level phases' sum (a phase's waits for the writer, output.wait, inside
+    it)."""
+    return sum(_top(t).values())
 
 
 def main() -> None:
@@ -105,8 +111,8 @@ def main() -> None:
         results[name] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
     for mode, r in results.items():
         t = r["timers"]
-        top = {k: v for k, v in t.items() if "." not in k and not k.startswith("writer")}
-        total = sum(top.values())  # the loop's phases (a phase's waits for the writer, output.wait, inside it)
+        top = _top(t)
+        total = _loop(t)
         f = a.frames
         print(f"== foam {mode}: {total:.2f} s for {f} frames ({1e3 * total / f:.0f} ms a frame; the run's wall time "
               f"{r['wall']:.2f} s)")

@@ -98,10 +98,10 @@ def phi(i: np.ndarray, tmin: float, tmax: float) -> np.ndarray:
     return (np.minimum(i, tmax) - np.minimum(i, tmin)) / (tmax - tmin)
 
 
-# top_percentiles: values are pre-selected above a bound read from every TOP_STRIDE-th value (at least
-# TOP_SAMPLE of them), at TOP_MARGIN of the values below the lowest rank asked for: about 3 standard
-# deviations of the sample's rank error at 4096 values, so the bound is almost never too high (then all the
-# values are partitioned, as np.percentile does). Below TOP_MIN values np.percentile is called as it is.
+# top_percentiles: values are pre-selected above a bound read from an even sample of about TOP_SAMPLE of them,
+# TOP_MARGIN of the values below the lowest rank asked for: about 3 standard deviations of the sample's rank
+# error at 4096 values, so the bound is almost never too high (then all the values are partitioned, as
+# np.percentile does). Below TOP_MIN values np.percentile is called as it is.
 TOP_SAMPLE = 4096
 TOP_MARGIN = 0.01
 TOP_MIN = 32768
@@ -125,26 +125,22 @@ def top_percentiles(values: np.ndarray, keep: np.ndarray, q: tuple[float, ...]) 
     virtual = (n - 1) * np.asanyarray(np.true_divide(q, 100))  # as numpy's _quantile, its 'linear' method
     prev = np.floor(virtual)
     nxt = prev + 1
-    prev[virtual >= n - 1] = -1  # the largest value (numpy's _get_indexes)
-    nxt[virtual >= n - 1] = -1
-    prev[virtual < 0] = 0
-    nxt[virtual < 0] = 0
+    top = virtual >= n - 1  # the largest value (numpy's _get_indexes: index -1, which its γ is taken from)
+    prev[top] = nxt[top] = -1
     gamma = virtual - prev
-    ranks = np.concatenate([prev, nxt]).astype(np.intp) % n  # -1: the last
+    ranks = np.concatenate([prev, nxt]).astype(np.intp) % n
     k_min = int(ranks.min())
     stride = max(1, len(values) // TOP_SAMPLE)
     sample = values[::stride][keep[::stride]]
     cut = int((k_min / n - TOP_MARGIN) * len(sample))
-    sel = None
     if cut > 0:
-        bound = np.partition(sample, cut)[cut]
-        sel = keep & (values >= bound)
-    m = int(np.count_nonzero(sel)) if sel is not None else 0
-    if m < n - k_min:  # the bound is above a rank read (or too few sampled): all of them
+        sel = keep & (values >= np.partition(sample, cut)[cut])
+        m = int(np.count_nonzero(sel))
+    if cut <= 0 or m < n - k_min:  # the bound is above a rank read (or too few sampled): all of them
         return np.percentile(values[keep], q)
     sub = values[sel]  # the m largest of the n, ties at the bound included
     at = ranks - (n - m)
-    sub.partition(np.unique(np.concatenate([at, [m - 1]])))
+    sub.partition(np.unique(at))
     a, b = sub[at[: len(prev)]], sub[at[len(prev):]]
     diff = np.subtract(b, a)
     out = np.asanyarray(np.add(a, diff * gamma))
