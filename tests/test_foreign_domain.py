@@ -3,11 +3,13 @@ rule shared by `foam` and `import` (issue 30, item 14), printed and recorded in 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from whitecap.cli import main
-from whitecap.io import ParticleFrame, write
+from whitecap.io import ParticleFrame, read, write
 from whitecap.io.run import DOMAIN_RULE, RunInfo, flow_domain, sequence_bounds
 
 R = 0.01
@@ -133,6 +135,82 @@ def test_foam_of_a_foreign_sequence_is_import_then_foam_of_the_run(tmp_path):
     assert sum((tmp_path / "A" / "diffuse" / n).stat().st_size for n in made) > 7 * 1000
     for name in made:
         assert (tmp_path / "A" / "diffuse" / name).read_bytes() == (tmp_path / "B" / "diffuse" / name).read_bytes()
+    fluid = sorted(p.name for p in (tmp_path / "B" / "fluid").iterdir())
+    assert len(fluid) == 6 and sorted(p.name for p in (tmp_path / "A" / "fluid").iterdir()) == fluid
+    for name in fluid:
+        assert (tmp_path / "A" / "fluid" / name).read_bytes() == (tmp_path / "B" / "fluid" / name).read_bytes()
+    assert [f.model_dump() for f in a.frames] == [f.model_dump() for f in b.frames]
+
+
+def test_foam_of_a_foreign_sequence_reads_each_frame_from_the_sequence_and_never_its_own_copies(tmp_path,
+                                                                                                 monkeypatch):
+    """The import writes no frame of its own: the pass reads the sequence's files (each once, but the frames the
+    look-ahead sampled, once more) and writes them into the run, which it never reads back."""
+    from whitecap.cases import run_dir
+    from whitecap.diffuse import driver
+
+    from .test_diffuse import _gentle_then_violent
+
+    pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
+    imported, passed = [], []
+    monkeypatch.setattr(run_dir, "read", lambda path, **kw: imported.append(path))
+    real = driver.read
+    monkeypatch.setattr(driver, "read", lambda path, **kw: passed.append(Path(path)) or real(path, **kw))
+    assert main(["foam", pattern, "--out", str(tmp_path / "A"), "--dt", str(1 / 30), "--radius", "0.01"]) == 0
+    assert imported == []
+    sources = sorted((tmp_path / "seq").glob("f_*.ply"))
+    assert set(passed) == set(sources)
+    assert sorted(passed).count(sources[1]) == 1 and len(passed) < 2 * len(sources)
+    assert len(RunInfo.load(tmp_path / "A").files("fluid")) == 6
+
+
+def test_foam_of_a_foreign_sequence_with_a_bad_frame_leaves_no_run(tmp_path, capsys):
+    """A frame whose velocities are not finite, met half-way through the pass: a one-line error naming the file,
+    exit status 2, and no run behind (the frames before it were written into it), as an import that fails."""
+    from .test_diffuse import _gentle_then_violent
+
+    pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
+    bad = tmp_path / "seq" / "f_0004.ply"
+    fr = read(bad)
+    fr.velocities[7] = np.nan
+    write(bad, fr)
+    assert main(["foam", pattern, "--out", str(tmp_path / "A"), "--dt", str(1 / 30), "--radius", "0.01"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()  # the progress before it, then the error
+    assert [e for e in err if "error" in e] == err[-1:] and str(bad) in err[-1] and "velocities" in err[-1], err
+    assert not (tmp_path / "A").exists()
+
+
+def test_a_stopped_foam_of_a_foreign_sequence_resumes_into_the_same_run(tmp_path, monkeypatch, capsys):
+    """Stopped at frame 3 (Ctrl-C), the run lists frames 0-2 with their fluid copies; run again, it goes on from
+    frame 3 and ends with the files of an unstopped pass."""
+    from whitecap.diffuse.generator import FoamGenerator
+
+    from .test_diffuse import _gentle_then_violent
+
+    pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
+    opts = ["--dt", str(1 / 30), "--radius", "0.01"]
+    assert main(["foam", pattern, "--out", str(tmp_path / "whole"), *opts]) == 0
+    step = FoamGenerator.step
+
+    def stopped(self, fluid, index, dt, **kw):
+        if index == 3:
+            raise KeyboardInterrupt
+        return step(self, fluid, index, dt, **kw)
+
+    monkeypatch.setattr(FoamGenerator, "step", stopped)
+    assert main(["foam", pattern, "--out", str(tmp_path / "A"), *opts]) != 0
+    info = RunInfo.load(tmp_path / "A")
+    assert [i for i, _ in info.files("fluid")] == [0, 1, 2] and [i for i, _ in info.files("diffuse")] == [0, 1, 2]
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main(["foam", pattern, "--out", str(tmp_path / "A"), *opts]) == 0
+    said = capsys.readouterr()
+    assert "resuming at frame 3" in said.err and "for 3 of 6 frames" in said.out
+    for kind in ("fluid", "diffuse"):
+        names = sorted(p.name for p in (tmp_path / "whole" / kind).iterdir())
+        assert sorted(p.name for p in (tmp_path / "A" / kind).iterdir()) == names
+        for name in names:
+            assert (tmp_path / "A" / kind / name).read_bytes() == (tmp_path / "whole" / kind / name).read_bytes()
 
 
 def test_import_refuses_an_option_of_another_kind_of_input(tmp_path, capsys):

@@ -1,5 +1,6 @@
 """One writer for every foreign case: a :class:`~whitecap.cases.Case` -> a whitecap run directory
-(``import``, and ``foam`` over a foreign sequence, which imports it as a bare sequence first).
+(``import``, and ``foam`` over a foreign sequence, which imports it as a bare sequence, its frames
+written by the foam pass as it reads them: :func:`write_case`'s ``then``).
 
     RUN/run.json                 obstacles (one per shape, with its role) and per-frame body poses
     RUN/fluid/fluid_NNNNN.ply    the fluid frames, converted (z up)
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -144,13 +146,20 @@ def _obstacle_entry(shape: CaseShape, rel: str) -> Obstacle:
         **ROLE_LOOKS[shape.role], **(shape.look or {})})  # a shape's own look (e.g. glass) wins
 
 
-def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False) -> RunInfo:
+def write_case(case: Case, out: str | Path, show_progress: bool = True, force: bool = False,
+               then: Callable[[RunInfo], RunInfo] | None = None) -> RunInfo:
     """Write ``case`` as a run directory at ``out`` (made if missing); resumable.
 
     ``out`` follows :func:`whitecap.io.run.claim_run_dir`: a run of another simulation is refused
     (its frames would be mixed with this case's) unless ``force``, which replaces it whole; a folder
     of files whitecap did not write is refused. An import that fails on bad input leaves nothing
     behind but what was there before.
+
+    With ``then``, the fluid frames' files are not written here: their entries (times, body poses) are,
+    and frames listed before stay listed; ``then(info)`` runs in their place, under the same lock and
+    with the same clean-up on bad input, and its result is returned. That is ``foam`` over a foreign
+    sequence, which writes each frame into the run as its pass reads it (:func:`reader_options`): each
+    frame is read once, and its file written by the pass's writer thread while the next is computed.
     """
     out = Path(out)
     check_case(case)
@@ -162,7 +171,8 @@ def write_case(case: Case, out: str | Path, show_progress: bool = True, force: b
             remove_run(out)
         old = RunInfo.load(out) if state == "same" else None
         try:
-            return _write(case, out, identity, old, show_progress)
+            info = _write(case, out, identity, old, show_progress, frames=then is None)
+            return info if then is None else then(info)
         except WhitecapError:
             if old is None:  # bad input met half-way: take back what this import wrote
                 remove_run(out)
@@ -175,8 +185,14 @@ def write_case(case: Case, out: str | Path, show_progress: bool = True, force: b
                         out.rmdir()
 
 
-def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progress: bool) -> RunInfo:
-    opts = {"up": case.up, **case.fluid_reader_options}
+def reader_options(case: Case) -> dict:
+    """How the case's fluid files are read: :func:`whitecap.io.read`'s options (up axis, solver's own)."""
+    return {"up": case.up, **case.fluid_reader_options}
+
+
+def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progress: bool,
+           frames: bool = True) -> RunInfo:
+    opts = reader_options(case)
     info = old if old is not None else _new_info(case, identity, opts)
     # Shapes: built once by the reader, written once here (rewritten, identical, on a resume).
     shapes = ordered_shapes(case)
@@ -190,10 +206,10 @@ def _write(case: Case, out: Path, identity: str, old: RunInfo | None, show_progr
     moving = [s.poses for s in shapes if s.poses is not None]  # each moving shape's poses by frame
     times = case.times if case.times is not None else [i * case.frame_dt for i, _ in case.fluid]
     done = {i for i, rel in info.files("fluid") if (out / rel).is_file()}
-    todo = [(k, i, p) for k, (i, p) in enumerate(case.fluid) if i not in done]
-    if len(todo) < len(case.fluid):
+    todo = [(k, i, p) for k, (i, p) in enumerate(case.fluid) if i not in done] if frames else []
+    if frames and len(todo) < len(case.fluid):
         console.print(f"import: {len(case.fluid) - len(todo)} of {len(case.fluid)} frames already in {out}")
-    bar = progress(disable=not show_progress)
+    bar = progress(disable=not (show_progress and frames))
     # Frames are written by a thread while the next is read (each file, then the run.json that lists it, in
     # that order); leaving the block waits for them, so nothing is still being written after an error.
     with bar, FrameWriter(name="whitecap-import-writer") as writer:

@@ -3,7 +3,8 @@
 A bare sequence is a folder of numbered frames or a glob (``frames/*.vtk``) in any format the io
 registry reads (PLY, VTU, NPZ, legacy VTK such as DualSPHysics' PartFluid files, partio BGEO):
 only fluid, no tank or bodies. ``whitecap foam FOREIGN --out RUN`` imports it this way
-(:func:`whitecap.cases.run_dir.write_case`), then makes foam over RUN as over any run.
+(:func:`whitecap.cases.run_dir.write_case`) and makes foam over RUN as over any run, each frame
+read once, from FOREIGN, and written into RUN by the foam pass.
 
 Its constants come from the arguments, else from a DualSPHysics case XML beside the files
 (:mod:`whitecap.cases.dualsphysics_xml`: spacing, mass, output interval, rest density,

@@ -278,18 +278,17 @@ def simulation_hook(scene: Scene) -> FoamStage:
 FOAMGENERATOR_CAPACITY = 100  # diffuse particles per fluid particle the 'splishsplash' preset makes room for
 
 
-def _foamgenerator_limits(gen: FoamGenerator, files, first: ParticleFrame, show_progress: bool):
+def _foamgenerator_limits(gen: FoamGenerator, reader: "_Reader", show_progress: bool):
     """FoamGenerator's pass 1: the clamping limits from the per-frame maxima over the whole input."""
     from . import splishsplash as SP
 
     maxima = []
+    files = reader.files
     bar = progress(disable=not show_progress)
     with bar:
         task = bar.add_task("foam limits", total=len(files), info="")
-        for _, path in files:
-            fr = first if path == files[0][1] else read(path)
-            if fr.velocities is None:
-                raise InputError(f"{path}: missing array 'velocity'")
+        for k in range(len(files)):
+            fr = reader.first() if k == 0 else reader.load(k)
             maxima.append(SP.frame_maxima(gen, fr))
             bar.update(task, advance=1)
     tau = SP.limits_from_maxima(np.array(maxima), gen.r)
@@ -340,10 +339,11 @@ def postprocess(
 
     For a whitecap run, the run's own [foam] settings and seed are used unless
     overridden, and results land in the run itself (``out`` defaults to it).
-    Any other sequence is first imported into the run directory ``out`` as a bare
+    Any other sequence is imported into the run directory ``out`` as a bare
     sequence (:func:`whitecap.cases.sequence.read_sequence`, then
-    :func:`whitecap.cases.run_dir.write_case`, as ``whitecap import``), so that
-    `whitecap mesh`, `view` and `render` can continue from there; ``frames``
+    :func:`whitecap.cases.run_dir.write_case`, as ``whitecap import``; its frames
+    written as the pass reads them), so that `whitecap mesh`, `view` and `render`
+    can continue from there; ``frames``
     ((index, path) pairs) replaces the files found at ``src``, ``case`` is its
     DualSPHysics case XML, ``domain`` ((lower, upper) [m]) its domain: diffuse
     particles outside it are removed.
@@ -356,8 +356,16 @@ def postprocess(
     src = Path(src)
     if frames is not None or not (src.is_dir() and (src / "run.json").exists()):
         return _postprocess_foreign(src, out, job, params, ini, case, frames, domain, look_ahead)
+    return _postprocess_run(src, out, job, params, ini, look_ahead)
+
+
+def _postprocess_run(src: Path, out, job: FoamJob, params: FoamParams | None, ini, look_ahead: bool,
+                     fluid: tuple[list[tuple[int, Path]], dict] | None = None) -> RunInfo:
+    """:func:`postprocess` of the whitecap run ``src``. ``fluid`` ((index, path) pairs and the reader's options):
+    the run's fluid frames are still at their source, a foreign sequence imported without them
+    (:func:`_postprocess_foreign`): the pass reads them from there and writes them into the run."""
     info = RunInfo.load(src)
-    if not info.files("fluid"):
+    if not (info.files("fluid") if fluid is None else fluid[0]):
         raise InputError(f"{src}/run.json: no fluid frames listed")
     foam_cfg, run_seed, grids = _run_settings(src, info)
     out = Path(out) if out is not None else src
@@ -372,13 +380,16 @@ def postprocess(
         if state == "replace":
             remove_run(out)
         return _postprocess(src, out, p, seed, frame_dt, grids, job.show_progress, look_ahead, _threshold_names(ini),
-                            job.arch)
+                            job.arch, fluid)
 
 
 def _postprocess_foreign(src: Path, out, job: FoamJob, params, ini, case, frames, domain, look_ahead) -> RunInfo:
     """A foreign sequence: imported into ``out`` as a bare sequence, then :func:`postprocess` of that run
-    (with the sequence's time step, so the foam is that of the frames as given)."""
-    from ..cases.run_dir import write_case
+    (with the sequence's time step, so the foam is that of the frames as given). The import writes all but
+    the frames' files; the pass reads each frame from the sequence and writes it into the run (the same
+    files and run.json as ``import`` then ``foam``, each frame read once and written on the writer's thread:
+    bench_foam's 98k frames, 2 cores, 82 ms of a 30-frame pass was the import's reading and writing)."""
+    from ..cases.run_dir import reader_options, write_case
     from ..cases.sequence import read_sequence
 
     seq = read_sequence(src, frames=frames, xml=case, up=job.up, dt=job.dt, radius=job.radius, domain=domain)
@@ -388,9 +399,11 @@ def _postprocess_foreign(src: Path, out, job: FoamJob, params, ini, case, frames
     p = params or resolve(Foam(), ini=ini, preset=job.preset, particle_mass=seq.particle_mass)
     if job.seed is not None:
         seq.notes["seed"] = job.seed  # the run's seed, so that `foam RUN` again makes the same foam
-    write_case(seq, out, show_progress=job.show_progress, force=job.force)
-    return postprocess(out, job=replace(job, dt=seq.frame_dt, radius=None, force=False), params=p, ini=ini,
-                       look_ahead=look_ahead)
+    def foam(_imported: RunInfo) -> RunInfo:  # under the import's lock, which cleans up after bad input
+        return _postprocess_run(Path(out), None, replace(job, dt=seq.frame_dt, radius=None, force=False), p, ini,
+                                look_ahead, fluid=(seq.fluid, reader_options(seq)))
+
+    return write_case(seq, out, show_progress=job.show_progress, force=job.force, then=foam)
 
 
 def run_obstacles(src: Path, info: RunInfo) -> list:
@@ -441,15 +454,17 @@ def _threshold_names(ini) -> dict[str, str]:
 
 
 def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float, grids: list, show_progress: bool,
-                 look_ahead: bool, names: dict[str, str], arch: str = DEFAULT_ARCH) -> RunInfo:
+                 look_ahead: bool, names: dict[str, str], arch: str = DEFAULT_ARCH,
+                 fluid: tuple[list[tuple[int, Path]], dict] | None = None) -> RunInfo:
     info = RunInfo.load(src)  # read again under the lock: what is current cannot change from here on
-    files = [(i, src / rel) for i, rel in info.files("fluid")]
-    reader = _Reader(files)
+    files = [(i, src / rel) for i, rel in info.files("fluid")] if fluid is None else fluid[0]
+    reader = _Reader(files, {} if fluid is None else fluid[1])
     first = reader.first()
     # Results go into the run; into another folder, the fluid frames are copied along so the
-    # output is a complete run directory, which records itself before any file lands in it.
-    convert = out.resolve() != src.resolve()
-    if convert:
+    # output is a complete run directory, which records itself before any file lands in it. Frames
+    # read from a foreign sequence (``fluid``) are written into the run alike.
+    convert = fluid is not None or out.resolve() != src.resolve()
+    if convert and fluid is None:
         info = _start_copy(info, src, out)
     if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
         p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
@@ -467,7 +482,7 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
         info.extra["out"], info.extra["made"] = str(out), 0
         return info
     if p.model == "foamgenerator":
-        tau = _foamgenerator_limits(stage.generator, files, first, show_progress)
+        tau = _foamgenerator_limits(stage.generator, reader, show_progress)
         stage.generator.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     elif p.auto and look_ahead:
@@ -494,15 +509,17 @@ class _Reader:
     :meth:`ahead`, frame k + 1 is read on a thread while frame k is processed (on a GPU the kernels run
     meanwhile; on the CPU the file's bytes come in while Taichi's kernels hold the GIL)."""
 
-    def __init__(self, files: list[tuple[int, Path]]):
+    def __init__(self, files: list[tuple[int, Path]], options: dict | None = None):
         self.files = files
+        self.options = options or {}  # io.read's (a foreign sequence's up axis, its solver's own)
         self.cache: dict[int, ParticleFrame] = {}
         self._pool: ThreadPoolExecutor | None = None
         self._next: tuple[int, Future] | None = None
 
-    def _load(self, k: int) -> ParticleFrame:
+    def load(self, k: int) -> ParticleFrame:
+        """Frame k read from its file (not kept)."""
         path = self.files[k][1]
-        fr = read(path)
+        fr = read(path, **self.options)
         if fr.velocities is None:
             raise InputError(f"{path}: missing array 'velocity'")
         return fr
@@ -514,7 +531,7 @@ class _Reader:
             fr = self._next[1].result()  # its error (a bad file) raised here, for this frame
             self._next = None
         else:
-            fr = self._load(k)
+            fr = self.load(k)
         if keep:
             self.cache[k] = fr
         return fr
@@ -532,7 +549,7 @@ class _Reader:
     def read_next(self, k: int) -> None:
         """Frame k, read on the thread of :meth:`ahead` (unless kept, or past the last)."""
         if self._pool is not None and k < len(self.files) and k not in self.cache:
-            self._next = (k, self._pool.submit(self._load, k))
+            self._next = (k, self._pool.submit(self.load, k))
 
     def first(self) -> ParticleFrame:
         return self.read(0, keep=True)
