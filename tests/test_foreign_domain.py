@@ -164,19 +164,41 @@ def test_foam_of_a_foreign_sequence_reads_each_frame_from_the_sequence_and_never
     assert len(RunInfo.load(tmp_path / "A").files("fluid")) == 6
 
 
-def test_foam_of_a_foreign_sequence_with_a_bad_frame_leaves_no_run(tmp_path, capsys):
-    """A frame whose velocities are not finite, met half-way through the pass: a one-line error naming the file,
-    exit status 2, and no run behind (the frames before it were written into it), as an import that fails."""
+@pytest.mark.parametrize("fault", ["nan", "no velocities"])
+def test_foam_of_a_foreign_sequence_with_a_bad_frame_leaves_no_run(tmp_path, capsys, monkeypatch, fault):
+    """Frame 4 of 6 bad: a one-line error naming the file, exit status 2, and no run behind. Velocities that are
+    not finite are met by the pass over the frames' bounds, before any foam is made; a frame without velocities
+    (which an import takes) half-way through the foam pass, whose frames before it were written into the run by
+    then: it is removed, as after an import that fails."""
+    from whitecap.diffuse import driver
+    from whitecap.diffuse.generator import FoamGenerator
+
     from .test_diffuse import _gentle_then_violent
 
     pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
     bad = tmp_path / "seq" / "f_0004.ply"
     fr = read(bad)
-    fr.velocities[7] = np.nan
-    write(bad, fr)
+    if fault == "nan":
+        fr.velocities[7] = np.nan
+        write(bad, fr)
+    else:  # positions alone (whitecap's own writer fills in zero velocities)
+        from plyfile import PlyData, PlyElement
+
+        rows = np.empty(len(fr), [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+        rows["x"], rows["y"], rows["z"] = fr.positions.T
+        PlyData([PlyElement.describe(rows, "vertex")]).write(str(bad))
+    made, step = [], FoamGenerator.step
+    monkeypatch.setattr(FoamGenerator, "step", lambda self, fluid, index, dt, **kw: made.append(index) or step(
+        self, fluid, index, dt, **kw))
+    written = []
+    real = driver.write
+    monkeypatch.setattr(driver, "write", lambda path, frame: written.append(path) or real(path, frame))
     assert main(["foam", pattern, "--out", str(tmp_path / "A"), "--dt", str(1 / 30), "--radius", "0.01"]) == 2
     err = capsys.readouterr().err.strip().splitlines()  # the progress before it, then the error
-    assert [e for e in err if "error" in e] == err[-1:] and str(bad) in err[-1] and "velocities" in err[-1], err
+    assert [e for e in err if "error" in e] == err[-1:] and str(bad) in err[-1], err
+    assert ("NaN" in err[-1]) == (fault == "nan") and "velocit" in err[-1]
+    assert made == ([] if fault == "nan" else [0, 1, 2, 3])
+    assert (len(written) > 0) == (fault != "nan")
     assert not (tmp_path / "A").exists()
 
 

@@ -159,10 +159,34 @@ def _fluid_coloured(img: np.ndarray) -> np.ndarray:
     return out
 
 
+def _camera_key(viewer) -> tuple:
+    """The camera the page last reported, with the time it did (0 before it has)."""
+    cam = next(iter(viewer.server.get_clients().values())).camera
+    return (cam.update_timestamp, tuple(cam.position), tuple(cam.wxyz), float(cam.fov), cam.image_width,
+            cam.image_height)
+
+
+def _steady_shot(page) -> np.ndarray:
+    """A screenshot that the next one, an animation frame later, equals (the first screenshot after a change can
+    catch the page's canvas part-way)."""
+    img = None
+    for _ in range(STEADY_SHOTS_AT_MOST):
+        page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        prev, img = img, _shot(page)
+        if prev is not None and np.array_equal(img, prev):
+            return img
+    raise AssertionError(f"the page never showed a steady image in {STEADY_SHOTS_AT_MOST} screenshots")
+
+
 def _fluid_mask_checks(viewer, page, positions):
-    """Fluid-coloured pixels left of the control panel, and where the particles project."""
+    """Fluid-coloured pixels left of the control panel, and where the particles project; None when the page had
+    not reported its camera yet or reported a new one while the screenshot was taken (the projection would be
+    through another camera than the picture's)."""
+    key = _camera_key(viewer)
+    img = _steady_shot(page)
+    if key[0] == 0.0 or _camera_key(viewer) != key:
+        return None
     project, focal, (W, H) = _camera(viewer)
-    img = _shot(page)
     assert img.shape[:2] == (H, W)
     # the control panel (its colour bar is fluid-coloured) sits at the right: judge the canvas left of it
     panel_x = int(page.get_by_text("colour by").bounding_box()["x"]) - 40
@@ -194,7 +218,9 @@ def test_page_draws_the_fluid_where_it_projects(tiny_run, page):
         pos = v.source.frame(0).positions
 
         def drawn():
-            fluid, where, _ = _fluid_mask_checks(v, page, pos)
+            if (got := _fluid_mask_checks(v, page, pos)) is None:
+                return None
+            fluid, where, _ = got
             return (fluid, where) if fluid.sum() > 0.5 * where.sum() else None
 
         fluid, where = _poll(drawn, "the fluid to appear in the page")
@@ -238,7 +264,9 @@ def test_timeline_moves_the_drawn_particles(tiny_run, page):
               "the page to show the frame")
 
         def shows_frame3():
-            fluid, where, _ = _fluid_mask_checks(v, page, p3)
+            if (got := _fluid_mask_checks(v, page, p3)) is None:
+                return False
+            fluid, where, _ = got
             return fluid.sum() > 1000 and (fluid & where).sum() / fluid.sum() > 0.97
 
         _poll(shows_frame3, "the page to draw frame 3")
@@ -541,14 +569,7 @@ def _shown_picture(viewer, page, index) -> np.ndarray:
         pp = _until(viewer, lambda: viewer.picture_shown(index), f"the page to receive the picture of frame {index}")
         seq = viewer.spheres[0]
         page.wait_for_function(PAGE_AT_REST, timeout=HANG_GUARD_S * 1000)
-        img, prev = None, None
-        for _ in range(STEADY_SHOTS_AT_MOST):
-            page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
-            prev, img = img, _shot(page)
-            if prev is not None and np.array_equal(img, prev):
-                break
-        else:
-            raise AssertionError(f"the page never showed a steady image in {STEADY_SHOTS_AT_MOST} screenshots")
+        img = _steady_shot(page)
         if viewer.picture_shown(index) is pp and pp.settled(seq):
             return img
 

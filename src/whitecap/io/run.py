@@ -447,15 +447,17 @@ DOMAIN_RULE = (f"the box of the fluid over all frames and the case's shapes, gro
 
 def sequence_bounds(paths: list[Path], **read_kw) -> tuple[np.ndarray, np.ndarray] | None:
     """The box holding every particle of every frame (None when all frames are empty): the flow's
-    reach, which a single frame does not show (a dam break travels far beyond its first frame)."""
+    reach, which a single frame does not show (a dam break travels far beyond its first frame). Each
+    frame's positions and velocities are checked finite on the way (ParticleFrame.check_finite), as an
+    import checks them, so that a bad frame is named before anything is made of the sequence."""
     from .registry import read
 
     box: tuple[np.ndarray, np.ndarray] | None = None
     for path in paths:
-        pos = read(path, **read_kw).positions
+        fr = read(path, **read_kw)
+        fr.check_finite()
+        pos = fr.positions
         if len(pos):
-            if not np.isfinite(pos).all():
-                raise InputError(f"{path}: positions hold NaN or infinite values")
             # column by column: NumPy's reduction along the rows of an (n, 3) array walks 3 values a row
             # (4 ms a 98k frame for min(0) against 0.1 for the three columns)
             a = np.array([pos[:, k].min() for k in range(3)], np.float64)
