@@ -11,9 +11,9 @@ Each timing runs in its own process (one Taichi runtime each), warmed up first o
 energetic particles only on a frame that 'auto' did not sample: three of four are; warmed on fewer,
 their compilation was timed). ``--against`` times another checkout's package on the same sequence too (e.g.
 ``git worktree add /tmp/old 80c2fce`` then ``--against /tmp/old/src``), the two alternating
-``--repeat`` times, and prints the best wall and CPU time of each and their ratios, then the median and
-range of the ratios of each back-to-back pair: on a shared, loaded machine the CPU time (both threads)
-and the pairs' median are the steadier figures.
+``--repeat`` times (which of them runs first alternating too), and prints the best wall and CPU time of
+each and their ratios, then the median and range of the ratios of each back-to-back pair: on a shared,
+loaded machine the CPU time (both threads) and the pairs' median are the steadier figures.
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.
@@ -123,8 +123,9 @@ def main() -> None:
         here = str(Path(__file__).resolve().parents[1] / "src")
         srcs = {"this": here} | ({"against": os.path.abspath(a.against)} if a.against else {})
         got: dict[str, list] = {k: [] for k in srcs}
-        for _ in range(a.repeat):
-            for name, src in srcs.items():
+        for i in range(a.repeat):
+            # the order alternates: the second of a pair runs with the first's pages and heat behind it
+            for name, src in (list(srcs.items()) if i % 2 == 0 else list(srcs.items())[::-1]):
                 cmd = [sys.executable, __file__, "--one", str(run), "--radius", repr(r), "--arch", a.arch,
                        "--domain", domain]
                 if a.budget:
