@@ -387,8 +387,9 @@ def _postprocess_foreign(src: Path, out, job: FoamJob, params, ini, case, frames
     """A foreign sequence: imported into ``out`` as a bare sequence, then :func:`postprocess` of that run
     (with the sequence's time step, so the foam is that of the frames as given). The import writes all but
     the frames' files; the pass reads each frame from the sequence and writes it into the run (the same
-    files and run.json as ``import`` then ``foam``, each frame read once and written on the writer's thread:
-    bench_foam's 98k frames, 2 cores, 82 ms of a 30-frame pass was the import's reading and writing)."""
+    files and run.json as ``import`` then ``foam``, each frame read once and written on the writer's thread.
+    bench_foam's 98k frames: the import was 82 ms of a 30-frame pass, but on 2 cores the copies' writing then
+    shares the cores with the pass, 1.00-1.03x in all; meant for a GPU host, whose cores wait on its kernels)."""
     from ..cases.run_dir import reader_options, write_case
     from ..cases.sequence import read_sequence
 
