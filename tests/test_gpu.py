@@ -233,3 +233,37 @@ def test_a_deferred_read_back_gives_the_frames_read_at_once(tmp_path):
     script.write_text(LATER_SCRIPT)
     run = subprocess.run([sys.executable, str(script)], cwd=Path(__file__).parents[1], capture_output=True, text=True)
     assert run.returncode == 0 and "LATER OK" in run.stdout, run.stderr[-3000:]
+
+
+FREE_ON_A_THREAD = """
+import gc, sys, threading
+import taichi as ti
+from whitecap.sim.runtime import init
+init("cuda")
+if sys.argv[1] == "without":
+    gc.callbacks.clear()
+gc.disable()  # collections only where this script asks for them
+a = ti.ndarray(ti.f32, 1 << 20)
+box = [a]
+box.append(box)  # an ndarray held in a cycle: freed only by the cyclic collector
+del a, box
+t = threading.Thread(target=gc.collect)  # as the background writer's thread did when a collection fell due
+t.start()
+t.join()
+b = ti.ndarray(ti.f32, 1 << 20)
+b.fill(2.0)
+print("sum", float(b.to_numpy().sum()))
+"""
+
+
+def test_an_ndarray_collected_on_another_thread_is_freed_without_aborting():
+    """simulate at 1 M particles on an H100 was aborted (CUDA_ERROR_INVALID_CONTEXT in cuMemFreeAsync, SIGABRT)
+    when Python's cyclic collector ran on the writer's thread and freed a Taichi ndarray there. Taichi's context
+    is now made current on such a thread before a collection (runtime._free_on_any_thread); without that
+    (argument "without") the same script aborted on an H100."""
+    from pathlib import Path
+
+    r = subprocess.run([sys.executable, "-c", FREE_ON_A_THREAD, "with"], cwd=Path(__file__).parents[1],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"sum {float(1 << 21)}" in r.stdout

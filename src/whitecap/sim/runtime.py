@@ -7,7 +7,9 @@ GPU) silently truncates long loops, so ``auto`` means CUDA if present else CPU.
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
+import threading
 from concurrent.futures import Future
 from typing import Callable
 
@@ -56,7 +58,44 @@ def init(arch: str = DEFAULT_ARCH) -> str:
         random_seed=0,
     )
     _ARCH = want
+    if want == "cuda":
+        _free_on_any_thread()
     return want
+
+
+_CONTEXT: ctypes.c_void_p | None = None  # the CUDA context Taichi made current on the thread that started it
+_THREAD = threading.local()  # .has_context: this thread has had that context made current
+
+
+def _free_on_any_thread() -> None:
+    """Let Taichi's arrays be freed on any thread, not only the one that started Taichi on CUDA.
+
+    A Taichi ndarray frees its device memory in ``__del__`` (cuMemFreeAsync, in the CUDA context current on the
+    calling thread). Python's cyclic garbage collector runs on whichever thread happens to allocate when a
+    collection falls due: on an H100, ``simulate`` at 1 M particles was aborted by the driver
+    (CUDA_ERROR_INVALID_CONTEXT, then SIGABRT) when a collection started in the background writer's thread,
+    which has no context, and found an ndarray among the garbage. So when a collection starts on a thread that
+    has not had Taichi's context made current, it is made current there first (cuCtxSetCurrent through ctypes,
+    once per thread); the free is then ordered on Taichi's stream as on the main thread. The GIL, held
+    throughout a collection and by every call into Taichi, keeps Taichi's own bookkeeping single-threaded."""
+    global _CONTEXT
+    lib = _cuda_driver()
+    if lib is None:
+        return
+    ctx = ctypes.c_void_p()
+    if lib.cuCtxGetCurrent(ctypes.byref(ctx)) != 0 or not ctx.value:  # type: ignore[attr-defined]
+        return
+    _CONTEXT = ctx
+    _THREAD.has_context = True
+    if _context_for_collection not in gc.callbacks:
+        gc.callbacks.append(_context_for_collection)
+
+
+def _context_for_collection(phase: str, info: dict) -> None:
+    """gc callback: before a collection on a thread without Taichi's CUDA context, make it current there."""
+    if phase != "start" or getattr(_THREAD, "has_context", False) or _CONTEXT is None:
+        return
+    _THREAD.has_context = _LIBCUDA.cuCtxSetCurrent(_CONTEXT) == 0  # type: ignore[union-attr,attr-defined]
 
 
 def current() -> str | None:
