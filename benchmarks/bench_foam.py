@@ -4,7 +4,8 @@ Generates a synthetic sloshing sequence once (a block whose upper part swirls
 and splashes, so all potentials fire), then times `whitecap foam` over it, reading
 and writing included, beside the cost of only reading the frames.
 
-    python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2] [--against OLD/src] [--repeat 1]
+    python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2] [--against OLD/src]
+                                     [--repeat 1] [--profile]
 
 Each timing runs in its own process (one Taichi runtime each), warmed up first on the first four frames
 (the advection's kernels compile only once there are diffuse particles, and the potentials of the
@@ -61,12 +62,16 @@ def time_foam(run: Path, r: float, budget: float | None, arch: str, domain: tupl
         for f in files[:WARM_FRAMES]:
             shutil.copy(f, warm / f.name)
         postprocess(warm, out=Path(tmp) / "warm_out", params=params, dt=1 / 30, radius=r, show_progress=False, **on)
+        from whitecap import timing
+
+        timing.reset()  # the timed pass's named phases only (``--profile``)
         t0, c0 = time.perf_counter(), time.process_time()
         postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
                     **on)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
-    return {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts}
+    phases = {k: v[0] / len(files) for k, v in timing.TIMERS.items()}
+    return {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts, "phases": phases}
 
 
 def main() -> None:
@@ -77,6 +82,7 @@ def main() -> None:
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"], help="Taichi backend of the foam stage")
     ap.add_argument("--against", help="another checkout's src folder, timed on the same sequence")
     ap.add_argument("--repeat", type=int, default=1, help="timings of each package, alternating")
+    ap.add_argument("--profile", action="store_true", help="print the named phases of this package's last pass")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--radius", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--domain", help=argparse.SUPPRESS)
@@ -142,6 +148,12 @@ def main() -> None:
     print(f"foam (all in):   {1e3 * t_foam:7.1f} ms/frame ({fps:.2f} frames/s; includes writing fluid+diffuse PLYs), "
           f"CPU {1e3 * best['this']['cpu']:.1f} ms/frame; best of {a.repeat}, load average {load}")
     print(f"last frame counts (frame,time,spray,foam,bubbles): {got['this'][-1]['counts']}")
+    if a.profile:  # top-level phases of the loop's thread, then the nested ones and the writer's thread (overlapped)
+        for k, v in sorted(got["this"][-1].get("phases", {}).items(), key=lambda kv: ("." in kv[0], -kv[1])):
+            print(f"  {k:20s} {1e3 * v:8.1f} ms/frame")
+        ph = got["this"][-1].get("phases", {})
+        rest = got["this"][-1]["wall"] - sum(v for k, v in ph.items() if not k.startswith("writer."))
+        print(f"  {'(loop, unnamed)':20s} {1e3 * rest:8.1f} ms/frame: reading, hand-offs, counts")
     print(f"vs target {TARGET_FPS} frames/s: {fps / TARGET_FPS:.2f}x;  vs SPlisHSPlasH FoamGenerator at 100k "
           f"(~{REFERENCE_FPS_100K} frames/s): {fps / REFERENCE_FPS_100K:.2f}x")
     if a.against:
