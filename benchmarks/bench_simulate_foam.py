@@ -120,7 +120,7 @@ def main() -> None:
             print(f"  {k:12s} {1e3 * v / f:8.1f} ms/frame {100 * v / total:5.1f}%")
         for k, v in sorted(t.items()):
             if k.startswith(("foam.", "output.", "writer.")):
-                print(f"    {k:16s} {1e3 * v / f:8.1f} ms/frame")
+                print(f"    {k:24s} {1e3 * v / f:8.1f} ms/frame")
         if PHASE in top:
             share = top[PHASE] / total
             ms = 1e3 * top[PHASE] / f

@@ -955,10 +955,11 @@ class FoamGenerator:
         v_diff, crest, e_k, vort = pots
         self._dt = dt
         self._split()
-        if p.auto and not self.looked_ahead:
-            self._running_auto(n, index, dt, fluid)
-        elif p.auto and self._scaled():
-            self._replan(index, dt)
+        with timer("foam.generate.auto"):  # (nested timers: where generate's time goes, in --profile)
+            if p.auto and not self.looked_ahead:
+                self._running_auto(n, index, dt, fluid)
+            elif p.auto and self._scaled():
+                self._replan(index, dt)
         tau = self._upload("tau", self.thresholds(), ti.f32, unless_same=True)
         mult = self.type_multipliers()
         most = float(mult.max())
@@ -971,10 +972,11 @@ class FoamGenerator:
         cnt, rate = self._buffer("count", m), self._buffer("rate", m, ti.f32)
         frame = index & 0xFFFFFFFF
         half_up = int(p.model == "foamgenerator")  # FoamGenerator rounds half up
-        lost = int(K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame, cap,
-                                  cnt, rate, half_up))
-        off = self._buffer("offset", m)
-        total = self._scan(n, cnt, off)
+        with timer("foam.generate.counts"):
+            lost = int(K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame,
+                                      cap, cnt, rate, half_up))
+            off = self._buffer("offset", m)
+            total = self._scan(n, cnt, off)
         self._candidates["total"] = total
         if not total:
             return 0, [0, 0, 0], lost
@@ -1019,27 +1021,36 @@ class FoamGenerator:
 
         self._chunks = (total, chunk, classify, thin)
         made = np.zeros(3)
-        for base in range(0, total, chunk):
-            classify(base, min(chunk, total - base))
-            made += _tally(min(chunk, total - base), kd)
+        with timer("foam.generate.classify"):
+            for base in range(0, total, chunk):
+                classify(base, min(chunk, total - base))
+                made += _tally(min(chunk, total - base), kd)
         if self._scaled():
-            # The type scales can make one frame's births far more than the birth rate foretold
-            # (a burst of the type scaled furthest up): never past the budget in one frame, and
-            # no type past its share of it (times its own multiplier, which the budget counts at 1),
-            # so a type born early and living long (foam) cannot take the room of one born later
-            # or living briefly (spray).
-            live = np.asarray(self.state.counts[-1][2:] if self.state.counts else (0, 0, 0), np.float64)
-            share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
-            room = np.maximum(p.budget * n * share - live, 0.0)
-            cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0).astype(np.float32)
-            if (cut < 1).any():
-                K.scale_want(n, want, self._upload("cut", cut, ti.f32))
-                made = self._thinned()
-            room = p.budget * n - live.sum()
-            if made.sum() > max(room, 0):
-                K.scale_want(n, want, self._upload("cut", np.full(3, max(room, 0) / made.sum(), np.float32), ti.f32))
-                made = self._thinned()
+            with timer("foam.generate.thin"):
+                made = self._within_shares(made, n, want)
         return int(made.sum()), [int(x) for x in made], lost
+
+    def _within_shares(self, made: np.ndarray, n: int, want) -> np.ndarray:
+        """The kept by type, thinned (K.scale_want, then _thinned) where a type would pass its share of the
+        budget or the frame the budget itself."""
+        p = self.p
+        # The type scales can make one frame's births far more than the birth rate foretold
+        # (a burst of the type scaled furthest up): never past the budget in one frame, and
+        # no type past its share of it (times its own multiplier, which the budget counts at 1),
+        # so a type born early and living long (foam) cannot take the room of one born later
+        # or living briefly (spray).
+        live = np.asarray(self.state.counts[-1][2:] if self.state.counts else (0, 0, 0), np.float64)
+        share = np.asarray(p.shares, np.float64) * np.asarray(p.type_multipliers, np.float64)
+        room = np.maximum(p.budget * n * share - live, 0.0)
+        cut = np.where(made > room, room / np.maximum(made, 1.0), 1.0).astype(np.float32)
+        if (cut < 1).any():
+            K.scale_want(n, want, self._upload("cut", cut, ti.f32))
+            made = self._thinned()
+        room = p.budget * n - live.sum()
+        if made.sum() > max(room, 0):
+            K.scale_want(n, want, self._upload("cut", np.full(3, max(room, 0) / made.sum(), np.float32), ti.f32))
+            made = self._thinned()
+        return made
 
     def _candidate_sizes(self) -> dict:
         """_buffer's sizes for the candidates' arrays: at most a chunk, first made at the live capacity; unfilled
