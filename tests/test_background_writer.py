@@ -325,3 +325,43 @@ def test_a_diffuse_frame_still_coming_back_from_the_device_is_written_and_checkp
     now, later = _snapshot(tmp_path / "now"), _snapshot(tmp_path / "late")
     assert any(k.startswith("diffuse/") for k in now) and "checkpoint.npz" in now
     assert later == now
+
+
+def test_a_collection_on_another_thread_makes_taichis_context_current_there_first(monkeypatch):
+    """runtime._context_for_collection (CUDA only; here with a stand-in for libcuda): a cyclic collection that
+    starts on a thread without Taichi's context (the writer's, which may free a Taichi ndarray there) makes it
+    current on that thread first, once a thread; the thread that started Taichi, and a collection's end, call
+    nothing. On an H100 the same free without it aborted the process (tests/test_gpu.py)."""
+    import gc
+
+    from whitecap.sim import runtime
+
+    calls = []
+
+    class Lib:
+        def cuCtxSetCurrent(self, ctx):
+            calls.append((threading.current_thread().name, ctx.value))
+            return 0
+
+    monkeypatch.setattr(runtime, "_LIBCUDA", Lib())
+    monkeypatch.setattr(runtime, "_CONTEXT", __import__("ctypes").c_void_p(0xC0FFEE))
+    monkeypatch.setattr(runtime, "_THREAD", threading.local())
+    runtime._THREAD.has_context = True  # this thread started Taichi (runtime._free_on_any_thread)
+
+    def collect_twice():
+        gc.collect()
+        gc.collect()
+
+    gc.callbacks.append(runtime._context_for_collection)  # (the interpreter holds this very list)
+    try:
+        gc.collect()  # on the thread that has the context: nothing to do
+        t = threading.Thread(target=collect_twice, name="writer-like")
+        t.start()
+        t.join()
+        assert calls == [("writer-like", 0xC0FFEE)]  # once, before the first collection there
+        u = threading.Thread(target=gc.collect, name="another")
+        u.start()
+        u.join()
+    finally:
+        gc.callbacks.remove(runtime._context_for_collection)
+    assert calls == [("writer-like", 0xC0FFEE), ("another", 0xC0FFEE)]
