@@ -93,9 +93,10 @@ def _free_on_any_thread() -> None:
 
 def _context_for_collection(phase: str, info: dict) -> None:
     """gc callback: before a collection on a thread without Taichi's CUDA context, make it current there."""
-    if phase != "start" or getattr(_THREAD, "has_context", False) or _CONTEXT is None:
+    lib = _LIBCUDA  # (at the interpreter's exit it may already be gone: then nothing is done)
+    if phase != "start" or _CONTEXT is None or not lib or getattr(_THREAD, "has_context", False):
         return
-    _THREAD.has_context = _LIBCUDA.cuCtxSetCurrent(_CONTEXT) == 0  # type: ignore[union-attr,attr-defined]
+    _THREAD.has_context = lib.cuCtxSetCurrent(_CONTEXT) == 0  # type: ignore[union-attr,attr-defined]
 
 
 def current() -> str | None:
