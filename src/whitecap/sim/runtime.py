@@ -80,12 +80,9 @@ def _free_on_any_thread() -> None:
     throughout a collection and by every call into Taichi, keeps Taichi's own bookkeeping single-threaded."""
     global _CONTEXT
     lib = _cuda_driver()
-    if lib is None:
+    if lib is None:  # (no libcuda, or no context current here)
         return
-    ctx = ctypes.c_void_p()
-    if lib.cuCtxGetCurrent(ctypes.byref(ctx)) != 0 or not ctx.value:  # type: ignore[attr-defined]
-        return
-    _CONTEXT = ctx
+    _CONTEXT = _current_context(lib)
     _THREAD.has_context = True
     if _context_for_collection not in gc.callbacks:
         gc.callbacks.append(_context_for_collection)
@@ -158,12 +155,15 @@ def _cuda_driver():
             _LIBCUDA = lib
         except (OSError, AttributeError):
             _LIBCUDA = False
-    if _LIBCUDA is False:
-        return None
-    ctx = ctypes.c_void_p()
-    if _LIBCUDA.cuCtxGetCurrent(ctypes.byref(ctx)) != 0 or not ctx.value:  # type: ignore[attr-defined]
+    if _LIBCUDA is False or _current_context(_LIBCUDA) is None:
         return None
     return _LIBCUDA
+
+
+def _current_context(lib) -> ctypes.c_void_p | None:
+    """The CUDA context current on this thread (cuCtxGetCurrent), or None."""
+    ctx = ctypes.c_void_p()
+    return ctx if lib.cuCtxGetCurrent(ctypes.byref(ctx)) == 0 and ctx.value else None
 
 
 def device_idle() -> bool:
@@ -218,8 +218,7 @@ def rows_to_host_later(*pairs, then: Callable[[], None] | None = None) -> Future
     lib = _cuda_driver()
     if lib is None:
         return None
-    ctx = ctypes.c_void_p()
-    lib.cuCtxGetCurrent(ctypes.byref(ctx))  # type: ignore[attr-defined]
+    ctx = _current_context(lib)  # (there is one: _cuda_driver found it)
     jobs = _device_rows(lib, pairs)
     return process_pool("whitecap-readback", 1).submit(_copy_later, lib, ctx, jobs, then)
 
