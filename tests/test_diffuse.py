@@ -262,7 +262,6 @@ def test_a_pass_stopped_half_way_never_lists_an_earlier_pass_s_frames(foam_run, 
     """A foam pass remakes every frame from the first: stopped at frame 8, the run lists its frames 0-7 alone,
     not beside frames 8-12 of the earlier pass (another seed here; in place, simulate's own foam), whose files
     and counts.csv are gone; remove_run then leaves no diffuse file behind."""
-    from whitecap.diffuse.generator import FoamGenerator
     from whitecap.io.run import remove_run
 
     if where == "copy":
@@ -274,14 +273,7 @@ def test_a_pass_stopped_half_way_never_lists_an_earlier_pass_s_frames(foam_run, 
         shutil.copytree(foam_run, run)
     before = {i: (out / rel).read_bytes() for i, rel in RunInfo.load(out).files("diffuse")}
     assert sorted(before) == list(range(13))
-    step = FoamGenerator.step
-
-    def stopped(self, fluid, index, dt, **kw):
-        if index == 8:
-            raise KeyboardInterrupt
-        return step(self, fluid, index, dt, **kw)
-
-    monkeypatch.setattr(FoamGenerator, "step", stopped)
+    _stop_foam_at(monkeypatch, 8)
     with pytest.raises(KeyboardInterrupt):
         postprocess(run, out=out, seed=9, show_progress=False)
     listed = dict(RunInfo.load(out).files("diffuse"))
@@ -657,6 +649,20 @@ def test_new_particles_fill_the_cylinder_around_the_velocity():
     # Velocity: the fluid's, plus the same radial offset, so particles spread out of the cylinder.
     assert np.allclose(v[:, 2], 2.0) and np.allclose(v[:, :2], x[:, :2], atol=1e-6)
     assert life.min() >= 1.0 and life.max() <= 2.0  # lifetime drawn from [lifetime_min, lifetime_max]
+
+
+def _stop_foam_at(monkeypatch, index: int) -> None:
+    """Every foam pass from here on stops (as by Ctrl-C) when it reaches frame ``index``."""
+    from whitecap.diffuse.generator import FoamGenerator
+
+    step = FoamGenerator.step
+
+    def stopped(self, fluid, i, dt, **kw):
+        if i == index:
+            raise KeyboardInterrupt
+        return step(self, fluid, i, dt, **kw)
+
+    monkeypatch.setattr(FoamGenerator, "step", stopped)
 
 
 # ------------------------------------------------------------------ 'auto' and the budget

@@ -205,21 +205,12 @@ def test_foam_of_a_foreign_sequence_with_a_bad_frame_leaves_no_run(tmp_path, cap
 def test_a_stopped_foam_of_a_foreign_sequence_resumes_into_the_same_run(tmp_path, monkeypatch, capsys):
     """Stopped at frame 3 (Ctrl-C), the run lists frames 0-2 with their fluid copies; run again, it goes on from
     frame 3 and ends with the files of an unstopped pass."""
-    from whitecap.diffuse.generator import FoamGenerator
-
-    from .test_diffuse import _gentle_then_violent
+    from .test_diffuse import _gentle_then_violent, _stop_foam_at
 
     pattern = _gentle_then_violent(tmp_path / "seq", frames=6)
     opts = ["--dt", str(1 / 30), "--radius", "0.01"]
     assert main(["foam", pattern, "--out", str(tmp_path / "whole"), *opts]) == 0
-    step = FoamGenerator.step
-
-    def stopped(self, fluid, index, dt, **kw):
-        if index == 3:
-            raise KeyboardInterrupt
-        return step(self, fluid, index, dt, **kw)
-
-    monkeypatch.setattr(FoamGenerator, "step", stopped)
+    _stop_foam_at(monkeypatch, 3)
     assert main(["foam", pattern, "--out", str(tmp_path / "A"), *opts]) != 0
     info = RunInfo.load(tmp_path / "A")
     assert [i for i, _ in info.files("fluid")] == [0, 1, 2] and [i for i, _ in info.files("diffuse")] == [0, 1, 2]
