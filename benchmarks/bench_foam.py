@@ -149,9 +149,9 @@ def main() -> None:
           f"CPU {1e3 * best['this']['cpu']:.1f} ms/frame; best of {a.repeat}, load average {load}")
     print(f"last frame counts (frame,time,spray,foam,bubbles): {got['this'][-1]['counts']}")
     if a.profile:  # top-level phases of the loop's thread, then the nested ones and the writer's thread (overlapped)
-        for k, v in sorted(got["this"][-1].get("phases", {}).items(), key=lambda kv: ("." in kv[0], -kv[1])):
-            print(f"  {k:20s} {1e3 * v:8.1f} ms/frame")
         ph = got["this"][-1].get("phases", {})
+        for k, v in sorted(ph.items(), key=lambda kv: ("." in kv[0], -kv[1])):
+            print(f"  {k:20s} {1e3 * v:8.1f} ms/frame")
         rest = got["this"][-1]["wall"] - sum(v for k, v in ph.items() if not k.startswith("writer."))
         print(f"  {'(loop, unnamed)':20s} {1e3 * rest:8.1f} ms/frame: reading, hand-offs, counts")
     print(f"vs target {TARGET_FPS} frames/s: {fps / TARGET_FPS:.2f}x;  vs SPlisHSPlasH FoamGenerator at 100k "
