@@ -19,6 +19,9 @@
 #
 #   bash benchmarks/gpu_targets.sh            # from the repository root, after `make install`
 #   BUDGET=480 bash benchmarks/gpu_targets.sh # at most 8 minutes in all
+# On a GPU machine that reaches no package registry (Python 3.12 there): build .whl and .gl with
+# benchmarks/gpu_bundle.sh where pip reaches one, carry them over, then
+#   source benchmarks/gpu_env.sh && BUDGET=480 bash benchmarks/gpu_targets.sh
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
@@ -41,7 +44,10 @@ step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py 
 step 120 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.002 --frames 40
 step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
-    "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10
+    "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile
+# the same with the sequence and the files written on a RAM disk: what the machine's disk takes of the rate
+[ -d /dev/shm ] && step 60 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk" \
+    env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
 step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.0008 --frames 4
