@@ -90,6 +90,32 @@ def test_no_taichi_array_is_made_per_frame_once_the_largest_frame_was_seen(monke
     assert counter.made == 1
 
 
+def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over():
+    """The diffuse frames step hands out are views of a few host blocks (io.array_pool), not new pages every
+    frame: once warm, 30 frames make one block, for the frame the caller holds (here frame 45, as the writer's
+    queue would), which keeps its values while 25 more frames are made; the others use the blocks again."""
+    frames = [_splash(i) for i in range(CYCLE)]
+    gen = _generator("ihmsen2012", frames)
+    for i in range(4 * CYCLE):  # warm-up: the largest frames seen (blocks grow with the count until then)
+        gen.step(frames[i % CYCLE], i, DT)
+    made = gen._frames.made
+    held = kept = None
+    for i in range(4 * CYCLE, 7 * CYCLE):
+        d = gen.step(frames[i % CYCLE], i, DT)
+        if i == 45:
+            held = d
+            kept = {k: a.copy() for k, a in [("x", d.positions), ("v", d.velocities), ("ids", d.ids),
+                                             *d.arrays.items()]}
+        del d
+    assert held is not None and kept is not None and len(held) > 1000
+    assert gen._frames.made - made <= 1, f"{gen._frames.made - made} blocks made in {3 * CYCLE} frames"
+    got = {"x": held.positions, "v": held.velocities, "ids": held.ids, **held.arrays}
+    for k, a in kept.items():
+        assert np.array_equal(got[k], a), f"frame 45's {k} changed after it was handed out"
+    last = gen.step(frames[0], 7 * CYCLE, DT)
+    assert not np.shares_memory(last.positions, held.positions)
+
+
 def _rss() -> int:
     """Resident bytes of this process, after a collection."""
     gc.collect()

@@ -43,6 +43,7 @@ import taichi as ti
 from taichi.lang.util import to_numpy_type
 
 from ..io import ParticleFrame
+from ..io.array_pool import ArrayPool
 from ..io.diffuse_types import BUBBLE, FOAM, SPRAY  # noqa: F401 (the codes, for the generator's users)
 from ..progress import console
 from ..sim import runtime
@@ -241,6 +242,10 @@ class FoamGenerator:
         self._nd = 0
         self._mirror: tuple | None = None
         self.pending: Future | None = None  # the last frame's read-back while it runs (step's ``defer``; settle)
+        # the host arrays frames are read back into (_download), used again once no frame handed out holds them
+        self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "life": (np.float32, ()),
+                                  "ids": (np.uint32, ()), "kind": (np.uint8, ()), "radius": (np.float32, ()),
+                                  "kind32": (np.int32, ())})
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._uploaded: set[str] = set()  # those whose copy in _host is what the Taichi array holds (_upload)
@@ -725,16 +730,17 @@ class FoamGenerator:
         self._mirror = host
 
     def _download(self, later: bool = False) -> ParticleFrame:
-        """The live particles as this frame's ParticleFrame (one copy from the device, new host arrays, so a
-        frame handed out is never changed by a later step); they are also the state's host view. ``later``: on
-        CUDA the copies are left running (:attr:`pending`; see :meth:`step`)."""
+        """The live particles as this frame's ParticleFrame (one copy from the device, into host arrays that no
+        frame handed out before and still held anywhere shares, so a frame handed out is never changed by a later
+        step: io.array_pool, whose blocks are used again once the writer is done with them, not new pages every
+        frame); they are also the state's host view. ``later``: on CUDA the copies are left running
+        (:attr:`pending`; see :meth:`step`)."""
         st, n = self.state, self._nd
-        x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-        life, ids, kind = np.empty(n, np.float32), np.empty(n, np.uint32), np.empty(n, np.uint8)
-        radius = np.empty(n, np.float32)
+        h = self._frames.take(n)  # arrays no earlier frame still handed out holds (io.array_pool)
+        x, v, life, ids, kind, radius = h["x"], h["v"], h["life"], h["ids"], h["kind"], h["radius"]
         if n:
             live = self._live[self._cur]
-            kind32 = np.empty(n, np.int32)  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
+            kind32 = h["kind32"]  # on CUDA straight from the device, one copy each (runtime.rows_to_host)
             rows = ((x, live["x"]), (v, live["v"]), (life, live["life"]), (ids, live["ids"]), (kind32, live["kind"]))
 
             def narrow() -> None:  # after the driver's copies (on the read-back thread where deferred)

@@ -1,0 +1,81 @@
+"""io.array_pool: host arrays used again only once nothing but the pool holds them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from whitecap.io.array_pool import ArrayPool
+
+LAYOUT = {"x": (np.float32, (3,)), "kind": (np.uint8, ())}
+
+
+def _base(a: np.ndarray) -> np.ndarray:
+    return a if a.base is None else a.base
+
+
+def test_a_block_is_used_again_once_its_views_are_gone():
+    pool = ArrayPool(LAYOUT, keep=2)
+    a = pool.take(100)
+    assert a["x"].shape == (100, 3) and a["x"].dtype == np.float32 and a["kind"].shape == (100,)
+    first = id(_base(a["x"]))  # (the id alone: a reference to the array would keep the block busy)
+    del a
+    b = pool.take(90)  # fewer rows: the same block
+    assert id(_base(b["x"])) == first and pool.made == 1
+    assert b["x"].flags.c_contiguous and b["kind"].flags.c_contiguous
+
+
+@pytest.mark.parametrize("hold", ["view", "slice of a view", "other array", "memoryview"])
+def test_a_block_anything_still_holds_is_never_handed_out_again(hold):
+    pool = ArrayPool(LAYOUT, keep=3)
+    a = pool.take(50)
+    a["x"][:] = 7.0
+    a["kind"][:] = 3
+    if hold == "view":
+        kept = a["x"]
+    elif hold == "slice of a view":
+        kept = a["x"][10:20, 1]
+    elif hold == "other array":
+        kept = a["kind"]
+    else:
+        kept = memoryview(a["kind"])
+    del a
+    for _ in range(5):  # every later frame gets other memory, and writes all of it
+        b = pool.take(50)
+        b["x"][:] = -1.0
+        b["kind"][:] = 0
+        del b
+    if hold == "memoryview":
+        assert (np.frombuffer(kept, np.uint8) == 3).all()
+    else:
+        assert (np.asarray(kept) == (3 if hold == "other array" else 7.0)).all()
+
+
+def test_busy_blocks_beyond_keep_are_made_and_not_kept():
+    pool = ArrayPool(LAYOUT, keep=2)
+    held = [pool.take(10) for _ in range(4)]  # all held: four blocks, two of them kept
+    bases = {id(_base(h["x"])) for h in held}
+    assert len(bases) == 4 and pool.made == 4
+    del held
+    for _ in range(6):  # frames handed out one at a time and dropped: the kept blocks alone
+        pool.take(10)
+    assert pool.made == 4
+    assert pool.nbytes == 2 * int(10 * 1.125) * (12 + 1)
+
+
+def test_a_block_too_small_is_replaced_by_a_larger_one_with_room_to_grow():
+    pool = ArrayPool(LAYOUT, keep=1)
+    pool.take(100)
+    b = pool.take(120)  # larger than the block: a new one, kept in its place
+    assert pool.made == 2 and len(_base(b["x"])) >= 120
+    del b
+    pool.take(int(120 * 1.1))  # within the growth room: no new block
+    assert pool.made == 2
+
+
+def test_an_empty_frame_and_keep_below_one():
+    pool = ArrayPool(LAYOUT)
+    assert pool.take(0)["x"].shape == (0, 3)
+    assert pool.take(5)["x"].shape == (5, 3)
+    with pytest.raises(ValueError):
+        ArrayPool(LAYOUT, keep=0)
