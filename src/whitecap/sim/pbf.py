@@ -37,6 +37,7 @@ import taichi as ti
 
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
+from ..io.array_pool import ArrayPool
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
 from . import runtime
@@ -517,6 +518,9 @@ class PBFSolver:
         self.dpsi_table.from_numpy(dpsi)
 
         self.state = FluidState.allocate(self.capacity)
+        # the host arrays frames are read back into (arrays), used again once no frame handed out holds them
+        self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "rho": (np.float32, ()),
+                                  "ids": (np.uint32, ())})
         st = self.state
         ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
         self._upload(positions, velocities, ids)
@@ -772,14 +776,17 @@ class PBFSolver:
 
     # ---------------------------------------------------------------- io
     def arrays(self, with_density: bool = True) -> dict[str, np.ndarray | None]:
-        """The particles in use as new host arrays (positions, velocities, density or None, uint32 ids): read
-        back in one launch, n rows (not the capacity's, which an emitter's scene keeps for the particles to come).
-        :meth:`checkpoint` can be handed them (``host``) rather than read the device anew."""
+        """The particles in use as host arrays that no frame handed out before and still held anywhere shares
+        (positions, velocities, density or None, uint32 ids; io.array_pool: blocks used again once the writer is
+        done with them, not new pages every frame): read back in one launch, n rows (not the capacity's, which an
+        emitter's scene keeps for the particles to come). :meth:`checkpoint` can be handed them (``host``) rather
+        than read the device anew."""
         st, n = self.state, self.n
         if with_density:
             self.update_density()
-        x, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-        rho, ids = np.empty(n if with_density else 0, np.float32), np.empty(n, np.uint32)
+        h = self._frames.take(n)
+        x, v, ids = h["x"], h["v"], h["ids"]
+        rho = h["rho"] if with_density else np.empty(0, np.float32)
         # on CUDA straight from the device, one copy each (the solver's int32 ids keep their bits as uint32)
         rows = [(x, st.x), (v, st.v), (ids, st.ids)] + ([(rho, st.rho)] if with_density else [])
         if n and not runtime.rows_to_host(*rows):
