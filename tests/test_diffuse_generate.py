@@ -186,6 +186,19 @@ def test_candidates_a_chunk_at_a_time_give_the_same_bytes(monkeypatch, preset):
     assert bool(thinned) == (preset == "auto")
 
 
+def test_the_candidates_chunk_is_the_cpu_one_on_the_cpu(monkeypatch):
+    """The CPU takes CANDIDATE_CHUNK candidates at a time (its host memory), whatever the GPU's chunk is (the GPU
+    side: tests/test_gpu.py)."""
+    from whitecap.diffuse import generator as G
+
+    monkeypatch.setattr(G, "CANDIDATE_CHUNK_GPU", 500)
+    monkeypatch.setattr(G, "CANDIDATE_CHUNK", 3000)
+    gen = _generator((30.0, 1.0, 1.0))
+    gen.step(_splash(), 0, DT)
+    assert gen._chunk() == 3000 and gen._candidates["total"] > 3000
+    assert gen._bufs["cand_kind"].shape[0] == 3000
+
+
 def test_candidates_generated_in_parallel_over_them_equal_those_per_fluid_particle():
     """kernels.generate_candidates (what the generator runs, a chunk at a time) writes the bits the reference
     generate (per fluid particle, tests/diffuse_reference.py) writes, for every candidate a type may keep: the

@@ -267,3 +267,34 @@ def test_an_ndarray_collected_on_another_thread_is_freed_without_aborting():
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert f"sum {float(1 << 21)}" in r.stdout
+
+
+def test_foam_on_cuda_takes_its_candidates_in_the_gpu_chunk_with_the_same_particles(tmp_path):
+    """On CUDA a frame's candidates go CANDIDATE_CHUNK_GPU at a time; in chunks of 700 there (the splash makes
+    thousands) the frames are the same, byte for byte."""
+    from pathlib import Path
+
+    script = """
+import sys, numpy as np
+from whitecap.sim import runtime
+runtime.init("cuda")
+from whitecap.diffuse import generator as G
+from tests.test_diffuse_generate import _generator, _splash, DT
+def run():
+    gen = _generator((30.0, 1.0, 1.0))
+    out = []
+    for k in range(3):
+        f = _splash()
+        f.positions = f.positions + k * DT * f.velocities
+        d = gen.step(f, k, DT)
+        out.append(np.concatenate([d.positions.ravel().view(np.uint8), d.velocities.ravel().view(np.uint8),
+                                   d.ids.view(np.uint8), d.arrays["type"].view(np.uint8)]))
+    return gen, out
+gen, whole = run()
+assert gen._chunk() == G.CANDIDATE_CHUNK_GPU and gen._candidates["total"] > 3 * 700
+G.CANDIDATE_CHUNK_GPU = 700
+gen, chunked = run()
+assert gen._bufs["cand_kind"].shape[0] == 700
+assert all(a.tobytes() == b.tobytes() for a, b in zip(whole, chunked)) and sum(len(a) for a in whole) > 1000
+"""
+    subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[1], check=True)

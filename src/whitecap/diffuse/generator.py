@@ -77,6 +77,11 @@ GRID_GROWTH = 1.25
 # particle). A frame with more is generated and classified again when it is placed (and where the
 # budget thins it): a cost only past ~50k-200k fluid particles, depending on the splash.
 CANDIDATE_CHUNK = 1 << 22
+# The chunk on a GPU: 33.5M candidates, 1.5 GB of device memory at most. At r = 2 mm (1 M fluid particles) a splash
+# makes some 19M candidates (the r = 4 mm dam break's 2.4M from 125k, eight times over): in chunks of 4M each
+# frame's candidates were generated and classified two or three times over (placing, thinning), each chunk with
+# its own launches and the counts it reads back. An H100 has 80 GB; the CPU keeps its 190 MB of host memory.
+CANDIDATE_CHUNK_GPU = 1 << 25
 
 
 @dataclass
@@ -995,7 +1000,7 @@ class FoamGenerator:
         most32 = np.float32(most)
         lim, want = self._buffer("limit", m, cols=3), self._buffer("want", m, ti.f32, cols=3)
         K.candidate_limits(n, cnt, rate, fid, most32, mult32, self.seed, frame, half_up, want, lim)
-        chunk = min(total, CANDIDATE_CHUNK)
+        chunk = min(total, self._chunk())
         # grown geometrically, never past a chunk; first made for as many as the live particles' capacity (a
         # splash's candidates grow over its first frames: made at the first frame's count, they grew 5 times)
         up = self._candidate_sizes()
@@ -1061,7 +1066,14 @@ class FoamGenerator:
     def _candidate_sizes(self) -> dict:
         """_buffer's sizes for the candidates' arrays: at most a chunk, first made at the live capacity; unfilled
         (each kernel writes a chunk's rows before the next reads them)."""
-        return {"limit": CANDIDATE_CHUNK, "start": min(self.capacity or 0, CANDIDATE_CHUNK), "zeroed": False}
+        most = self._chunk()
+        return {"limit": most, "start": min(self.capacity or 0, most), "zeroed": False}
+
+    @staticmethod
+    def _chunk() -> int:
+        """Candidates generated, classified and placed at a time: CANDIDATE_CHUNK, CANDIDATE_CHUNK_GPU on a GPU (the
+        same particles either way: tests/test_diffuse_generate.py)."""
+        return CANDIDATE_CHUNK if runtime.current() in (None, "cpu") else CANDIDATE_CHUNK_GPU
 
     def _thinned(self) -> np.ndarray:
         """The kept candidates by type under the limits in 'want' (K.thin_kept: in place where one chunk holds
@@ -1086,7 +1098,7 @@ class FoamGenerator:
         out = {
             "total": total, "counts": self._bufs["count"].to_numpy()[:n], "offset": self._bufs["offset"].to_numpy()[:n],
         }
-        if 0 < total <= CANDIDATE_CHUNK:
+        if 0 < total <= self._chunk():
             out["kept"] = np.flatnonzero(self._bufs["cand_kind"].to_numpy()[:total] >= 0)
         return out
 
