@@ -391,7 +391,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         if bodies is not None:  # moving bodies: their pose at this frame, as run.json records it
             info.set_bodies(index, bodies.body_records())
         with timer("output"):
-            a = solver.arrays()  # fresh host copies (to_numpy): the writer may keep them while the solver goes on
+            a = solver.arrays()  # host copies no earlier frame still held shares: the writer may keep them meanwhile
             frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
             info.frame(index).particles = len(frame)  # the count varies with emitters and sinks
             for fmt in scene.output.formats:
