@@ -79,3 +79,24 @@ def test_an_empty_frame_and_keep_below_one():
     assert pool.take(5)["x"].shape == (5, 3)
     with pytest.raises(ValueError):
         ArrayPool(LAYOUT, keep=0)
+
+
+def test_a_free_block_large_enough_is_taken_before_a_small_one_is_replaced():
+    pool = ArrayPool(LAYOUT, keep=2)
+    small = pool.take(10)
+    large = pool.take(100)  # both held: two kept blocks, the first of 11 rows, the second of 112
+    large_id = id(_base(large["x"]))
+    del small, large
+    got = pool.take(50)  # the first free block is too small, the second fits
+    assert id(_base(got["x"])) == large_id and pool.made == 2
+
+
+def test_a_small_free_block_behind_a_busy_one_is_replaced():
+    pool = ArrayPool(LAYOUT, keep=2)
+    held = pool.take(100)  # busy throughout
+    small = pool.take(10)
+    del small
+    got = pool.take(50)  # the free block is too small: replaced by one of 56 rows, kept in its place
+    assert pool.made == 3 and len(_base(got["x"])) == int(50 * 1.125)
+    del got
+    assert id(_base(pool.take(50)["x"])) != id(_base(held["x"])) and pool.made == 3

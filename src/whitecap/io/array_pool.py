@@ -51,12 +51,13 @@ class ArrayPool:
         """``n`` rows of each array of the layout (contiguous views of one block's arrays, contents as left by
         whatever used them last): of a kept block nothing else refers to and large enough, else of a new one."""
         n = int(n)
-        for k, block in enumerate(self._blocks):
-            if self._is_free(block):
-                if self._rows(block) >= n:
-                    return self._views(block, n)
-                del self._blocks[k]  # too small and unused: it makes room for a larger one
-                break
+        free = [block for block in self._blocks if self._is_free(block)]
+        for block in free:
+            if self._rows(block) >= n:
+                return self._views(block, n)
+        if free:  # free but all too small: the first makes room for a larger one (found by identity: the
+            # blocks' arrays do not compare as booleans)
+            self._blocks = [b for b in self._blocks if b is not free[0]]
         block = self._make(max(n, int(n * GROWTH)))
         if len(self._blocks) < self._keep:
             self._blocks.append(block)
