@@ -9,7 +9,8 @@
 #      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
 #      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
-#   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s);
+#   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s), and its
+#      files alone through the background writer, one after the other against side by side (bench_writer.py);
 #   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s).
 # A windowed figure needs a display; run bench_view.py there by hand with the same arguments.
 #
@@ -48,6 +49,9 @@ step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
 # the same with the sequence and the files written on a RAM disk: what the machine's disk takes of the rate
 [ -d /dev/shm ] && step 60 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk" \
     env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile
+# what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
+step 40  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread against lanes" \
+    "$PY" benchmarks/bench_writer.py --fluid 1000000 --diffuse 1600000 --frames 10 --pairs 3
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
 step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.0008 --frames 4

@@ -119,6 +119,94 @@ def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
     assert len(handed) == 11
 
 
+def test_a_frames_files_on_lanes_are_written_side_by_side_and_what_lists_them_after_all():
+    """Jobs on two lanes run at once (each waits for the other at a barrier: one after the other would never
+    pass it); a job without a lane (the frame's run.json) starts only once both are done; a lane runs its own
+    jobs one at a time, in order; flush waits for the lanes."""
+    meet = threading.Barrier(2, timeout=30)
+    log, lock = [], threading.Lock()
+
+    def file(name):
+        def job():
+            meet.wait()  # BrokenBarrierError after 30 s if the other lane's job is not running meanwhile
+            time.sleep(0.05 if name.startswith("fluid") else 0)
+            with lock:
+                log.append((name, threading.current_thread().name))
+        return job
+
+    with FrameWriter(maxsize=2, name="w") as w:
+        for k in range(3):
+            w.submit(file(f"fluid{k}"), "fluid", lane="fluid")
+            w.submit(file(f"diffuse{k}"), "diffuse", lane="diffuse")
+            w.submit(lambda k=k: log.append((f"run.json{k}", threading.current_thread().name)), "run.json")
+        w.flush()
+        assert len(log) == 9
+    names = [n for n, _ in log]
+    for k in range(3):  # the diffuse file (no sleep) finished first: the two ran at once; run.json after both
+        assert names[3 * k: 3 * k + 3] == [f"diffuse{k}", f"fluid{k}", f"run.json{k}"]
+    threads = {n.rstrip("0123456789"): t for n, t in log}
+    assert threads["run.json"] == "w" and threads["fluid"].startswith("w-fluid")
+    assert threads["diffuse"].startswith("w-diffuse")
+
+
+def test_an_error_on_a_lane_skips_what_would_list_its_file_and_reaches_the_caller():
+    done = []
+    w = FrameWriter(maxsize=4)
+    beside = threading.Event()
+
+    def full():
+        beside.wait(30)  # fails once the fluid file beside it is written
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/run/diffuse/diffuse_00003.ply")
+
+    def fluid():
+        done.append("fluid")
+        beside.set()
+
+    w.submit(full, "diffuse", lane="diffuse")
+    w.submit(fluid, "fluid", lane="fluid")  # beside it: written
+    w.submit(lambda: done.append("run.json"), "run.json")  # would list the diffuse file: skipped
+    w.submit(lambda: done.append("next fluid"), "fluid", lane="fluid")  # after the failure: skipped
+    with pytest.raises(OSError) as err:
+        w.flush()
+    assert err.value.filename == "/run/diffuse/diffuse_00003.ply"
+    w.close()
+    assert done == ["fluid"]
+
+
+def test_a_lane_holds_one_job_and_flush_waits_for_it():
+    """A lane's next job waits in the writer's bounded queue, not in the lane: a slow disk still blocks the
+    caller, with at most the lane's job, the one the writer holds and ``maxsize`` queued in memory."""
+    gate, started = threading.Event(), threading.Event()
+    finished = []
+    w = FrameWriter(maxsize=1)
+
+    def slow():
+        started.set()
+        gate.wait(60)
+        finished.append("slow")
+
+    w.submit(slow, lane="fluid")
+    assert started.wait(30)
+    w.submit(lambda: finished.append("second"), lane="fluid")  # taken by the writer, which waits for the lane
+    deadline = time.monotonic() + 30
+    while w._queue.qsize() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    w.submit(lambda: finished.append("third"), lane="fluid")  # in the queue, which is now full
+    fourth = threading.Thread(target=lambda: w.submit(lambda: finished.append("fourth"), lane="fluid"), daemon=True)
+    fourth.start()
+    flusher = threading.Thread(target=w.flush, daemon=True)
+    fourth.join(0.3)
+    flusher.start()
+    flusher.join(0.3)
+    assert fourth.is_alive() and flusher.is_alive() and finished == []
+    gate.set()
+    fourth.join(30)
+    flusher.join(30)
+    w.flush()
+    assert not flusher.is_alive() and finished == ["slow", "second", "third", "fourth"]
+    w.close()
+
+
 # ----------------------------------------------------------------------------- simulate
 def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
     """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, which
@@ -171,7 +259,9 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
     assert bad == []
     listed = _listed(run)
     assert sorted(set(listed.values())) == [0, 1, 2, 3, 4, 5]
-    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and threads == {"whitecap-writer"}
+    # on the writer's diffuse lane, beside the frame's fluid file
+    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and len(threads) == 1
+    assert threads.pop().startswith("whitecap-writer-diffuse")
 
 
 def test_output_is_byte_identical_with_the_writer_on_and_off(tmp_path, monkeypatch):

@@ -174,7 +174,7 @@ class FoamStage(FrameHook):
             if writer is None:
                 _write_diffuse(out, rel, d, csv, ready)
             else:
-                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv, ready), "diffuse")
+                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv, ready), "diffuse", lane="diffuse")
 
     def _counts_csv(self) -> str:
         """counts.csv's text: the generator's rows so far from frame ``_counts_from`` on, each formatted once (a
@@ -708,7 +708,7 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             rel = stage.on_frame(fr, index, frame_dt, out, info)
             if convert:  # after the step: a frame that fails there leaves no file of its own behind
                 fluid = frame_name("fluid", index)
-                writer.submit(functools.partial(write, out / fluid, fr), "fluid")
+                writer.submit(functools.partial(write, out / fluid, fr), "fluid", lane="fluid")
                 info.set_file(index, "fluid", fluid, fr.time)
             stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)

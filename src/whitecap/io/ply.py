@@ -165,7 +165,9 @@ def _records(n: int, dtype: np.dtype) -> np.ndarray:
 #: 62-66 ms (8 parts, not 2), a 2.7 M diffuse file 117-124 against 121-132 ms with 16 threads. With few cores the
 #: parts' threads take them from the stage's own: on 2 cores `whitecap foam` at 100k (10 MB diffuse files, 2 parts
 #: of 4 MB against one write) ran at 0.92x and 0.96x the rate with 16 MB parts (`bench_foam.py`, pairs' medians of
-#: two runs), so there the parts stay at 16 MB.
+#: two runs), so there the parts stay at 16 MB. The parts' threads pack in parallel, but their writes to the one file
+#: take turns (ext4 holds the file's inode lock through each write): a frame's files gain by being written side by
+#: side, on the background writer's lanes (io.writer).
 PART_BYTES = (4 << 20) if (os.cpu_count() or 1) >= 8 else (16 << 20)
 #: threads that pack and write the parts of one large file (never more than the machine's cores); 16 against 8:
 #: 117-124 against 124-132 ms a 2.7 M diffuse file on the H100 machine

@@ -101,7 +101,8 @@ class FrameHook(abc.ABC):
     def write(self, writer=None) -> None:
         """Write the files the last :meth:`on_frame` made (timed as output, apart from on_frame): handed to
         ``writer`` (io.writer.FrameWriter's ``submit``: the run's writer thread, or at once on the CPU) when
-        given, so that they are written in order with the frame's others and its run.json."""
+        given, so that they are written before the frame's run.json (on a lane of their own: beside its other
+        files)."""
 
     @abc.abstractmethod
     def checkpoint(self) -> dict[str, np.ndarray]:
@@ -396,7 +397,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
             info.frame(index).particles = len(frame)  # the count varies with emitters and sinks
             for fmt in scene.output.formats:
                 rel = frame_name("fluid", index, fmt)
-                writer.submit(functools.partial(write, out / rel, frame), "fluid")
+                writer.submit(functools.partial(write, out / rel, frame), "fluid", lane=f"fluid_{fmt}")
                 info.set_file(index, "fluid" if fmt == "ply" else f"fluid_{fmt}", rel, solver.time)
         for h in hooks:  # on this thread: a hook computes on the device, then hands its files to the writer
             with timer(h.name):
@@ -460,7 +461,7 @@ def checkpoint_interval(scene: Scene) -> int:
 class _InlineWriter:
     """FrameWriter's interface, writing at once in the caller's thread (``BACKGROUND_WRITER = False``)."""
 
-    def submit(self, job, label: str = "output") -> None:
+    def submit(self, job, label: str = "output", lane: str | None = None) -> None:
         job()
 
     def flush(self) -> None:
