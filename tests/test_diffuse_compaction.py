@@ -36,6 +36,23 @@ def test_the_prefix_sum_is_numpys_exclusive_cumsum(n):
     np.testing.assert_array_equal(out.to_numpy()[:n], np.concatenate([[0], np.cumsum(a[:n])[:-1]])[:n])
 
 
+@pytest.mark.parametrize("n", [1, 16, 17, 5000, 16 * 512 + 1, 3_000_000])
+def test_the_gpus_layout_of_the_prefix_sum_gives_the_same_sums(n):
+    """The layout a GPU runs (many short blocks, their sums scanned in groups: sim.scan.scan_block), here on the
+    CPU: the same exclusive cumsum, across block and group edges (16 * 512 elements fill one group of blocks)."""
+    from whitecap.sim.scan import SCAN_GROUP, SCAN_SUMS, exclusive_scan, scan_block
+
+    block = scan_block(n, gpu=True)
+    assert block < scan_block(n, gpu=False) or n < 256
+    if n > 16 * SCAN_GROUP:  # the largest cases span several groups of blocks
+        assert -(-n // block) > SCAN_GROUP
+    a = np.random.default_rng(n).integers(0, 5, n).astype(np.int32)
+    src, out, sums = ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, SCAN_SUMS)
+    src.from_numpy(a)
+    assert exclusive_scan(n, src, sums, out, gpu=True) == int(a.sum())
+    np.testing.assert_array_equal(out.to_numpy(), np.concatenate([[0], np.cumsum(a)[:-1]]))
+
+
 def _data(nd: int) -> dict:
     rng = np.random.default_rng(7)
     return {

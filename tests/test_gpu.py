@@ -298,3 +298,26 @@ assert gen._bufs["cand_kind"].shape[0] == 700
 assert all(a.tobytes() == b.tobytes() for a, b in zip(whole, chunked)) and sum(len(a) for a in whole) > 1000
 """
     subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[1], check=True)
+
+
+def test_the_prefix_sum_on_cuda_is_numpys_exclusive_cumsum(tmp_path):
+    """sim.scan's GPU layout (many short blocks, their sums scanned in groups) run on CUDA, across groups."""
+    script = """
+import numpy as np, taichi as ti
+from whitecap.sim import runtime
+from whitecap.sim.scan import SCAN_SUMS, exclusive_scan, scan_block
+runtime.init("cuda")
+for n in (1, 17, 8193, 3_000_000, 33_554_432):
+    a = np.random.default_rng(n).integers(0, 3, n).astype(np.int32)
+    src, out, sums = ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, SCAN_SUMS)
+    src.from_numpy(a)
+    assert scan_block(n) == scan_block(n, gpu=True)
+    assert exclusive_scan(n, src, sums, out) == int(a.sum()), n
+    assert np.array_equal(out.to_numpy(), np.concatenate([[0], np.cumsum(a)[:-1]])), n
+print("ok")
+"""
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    done = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]

@@ -48,7 +48,7 @@ from ..io.diffuse_types import BUBBLE, FOAM, SPRAY  # noqa: F401 (the codes, for
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, gather_vec3, grid_spec
-from ..sim.scan import SCAN_BLOCKS, exclusive_scan
+from ..sim.scan import SCAN_SUMS, exclusive_scan
 from ..timing import timer
 from . import budget as B, kernels as K, splishsplash as SP
 
@@ -776,7 +776,7 @@ class FoamGenerator:
         """out[0..n) = the exclusive prefix sum of the integers a[0..n) (sim.scan); returns Σ a."""
         if n <= 0:
             return 0
-        return exclusive_scan(n, a, self._buffer("scan_sums", SCAN_BLOCKS + 1), out)
+        return exclusive_scan(n, a, self._buffer("scan_sums", SCAN_SUMS), out)
 
     def _track_peak(self, c: list, n: int, index: int) -> None:
         pk = self.state.peaks

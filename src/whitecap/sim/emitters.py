@@ -32,7 +32,7 @@ import taichi as ti
 from ..config import Scene
 from ..errors import InputError, SimulationError
 from .grid import F3, I1
-from .scan import SCAN_BLOCKS, exclusive_scan
+from .scan import SCAN_SUMS, exclusive_scan
 
 #: Rows of the sinks' array, per sink: a box (lo, hi) and a half space (point, normal) that
 #: a particle must both be in. A box sink has a zero normal (its half space is everything);
@@ -154,7 +154,7 @@ class Sources:
             cap = solver.capacity
             self.gone = ti.ndarray(ti.i32, cap)
             # made once: the prefix sum of gone and the scratch arrays the rest close up into
-            self.before, self.scan_sums = ti.ndarray(ti.i32, cap), ti.ndarray(ti.i32, SCAN_BLOCKS + 1)
+            self.before, self.scan_sums = ti.ndarray(ti.i32, cap), ti.ndarray(ti.i32, SCAN_SUMS)
             self.tx, self.tv, self.tid = ti.Vector.ndarray(3, ti.f32, cap), ti.Vector.ndarray(3, ti.f32, cap), \
                 ti.ndarray(ti.i32, cap)
         self.removed = 0  # particles the sinks took (statistics; not part of the state)
