@@ -10,7 +10,8 @@
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
 #      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
 #   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s), and its
-#      files alone through the background writer, one after the other against side by side (bench_writer.py);
+#      files alone through the background writer, one after the other against side by side (bench_writer.py),
+#      and the foam stage's prefix sum in the CPU's layout against the GPU's (bench_scan.py);
 #   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s).
 # A windowed figure needs a display; run bench_view.py there by hand with the same arguments.
 #
@@ -52,6 +53,8 @@ step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
 step 40  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread against lanes" \
     "$PY" benchmarks/bench_writer.py --fluid 1000000 --diffuse 1600000 --frames 10 --pairs 3
+step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU layout" \
+    "$PY" benchmarks/bench_scan.py --arch cuda --sizes 1000000,2700000,33554432 --repeats 50
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
 step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
     "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.0008 --frames 4
