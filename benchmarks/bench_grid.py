@@ -7,7 +7,9 @@ a step), in the same run:
 
 - in the tank with the dense table (what the solver chooses there) and with the hashed one;
 - in a domain 1000× the fluid's volume (the tank stretched alike along each axis), hashed: the dense
-  table there would need the number of cells printed, and is not allocated.
+  table there would need the number of cells printed, and is not allocated;
+- in the tank, dense, with the cell counts' prefix sum in the other arch's layout (``dense*``: on a GPU the
+  block sums walked by one thread, as before 2026-11-28; on the CPU scanned in groups, as a GPU now does).
 
 Prints ms a build (the least of --repeats, after a warm-up that compiles), hashed over dense, the
 grid's bytes per particle (NeighborGrid.nbytes: lists, sort arrays and cell table; the table's own
@@ -61,6 +63,7 @@ def time_build(grid, xs, n: int, repeats: int) -> tuple[float, float]:
 def run_size(n_target: int, repeats: int) -> None:
     import taichi as ti
 
+    from whitecap.sim import grid as G, runtime
     from whitecap.sim.grid import NeighborGrid, grid_layout, grid_spec
 
     sc, x = positions(n_target)
@@ -76,8 +79,12 @@ def run_size(n_target: int, repeats: int) -> None:
     big = grid_spec(lo, lo + (hi - lo) * stretch, h / 2)
     rows = []
     counts = {}
-    for name, spec, layout in (("tank", tank, "dense"), ("tank", tank, "hashed"), (f"{VOLUME_RATIO}x", big, "hashed")):
-        g = NeighborGrid(spec, n, s.max_neighbors, h, layout)
+    other = runtime.current() == "cpu"  # dense*: the other arch's scan of the cell counts (sim.grid.GROUPED_SCAN)
+    for name, spec, layout in (("tank", tank, "dense"), ("tank", tank, "hashed"), (f"{VOLUME_RATIO}x", big, "hashed"),
+                               ("tank", tank, "dense*")):
+        G.GROUPED_SCAN = other if layout == "dense*" else None
+        g = NeighborGrid(spec, n, s.max_neighbors, h, layout.rstrip("*"))
+        G.GROUPED_SCAN = None
         ms, cpu_ms = time_build(g, xs, n, repeats)
         counts[(name, layout)] = g.nb_count.to_numpy()[:n]
         rows.append((name, spec, layout, ms, cpu_ms, g.nbytes() / n, g.table_size, g.overflow))
@@ -87,12 +94,14 @@ def run_size(n_target: int, repeats: int) -> None:
     print(f"{n} particles, h = {h * 1e3:.2f} mm, cells of h/2; tank {tank.dims} = {tank.ncells / n:.1f} cells "
           f"a particle (auto layout: {grid_layout(tank, n)}), {VOLUME_RATIO}x domain {big.dims} = "
           f"{big.ncells / n:.0f} cells a particle (auto: {grid_layout(big, n)})")
+    print(f"dense*: the cell counts' block sums {'scanned in groups (a GPU' if other else 'by one thread (before'}'s "
+          "layout); the others in this arch's own")
     print(f"{'domain':8s} {'layout':7s} {'ms/build':>9s} {'vs dense':>8s} {'CPU ms':>8s} {'vs dense':>8s} "
           f"{'B/particle':>10s} {'table B/p':>9s} {'overflow':>8s}")
     for name, spec, layout, ms, cpu_ms, bpp, table, ovf in rows:
         print(f"{name:8s} {layout:7s} {ms:9.2f} {ms / dense_ms:7.2f}x {cpu_ms:8.2f} {cpu_ms / dense_cpu:7.2f}x "
               f"{bpp:10.0f} {4 * (table + 1) / n:9.1f} {ovf:8d}")
-    print(f"same neighbour counts in all three: {same}; the dense table of the {VOLUME_RATIO}x domain would be "
+    print(f"same neighbour counts in all four: {same}; the dense table of the {VOLUME_RATIO}x domain would be "
           f"{4 * big.ncells / n:.0f} B a particle ({big.ncells:,} cells)")
 
 

@@ -505,3 +505,37 @@ def test_an_unfilled_array_is_a_taichi_array_that_kernels_write_and_read():
     assert (rows.to_numpy() == 10 * np.arange(7)[:, None] + np.arange(5)).all()
     p = np.arange(9, dtype=np.float32)
     assert np.array_equal(vecs.to_numpy(), np.stack([p, -p, 0.5 * p], 1))
+
+
+@pytest.mark.parametrize("layout, group", [("dense", 3), ("hashed", 3), ("dense", 512)])
+def test_the_gpus_grouped_scan_of_the_cell_counts_gives_the_same_table_and_lists(layout, group, monkeypatch):
+    """The cell table's prefix sum as a GPU runs it (the block sums scanned in groups, sim.grid.SCAN_GROUP_GPU), here
+    on the CPU: the same starts, cell order and lists as the CPU's one-thread scan, over many groups (3 blocks a
+    group; a hashed table's size is set by the particles) and over the GPU's own group size in a dense table of
+    2 M cells (4 groups of 512 blocks)."""
+    import taichi as ti
+
+    from whitecap.sim import grid as G
+    from whitecap.sim import runtime
+
+    runtime.init("cpu")
+    x = _points(3000, seed=11)
+    xs = ti.Vector.ndarray(3, ti.f32, len(x))
+    xs.from_numpy(x)
+    cell = H / 2 if group == 3 else 0.0079  # 127³ cells: 2,001 blocks of 1,024
+    built = {}
+    for grouped in (False, True):
+        monkeypatch.setattr(G, "GROUPED_SCAN", grouped)
+        monkeypatch.setattr(G, "SCAN_GROUP_GPU", group)
+        g = G.NeighborGrid(G.grid_spec((0, 0, 0), (1, 1, 1), cell), len(x), 256, H, layout)
+        assert g.sum_group == (group if grouped else 0)
+        g.build(xs, len(x))
+        built[grouped] = {k: getattr(g, k).to_numpy() for k in ("start", "order", "nb_count", "nb")}
+    blocks = G.len_blocks(g.table_size)
+    assert blocks > 2 * group if group == 3 else blocks > group  # several groups
+    assert (built[False]["start"] > 0).any()
+    for k in ("start", "order", "nb_count"):
+        np.testing.assert_array_equal(built[True][k], built[False][k], err_msg=k)
+    counts = built[False]["nb_count"]
+    for i in range(0, len(x), 97):
+        assert (built[True]["nb"][i, :counts[i]] == built[False]["nb"][i, :counts[i]]).all()

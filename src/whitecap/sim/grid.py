@@ -62,6 +62,13 @@ I1: Any = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2: Any = ti.types.ndarray(dtype=ti.i32, ndim=2)
 U1: Any = ti.types.ndarray(dtype=ti.u32, ndim=1)  # ids as the files hold them
 SCAN_BLOCK = 1024  # cells per block of the two-level prefix sum
+#: On a GPU the block sums are scanned in groups of SCAN_GROUP_GPU, one thread a group, then the groups' totals by
+#: one thread (sim.scan does the same): one GPU thread walking them one load at a time took the longest of the
+#: sort's passes at 10 M particles and more (48,800 block sums at 10 M, 244,000 at 50 M in the dense table). The
+#: CPU walks them in one thread, as before (a few hundred to a few thousand sums: microseconds).
+SCAN_GROUP_GPU = 512
+#: Block sums scanned in groups: None on a GPU only; True or False on any arch (tests of the GPU's layout on the CPU).
+GROUPED_SCAN: bool | None = None
 CORNER_SLACK = 0.01  # margin, in cells, of the corner-column test in for_each_neighbor
 #: Hash buckets per particle of capacity, at least (the table is the next power of two, 8–16 per
 #: particle, 32–64 B). At most one cell is occupied per particle (about one in the bulk: cells of h/2 =
@@ -202,20 +209,41 @@ def _block_sums(count: I1, ncells: ti.i32, bsum: I1):
 
 
 @ti.kernel
-def _scan_blocks(bsum: I1):
-    ti.loop_config(serialize=True)
-    run = 0
-    for b in range(bsum.shape[0]):
-        s = bsum[b]
-        bsum[b] = run
-        run += s
+def _scan_blocks(bsum: I1, gsum: I1, group: TEMPLATE):
+    """The block sums become their blocks' starts (exclusive prefix sum): by one thread where ``group`` is 0;
+    else within groups of ``group`` blocks, one thread a group, each group's total into gsum[g], then gsum
+    scanned by one thread (_scan_cells adds a block's group start to its own)."""
+    if ti.static(group == 0):
+        ti.loop_config(serialize=True)
+        run = 0
+        for b in range(bsum.shape[0]):
+            s = bsum[b]
+            bsum[b] = run
+            run += s
+    else:
+        nb = bsum.shape[0]
+        for g in range((nb + group - 1) // group):
+            t = 0
+            for b in range(g * group, ti.min(nb, (g + 1) * group)):
+                c = bsum[b]
+                bsum[b] = t
+                t += c
+            gsum[g] = t
+        ti.loop_config(serialize=True)
+        run = 0
+        for g in range((nb + group - 1) // group):
+            s = gsum[g]
+            gsum[g] = run
+            run += s
 
 
 @ti.kernel
-def _scan_cells(table: I1, ncells: ti.i32, bsum: I1, n: ti.i32):
+def _scan_cells(table: I1, ncells: ti.i32, bsum: I1, gsum: I1, n: ti.i32, group: TEMPLATE):
     """Step 2, in place: the cells' counts become their starts (exclusive prefix sum); table[ncells] = n."""
     for b in range(bsum.shape[0]):
         run = bsum[b]
+        if ti.static(group > 0):
+            run += gsum[b // group]
         for k in range(SCAN_BLOCK):
             idx = b * SCAN_BLOCK + k
             if idx < ncells:
@@ -825,6 +853,9 @@ class NeighborGrid:
         self.order = ti.ndarray(ti.i32, capacity)
         self.start = ti.ndarray(ti.i32, nc + 1)  # the counts while sorting, then each entry's first slot
         self.bsum = ti.ndarray(ti.i32, len_blocks(nc))
+        grouped = not cpu if GROUPED_SCAN is None else GROUPED_SCAN
+        self.sum_group = SCAN_GROUP_GPU if grouped else 0  # the block sums scanned in groups (_scan_blocks)
+        self.gsum = ti.ndarray(ti.i32, len_groups(nc, self.sum_group) if grouped else 1)
         self.nb_count = ti.ndarray(ti.i32, capacity)
         # a row is read up to its written count
         self.nb = runtime.empty_ndarray(ti.i32, (capacity, self.max_neighbors))
@@ -841,14 +872,14 @@ class NeighborGrid:
 
     def nbytes(self) -> int:
         nc = self.table_size
-        return 4 * (self.capacity * (7 + self.max_neighbors) + nc + 1 + len_blocks(nc) + 1)
+        return 4 * (self.capacity * (7 + self.max_neighbors) + nc + 1 + len_blocks(nc) + self.gsum.shape[0] + 1)
 
     def bindings(self) -> dict:
         """The grid's arrays and constants by the names its recorded launches use (``g.*``;
         ``g.ncells``: the entries of the cell table, cells or buckets)."""
         return {
-            "g.cell": self.cell, "g.rank": self.rank, "g.order": self.order,
-            "g.start": self.start, "g.bsum": self.bsum, "g.nb_count": self.nb_count, "g.nb": self.nb,
+            "g.cell": self.cell, "g.rank": self.rank, "g.order": self.order, "g.start": self.start,
+            "g.bsum": self.bsum, "g.gsum": self.gsum, "g.nb_count": self.nb_count, "g.nb": self.nb,
             "g.x_sorted": self.x_sorted, "g.overflow": self.overflow_count, "g.lower": self.lower,
             "g.inv_cell": self.inv_cell, "g.dims": self.dims, "g.ncells": self.table_size, "g.h": self.h,
         }
@@ -860,8 +891,8 @@ class NeighborGrid:
         rec(count, n, x, rec["g.lower"], rec["g.inv_cell"], rec["g.dims"], rec["g.cell"], rec["g.rank"],
             rec["g.start"])
         rec(_block_sums, rec["g.start"], rec["g.ncells"], rec["g.bsum"])
-        rec(_scan_blocks, rec["g.bsum"])
-        rec(_scan_cells, rec["g.start"], rec["g.ncells"], rec["g.bsum"], n)
+        rec(_scan_blocks, rec["g.bsum"], rec["g.gsum"], self.sum_group)
+        rec(_scan_cells, rec["g.start"], rec["g.ncells"], rec["g.bsum"], rec["g.gsum"], n, self.sum_group)
         rec(_scatter, n, rec["g.cell"], rec["g.rank"], rec["g.start"], rec["g.order"])
         if self.hashed:
             rec(_sort_buckets, rec["g.ncells"], rec["g.start"], rec["g.order"], x, rec["g.lower"],
@@ -952,3 +983,8 @@ _GRAPHS_REFUSED = False  # the backend turned a compute graph down: build_sorted
 
 def len_blocks(nc: int) -> int:
     return (nc + SCAN_BLOCK - 1) // SCAN_BLOCK
+
+
+def len_groups(nc: int, group: int) -> int:
+    """Groups of ``group`` block sums of a table of ``nc`` entries (at least one: an array is never empty)."""
+    return max(1, -(-len_blocks(nc) // group))
