@@ -4,7 +4,8 @@
 #   1. the solver at 1 M (target >= 100 steps/s), 10 M and 50 M particles, with bytes per particle
 #      (the neighbour grid's memory is set by the particles: dense cell table in the benchmark's tank,
 #      5 cells a particle, hashed where the domain is much larger); list building with the dense and the
-#      hashed cell table at 1 M and 10 M, and in a domain 1000x the fluid's volume (bench_grid.py);
+#      hashed cell table at 1 M and 10 M, and in a domain 1000x the fluid's volume, and the dense table
+#      with its cell counts' block sums walked by one thread, as before 2026-11-28 (dense*; bench_grid.py);
 #   2. `simulate --profile` of the H = 2a dam break with foam on and off, at r = 2 mm and r = 0.8 mm
 #      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
