@@ -515,8 +515,7 @@ def test_the_gpus_grouped_scan_of_the_cell_counts_gives_the_same_table_and_lists
     2 M cells (4 groups of 512 blocks)."""
     import taichi as ti
 
-    from whitecap.sim import grid as G
-    from whitecap.sim import runtime
+    from whitecap.sim import grid as G, runtime
 
     runtime.init("cpu")
     x = _points(3000, seed=11)
