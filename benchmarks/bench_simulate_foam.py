@@ -12,7 +12,11 @@ and the ratio to issue 31's reference figures on 2 CPU cores (diffuse 356 ms a f
 
 Each configuration runs in its own process (one Taichi runtime per process). ``--against`` runs the
 foam-on case once more with another checkout's package (e.g. ``git archive 80c2fce | tar -x -C OLD``)
-and prints the diffuse share of both, measured in the same run, and their ratio.
+and prints the diffuse share of both, measured in the same run, and their ratio. ``--write-threads N``
+runs it once more with the PLY writer's threads cut to N (io/ply.py WRITE_THREADS: every core by default,
+16 on an H100 machine), to tell whether the writer's threads packing files beside the loop slow its steps;
+``--pin`` once more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell
+whether the diffuse particles' copy into pageable memory does.
 """
 
 from __future__ import annotations
@@ -50,9 +54,16 @@ def _scene(radius: float, frames: int):
     )
 
 
-def run_one(radius: float, frames: int, arch: str, foam: bool) -> dict:
+def run_one(radius: float, frames: int, arch: str, foam: bool, write_threads: int | None = None,
+            pin: bool = False) -> dict:
     from whitecap import timing
+    from whitecap.io import ply
     from whitecap.pipeline import simulate
+    from whitecap.sim import runtime
+
+    runtime.PIN_READBACK = pin
+    if write_threads:
+        ply.WRITE_THREADS = write_threads  # before the first file: its pool is made with this many threads
 
     sc = _scene(radius, frames)
     with tempfile.TemporaryDirectory() as tmp:
@@ -88,21 +99,29 @@ def main() -> None:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--foam-only", action="store_true", help="skip the run with foam off")
     ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
+    ap.add_argument("--write-threads", type=int, help="one more foam-on run, the PLY writer's threads cut to this many")
+    ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
+    ap.add_argument("--threads", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--pinned", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
-        r = run_one(a.radius, a.frames, a.arch, a.one == "on")
+        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.threads, a.pinned)
         print("RESULT " + json.dumps(r))
         return
     results = {}
-    runs = [(m, m, None) for m in (("on",) if a.foam_only else ("on", "off"))]
+    runs = [(m, m, None, []) for m in (("on",) if a.foam_only else ("on", "off"))]
     if a.against:
-        runs.append(("on, against", "on", os.path.abspath(a.against)))
-    for name, mode, src in runs:
+        runs.append(("on, against", "on", os.path.abspath(a.against), []))
+    if a.write_threads:
+        runs.append((f"on, {a.write_threads} write threads", "on", None, ["--threads", str(a.write_threads)]))
+    if a.pin:
+        runs.append(("on, pinned read-back", "on", None, ["--pinned"]))
+    for name, mode, src, extra in runs:
         cmd = [
             sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch,
-            "--one", mode,
+            "--one", mode, *extra,
         ]
         here = os.path.dirname(os.path.abspath(__file__))
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, here, os.environ.get("PYTHONPATH")]))) \
@@ -137,8 +156,11 @@ def main() -> None:
         print(f"diffuse share {100 * share['on']:.1f}% against {100 * share['on, against']:.1f}% with {a.against} "
               f"({share['on'] / share['on, against']:.2f}x); diffuse phase {phase:.2f}x its time")
     if "off" in results:
-        on, off = _loop(results["on"]["timers"]), _loop(results["off"]["timers"])
-        print(f"foam on / foam off wall time: {on / off:.2f}x  (frame rate with foam: {off / on:.2f}x of without)")
+        off = _loop(results["off"]["timers"])
+        for name in (k for k in results if k.startswith("on") and "against" not in k):
+            on = _loop(results[name]["timers"])
+            print(f"foam {name} / foam off wall time: {on / off:.2f}x  (frame rate with foam: {off / on:.2f}x of "
+                  "without)")
 
 
 if __name__ == "__main__":

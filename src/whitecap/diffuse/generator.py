@@ -248,9 +248,10 @@ class FoamGenerator:
         self._mirror: tuple | None = None
         self.pending: Future | None = None  # the last frame's read-back while it runs (step's ``defer``; settle)
         # the host arrays frames are read back into (_download), used again once no frame handed out holds them
+        pin, unpin = runtime.host_pinning()  # page-locked for the GPU's copies, where that is on
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "life": (np.float32, ()),
                                   "ids": (np.uint32, ()), "kind": (np.uint8, ()), "radius": (np.float32, ()),
-                                  "kind32": (np.int32, ())})
+                                  "kind32": (np.int32, ())}, pin=pin, unpin=unpin)
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._uploaded: set[str] = set()  # those whose copy in _host is what the Taichi array holds (_upload)

@@ -16,12 +16,18 @@ frame that anyone still holds is never written over. When every kept block is bu
 
 Not for arrays whose memory is lent to foreign code that keeps a raw pointer without a Python reference
 (ctypes addresses kept past the call): the pool cannot see those.
+
+With ``pin`` and ``unpin`` (sim.runtime.host_pinning: the CUDA driver's cuMemHostRegister and
+cuMemHostUnregister), a block is one page-aligned buffer of whole pages, its arrays views into it, pinned
+once when made, so that the GPU's copies into it run by DMA instead of through the driver's staging buffer;
+it is unpinned when the buffer is freed (the pool let it go and nothing else holds a view of it).
 """
 
 from __future__ import annotations
 
 import sys
-from typing import Mapping
+import weakref
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -32,20 +38,35 @@ KEEP = 3
 #: Rows a block is made with, per row asked for: a count that grows (a splash's diffuse particles) would
 #: otherwise need a new block every frame until it stops growing; more would hold more memory at the peak.
 GROWTH = 1.125
+#: Bytes of a page: a pinned block's buffer and each of its arrays start on one, and it holds whole pages (no
+#: page of it shared with other memory, which the driver would pin along with it).
+PAGE = 4096
+
+
+class _Block:
+    """A block's arrays by name, and the arrays that own its memory (the arrays themselves, or the one buffer
+    they view when pinned), with the reference counts each has when nothing but the pool holds the block."""
+
+    def __init__(self, arrays: dict[str, np.ndarray], owners: list[np.ndarray]) -> None:
+        self.arrays, self.owners = arrays, owners
+        self.rows = len(next(iter(arrays.values())))
+        self.free_refs = [0] * len(owners)
 
 
 class ArrayPool:
     """Blocks of host arrays of a fixed layout ({name: (dtype, shape of a row)}), handed out ``n`` rows at a
-    time by :meth:`take`."""
+    time by :meth:`take`; with ``pin`` (address, bytes) -> whether pinned and ``unpin`` (address), page-locked."""
 
-    def __init__(self, layout: Mapping[str, tuple[np.dtype | type, tuple[int, ...]]], keep: int = KEEP) -> None:
+    def __init__(self, layout: Mapping[str, tuple[np.dtype | type, tuple[int, ...]]], keep: int = KEEP,
+                 pin: Callable[[int, int], bool] | None = None, unpin: Callable[[int], object] | None = None) -> None:
         if keep < 1:
             raise ValueError("an ArrayPool keeps at least one block")
         self._layout = {k: (np.dtype(dt), tuple(int(s) for s in row)) for k, (dt, row) in layout.items()}
         self._keep = keep
-        self._blocks: list[dict[str, np.ndarray]] = []
-        self._free_refs: int | None = None  # sys.getrefcount of a kept block's array that nothing else holds
+        self._pin, self._unpin = pin, unpin
+        self._blocks: list[_Block] = []
         self.made = 0  # blocks made so far (tests, benchmarks): it stops growing once the pool is warm
+        self.pinned = 0  # blocks pinned so far
 
     def take(self, n: int) -> dict[str, np.ndarray]:
         """``n`` rows of each array of the layout (contiguous views of one block's arrays, contents as left by
@@ -53,38 +74,53 @@ class ArrayPool:
         n = int(n)
         free = [block for block in self._blocks if self._is_free(block)]
         for block in free:
-            if self._rows(block) >= n:
+            if block.rows >= n:
                 return self._views(block, n)
-        if free:  # free but all too small: the first makes room for a larger one (found by identity: the
-            # blocks' arrays do not compare as booleans)
+        if free:  # free but all too small: the first makes room for a larger one (found by identity)
             self._blocks = [b for b in self._blocks if b is not free[0]]
-        block = self._make(max(n, int(n * GROWTH)))
-        if len(self._blocks) < self._keep:
+        kept = len(self._blocks) < self._keep
+        block = self._make(max(n, int(n * GROWTH)), pinned=kept)  # one not kept is not worth pinning
+        if kept:
             self._blocks.append(block)
-            if self._free_refs is None:
-                self._free_refs = self._refs(block)
+            block.free_refs = self._refs(block)
         return self._views(block, n)
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the kept blocks."""
-        return sum(a.nbytes for block in self._blocks for a in block.values())
+        return sum(o.nbytes for block in self._blocks for o in block.owners)
 
-    def _make(self, rows: int) -> dict[str, np.ndarray]:
+    def _make(self, rows: int, pinned: bool) -> _Block:
         self.made += 1
-        return {k: np.empty((rows, *row), dt) for k, (dt, row) in self._layout.items()}
+        if self._pin is None or not pinned:
+            arrays = {k: np.empty((rows, *row), dt) for k, (dt, row) in self._layout.items()}
+            return _Block(arrays, list(arrays.values()))
+        offsets, size = {}, 0
+        for k, (dt, row) in self._layout.items():
+            offsets[k] = size
+            size += -(-(rows * int(np.prod(row, dtype=np.int64)) * dt.itemsize) // PAGE) * PAGE or PAGE
+        buf = np.empty(size + PAGE, np.uint8)
+        start = -buf.ctypes.data % PAGE
+        arrays = {}
+        for k, (dt, row) in self._layout.items():
+            nbytes = rows * int(np.prod(row, dtype=np.int64)) * dt.itemsize
+            arrays[k] = buf[start + offsets[k]:start + offsets[k] + nbytes].view(dt).reshape(rows, *row)
+        address = buf.ctypes.data + start
+        if self._pin(address, size):
+            self.pinned += 1
+            if self._unpin is not None:
+                weakref.finalize(buf, self._unpin, address).atexit = False  # once nothing views the buffer
+        return _Block(arrays, [buf])
 
     @staticmethod
-    def _rows(block: dict[str, np.ndarray]) -> int:
-        return len(next(iter(block.values())))
-
-    def _views(self, block: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
-        return {k: a[:n] for k, a in block.items()}
+    def _views(block: _Block, n: int) -> dict[str, np.ndarray]:
+        return {k: a[:n] for k, a in block.arrays.items()}
 
     @staticmethod
-    def _refs(block: dict[str, np.ndarray]) -> int:
-        return max(sys.getrefcount(a) for a in block.values())
+    def _refs(block: _Block) -> list[int]:
+        return [sys.getrefcount(o) for o in block.owners]
 
-    def _is_free(self, block: dict[str, np.ndarray]) -> bool:
-        """No reference to any of the block's arrays but the pool's (a view refers to the array it views)."""
-        return all(sys.getrefcount(a) <= (self._free_refs or 0) for a in block.values())
+    def _is_free(self, block: _Block) -> bool:
+        """No reference to any of the block's memory but the pool's (a view refers to the array that owns the
+        memory it views: the array itself, or a pinned block's buffer)."""
+        return all(r <= free for r, free in zip(self._refs(block), block.free_refs))

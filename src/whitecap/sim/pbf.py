@@ -519,8 +519,9 @@ class PBFSolver:
 
         self.state = FluidState.allocate(self.capacity)
         # the host arrays frames are read back into (arrays), used again once no frame handed out holds them
+        pin, unpin = runtime.host_pinning()  # page-locked for the GPU's copies, where that is on
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "rho": (np.float32, ()),
-                                  "ids": (np.uint32, ())})
+                                  "ids": (np.uint32, ())}, pin=pin, unpin=unpin)
         st = self.state
         ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
         self._upload(positions, velocities, ids)

@@ -181,6 +181,35 @@ def device_idle() -> bool:
     return lib is not None and lib.cuCtxSynchronize() == 0  # type: ignore[attr-defined]
 
 
+#: Page-lock the host arrays frames are read back into (io.array_pool's blocks, cuMemHostRegister), so that the
+#: driver copies into them by DMA instead of through its own staging buffer. Off until measured on a GPU: the
+#: solver's steps took 15-18 ms a frame longer with foam on at 1 M particles on an H100, and the read-back of the
+#: diffuse particles into pageable memory, made while they run, is the likeliest cause (benchmarks/RESULTS.md);
+#: ``bench_simulate_foam.py --pin`` runs foam on once more with it on.
+PIN_READBACK = False
+
+
+def host_pinning() -> tuple[Callable[[int, int], bool] | None, Callable[[int], None] | None]:
+    """(pin, unpin) for io.array_pool.ArrayPool where PIN_READBACK is on and Taichi runs on CUDA, else (None, None).
+    pin(address, bytes): cuMemHostRegister, True where the driver took it; unpin(address): cuMemHostUnregister, on
+    whichever thread frees the block (Taichi's context made current there first)."""
+    lib = _cuda_driver() if PIN_READBACK else None
+    if lib is None:
+        return None, None
+    lib.cuMemHostRegister_v2.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint]  # type: ignore[attr-defined]
+    lib.cuMemHostUnregister.argtypes = [ctypes.c_void_p]  # type: ignore[attr-defined]
+
+    def pin(address: int, nbytes: int) -> bool:
+        return lib.cuMemHostRegister_v2(address, nbytes, 0) == 0  # type: ignore[attr-defined]
+
+    def unpin(address: int) -> None:
+        if _current_context(lib) is None and _CONTEXT is not None:
+            lib.cuCtxSetCurrent(_CONTEXT)  # type: ignore[attr-defined]
+        lib.cuMemHostUnregister(address)  # type: ignore[attr-defined]
+
+    return pin, unpin
+
+
 def rows_to_host(*pairs) -> bool:
     """Copy each (host array, Taichi ndarray) pair's leading bytes, as many as the host array holds, from the GPU
     with the CUDA driver (cuMemcpyDtoH through ctypes, the GIL let go); False, copying nothing, where that cannot
