@@ -207,6 +207,27 @@ def test_a_lane_holds_one_job_and_flush_waits_for_it():
     w.close()
 
 
+def test_a_lane_without_a_thread_fails_as_a_write_would_and_flush_does_not_hang(monkeypatch):
+    """No thread to be had for a lane (the process at its limit): the job's error reaches the caller and what
+    would list its file is skipped, instead of the writer's thread dying with its jobs unfinished."""
+    from whitecap.io import writer as wr
+
+    def no_thread(*args, **kwargs):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(wr, "ThreadPoolExecutor", no_thread)
+    done = []
+    w = FrameWriter(maxsize=2)
+    w.submit(lambda: done.append("fluid"), "fluid", lane="fluid")
+    w.submit(lambda: done.append("run.json"), "run.json")
+    flusher = threading.Thread(target=lambda: pytest.raises(RuntimeError, w.flush), daemon=True)
+    flusher.start()
+    flusher.join(30)
+    assert not flusher.is_alive() and done == []
+    w.close()
+    assert "can't start new thread" in str(w.error)
+
+
 # ----------------------------------------------------------------------------- simulate
 def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
     """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, which

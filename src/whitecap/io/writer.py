@@ -172,12 +172,18 @@ class FrameWriter:
                     job = None
                     self._queue.task_done()
                     continue
-                if pool is None:
-                    pool = ThreadPoolExecutor(1, thread_name_prefix=f"{self._name}-{lane}")
-                fut = pool.submit(self._lane_job, [job], label)  # in a list the lane empties: see _lane_job
+                try:
+                    if pool is None:
+                        pool = ThreadPoolExecutor(1, thread_name_prefix=f"{self._name}-{lane}")
+                    fut = pool.submit(self._lane_job, [job], label)  # in a list the lane empties: see _lane_job
+                except BaseException as exc:  # noqa: BLE001 - no thread to be had: the job fails as a write would
+                    self._fail(exc)
+                    self._queue.task_done()
+                    continue
+                finally:
+                    job = None
                 fut.add_done_callback(lambda _f: self._queue.task_done())
                 self._lanes[lane] = (pool, fut)
-                job = None
         finally:
             for pool, _ in self._lanes.values():
                 pool.shutdown(wait=True)
@@ -195,15 +201,19 @@ class FrameWriter:
                 last.exception()
                 self._lanes[lane] = (pool, None)
 
+    def _fail(self, exc: BaseException) -> None:
+        """Record ``exc`` for the caller, unless another job's error came first."""
+        with self._lock:
+            if self._error is None:
+                self._error = exc
+
     def _timed(self, job: Callable[[], object], label: str) -> None:
         """Run ``job``; its time to ``writer.<label>``, its exception (the first of any thread) to the caller's."""
         t0 = time.perf_counter()
         try:
             job()
         except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-            with self._lock:
-                if self._error is None:
-                    self._error = exc
+            self._fail(exc)
         finally:
             if timing.ENABLED:
                 with self._lock:
