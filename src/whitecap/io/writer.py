@@ -18,8 +18,8 @@
   the file's inode lock through each): on 2 cores, 64 MB written to one file
   took 13 ms from one thread and 14-16 from two, but 9-12 ms as two files of
   32 MB from two threads (tmpfs: 26, 28-37, 19-22 ms); a 1 M-particle
-  `whitecap foam` frame's fluid and diffuse files (91 MB) 97 ms one after the
-  other, 86 ms side by side (``benchmarks/bench_writer.py``, pairs' median).
+  `whitecap foam` frame's fluid and diffuse files (91 MB, new files on tmpfs)
+  61 ms one after the other, 49 ms side by side (``benchmarks/bench_writer.py``).
   A lane holds one job at a time; the next waits for it (memory stays bounded).
 - **Bounded.** The queue holds at most ``maxsize`` jobs; :meth:`submit` blocks
   while it is full, so a slow disk slows the caller down instead of letting
