@@ -196,8 +196,11 @@ def host_pinning() -> tuple[Callable[[int, int], bool] | None, Callable[[int], N
     lib = _cuda_driver() if PIN_READBACK else None
     if lib is None:
         return None, None
-    lib.cuMemHostRegister_v2.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint]  # type: ignore[attr-defined]
-    lib.cuMemHostUnregister.argtypes = [ctypes.c_void_p]  # type: ignore[attr-defined]
+    try:
+        lib.cuMemHostRegister_v2.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint]  # type: ignore[attr-defined]
+        lib.cuMemHostUnregister.argtypes = [ctypes.c_void_p]  # type: ignore[attr-defined]
+    except AttributeError:  # a driver without them: pageable, as with PIN_READBACK off
+        return None, None
 
     def pin(address: int, nbytes: int) -> bool:
         return lib.cuMemHostRegister_v2(address, nbytes, 0) == 0  # type: ignore[attr-defined]
