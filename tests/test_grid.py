@@ -433,7 +433,7 @@ def test_a_sorted_build_is_a_bare_build_and_a_gather_in_one_graph(layout):
             assert (getattr(ref, name).to_numpy()[:n] == getattr(g, name).to_numpy()[:n]).all(), name
         assert (got.to_numpy() == want.to_numpy()).all()
         assert (got.to_numpy() == v[g.order.to_numpy()[:n]]).all()
-        graphs.append(grid_mod._SORTED_GRAPHS.get(g.hashed))
+        graphs.append(grid_mod._SORTED_GRAPHS.get((g.hashed, g.sum_group)))
     assert graphs[0] is not None and graphs[1] is graphs[0]
 
 
@@ -535,6 +535,14 @@ def test_the_gpus_grouped_scan_of_the_cell_counts_gives_the_same_table_and_lists
     assert (built[False]["start"] > 0).any()
     for k in ("start", "order", "nb_count"):
         np.testing.assert_array_equal(built[True][k], built[False][k], err_msg=k)
+    # the foam stage's sorted build, a compute graph kept by table layout and scan: the same order in both scans
+    for grouped in (True, False):
+        monkeypatch.setattr(G, "GROUPED_SCAN", grouped)
+        g = G.NeighborGrid(G.grid_spec((0, 0, 0), (1, 1, 1), cell), len(x), 256, H, layout)
+        vs = ti.Vector.ndarray(3, ti.f32, len(x))
+        g.build_sorted(xs, len(x), xs, vs)
+        np.testing.assert_array_equal(g.start.to_numpy(), built[False]["start"])
+        np.testing.assert_array_equal(g.order.to_numpy(), built[False]["order"])
     counts = built[False]["nb_count"]
     for i in range(0, len(x), 97):
         assert (built[True]["nb"][i, :counts[i]] == built[False]["nb"][i, :counts[i]]).all()

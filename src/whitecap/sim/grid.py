@@ -938,10 +938,11 @@ class NeighborGrid:
         frame, 2 cores: 2.2 against 1.65 ms)."""
         global _GRAPHS_REFUSED
         bindings = {**self.bindings(), "x": x, "n": n, "v": v, "vs": v_sorted}
-        graph = _SORTED_GRAPHS.get(self.hashed)
+        key = (self.hashed, self.sum_group)  # what the graph compiles in (templates); the arrays are arguments
+        graph = _SORTED_GRAPHS.get(key)
         if graph is None and not _GRAPHS_REFUSED:
             try:  # once a process for each table layout: the graph takes every array as an argument
-                graph = _SORTED_GRAPHS[self.hashed] = KernelGraph(self._record_sorted)
+                graph = _SORTED_GRAPHS[key] = KernelGraph(self._record_sorted)
             except Exception:  # a backend without compute graphs: the same launches one by one
                 _GRAPHS_REFUSED = True
         if graph is not None:
@@ -977,7 +978,7 @@ class NeighborGrid:
 
 
 #: build_sorted's compute graph for each table layout (hashed or not), made at its first call in the process
-_SORTED_GRAPHS: dict[bool, KernelGraph] = {}
+_SORTED_GRAPHS: dict[tuple[bool, int], KernelGraph] = {}  # by (hashed, sum_group)
 _GRAPHS_REFUSED = False  # the backend turned a compute graph down: build_sorted launches one by one
 
 
