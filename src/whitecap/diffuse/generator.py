@@ -1074,7 +1074,7 @@ class FoamGenerator:
     def _chunk() -> int:
         """Candidates generated, classified and placed at a time: CANDIDATE_CHUNK, CANDIDATE_CHUNK_GPU on a GPU (the
         same particles either way: tests/test_diffuse_generate.py)."""
-        return CANDIDATE_CHUNK if runtime.current() in (None, "cpu") else CANDIDATE_CHUNK_GPU
+        return CANDIDATE_CHUNK_GPU if runtime.on_gpu() else CANDIDATE_CHUNK
 
     def _thinned(self) -> np.ndarray:
         """The kept candidates by type under the limits in 'want' (K.thin_kept: in place where one chunk holds

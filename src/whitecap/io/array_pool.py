@@ -95,16 +95,15 @@ class ArrayPool:
         if self._pin is None or not pinned:
             arrays = {k: np.empty((rows, *row), dt) for k, (dt, row) in self._layout.items()}
             return _Block(arrays, list(arrays.values()))
+        nbytes = {k: rows * int(np.prod(row, dtype=np.int64)) * dt.itemsize for k, (dt, row) in self._layout.items()}
         offsets, size = {}, 0
-        for k, (dt, row) in self._layout.items():
+        for k, b in nbytes.items():  # each array on whole pages of its own
             offsets[k] = size
-            size += -(-(rows * int(np.prod(row, dtype=np.int64)) * dt.itemsize) // PAGE) * PAGE or PAGE
+            size += -(-b // PAGE) * PAGE or PAGE
         buf = np.empty(size + PAGE, np.uint8)
         start = -buf.ctypes.data % PAGE
-        arrays = {}
-        for k, (dt, row) in self._layout.items():
-            nbytes = rows * int(np.prod(row, dtype=np.int64)) * dt.itemsize
-            arrays[k] = buf[start + offsets[k]:start + offsets[k] + nbytes].view(dt).reshape(rows, *row)
+        arrays = {k: buf[start + offsets[k]:start + offsets[k] + nbytes[k]].view(dt).reshape(rows, *row)
+                  for k, (dt, row) in self._layout.items()}
         address = buf.ctypes.data + start
         if self._pin(address, size):
             self.pinned += 1

@@ -421,7 +421,7 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
     if info.extra.get("scene_sha256") != scene_sha256(scene_text):
         info.extra["scene_sha256"] = scene_sha256(scene_text)
         info.save(out)
-    background = BACKGROUND_WRITER if BACKGROUND_WRITER is not None else runtime.current() not in (None, "cpu")
+    background = BACKGROUND_WRITER if BACKGROUND_WRITER is not None else runtime.on_gpu()
     writer: FrameWriter | _InlineWriter = FrameWriter(WRITER_QUEUE) if background else _InlineWriter()
     _WRITER = writer if isinstance(writer, FrameWriter) else None
     try:

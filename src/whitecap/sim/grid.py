@@ -844,7 +844,7 @@ class NeighborGrid:
         self.scan = Scan(self.reach, self.hashed)
         # Particles a scan (_build_lists) and rows padded to a multiple of (_store_list): both measured on
         # the CPU only; a GPU runs a thread per particle, as before.
-        cpu = runtime.current() != "cuda"
+        cpu = not runtime.on_gpu()
         self.group = GROUP if cpu else 1
         self.pad = LIST_PAD if cpu and cpu_gathers() else 1
         nc = self.table_size = hash_buckets(capacity) if self.hashed else spec.ncells

@@ -100,6 +100,11 @@ def current() -> str | None:
     return _ARCH
 
 
+def on_gpu() -> bool:
+    """Whether Taichi runs on a GPU (CUDA) in this process; False on the CPU and before :func:`init`."""
+    return _ARCH == "cuda"
+
+
 def empty_ndarray(dtype, shape, vec: int = 0):
     """A Taichi ndarray of ``shape`` (of ``vec``-vectors where ``vec``), its memory left as the allocator
     hands it over: for arrays whose rows are always written before they are read. ``ti.ndarray`` fills every

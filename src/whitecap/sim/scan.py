@@ -29,7 +29,7 @@ def scan_block(n: int, gpu: bool | None = None) -> int:
     """Elements per block of :func:`prefix_sum` for ``n`` elements (``gpu``: the layout for a GPU; by default,
     as the run's arch). The sum is the same whatever the layout: only the work's split changes."""
     if gpu is None:
-        gpu = runtime.current() not in (None, "cpu")
+        gpu = runtime.on_gpu()
     blocks, least = (SCAN_BLOCKS_GPU, SCAN_MIN_BLOCK_GPU) if gpu else (SCAN_BLOCKS, SCAN_MIN_BLOCK)
     return max(least, -(-int(n) // blocks))
 
@@ -86,5 +86,5 @@ def exclusive_scan(n: int, a, sums, out, gpu: bool | None = None) -> int:
     if n <= 0:
         return 0
     if gpu is None:
-        gpu = runtime.current() not in (None, "cpu")
+        gpu = runtime.on_gpu()
     return int(prefix_sum(n, scan_block(n, gpu), a, sums, out, gpu))
