@@ -116,6 +116,15 @@ def _check_box(lower, upper, what: str) -> None:
         raise ValueError("box upper must be greater than lower on every axis")
 
 
+def _shape_bounds(sec) -> tuple[list[float], list[float]]:
+    """(lower, upper) of a fluid block's or an emitter's shape: a box's corners, else the box round its
+    ``center`` ± ``radius`` (a sphere's, or a disk's whatever its direction)."""
+    if sec.shape == "box":
+        return list(sec.lower), list(sec.upper)
+    c, r = sec.center, sec.radius
+    return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]
+
+
 class FluidBlock(_Section):
     """An initial block of fluid, filled with a cubic lattice of spacing 2r."""
 
@@ -135,10 +144,7 @@ class FluidBlock(_Section):
         return self
 
     def bounds(self) -> tuple[list[float], list[float]]:
-        if self.shape == "box":
-            return list(self.lower), list(self.upper)  # type: ignore[arg-type]
-        c, r = self.center, self.radius
-        return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]  # type: ignore[index,operator]
+        return _shape_bounds(self)
 
     def lattice_count(self, r: float) -> int:
         """About how many particles the block holds at spacing 2r (a sphere: by its volume share)."""
@@ -379,10 +385,7 @@ class Emitter(_Section):
         return self
 
     def bounds(self) -> tuple[list[float], list[float]]:
-        if self.shape == "box":
-            return list(self.lower), list(self.upper)  # type: ignore[arg-type]
-        c, r = self.center, self.radius
-        return [c[i] - r for i in range(3)], [c[i] + r for i in range(3)]  # type: ignore[index,operator]
+        return _shape_bounds(self)
 
     def sites(self, r: float):
         """(sites, direction, speed): the face's lattice sites (N×3 float64, spacing 2r, where the
