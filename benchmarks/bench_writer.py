@@ -3,14 +3,18 @@
 Each frame is a fluid PLY of ``--fluid`` particles (positions, velocities, density, ids: 32 B each) and a
 diffuse PLY of ``--diffuse`` particles (positions, velocities, lifetime, type, radius, ids), then a small
 run.json, handed to one :class:`whitecap.io.writer.FrameWriter` as ``simulate`` and ``whitecap foam`` hand
-theirs. Two ways, alternating in pairs in one process, each run's frames new files, as a run's are (files
-written over others wait for the old ones' pages still being written back: 42-47 ms a 59 MB file here against
-13 ms new), removed after the run and the disk synced, untimed; which of the two goes first alternates:
+theirs. Three ways, in rounds (``--pairs`` of them) in one process, each run's frames new files, as a run's are
+(files written over others wait for the old ones' pages still being written back: 42-47 ms a 59 MB file here
+against 13 ms new), removed after the run and the disk synced, untimed; which goes first rotates:
 
 - ``one thread``: every job on the writer's own thread (whitecap before lanes);
-- ``lanes``: the fluid and the diffuse file on lanes of their own, run.json after both.
+- ``lanes``: the fluid and the diffuse file on lanes of their own, run.json after both;
+- ``bytes``: as ``lanes``, but each file's bytes made once beforehand and only written (io.atomic.write_bytes):
+  what a frame's files would cost were their records packed elsewhere (on the device, say), the floor that
+  packing on the host is measured against.
 
-Printed: ms a frame for each, pair by pair, and the ratio one thread / lanes (above 1: lanes faster). The
+Printed: ms a frame for each, round by round (the three in a rotating order), the ratio one thread / lanes
+(above 1: lanes faster) and lanes / bytes (what packing the records on the host adds). The
 defaults are `whitecap foam` at 1 M fluid particles with 1.6 diffuse particles each (about 32 + 58 MB a frame).
 ``--dir`` picks the file system (a RAM disk: /dev/shm); the default is a temporary folder.
 
@@ -30,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from whitecap.io import write
-from whitecap.io.atomic import write_text
+from whitecap.io.atomic import write_bytes, write_text
 from whitecap.io.frame import ParticleFrame
 from whitecap.io.writer import FrameWriter
 
@@ -47,15 +51,21 @@ def frames(n_fluid: int, n_diffuse: int) -> tuple[ParticleFrame, ParticleFrame]:
     return fluid, diffuse
 
 
-def run(folder: Path, fluid: ParticleFrame, diffuse: ParticleFrame, n: int, lanes: bool) -> float:
-    """ms a frame for ``n`` frames written through one FrameWriter, the last flushed."""
+MODES = ("one thread", "lanes", "bytes")
+
+
+def run(folder: Path, files: dict, n: int, mode: str) -> float:
+    """ms a frame for ``n`` frames written through one FrameWriter, the last flushed. ``files``: the fluid and
+    the diffuse frame, and (``bytes``) their files' bytes."""
+    lanes = mode != "one thread"
     t0 = time.perf_counter()
     with FrameWriter(name="bench-writer") as w:
         for k in range(n):
-            w.submit(functools.partial(write, folder / f"fluid_{k:05d}.ply", fluid), "fluid",
-                     lane="fluid" if lanes else None)
-            w.submit(functools.partial(write, folder / f"diffuse_{k:05d}.ply", diffuse), "diffuse",
-                     lane="diffuse" if lanes else None)
+            for kind in ("fluid", "diffuse"):
+                path = folder / f"{kind}_{k:05d}.ply"
+                job = (functools.partial(write_bytes, path, files[kind + " bytes"]) if mode == "bytes"
+                       else functools.partial(write, path, files[kind]))
+                w.submit(job, kind, lane=kind if lanes else None)
             w.submit(functools.partial(write_text, folder / "run.json", f'{{"frame": {k}}}'), "run.json")
         w.flush()
     ms = 1e3 * (time.perf_counter() - t0) / n
@@ -70,33 +80,34 @@ def main() -> None:
     ap.add_argument("--fluid", type=int, default=1_000_000)
     ap.add_argument("--diffuse", type=int, default=1_600_000)
     ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--pairs", type=int, default=3)
+    ap.add_argument("--pairs", type=int, default=3, help="rounds of the three ways")
     ap.add_argument("--dir", help="folder to write into (default: a temporary one)")
     a = ap.parse_args()
     fluid, diffuse = frames(a.fluid, a.diffuse)
     with tempfile.TemporaryDirectory(dir=a.dir) as tmp:
         folder = Path(tmp)
-        write(folder / "f.ply", fluid)
-        write(folder / "d.ply", diffuse)
-        mb = sum(p.stat().st_size for p in folder.glob("*.ply")) / 1e6
-        run(folder, fluid, diffuse, 2, True)  # warm-up: the writers' record buffers and threads
+        files: dict = {"fluid": fluid, "diffuse": diffuse}
+        for kind in ("fluid", "diffuse"):
+            write(folder / f"{kind}.ply", files[kind])
+            files[kind + " bytes"] = (folder / f"{kind}.ply").read_bytes()
+            (folder / f"{kind}.ply").unlink()
+        mb = (len(files["fluid bytes"]) + len(files["diffuse bytes"])) / 1e6
+        for mode in MODES:  # warm-up: the writers' record buffers and threads
+            run(folder, files, 2, mode)
         print(f"{a.fluid:,} fluid + {a.diffuse:,} diffuse particles a frame ({mb:.0f} MB), {a.frames} frames a run, "
               f"into {folder}")
-        ratios, one, two = [], [], []
-        for i in range(a.pairs):  # which goes first alternates
-            if i % 2 == 0:
-                t1 = run(folder, fluid, diffuse, a.frames, False)
-                t2 = run(folder, fluid, diffuse, a.frames, True)
-            else:
-                t2 = run(folder, fluid, diffuse, a.frames, True)
-                t1 = run(folder, fluid, diffuse, a.frames, False)
-            one.append(t1)
-            two.append(t2)
-            ratios.append(t1 / t2)
-            print(f"  pair {i + 1}: one thread {t1:7.1f} ms a frame, lanes {t2:7.1f} ms a frame: {t1 / t2:.2f}x")
-        m1, m2 = statistics.median(one), statistics.median(two)
-        print(f"median: one thread {m1:.1f} ms a frame ({1e3 / m1:.1f} frames/s), lanes {m2:.1f} ({1e3 / m2:.1f} "
-              f"frames/s); pairs' ratio median {statistics.median(ratios):.2f}x")
+        got: dict[str, list[float]] = {m: [] for m in MODES}
+        for i in range(a.pairs):  # the order rotates: each mode goes first, second and last in turn
+            for mode in MODES[i % 3:] + MODES[:i % 3]:
+                got[mode].append(run(folder, files, a.frames, mode))
+            one, lanes, raw = (got[m][-1] for m in MODES)
+            print(f"  round {i + 1}: one thread {one:7.1f}, lanes {lanes:7.1f}, bytes {raw:7.1f} ms a frame: "
+                  f"one thread / lanes {one / lanes:.2f}x, lanes / bytes {lanes / raw:.2f}x")
+        med = {m: statistics.median(v) for m, v in got.items()}
+        rounds = list(zip(*(got[m] for m in MODES)))
+        print("median: " + ", ".join(f"{m} {med[m]:.1f} ms a frame ({1e3 / med[m]:.1f} frames/s)" for m in MODES)
+              + f"; rounds' ratio medians: one thread / lanes {statistics.median(o / la for o, la, _ in rounds):.2f}x, "
+              f"lanes / bytes (packing on the host) {statistics.median(la / b for _, la, b in rounds):.2f}x")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,8 @@
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
 #      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
 #   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s), and its
-#      files alone through the background writer, one after the other against side by side (bench_writer.py),
+#      files alone through the background writer, one after the other, side by side, and their bytes packed
+#      beforehand (what packing the records on the host costs; bench_writer.py),
 #      and the foam stage's prefix sum in the CPU's layout against the GPU's (bench_scan.py);
 #   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s).
 # A windowed figure needs a display; run bench_view.py there by hand with the same arguments.
@@ -52,7 +53,7 @@ step 240 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on:
 step 60  "foam post-processing, CUDA, 1 M particles, 10 frames" \
     "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
-step 40  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread against lanes" \
+step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, bytes packed beforehand" \
     "$PY" benchmarks/bench_writer.py --fluid 1000000 --diffuse 1600000 --frames 10 --pairs 3
 step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU layout" \
     "$PY" benchmarks/bench_scan.py --arch cuda --sizes 1000000,2700000,33554432 --repeats 50
