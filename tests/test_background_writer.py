@@ -403,7 +403,8 @@ def test_the_switch_interval_is_short_while_a_writer_runs_and_restored_after():
 def test_a_diffuse_frame_still_coming_back_from_the_device_is_written_and_checkpointed_whole(tmp_path, monkeypatch):
     """On CUDA the foam stage leaves each frame's read-back running on a thread of its own while the next frame
     is computed (runtime.rows_to_host_later, FoamGenerator.pending). Here a stand-in makes that copy late, on
-    another thread, into host arrays first filled with 0xFF: the diffuse files and checkpoints must be the same
+    another thread, into host arrays first filled with 0xFF (the records packed into a Taichi array first, as on
+    CUDA: runtime.copies_rows): the diffuse files and checkpoints must be the same
     bytes as those of the copy made at once, so the writer and the checkpoint wait for it."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -430,6 +431,7 @@ def test_a_diffuse_frame_still_coming_back_from_the_device_is_written_and_checkp
         return pool.submit(copy)
 
     monkeypatch.setattr(runtime, "rows_to_host_later", rows_to_host_later)
+    monkeypatch.setattr(runtime, "copies_rows", lambda: True)  # the records packed into a device array, as on CUDA
     simulate(scene, out=tmp_path / "late", show_progress=False)
     pool.shutdown()
     assert sum(late) > 0, "no diffuse particle was read back late"

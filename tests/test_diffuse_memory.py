@@ -90,15 +90,24 @@ def test_no_taichi_array_is_made_per_frame_once_the_largest_frame_was_seen(monke
     assert counter.made == 1
 
 
-def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over():
+@pytest.mark.parametrize("way", ["records", "arrays"])
+def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over(monkeypatch, way):
     """The diffuse frames step hands out are views of a few host blocks (io.array_pool), not new pages every
     frame: once warm, 30 frames make one block, for the frame the caller holds (here frame 45, as the writer's
-    queue would), which keeps its values while 25 more frames are made; the others use the blocks again."""
+    queue would), which keeps its values while 25 more frames are made; the others use the blocks again. Both
+    ways a frame comes back: as the file's records (FoamGenerator._download), and array by array where a frame
+    holds more records than a Taichi array (_download_arrays; here every frame)."""
+    from whitecap.diffuse import generator as G
+
+    if way == "arrays":
+        monkeypatch.setattr(G, "RECORD_BYTES_MAX", 0)
     frames = [_splash(i) for i in range(CYCLE)]
     gen = _generator("ihmsen2012", frames)
+    pool = gen._records if way == "records" else gen._frames
     for i in range(4 * CYCLE):  # warm-up: the largest frames seen (blocks grow with the count until then)
         gen.step(frames[i % CYCLE], i, DT)
-    made = gen._frames.made
+    made = pool.made
+    assert made > 0, "the frames did not come back through this pool"
     held = kept = None
     for i in range(4 * CYCLE, 7 * CYCLE):
         d = gen.step(frames[i % CYCLE], i, DT)
@@ -108,12 +117,49 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
                                              *d.arrays.items()]}
         del d
     assert held is not None and kept is not None and len(held) > 1000
-    assert gen._frames.made - made <= 1, f"{gen._frames.made - made} blocks made in {3 * CYCLE} frames"
+    assert (held.records is not None) == (way == "records")
+    assert pool.made - made <= 1, f"{pool.made - made} blocks made in {3 * CYCLE} frames"
     got = {"x": held.positions, "v": held.velocities, "ids": held.ids, **held.arrays}
     for k, a in kept.items():
         assert np.array_equal(got[k], a), f"frame 45's {k} changed after it was handed out"
     last = gen.step(frames[0], 7 * CYCLE, DT)
     assert not np.shares_memory(last.positions, held.positions)
+
+
+def test_a_frame_comes_back_as_the_files_records_and_is_written_as_it_is(tmp_path, monkeypatch):
+    """A diffuse frame comes back as the vertex records of its PLY (K.pack_records on the device, into one host
+    block): its arrays are views of them, the writer writes them without packing, and the files are the bytes of
+    the frames that come back array by array and are packed by the writer (RECORD_BYTES_MAX: above it, every
+    frame), frame for frame, with the state the same too."""
+    from whitecap.diffuse import generator as G
+    from whitecap.io import ply
+
+    frames = [_splash(i) for i in range(CYCLE)]
+    got: dict[str, list] = {}
+    for way in ("arrays", "records"):
+        with monkeypatch.context() as m:
+            if way == "arrays":
+                m.setattr(G, "RECORD_BYTES_MAX", 0)
+            else:
+                def no_packing(*a):
+                    raise AssertionError("the writer packed a frame that came back as its records")
+
+                m.setattr(ply, "_pack", no_packing)
+            gen = _generator("ihmsen2012", frames)
+            files = []
+            for i in range(2 * CYCLE):
+                d = gen.step(frames[i % CYCLE], i, DT)
+                assert (d.records is not None) == (way == "records")
+                if d.records is not None:
+                    assert np.shares_memory(d.positions, d.records) and np.shares_memory(d.ids, d.records)
+                    assert d.records.dtype == G.RECORD == ply.record_dtype(d)
+                io.write(tmp_path / f"{way}_{i}.ply", d)
+                files.append((tmp_path / f"{way}_{i}.ply").read_bytes())
+            got[way] = [files, {k: np.array(a) for k, a in gen.state.to_arrays().items()}]
+    assert max(len(f) for f in got["records"][0]) > 1000 * G.RECORD.itemsize  # frames of thousands of particles
+    assert got["records"][0] == got["arrays"][0]
+    for k, a in got["arrays"][1].items():
+        assert np.array_equal(got["records"][1][k], a), k
 
 
 def _rss() -> int:

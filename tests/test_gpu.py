@@ -357,3 +357,35 @@ def test_a_pinned_read_back_writes_the_same_frames(tmp_path):
         files[mode] = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.ply"))}
     assert pinned == {"off": 0, "on": 1}
     assert any(k.startswith("diffuse/") for k in files["on"]) and files["on"] == files["off"]
+
+
+RECORDS_SCRIPT = """
+import sys
+from whitecap.diffuse import generator as G
+if sys.argv[1] == "arrays":
+    G.RECORD_BYTES_MAX = 0  # every frame read back array by array, the writer packing it
+from whitecap.config import scene_from_dict
+from whitecap.pipeline import simulate
+from tests.conftest import tiny_scene_dict
+scene = scene_from_dict(tiny_scene_dict(output={"frames": 6}, foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0}))
+simulate(scene, out=sys.argv[2], arch="cuda", show_progress=False)
+"""
+
+
+def test_diffuse_records_packed_on_the_device_are_the_files_the_writer_packs(tmp_path):
+    """On CUDA the diffuse particles come back as their file's records, packed on the device (K.pack_records) and
+    copied back in one piece: simulate with foam writes the same files as with every frame read back array by array
+    and packed by the writer."""
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    files = {}
+    for way in ("arrays", "records"):  # (-c: the repository's root on sys.path, for tests.conftest)
+        run = subprocess.run([sys.executable, "-c", RECORDS_SCRIPT, way, str(tmp_path / way)], cwd=root,
+                             capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr[-3000:]
+        out = tmp_path / way
+        files[way] = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.ply"))}
+    diffuse = [k for k in files["records"] if k.startswith("diffuse/")]
+    assert diffuse and max(len(files["records"][k]) for k in diffuse) > 400 + 37 * 10  # (a header and 10 records)
+    assert files["records"] == files["arrays"]

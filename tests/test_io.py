@@ -301,6 +301,61 @@ def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path, monkeypatc
         assert (tmp_path / f"{k}.ply").read_bytes() == _plyfile_reference(f), k
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_a_frame_of_records_is_written_as_its_records_and_packed_once_an_array_is_replaced(tmp_path, monkeypatch,
+                                                                                           threads):
+    """ParticleFrame.from_records: the frame's arrays are views of the records (nothing copied) and write_ply writes
+    the records as they are, without packing, the bytes of the same frame made of arrays, in one piece or in
+    parts; a value written through an array since is in the file (the same memory). An array put in a field's
+    place is written, packed, not the records it no longer is; so are records of another layout, and a frame
+    made from a records frame (dataclasses.replace) does not carry them."""
+    import dataclasses
+
+    from whitecap.io import ply
+    from whitecap.io.ply import record_dtype, write_ply
+
+    monkeypatch.setattr(ply, "WRITE_THREADS", threads)
+    monkeypatch.setattr(ply, "PART_BYTES", 4096)
+    rng = np.random.default_rng(5)
+    n = 1000
+    arrays = ParticleFrame(rng.random((n, 3), np.float32), rng.random((n, 3), np.float32),
+                           rng.permutation(n).astype(np.uint32),
+                           arrays={"type": rng.integers(0, 3, n).astype(np.uint8),
+                                   "lifetime": rng.random(n).astype(np.float32),
+                                   "radius": np.full(n, 0.01, np.float32)})
+    rec = np.empty(n, record_dtype(arrays))
+    for names, a in ply._groups(arrays):
+        for c, k in enumerate(names):
+            rec[k] = a[:, c] if len(names) > 1 else a
+    frame = ParticleFrame.from_records(rec, time=0.5)
+    assert frame.records is rec and frame.time == 0.5 and list(frame.arrays) == ["type", "lifetime", "radius"]
+    for mine, theirs in ((frame.positions, arrays.positions), (frame.velocities, arrays.velocities),
+                         (frame.ids, arrays.ids), *((frame.arrays[k], arrays.arrays[k]) for k in arrays.arrays)):
+        assert np.shares_memory(mine, rec) and np.array_equal(mine, theirs)
+    packed = []
+    pack = ply._pack
+    monkeypatch.setattr(ply, "_pack", lambda *a: (packed.append(a[2:]), pack(*a)))
+    write_ply(tmp_path / "arrays.ply", arrays)
+    assert packed
+    packed.clear()
+    write_ply(tmp_path / "records.ply", frame)
+    assert not packed and (tmp_path / "records.ply").read_bytes() == (tmp_path / "arrays.ply").read_bytes()
+    frame.positions[7] = (1.0, 2.0, 3.0)  # through the view: in the records
+    write_ply(tmp_path / "through.ply", frame)
+    assert not packed and np.array_equal(io.read(tmp_path / "through.ply").positions[7], [1.0, 2.0, 3.0])
+    frame.arrays["lifetime"] = frame.arrays["lifetime"] + 1.0  # another array: packed, and its values written
+    write_ply(tmp_path / "replaced.ply", frame)
+    assert packed
+    assert np.array_equal(io.read(tmp_path / "replaced.ply").arrays["lifetime"], arrays.arrays["lifetime"] + 1.0)
+    assert dataclasses.replace(frame).records is None
+    other = ParticleFrame.from_records(rec[["x", "y", "z", "id"]])  # fields of the records, another layout
+    packed.clear()
+    write_ply(tmp_path / "other.ply", other)
+    assert packed and np.array_equal(io.read(tmp_path / "other.ply").ids, arrays.ids)
+    with pytest.raises(ValueError, match="x y z"):
+        ParticleFrame.from_records(np.zeros(3, [("x", "<f4"), ("z", "<f4"), ("y", "<f4")]))
+
+
 def test_a_full_disk_while_threads_write_a_ply_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     """A large PLY written in parts by several threads (os.pwrite) on a full disk: one OSError naming the file asked
     for, as the one-thread write gives, no temporary file left and the earlier file kept whole."""

@@ -875,6 +875,33 @@ def download_state(
         ox[p], ov[p], olife[p], oids[p], okind[p] = x[p], v[p], life[p], ids[p], ti.cast(kind[p], ti.u8)
 
 
+@ti.func
+def _put_u32(out: TEMPLATE, at, bits):
+    """The four bytes of ``bits`` at out[at..at + 4), least significant first (little-endian, as the files are)."""
+    for k in ti.static(range(4)):
+        out[at + k] = ti.cast((bits >> ti.u32(8 * k)) & ti.u32(0xFF), ti.u8)
+
+
+@ti.kernel
+def pack_records(
+    n: ti.i32, x: F3, v: F3, life: F1, ids: U1, kind: I1, radius_bits: ti.u32, at_x: ti.i32, at_v: ti.i32,
+    at_type: ti.i32, at_life: ti.i32, at_radius: ti.i32, at_id: ti.i32, size: ti.i32, out: U8,
+):
+    """The first n live particles as the diffuse file's vertex records (io.ply.record_dtype: ``size`` bytes a
+    record, each field at its ``at_`` byte; little-endian), byte for byte what the PLY writer would pack from the
+    arrays: the records come back from the device (or, on the CPU, are written in place) ready for the file, and
+    the host never packs them. Every radius is the one value ``radius_bits`` (its float32's bits)."""
+    for p in range(n):
+        at = p * size
+        for c in ti.static(range(3)):
+            _put_u32(out, at + at_x + 4 * c, ti.bit_cast(x[p][c], ti.u32))
+            _put_u32(out, at + at_v + 4 * c, ti.bit_cast(v[p][c], ti.u32))
+        out[at + at_type] = ti.cast(kind[p], ti.u8)
+        _put_u32(out, at + at_life, ti.bit_cast(life[p], ti.u32))
+        _put_u32(out, at + at_radius, radius_bits)
+        _put_u32(out, at + at_id, ids[p])
+
+
 @ti.kernel
 def upload_state(
     n: ti.i32, hx: F3, hv: F3, hlife: F1, hids: U1, x: F3, v: F3, life: F1, ids: U1,

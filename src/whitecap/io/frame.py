@@ -18,6 +18,10 @@ class ParticleFrame:
     its rows 0..N-1); ``density`` is (N,) float32 or None when the source has
     none, as ``velocities`` may be. ``arrays`` holds any other per-particle
     arrays by name (``type``, ``lifetime``, ``radius`` for diffuse particles).
+
+    A frame made by :meth:`from_records` has its arrays as the fields of one record array (``records``), not
+    copied: they are strided views, not contiguous ones (``np.ascontiguousarray`` where a contiguous one is
+    needed, as for a Taichi kernel). Any other frame has ``records`` None.
     """
 
     positions: np.ndarray
@@ -58,6 +62,43 @@ class ParticleFrame:
         self.arrays = {} if arrays is None else arrays
         for k, a in self.arrays.items():
             self._check_len(k, a)
+        # the record array the arrays are the fields of (from_records), else None: not a field of the dataclass, so
+        # that a frame made from this one (dataclasses.replace) does not carry it
+        self.records: np.ndarray | None = None
+
+    #: the fields from_records reads as vectors, and where each goes; ``id`` and ``density`` go to their own
+    _VECTORS = (("x", "y", "z"), ("vx", "vy", "vz"))
+
+    @classmethod
+    def from_records(cls, records: np.ndarray, time: float | None = None, source: str = "<memory>") -> "ParticleFrame":
+        """A frame whose arrays are views of the fields of ``records`` (a 1-D structured array: x y z float32 side by
+        side, then optionally vx vy vz, density, id and any others, which go to ``arrays`` in their order), kept as
+        ``records``: nothing is copied, and the PLY writer writes the records as they are where their layout is its
+        own (io.ply.record_dtype)."""
+        names = records.dtype.names or ()
+        fields = records.dtype.fields or {}
+        vectors: list[np.ndarray | None] = []
+        for trio in cls._VECTORS:
+            if trio[0] not in names:
+                vectors.append(None)
+                continue
+            off = fields[trio[0]][1]
+            if any(fields.get(k) != (np.dtype("<f4"), off + 4 * c) for c, k in enumerate(trio)):
+                raise ValueError(f"records: {' '.join(trio)} are not float32 side by side")
+            vec = np.dtype({"names": ["v"], "formats": [("<f4", (3,))], "offsets": [off],
+                            "itemsize": records.dtype.itemsize})
+            vectors.append(records.view(vec)["v"])
+        if vectors[0] is None:
+            raise ValueError("records: no x y z")
+        taken = {k for trio in cls._VECTORS for k in trio} | {"id", "density"}
+        frame = cls.__new__(cls)
+        frame.source, frame.time = source, time
+        frame.positions, frame.velocities = vectors[0], vectors[1]  # type: ignore[assignment]
+        frame.ids = records["id"] if "id" in names else np.arange(len(records), dtype=np.uint32)
+        frame.density = records["density"] if "density" in names else None
+        frame.arrays = {k: records[k] for k in names if k not in taken}
+        frame.records = records
+        return frame
 
     def __len__(self) -> int:
         return len(self.positions)

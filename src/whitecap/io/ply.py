@@ -203,27 +203,70 @@ def _pwrite_all(fd: int, buf, offset: int) -> None:
         view, offset = view[done:], offset + done
 
 
-def write_ply(path: Path, frame: ParticleFrame) -> None:
-    from plyfile import PlyData, PlyElement
-
+def _groups(frame: ParticleFrame) -> list[tuple[tuple[str, ...], np.ndarray]]:
+    """(property names, array) of a frame's vertex records, in the file's order: a vector's three components side
+    by side, a column's one."""
     n = len(frame)
     vel = frame.velocities if frame.velocities is not None else np.zeros((n, 3), np.float32)
-    # (property names, array): a vector's three components side by side, a column's one
     groups: list[tuple[tuple[str, ...], np.ndarray]] = [(("x", "y", "z"), frame.positions), (("vx", "vy", "vz"), vel)]
     if frame.density is not None:
         groups.append((("density",), frame.density))
     groups += [((k,), a) for k, a in frame.arrays.items()]
     groups.append((("id",), frame.ids))
+    return groups
+
+
+def _record_dtype(groups: list[tuple[tuple[str, ...], np.ndarray]]) -> np.dtype:
     dtype = []
     for names, a in groups:
         dt = np.dtype(a.dtype)
         dtype += [(k, _DTYPES[dt if dt in _DTYPES else np.dtype(np.float32)]) for k in names]
-    data = _records(n, np.dtype(dtype))
+    return np.dtype(dtype)
+
+
+def record_dtype(frame: ParticleFrame) -> np.dtype:
+    """The vertex record :func:`write_ply` writes for a frame with these arrays (packed, little-endian): a
+    producer that makes its frames' records itself (the foam stage, on the device: FoamGenerator._download)
+    builds them to this layout, and ParticleFrame.from_records hands them over."""
+    return _record_dtype(_groups(frame))
+
+
+def field_offsets(dtype: np.dtype) -> dict[str, int]:
+    """Where each field of a record starts, in bytes."""
+    fields = dtype.fields
+    return {} if fields is None else {k: int(v[1]) for k, v in fields.items()}
+
+
+def _packed(frame: ParticleFrame, groups: list, dtype: np.dtype) -> np.ndarray | None:
+    """The frame's records as they are, where its arrays are the fields of one record array of the layout written
+    (``frame.records``, ParticleFrame.from_records: the same memory, so the same values even if written through
+    the arrays since); else None, and the rows are packed here. An array put in a field's place since (another
+    object) has another address, so it is never written from records that no longer hold it."""
+    rec = frame.records
+    if rec is None or rec.dtype != dtype or rec.ndim != 1 or len(rec) != len(frame):
+        return None
+    base, at = rec.__array_interface__["data"][0], field_offsets(dtype)
+    for names, a in groups:
+        if (a.__array_interface__["data"][0] != base + at[names[0]] or not a.strides
+                or a.strides[0] != dtype.itemsize):
+            return None
+    return rec
+
+
+def write_ply(path: Path, frame: ParticleFrame) -> None:
+    from plyfile import PlyData, PlyElement
+
+    n = len(frame)
+    groups = _groups(frame)
+    dtype = _record_dtype(groups)
+    packed = _packed(frame, groups, dtype) if n else None
+    data = packed if packed is not None else _records(n, dtype)
     ply = PlyData([PlyElement.describe(data, "vertex")], byte_order="<")
     parts = _parts(n, data.dtype.itemsize)
     with atomic_path(path) as tmp:
         if len(parts) == 1:
-            _pack(data, groups, 0, n)
+            if packed is None:
+                _pack(data, groups, 0, n)
             ply.write(str(tmp))
             return
         # plyfile's own header, then each part's rows at its offset: the bytes plyfile writes from the whole array
@@ -234,7 +277,8 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
 
             def part(ab: tuple[int, int]) -> None:
                 a, b = ab
-                _pack(data, groups, a, b)
+                if packed is None:
+                    _pack(data, groups, a, b)
                 _pwrite_all(fd, data[a:b].view(np.uint8), len(head) + a * data.dtype.itemsize)
 
             pool = process_pool("whitecap-ply", WRITE_THREADS)

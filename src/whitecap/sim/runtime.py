@@ -218,6 +218,13 @@ def host_pinning() -> tuple[Callable[[int, int], bool] | None, Callable[[int], N
     return pin, unpin
 
 
+def copies_rows() -> bool:
+    """Whether :func:`rows_to_host` and :func:`rows_to_device` copy here (CUDA, with libcuda and Taichi's context
+    current on this thread): a caller that must lay out a device array to copy from (rather than have a kernel
+    write a host array in place, as on the CPU) asks first."""
+    return _cuda_driver() is not None
+
+
 def rows_to_host(*pairs) -> bool:
     """Copy each (host array, Taichi ndarray) pair's leading bytes, as many as the host array holds, from the GPU
     with the CUDA driver (cuMemcpyDtoH through ctypes, the GIL let go); False, copying nothing, where that cannot
