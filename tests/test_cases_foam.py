@@ -203,3 +203,5 @@ def test_foam_into_another_folder_carries_the_cases_shapes_and_lists_only_its_ow
     same = _foam(imported, tmp_path / "in_place")
     for i, rel in same.files("diffuse"):
         assert (out / rel).read_bytes() == (tmp_path / "in_place" / rel).read_bytes(), i
+    for i, rel in info.files("fluid"):  # the run's fluid files, as they are (io.write_copy)
+        assert (out / rel).read_bytes() == (imported / rel).read_bytes(), i

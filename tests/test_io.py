@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -386,6 +387,65 @@ def test_a_full_disk_while_threads_write_a_ply_names_the_file_and_leaves_nothing
         write_ply(target, ParticleFrame(x * 2, x, np.arange(n, dtype=np.uint32)))
     assert err.value.filename == str(target) and "No space left" in str(err.value)
     assert len(calls) >= 3 and target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == [target.name]
+
+
+def test_a_frame_read_as_written_is_copied_and_any_other_written(tmp_path, monkeypatch):
+    """io.write_copy: a frame read from a file and not changed, written elsewhere (the fluid frames `whitecap foam
+    --out` copies along). A PLY as whitecap writes it, read z up, is copied (the kernel's copy: the writer is not
+    called); read y up, with a property whitecap writes otherwise (an int32 id), with bytes after its rows, or
+    from another format, the frame is written. The file is the one write gives, every way. A full disk during the
+    copy names the target and leaves the earlier file whole, and no temporary file."""
+    import dataclasses
+    import errno
+    import shutil
+
+    from plyfile import PlyData, PlyElement
+
+    from whitecap.io import ply, registry, write_copy
+
+    rng = np.random.default_rng(2)
+    n = 500
+    frame = ParticleFrame(rng.random((n, 3), np.float32), rng.random((n, 3), np.float32),
+                          rng.permutation(n).astype(np.uint32), rng.random(n).astype(np.float32))
+    own = tmp_path / "own.ply"
+    io.write(own, frame)
+    rec = np.empty(n, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
+                       ("id", "<i4")])
+    for k, a in (("x", frame.positions[:, 0]), ("y", frame.positions[:, 1]), ("z", frame.positions[:, 2]),
+                 ("vx", frame.velocities[:, 0]), ("vy", frame.velocities[:, 1]), ("vz", frame.velocities[:, 2]),
+                 ("id", frame.ids)):
+        rec[k] = a
+    int_ids = tmp_path / "int_ids.ply"
+    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<").write(str(int_ids))
+    trailing = tmp_path / "trailing.ply"
+    trailing.write_bytes(own.read_bytes() + b"\0" * 8)
+    npz = tmp_path / "own.npz"
+    io.write(npz, frame)
+    written = []
+    real = ply.write_ply
+    key = ("particles", "ply")
+    monkeypatch.setitem(registry.FORMATS, key, dataclasses.replace(registry.FORMATS[key],
+                                                                   writer=lambda p, f: (written.append(p), real(p, f))))
+    for src, options, copied in ((own, {}, True), (own, {"up": "z"}, True), (own, {"up": "y"}, False),
+                                 (int_ids, {}, False), (trailing, {}, False), (npz, {}, False)):
+        fr = io.read(src, **options)
+        written.clear()
+        write_copy(tmp_path / "out" / "copy.ply", fr, src, **options)
+        io.write(tmp_path / "out" / "written.ply", fr)
+        assert (written == [tmp_path / "out" / "written.ply"]) == copied, (src.name, options)
+        assert (tmp_path / "out" / "copy.ply").read_bytes() == (tmp_path / "out" / "written.ply").read_bytes()
+    target = tmp_path / "out" / "copy.ply"
+    before = target.read_bytes()
+
+    def full(a, b):
+        Path(b).write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(shutil, "copyfile", full)
+    with pytest.raises(OSError) as err:
+        write_copy(target, io.read(own), own)
+    assert err.value.filename == str(target) and target.read_bytes() == before
+    assert sorted(p.name for p in target.parent.iterdir()) == ["copy.ply", "written.ply"]
 
 
 @pytest.mark.parametrize("layout", ["little", "big", "ascii", "float64", "reordered", "padded"])

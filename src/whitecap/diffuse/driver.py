@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import DEFAULT_ARCH, DEFAULT_UP, Foam, Scene, load_scene, with_options
 from ..errors import InputError
-from ..io import ParticleFrame, read, write, write_bytes, write_text
+from ..io import ParticleFrame, read, write, write_bytes, write_copy, write_text
 from ..io.atomic import sweep_temps, write_arrays
 from ..io.diffuse_types import COUNT_NAMES
 from ..io.lock import run_lock
@@ -707,8 +707,9 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             fr.time = info.frame(index).time
             rel = stage.on_frame(fr, index, frame_dt, out, info)
             if convert:  # after the step: a frame that fails there leaves no file of its own behind
-                fluid = frame_name("fluid", index)
-                writer.submit(functools.partial(write, out / fluid, fr), "fluid", lane="fluid")
+                fluid = frame_name("fluid", index)  # a copy of the file where it is already as written (PLY, z up)
+                writer.submit(functools.partial(write_copy, out / fluid, fr, reader.files[k][1], **reader.options),
+                              "fluid", lane="fluid")
                 info.set_file(index, "fluid", fluid, fr.time)
             stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)

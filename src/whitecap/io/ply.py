@@ -357,4 +357,25 @@ def check_ply(path: Path) -> None:
         offset += count * row
 
 
-register("ply", (".ply",), read_ply, write_ply, check=check_ply)
+def written_as_read(path: Path, frame: ParticleFrame, up: str = "z", require_velocity: bool = False) -> bool:
+    """Whether :func:`write_ply` writes ``frame``, read from the PLY file ``path`` by :func:`read_ply` with these
+    options (and not changed since), as that file's very bytes: read as it is (z up), the file's header the one
+    write_ply writes for the frame, and nothing after its rows. The values are the file's, so its rows are
+    the bytes write_ply would pack (io.registry.write_copy copies the file instead)."""
+    if up != "z":
+        return False
+    from plyfile import PlyData, PlyElement
+
+    dtype = _record_dtype(_groups(frame))
+    rows = np.broadcast_to(np.zeros(1, dtype), (len(frame),))  # the header needs the count, not the rows
+    head = (PlyData([PlyElement.describe(rows, "vertex")], byte_order="<").header + "\n").encode("ascii")
+    try:
+        if path.stat().st_size != len(head) + len(frame) * dtype.itemsize:
+            return False
+        with open(path, "rb") as f:
+            return f.read(len(head)) == head
+    except OSError:
+        return False
+
+
+register("ply", (".ply",), read_ply, write_ply, check=check_ply, as_read=written_as_read)

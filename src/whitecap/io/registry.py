@@ -21,11 +21,13 @@ below, so a new alias is added once for every format.
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from ..errors import InputError
+from .atomic import atomic_path
 from .frame import ParticleFrame
 
 if TYPE_CHECKING:
@@ -54,6 +56,7 @@ def find_array(arrays: dict, names: tuple[str, ...]) -> str | None:
 Reader = Callable[..., "ParticleFrame | SurfaceMesh"]
 Writer = Callable[..., None]
 Check = Callable[[Path], None]
+AsRead = Callable[..., bool]
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,9 @@ class Format:
     #: a cheap completeness check (headers and sizes, no parse of the data) that raises InputError
     #: naming the file when it was cut short; the reader makes the same check and more
     check: Check | None = None
+    #: whether the writer would write a frame read from a file of this format (with these reader options) as that
+    #: file's very bytes (:func:`write_copy` then copies the file)
+    as_read: AsRead | None = None
 
 
 # Keyed by (kind, name): "ply" is both a particle and a mesh format.
@@ -74,11 +80,11 @@ FORMATS: dict[tuple[str, str], Format] = {}
 
 def register(
     name: str, extensions: tuple[str, ...], reader: Reader | None = None, writer: Writer | None = None,
-    kind: str = PARTICLES, check: Check | None = None,
+    kind: str = PARTICLES, check: Check | None = None, as_read: AsRead | None = None,
 ) -> None:
     if kind not in KINDS:
         raise ValueError(f"format {name}: kind must be one of {KINDS}, not {kind!r}")
-    FORMATS[(kind, name)] = Format(name, extensions, reader, writer, kind, check)
+    FORMATS[(kind, name)] = Format(name, extensions, reader, writer, kind, check, as_read)
 
 
 def formats(kind: str = PARTICLES) -> dict[str, Format]:
@@ -136,6 +142,24 @@ def read(path: str | Path, fmt: str | None = None, **options) -> ParticleFrame:
 def write(path: str | Path, frame: ParticleFrame, fmt: str | None = None, **options) -> None:
     """Write one particle frame atomically (temporary file, then rename)."""
     _write(path, frame, fmt, PARTICLES, **options)
+
+
+def write_copy(path: str | Path, frame: ParticleFrame, source: str | Path, **read_options) -> None:
+    """``frame``, read from the file ``source`` with ``read_options`` and not changed since, written to ``path``
+    atomically: as a copy of ``source`` (the kernel's copy: nothing packed, no bytes through Python) where
+    ``path``'s format is ``source``'s and would write the frame as those very bytes (its ``as_read`` test), else
+    by :func:`write`. A run's fluid frames copied along into another folder (``whitecap foam --out``) are the
+    same files either way."""
+    f = format_for(path, None, PARTICLES)
+    try:
+        same = format_for(source, None, PARTICLES) is f
+    except InputError:
+        same = False
+    if same and f.as_read is not None and f.as_read(Path(source), frame, **read_options):
+        with atomic_path(path) as tmp:
+            shutil.copyfile(source, tmp)
+    else:
+        write(path, frame)
 
 
 def read_mesh(path: str | Path, fmt: str | None = None) -> "SurfaceMesh":
