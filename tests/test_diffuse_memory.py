@@ -100,7 +100,7 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
     from whitecap.diffuse import generator as G
 
     if way == "arrays":
-        monkeypatch.setattr(G, "RECORD_BYTES_MAX", 0)
+        monkeypatch.setattr(G, "RECORD_WORDS_MAX", 0)
     frames = [_splash(i) for i in range(CYCLE)]
     gen = _generator("ihmsen2012", frames)
     pool = gen._records if way == "records" else gen._frames
@@ -127,9 +127,9 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
 
 
 def test_a_frame_comes_back_as_the_files_records_and_is_written_as_it_is(tmp_path, monkeypatch):
-    """A diffuse frame comes back as the vertex records of its PLY (K.pack_records on the device, into one host
+    """A diffuse frame comes back as the vertex records of its PLY (K.record_packer's kernel, into one host
     block): its arrays are views of them, the writer writes them without packing, and the files are the bytes of
-    the frames that come back array by array and are packed by the writer (RECORD_BYTES_MAX: above it, every
+    the frames that come back array by array and are packed by the writer (RECORD_WORDS_MAX: above it, every
     frame), frame for frame, with the state the same too."""
     from whitecap.diffuse import generator as G
     from whitecap.io import ply
@@ -139,7 +139,7 @@ def test_a_frame_comes_back_as_the_files_records_and_is_written_as_it_is(tmp_pat
     for way in ("arrays", "records"):
         with monkeypatch.context() as m:
             if way == "arrays":
-                m.setattr(G, "RECORD_BYTES_MAX", 0)
+                m.setattr(G, "RECORD_WORDS_MAX", 0)
             else:
                 def no_packing(*a):
                     raise AssertionError("the writer packed a frame that came back as its records")
@@ -226,3 +226,45 @@ def test_resident_memory_does_not_grow_over_many_frames():
                            f"(bound {bound:,}; {per_frame:,} a frame)")
     control = measure(True)
     assert control["grown"] > bound, f"a leak of {per_frame // 2:,} bytes a frame grew {control['grown']:,} bytes"
+
+
+@pytest.mark.parametrize("layout", ["diffuse", "no type"])
+def test_the_record_packer_makes_the_writers_bytes_for_any_count(layout):
+    """K.record_packer: records made a whole number of 32-bit words a thread (4 records of 37 bytes, or 1 of 36
+    without the type) are the bytes io.ply packs from the arrays, for counts that end inside a thread's records,
+    none of the rows past the count read; a field it cannot make is refused."""
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.io import ParticleFrame
+    from whitecap.io.ply import _groups, _pack, record_dtype
+    from whitecap.sim import runtime
+
+    runtime.init("cpu")
+    rng = np.random.default_rng(4)
+    m = 11
+    x, v = rng.normal(0, 1, (m, 3)).astype(np.float32), rng.normal(0, 1, (m, 3)).astype(np.float32)
+    life, ids, kind = rng.random(m).astype(np.float32), rng.integers(0, 2**32, m, np.uint32), rng.integers(0, 3, m)
+    radius = np.float32(0.0123)
+    arrays = {"type": kind.astype(np.uint8), "lifetime": life, "radius": np.full(m, radius)}
+    if layout == "no type":
+        del arrays["type"]
+    dtype = record_dtype(ParticleFrame(x, v, ids, arrays=arrays))
+    pack, per, words = K.record_packer(dtype)
+    assert (per, words) == ((4, 37) if layout == "diffuse" else (1, 9))
+    live = [ti.Vector.ndarray(3, ti.f32, m), ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.f32, m),
+            ti.ndarray(ti.u32, m), ti.ndarray(ti.i32, m)]
+    for nd, a in zip(live, (x, v, life, ids, kind.astype(np.int32))):
+        nd.from_numpy(a)
+    for n in range(0, 10):
+        out = np.full((-(-n // per) + 1) * words, 0xDEADBEEF, np.uint32)  # a thread's worth more than needed
+        pack(n, *live, int(radius.view(np.uint32)), out)
+        frame = ParticleFrame(x[:n], v[:n], ids[:n], arrays={k: a[:n] for k, a in arrays.items()})
+        want = np.empty(n, dtype)
+        _pack(want, _groups(frame), 0, n)
+        got = out.view(np.uint8)
+        assert got[:n * dtype.itemsize].tobytes() == want.tobytes(), n
+        assert not got[n * dtype.itemsize:-(-n // per) * words * 4].any(), n  # the last thread's rows past n: zero
+        assert (out[-(-n // per) * words:] == 0xDEADBEEF).all(), n  # nothing written past its words
+    with pytest.raises(ValueError, match="not one it can make"):
+        K.record_packer(np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("density", "<f4")]))
