@@ -5,7 +5,7 @@ and splashes, so all potentials fire), then times `whitecap foam` over it, readi
 and writing included, beside the cost of only reading the frames.
 
     python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2] [--against OLD/src]
-                                     [--repeat 1] [--profile]
+                                     [--repeat 1] [--profile] [--arrays]
 
 Each timing runs in its own process (one Taichi runtime each), warmed up first on the first four frames
 (the advection's kernels compile only once there are diffuse particles, and the potentials of the
@@ -14,7 +14,9 @@ their compilation was timed). ``--against`` times another checkout's package on 
 ``git worktree add /tmp/old 80c2fce`` then ``--against /tmp/old/src``), the two alternating
 ``--repeat`` times (which of them runs first alternating too), and prints the best wall and CPU time of
 each and their ratios, then the median and range of the ratios of each back-to-back pair: on a shared,
-loaded machine the CPU time (both threads) and the pairs' median are the steadier figures.
+loaded machine the CPU time (both threads) and the pairs' median are the steadier figures. ``--arrays`` times this
+package a second way in the same alternation: its diffuse frames read back array by array and packed by the writer,
+as before the foam stage made them as the file's records (c268cca).
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.
@@ -83,12 +85,19 @@ def main() -> None:
     ap.add_argument("--against", help="another checkout's src folder, timed on the same sequence")
     ap.add_argument("--repeat", type=int, default=1, help="timings of each package, alternating")
     ap.add_argument("--profile", action="store_true", help="print the named phases of this package's last pass")
+    ap.add_argument("--arrays", action="store_true", help="time this package a second way too, its diffuse frames "
+                    "read back array by array and packed by the writer (as before c268cca), alternating with the rest")
     ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--by-array", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--radius", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--domain", help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
+        if a.by_array:
+            from whitecap.diffuse import generator
+
+            generator.RECORD_WORDS_MAX = 0
         box = json.loads(a.domain) if a.domain else None
         print("RESULT " + json.dumps(time_foam(Path(a.one), a.radius, a.budget, a.arch, box)))
         return
@@ -127,13 +136,14 @@ def main() -> None:
         t_read = (time.perf_counter() - t0) / len(files)
         # foam: read + potentials + generation + advection + write, each package in its own process
         here = str(Path(__file__).resolve().parents[1] / "src")
-        srcs = {"this": here} | ({"against": os.path.abspath(a.against)} if a.against else {})
+        srcs = {"this": here} | ({"against": os.path.abspath(a.against)} if a.against else {}) | (
+            {"arrays": here} if a.arrays else {})
         got: dict[str, list] = {k: [] for k in srcs}
         for i in range(a.repeat):
             # the order alternates: the second of a pair runs with the first's pages and heat behind it
             for name, src in (list(srcs.items()) if i % 2 == 0 else list(srcs.items())[::-1]):
                 cmd = [sys.executable, __file__, "--one", str(run), "--radius", repr(r), "--arch", a.arch,
-                       "--domain", domain]
+                       "--domain", domain] + (["--by-array"] if name == "arrays" else [])
                 if a.budget:
                     cmd += ["--budget", str(a.budget)]
                 # the package timed first on the path, before what the caller's path holds (its dependencies)
@@ -156,6 +166,12 @@ def main() -> None:
         print(f"  {'(loop, unnamed)':20s} {1e3 * rest:8.1f} ms/frame: reading, hand-offs, counts")
     print(f"vs target {TARGET_FPS} frames/s: {fps / TARGET_FPS:.2f}x;  vs SPlisHSPlasH FoamGenerator at 100k "
           f"(~{REFERENCE_FPS_100K} frames/s): {fps / REFERENCE_FPS_100K:.2f}x")
+    if a.arrays:
+        o = best["arrays"]
+        q = sorted(b["wall"] / t["wall"] for t, b in zip(got["this"], got["arrays"]))
+        print(f"read back array by array (as before c268cca): {1e3 * o['wall']:.1f} ms/frame wall, CPU "
+              f"{1e3 * o['cpu']:.1f} ms/frame; records made on the device {o['wall'] / t_foam:.2f}x its rate by wall "
+              f"time (best of each), pair by pair median {np.median(q):.2f}x ({q[0]:.2f}-{q[-1]:.2f}x)")
     if a.against:
         o = best["against"]
         same = "same" if got["against"][-1]["counts"] == got["this"][-1]["counts"] else "DIFFERENT"

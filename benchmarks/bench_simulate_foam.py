@@ -16,7 +16,8 @@ and prints the diffuse share of both, measured in the same run, and their ratio.
 runs it once more with the PLY writer's threads cut to N (io/ply.py WRITE_THREADS: every core by default,
 16 on an H100 machine), to tell whether the writer's threads packing files beside the loop slow its steps;
 ``--pin`` once more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell
-whether the diffuse particles' copy into pageable memory does.
+whether the diffuse particles' copy into pageable memory does; ``--arrays`` once more with the diffuse frames read
+back array by array and packed by the writer, as before the foam stage made them as the file's records (c268cca).
 """
 
 from __future__ import annotations
@@ -55,13 +56,16 @@ def _scene(radius: float, frames: int):
 
 
 def run_one(radius: float, frames: int, arch: str, foam: bool, write_threads: int | None = None,
-            pin: bool = False) -> dict:
+            pin: bool = False, arrays: bool = False) -> dict:
     from whitecap import timing
+    from whitecap.diffuse import generator
     from whitecap.io import ply
     from whitecap.pipeline import simulate
     from whitecap.sim import runtime
 
     runtime.PIN_READBACK = pin
+    if arrays:  # every diffuse frame read back array by array and packed by the writer, as before c268cca
+        generator.RECORD_WORDS_MAX = 0
     if write_threads:
         ply.WRITE_THREADS = write_threads  # before the first file: its pool is made with this many threads
 
@@ -101,13 +105,16 @@ def main() -> None:
     ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
     ap.add_argument("--write-threads", type=int, help="one more foam-on run, the PLY writer's threads cut to this many")
     ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned")
+    ap.add_argument("--arrays", action="store_true", help="one more foam-on run, the diffuse frames read back array "
+                    "by array and packed by the writer (not made as the file's records on the device)")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--pinned", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--by-array", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
-        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.threads, a.pinned)
+        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.threads, a.pinned, a.by_array)
         print("RESULT " + json.dumps(r))
         return
     results = {}
@@ -118,6 +125,8 @@ def main() -> None:
         runs.append((f"on, {a.write_threads} write threads", "on", None, ["--threads", str(a.write_threads)]))
     if a.pin:
         runs.append(("on, pinned read-back", "on", None, ["--pinned"]))
+    if a.arrays:
+        runs.append(("on, read back array by array", "on", None, ["--by-array"]))
     for name, mode, src, extra in runs:
         cmd = [
             sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch,
