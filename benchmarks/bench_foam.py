@@ -95,9 +95,9 @@ def main() -> None:
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
         if a.by_array:
-            from whitecap.diffuse import generator
+            from whitecap.sim import records
 
-            generator.RECORD_WORDS_MAX = 0
+            records.WORDS_MAX = 0
         box = json.loads(a.domain) if a.domain else None
         print("RESULT " + json.dumps(time_foam(Path(a.one), a.radius, a.budget, a.arch, box)))
         return

@@ -58,14 +58,15 @@ def _scene(radius: float, frames: int):
 def run_one(radius: float, frames: int, arch: str, foam: bool, write_threads: int | None = None,
             pin: bool = False, arrays: bool = False) -> dict:
     from whitecap import timing
-    from whitecap.diffuse import generator
     from whitecap.io import ply
     from whitecap.pipeline import simulate
     from whitecap.sim import runtime
 
     runtime.PIN_READBACK = pin
-    if arrays:  # every diffuse frame read back array by array and packed by the writer, as before c268cca
-        generator.RECORD_WORDS_MAX = 0
+    if arrays:  # every frame read back array by array and packed by the writer, as before c268cca
+        from whitecap.sim import records
+
+        records.WORDS_MAX = 0
     if write_threads:
         ply.WRITE_THREADS = write_threads  # before the first file: its pool is made with this many threads
 

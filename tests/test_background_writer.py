@@ -478,3 +478,38 @@ def test_a_collection_on_another_thread_makes_taichis_context_current_there_firs
     finally:
         gc.callbacks.remove(runtime._context_for_collection)
     assert calls == [("writer-like", 0xC0FFEE), ("another", 0xC0FFEE)]
+
+
+def test_frames_made_as_their_files_records_are_the_files_and_checkpoints_of_frames_packed_by_the_writer(
+        tmp_path, monkeypatch):
+    """simulate with foam: the solver's fluid frames and the foam stage's diffuse frames come back as their PLY
+    records, made by sim.records' kernels (the frames' arrays views of them, which the writer writes as they are);
+    every file of the run (fluid PLY and npz, diffuse, checkpoints, run.json) is the same bytes as with every frame
+    read back array by array and packed by the writer (sim.records.WORDS_MAX 0), and the writer packs none."""
+    from whitecap.io import ply
+    from whitecap.sim import pbf, records
+
+    scene = scene_from_dict(tiny_scene_dict(output={"frames": 6, "checkpoint_interval": 2, "formats": ["ply", "npz"]},
+                                            foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0}))
+    with monkeypatch.context() as m:
+        m.setattr(records, "WORDS_MAX", 0)
+        simulate(scene, out=tmp_path / "arrays", show_progress=False)
+    made = []
+    arrays = pbf.PBFSolver.arrays
+
+    def watched(solver, *a, **kw):
+        got = arrays(solver, *a, **kw)
+        made.append(got.get("records") is not None and np.shares_memory(got["positions"], got["records"]))
+        return got
+
+    def no_packing(*a):
+        raise AssertionError("the writer packed a frame made as its records")
+
+    monkeypatch.setattr(pbf.PBFSolver, "arrays", watched)
+    monkeypatch.setattr(ply, "_pack", no_packing)
+    simulate(scene, out=tmp_path / "records", show_progress=False)
+    assert made and all(made)
+    a, b = _snapshot(tmp_path / "arrays"), _snapshot(tmp_path / "records")
+    assert "checkpoint.npz" in a and any(k.startswith("fluid/") and k.endswith(".npz") for k in a)
+    assert max(len(v) for k, v in a.items() if k.startswith("diffuse/")) > 400 + 37 * 5  # diffuse particles written
+    assert a == b

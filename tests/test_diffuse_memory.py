@@ -97,13 +97,13 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
     queue would), which keeps its values while 25 more frames are made; the others use the blocks again. Both
     ways a frame comes back: as the file's records (FoamGenerator._download), and array by array where a frame
     holds more records than a Taichi array (_download_arrays; here every frame)."""
-    from whitecap.diffuse import generator as G
+    from whitecap.sim import records
 
     if way == "arrays":
-        monkeypatch.setattr(G, "RECORD_WORDS_MAX", 0)
+        monkeypatch.setattr(records, "WORDS_MAX", 0)
     frames = [_splash(i) for i in range(CYCLE)]
     gen = _generator("ihmsen2012", frames)
-    pool = gen._records if way == "records" else gen._frames
+    pool = gen._records.pool if way == "records" else gen._frames
     for i in range(4 * CYCLE):  # warm-up: the largest frames seen (blocks grow with the count until then)
         gen.step(frames[i % CYCLE], i, DT)
     made = pool.made
@@ -127,19 +127,20 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
 
 
 def test_a_frame_comes_back_as_the_files_records_and_is_written_as_it_is(tmp_path, monkeypatch):
-    """A diffuse frame comes back as the vertex records of its PLY (K.record_packer's kernel, into one host
+    """A diffuse frame comes back as the vertex records of its PLY (made by sim.records' kernel, into one host
     block): its arrays are views of them, the writer writes them without packing, and the files are the bytes of
-    the frames that come back array by array and are packed by the writer (RECORD_WORDS_MAX: above it, every
+    the frames that come back array by array and are packed by the writer (sim.records.WORDS_MAX: above it, every
     frame), frame for frame, with the state the same too."""
     from whitecap.diffuse import generator as G
     from whitecap.io import ply
+    from whitecap.sim import records
 
     frames = [_splash(i) for i in range(CYCLE)]
     got: dict[str, list] = {}
     for way in ("arrays", "records"):
         with monkeypatch.context() as m:
             if way == "arrays":
-                m.setattr(G, "RECORD_WORDS_MAX", 0)
+                m.setattr(records, "WORDS_MAX", 0)
             else:
                 def no_packing(*a):
                     raise AssertionError("the writer packed a frame that came back as its records")
@@ -230,15 +231,16 @@ def test_resident_memory_does_not_grow_over_many_frames():
 
 @pytest.mark.parametrize("layout", ["diffuse", "no type"])
 def test_the_record_packer_makes_the_writers_bytes_for_any_count(layout):
-    """K.record_packer: records made a whole number of 32-bit words a thread (4 records of 37 bytes, or 1 of 36
-    without the type) are the bytes io.ply packs from the arrays, for counts that end inside a thread's records,
-    none of the rows past the count read; a field it cannot make is refused."""
+    """sim.records.record_packer: records made a whole number of 32-bit words a thread (4 records of 37 bytes, or 1
+    of 36 without the type) are the bytes io.ply packs from the arrays, for counts that end inside a thread's
+    records, none of the rows past the count read; a field it has no source for is refused."""
     import taichi as ti
 
-    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import RECORD_SOURCES
     from whitecap.io import ParticleFrame
     from whitecap.io.ply import _groups, _pack, record_dtype
     from whitecap.sim import runtime
+    from whitecap.sim.records import record_packer
 
     runtime.init("cpu")
     rng = np.random.default_rng(4)
@@ -250,7 +252,7 @@ def test_the_record_packer_makes_the_writers_bytes_for_any_count(layout):
     if layout == "no type":
         del arrays["type"]
     dtype = record_dtype(ParticleFrame(x, v, ids, arrays=arrays))
-    pack, per, words = K.record_packer(dtype)
+    pack, per, words = record_packer(dtype, RECORD_SOURCES)
     assert (per, words) == ((4, 37) if layout == "diffuse" else (1, 9))
     live = [ti.Vector.ndarray(3, ti.f32, m), ti.Vector.ndarray(3, ti.f32, m), ti.ndarray(ti.f32, m),
             ti.ndarray(ti.u32, m), ti.ndarray(ti.i32, m)]
@@ -267,4 +269,4 @@ def test_the_record_packer_makes_the_writers_bytes_for_any_count(layout):
         assert not got[n * dtype.itemsize:-(-n // per) * words * 4].any(), n  # the last thread's rows past n: zero
         assert (out[-(-n // per) * words:] == 0xDEADBEEF).all(), n  # nothing written past its words
     with pytest.raises(ValueError, match="not one it can make"):
-        K.record_packer(np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("density", "<f4")]))
+        record_packer(np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("density", "<f4")]), RECORD_SOURCES)

@@ -361,9 +361,9 @@ def test_a_pinned_read_back_writes_the_same_frames(tmp_path):
 
 RECORDS_SCRIPT = """
 import sys
-from whitecap.diffuse import generator as G
+from whitecap.sim import records
 if sys.argv[1] == "arrays":
-    G.RECORD_WORDS_MAX = 0  # every frame read back array by array, the writer packing it
+    records.WORDS_MAX = 0  # every frame read back array by array, the writer packing it
 from whitecap.config import scene_from_dict
 from whitecap.pipeline import simulate
 from tests.conftest import tiny_scene_dict
@@ -373,9 +373,9 @@ simulate(scene, out=sys.argv[2], arch="cuda", show_progress=False)
 
 
 def test_diffuse_records_packed_on_the_device_are_the_files_the_writer_packs(tmp_path):
-    """On CUDA the diffuse particles come back as their file's records, packed on the device (K.record_packer) and
-    copied back in one piece: simulate with foam writes the same files as with every frame read back array by array
-    and packed by the writer."""
+    """On CUDA the fluid and the diffuse particles come back as their files' records, made on the device
+    (sim.records) and copied back in one piece: simulate with foam writes the same files as with every frame read
+    back array by array and packed by the writer."""
     from pathlib import Path
 
     root = Path(__file__).parents[1]

@@ -49,6 +49,7 @@ from ..io.ply import record_dtype
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, gather_vec3, grid_spec
+from ..sim.records import WORDS_MAX, RecordReader
 from ..sim.scan import SCAN_SUMS, exclusive_scan
 from ..timing import timer
 from . import budget as B, kernels as K, splishsplash as SP
@@ -66,15 +67,13 @@ from .kernels import (  # noqa: F401
 from .params import FoamParams
 
 #: A diffuse file's vertex record (io.ply.record_dtype of a frame of diffuse particles: x y z vx vy vz type lifetime
-#: radius id, 37 bytes), made on the device by _PACK_RECORDS, _PER_THREAD records (_WORDS words) a thread, for the
-#: writer to write as it is.
+#: radius id, 37 bytes), made on the device from the live particles' arrays (sim.records), for the writer to write
+#: as it is: the packer's sources (a, b: positions, velocities; c: lifetimes; d: ids; e: types; const: the radius).
 RECORD = record_dtype(ParticleFrame(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.uint32),
                                     arrays={"type": np.zeros(0, np.uint8), "lifetime": np.zeros(0, np.float32),
                                             "radius": np.zeros(0, np.float32)}))
-_PACK_RECORDS, _PER_THREAD, _WORDS = K.record_packer(RECORD)
-#: The most 32-bit words of records a frame is packed into (a Taichi array's elements are counted in int32): 232 M
-#: diffuse particles. A larger frame comes back array by array and the writer packs it (FoamGenerator._download_arrays).
-RECORD_WORDS_MAX = 2**31 - 1
+RECORD_SOURCES = {"x": ("a", 0), "y": ("a", 1), "z": ("a", 2), "vx": ("b", 0), "vy": ("b", 1), "vz": ("b", 2),
+                  "lifetime": ("c", 0), "id": ("d", 0), "type": ("e", 0), "radius": ("const", 0)}
 
 SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts as on the surface
 # Neighbour-list length per fluid particle: a lattice of spacing 2r has 4/3·π·(h/2r)³ ≈ 34
@@ -264,7 +263,7 @@ class FoamGenerator:
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "life": (np.float32, ()),
                                   "ids": (np.uint32, ()), "kind": (np.uint8, ()), "radius": (np.float32, ()),
                                   "kind32": (np.int32, ())}, pin=pin, unpin=unpin)
-        self._records = ArrayPool({"records": (np.uint32, (_WORDS,))}, pin=pin, unpin=unpin)  # (_download)
+        self._records = RecordReader(RECORD, RECORD_SOURCES, pin=pin, unpin=unpin)  # (_download)
         self._geo: dict = {}  # the obstacles' SDFs and poses for the kernels (_obstacle_arrays)
         self._host: dict = {}  # numpy copies of some of them, reused to upload into them (see _upload)
         self._uploaded: set[str] = set()  # those whose copy in _host is what the Taichi array holds (_upload)
@@ -750,36 +749,27 @@ class FoamGenerator:
 
     def _download(self, later: bool = False) -> ParticleFrame:
         """The live particles as this frame's ParticleFrame, also the state's host view: their records as the
-        diffuse file holds them (RECORD, K.record_packer), packed on the device and copied back in one piece (on the
+        diffuse file holds them (RECORD, sim.records), made on the device and copied back in one piece (on the
         CPU written in place), the frame's arrays views of them (ParticleFrame.from_records), so that the writer
         writes the records as they are and never packs them. The host memory is a block that no frame handed out
         before and still held anywhere shares, so a frame handed out is never changed by a later step
         (io.array_pool: blocks used again once the writer is done with them, not new pages every frame).
         ``later``: on CUDA the copy is left running (:attr:`pending`; see :meth:`step`). A frame of more records
-        than one Taichi array holds (RECORD_WORDS_MAX) comes back array by array (_download_arrays)."""
+        than one Taichi array holds (sim.records.WORDS_MAX) comes back array by array (_download_arrays)."""
         st, n = self.state, self._nd
-        groups = -(-n // _PER_THREAD)
-        if groups * _WORDS > RECORD_WORDS_MAX:
+        if not self._records.fits(n):
             frame = self._download_arrays(later)
         else:
-            block = self._records.take(groups)["records"].reshape(-1)  # (io.array_pool)
-            if n:
-                live = self._live[self._cur]
-                radius_bits = int(np.float32(self.p.radius * self.r).view(np.uint32))
-                args = (n, live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits)
-                if runtime.copies_rows():  # packed on the device, then one copy (runtime.rows_to_host)
-                    # made once, at the capacity (from the budget), as the live particles' arrays are
-                    most = -(-(self.capacity or 0) // _PER_THREAD) * _WORDS
-                    dev = self._buffer("records", len(block), ti.u32, zeroed=False, limit=RECORD_WORDS_MAX,
-                                       start=min(most, RECORD_WORDS_MAX))
-                    _PACK_RECORDS(*args, dev)
-                    if later and (pending := runtime.rows_to_host_later((block, dev))) is not None:
-                        self.pending = pending
-                    elif not runtime.rows_to_host((block, dev)):
-                        block[:] = dev.to_numpy()[:len(block)]
-                else:  # a host array: on the CPU the kernel writes it in place
-                    _PACK_RECORDS(*args, block)
-            frame = ParticleFrame.from_records(block.view(np.uint8)[:n * RECORD.itemsize].view(RECORD))
+            live = self._live[self._cur]
+            radius_bits = int(np.float32(self.p.radius * self.r).view(np.uint32))
+            # on a GPU through a device array made once, at the capacity (from the budget), as the live arrays are
+            most = min(self._records.words_for(self.capacity or 0), WORDS_MAX)
+            frame, pending = self._records.read(
+                n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits),
+                lambda words: self._buffer("records", words, ti.u32, zeroed=False, limit=WORDS_MAX, start=most),
+                later)
+            if pending is not None:
+                self.pending = pending
         assert frame.velocities is not None, "a diffuse frame has velocities"
         st.positions, st.velocities, st.lifetime, st.ids = (frame.positions, frame.velocities, frame.arrays["lifetime"],
                                                             frame.ids)

@@ -265,7 +265,7 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
     parts = _parts(n, data.dtype.itemsize)
     with atomic_path(path) as tmp:
         if len(parts) == 1:
-            if packed is None:
+            if packed is None and n:  # (no rows: nothing to pack)
                 _pack(data, groups, 0, n)
             ply.write(str(tmp))
             return

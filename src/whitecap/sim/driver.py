@@ -392,8 +392,12 @@ def _simulate(scene: Scene, out: Path, nframes: int, resume: bool, force: bool, 
         if bodies is not None:  # moving bodies: their pose at this frame, as run.json records it
             info.set_bodies(index, bodies.body_records())
         with timer("output"):
-            a = solver.arrays()  # host copies no earlier frame still held shares: the writer may keep them meanwhile
-            frame = ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time)
+            # host copies no earlier frame still held shares (the writer may keep them meanwhile): the fluid file's
+            # records, made on the device, which the writer writes as they are (ParticleFrame.from_records)
+            a = solver.arrays(records=True)
+            rec = a.get("records")
+            frame = (ParticleFrame.from_records(rec, time=solver.time) if rec is not None else
+                     ParticleFrame(a["positions"], a["velocities"], a["ids"], a["density"], time=solver.time))
             info.frame(index).particles = len(frame)  # the count varies with emitters and sinks
             for fmt in scene.output.formats:
                 rel = frame_name("fluid", index, fmt)

@@ -37,12 +37,15 @@ import taichi as ti
 
 from ..config import Scene
 from ..errors import SimulationError, WhitecapError
+from ..io import ParticleFrame
 from ..io.array_pool import ArrayPool
+from ..io.ply import record_dtype
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
 from . import runtime
 from .grid import F1, F3, I1, I2, U1, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
 from .launch import TEMPLATE, KernelGraph, permuted, run_direct
+from .records import RecordReader
 from .smoothing import SPHKernel, poly6, poly6_np, spiky_grad, spiky_grad_np
 
 if TYPE_CHECKING:  # types only: the driver's build_solver sets them
@@ -393,6 +396,13 @@ def bytes_per_particle(max_neighbors: int) -> int:
 
 
 STATE_WORDS = 5 * 3 + 4  # 4-byte words of FluidState per particle
+#: A fluid file's vertex record (io.ply.record_dtype of a frame of fluid particles: x y z vx vy vz density id,
+#: 32 bytes), made on the device from the solver's state by sim.records (PBFSolver.arrays' ``records``): a, b the
+#: positions and velocities, c the density, d the ids (int32, their bits written as uint32).
+FLUID_RECORD = record_dtype(ParticleFrame(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                                          np.zeros(0, np.uint32), np.zeros(0, np.float32)))
+FLUID_RECORD_SOURCES = {"x": ("a", 0), "y": ("a", 1), "z": ("a", 2), "vx": ("b", 0), "vy": ("b", 1), "vz": ("b", 2),
+                        "density": ("c", 0), "id": ("d", 0)}
 
 
 def fits_in_memory(n: int, max_neighbors: int) -> tuple[bool, int]:
@@ -522,6 +532,9 @@ class PBFSolver:
         pin, unpin = runtime.host_pinning()  # page-locked for the GPU's copies, where that is on
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "rho": (np.float32, ()),
                                   "ids": (np.uint32, ())}, pin=pin, unpin=unpin)
+        # a frame's fluid file's records, made on the device (arrays(records=True)), through _record_words
+        self._records = RecordReader(FLUID_RECORD, FLUID_RECORD_SOURCES, pin=pin, unpin=unpin)
+        self._record_words: Any = None
         st = self.state
         ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
         self._upload(positions, velocities, ids)
@@ -776,15 +789,27 @@ class PBFSolver:
         self.compute_lambda()
 
     # ---------------------------------------------------------------- io
-    def arrays(self, with_density: bool = True) -> dict[str, np.ndarray | None]:
+    def arrays(self, with_density: bool = True, records: bool = False) -> dict[str, np.ndarray | None]:
         """The particles in use as host arrays that no frame handed out before and still held anywhere shares
         (positions, velocities, density or None, uint32 ids; io.array_pool: blocks used again once the writer is
         done with them, not new pages every frame): read back in one launch, n rows (not the capacity's, which an
         emitter's scene keeps for the particles to come). :meth:`checkpoint` can be handed them (``host``) rather
-        than read the device anew."""
+        than read the device anew. With ``records`` (and the density), they are made on the device as the fluid
+        file's records (FLUID_RECORD, sim.records) and read back in one copy, the arrays views of them, which are
+        under ``records`` too: the PLY writer writes them as they are (ParticleFrame.from_records)."""
         st, n = self.state, self.n
         if with_density:
             self.update_density()
+        if records and with_density and self._records.fits(n):
+            def device(words: int):
+                if self._record_words is None or self._record_words.shape[0] < words:
+                    self._record_words = None  # the old array goes before the new one is made
+                    self._record_words = runtime.empty_ndarray(ti.u32, self._records.words_for(self.capacity))
+                return self._record_words
+
+            frame, _ = self._records.read(n, (st.x, st.v, st.rho, st.ids, st.ids, 0), device)
+            return {"positions": frame.positions, "velocities": frame.velocities, "density": frame.density,
+                    "ids": frame.ids, "records": frame.records}
         h = self._frames.take(n)
         x, v, ids = h["x"], h["v"], h["ids"]
         rho = h["rho"] if with_density else np.empty(0, np.float32)
