@@ -15,8 +15,8 @@ their compilation was timed). ``--against`` times another checkout's package on 
 ``--repeat`` times (which of them runs first alternating too), and prints the best wall and CPU time of
 each and their ratios, then the median and range of the ratios of each back-to-back pair: on a shared,
 loaded machine the CPU time (both threads) and the pairs' median are the steadier figures. ``--arrays`` times this
-package a second way in the same alternation: its diffuse frames read back array by array and packed by the writer,
-as before the foam stage made them as the file's records (c268cca).
+package a second way in the same alternation: its fluid and diffuse frames read back array by array and packed by
+the writer, as before they were made as their files' records (c268cca, 68bb59a).
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.

@@ -16,8 +16,8 @@ and prints the diffuse share of both, measured in the same run, and their ratio.
 runs it once more with the PLY writer's threads cut to N (io/ply.py WRITE_THREADS: every core by default,
 16 on an H100 machine), to tell whether the writer's threads packing files beside the loop slow its steps;
 ``--pin`` once more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell
-whether the diffuse particles' copy into pageable memory does; ``--arrays`` once more with the diffuse frames read
-back array by array and packed by the writer, as before the foam stage made them as the file's records (c268cca).
+whether the diffuse particles' copy into pageable memory does; ``--arrays`` once more with the fluid and diffuse frames
+read back array by array and packed by the writer, as before they were made as their files' records (c268cca, 68bb59a).
 """
 
 from __future__ import annotations
@@ -106,8 +106,8 @@ def main() -> None:
     ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
     ap.add_argument("--write-threads", type=int, help="one more foam-on run, the PLY writer's threads cut to this many")
     ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned")
-    ap.add_argument("--arrays", action="store_true", help="one more foam-on run, the diffuse frames read back array "
-                    "by array and packed by the writer (not made as the file's records on the device)")
+    ap.add_argument("--arrays", action="store_true", help="one more foam-on run, the fluid and diffuse frames read "
+                    "back array by array and packed by the writer (not made as their files' records on the device)")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--pinned", action="store_true", help=argparse.SUPPRESS)

@@ -45,12 +45,12 @@ step() {  # step SECONDS TITLE COMMAND...: run with a time limit; a failure is r
 }
 
 step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py --arch cuda --sizes 1000000 --steps 100
-# foam post-processing, and the same with its diffuse frames read back array by array and packed by the writer (as
-# before 2026-11-28's records made on the device), alternating
+# foam post-processing, and the same with its frames read back array by array and packed by the writer (as before
+# 2026-11-28's records made on the device), alternating
 step 90  "foam post-processing, CUDA, 1 M particles, 10 frames (and read back array by array)" \
     "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile --arrays
 # foam on against off (target >= 0.8x), then foam on three times more: the PLY writer's threads cut to 4, the
-# read-back's host arrays pinned, and the diffuse frames read back array by array; whether the writer's threads
+# read-back's host arrays pinned, and the frames read back array by array; whether the writer's threads
 # packing files beside the loop, or the diffuse particles' copy into pageable memory, slow the solver's steps (they
 # took 15-18 ms a frame longer with foam on at the last lease), and what the records made on the device gave
 step 280 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on: 4 write threads; pinned read-back; read back array by array)" \
