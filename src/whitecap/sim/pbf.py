@@ -42,7 +42,7 @@ from ..io.array_pool import ArrayPool
 from ..io.ply import record_dtype
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
-from . import runtime
+from . import records as sim_records, runtime
 from .grid import F1, F3, I1, I2, U1, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
 from .launch import TEMPLATE, KernelGraph, permuted, run_direct
 from .records import RecordReader
@@ -804,7 +804,9 @@ class PBFSolver:
             def device(words: int):
                 if self._record_words is None or self._record_words.shape[0] < words:
                     self._record_words = None  # the old array goes before the new one is made
-                    self._record_words = runtime.empty_ndarray(ti.u32, self._records.words_for(self.capacity))
+                    # made at the capacity (within one Taichi array's elements)
+                    most = max(words, min(self._records.words_for(self.capacity), sim_records.WORDS_MAX))
+                    self._record_words = runtime.empty_ndarray(ti.u32, most)
                 return self._record_words
 
             frame, _ = self._records.read(n, (st.x, st.v, st.rho, st.ids, st.ids, 0), device)
