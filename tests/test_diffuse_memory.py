@@ -90,17 +90,13 @@ def test_no_taichi_array_is_made_per_frame_once_the_largest_frame_was_seen(monke
     assert counter.made == 1
 
 
-@pytest.mark.parametrize("way", ["records", "arrays"])
-def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over(monkeypatch, way):
-    """The diffuse frames step hands out are views of a few host blocks (io.array_pool), not new pages every
-    frame: once warm, 30 frames make one block, for the frame the caller holds (here frame 45, as the writer's
-    queue would), which keeps its values while 25 more frames are made; the others use the blocks again. Both
-    ways a frame comes back: as the file's records (FoamGenerator._download), and array by array where a frame
-    holds more records than a Taichi array (_download_arrays; here every frame)."""
+def _check_frames_reused(way: str) -> None:
+    """test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over, in a process of
+    its own (see there)."""
     from whitecap.sim import records
 
     if way == "arrays":
-        monkeypatch.setattr(records, "WORDS_MAX", 0)
+        records.WORDS_MAX = 0
     frames = [_splash(i) for i in range(CYCLE)]
     gen = _generator("ihmsen2012", frames)
     pool = gen._records.pool if way == "records" else gen._frames
@@ -109,8 +105,12 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
     made = pool.made
     assert made > 0, "the frames did not come back through this pool"
     held = kept = None
+    made_at = []  # (frame, its count, the kept blocks' rows and which were free after it): what a failure says
     for i in range(4 * CYCLE, 7 * CYCLE):
+        before = pool.made
         d = gen.step(frames[i % CYCLE], i, DT)
+        if pool.made != before:
+            made_at.append((i, len(d), [(b.rows, pool._is_free(b)) for b in pool._blocks]))
         if i == 45:
             held = d
             kept = {k: a.copy() for k, a in [("x", d.positions), ("v", d.velocities), ("ids", d.ids),
@@ -118,12 +118,34 @@ def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_ne
         del d
     assert held is not None and kept is not None and len(held) > 1000
     assert (held.records is not None) == (way == "records")
-    assert pool.made - made <= 1, f"{pool.made - made} blocks made in {3 * CYCLE} frames"
+    assert pool.made - made <= 1, f"{pool.made - made} blocks made in {3 * CYCLE} frames: {made_at}"
     got = {"x": held.positions, "v": held.velocities, "ids": held.ids, **held.arrays}
     for k, a in kept.items():
         assert np.array_equal(got[k], a), f"frame 45's {k} changed after it was handed out"
     last = gen.step(frames[0], 7 * CYCLE, DT)
     assert not np.shares_memory(last.positions, held.positions)
+
+
+@pytest.mark.parametrize("way", ["records", "arrays"])
+def test_frames_are_read_back_into_host_arrays_used_again_and_a_held_frame_is_never_written_over(way):
+    """The diffuse frames step hands out are views of a few host blocks (io.array_pool), not new pages every
+    frame: once warm, 30 frames make one block, for the frame the caller holds (here frame 45, as the writer's
+    queue would), which keeps its values while 25 more frames are made; the others use the blocks again. Both
+    ways a frame comes back: as the file's records (FoamGenerator._download), and array by array where a frame
+    holds more records than a Taichi array (_download_arrays; here every frame).
+
+    In a process of its own, as a run has: in the suite's process, after some hundreds of tests, an early small
+    block of this test was sometimes held by something outside whitecap for the rest of the test (2 runs of the
+    whole suite in 6 on 2026-11-28, the records way; never alone, never after the same tests run by name), and a
+    block was made every other frame. Not found; a run's own process never showed it."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    script = f"from tests.test_diffuse_memory import _check_frames_reused; _check_frames_reused({way!r}); print('ok')"
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
 
 
 def test_a_frame_comes_back_as_the_files_records_and_is_written_as_it_is(tmp_path, monkeypatch):
