@@ -49,7 +49,7 @@ from ..io.ply import record_dtype
 from ..progress import console
 from ..sim import runtime
 from ..sim.grid import NeighborGrid, gather_vec3, grid_spec
-from ..sim.records import WORDS_MAX, RecordReader
+from ..sim.records import RecordReader
 from ..sim.scan import SCAN_SUMS, exclusive_scan
 from ..timing import timer
 from . import budget as B, kernels as K, splishsplash as SP
@@ -622,8 +622,8 @@ class FoamGenerator:
 
     def nbytes(self) -> int:
         """Bytes of the Taichi arrays this generator keeps (its buffers, the live particles' two sets,
-        the obstacles' SDFs and the fluid neighbour grid)."""
-        total = self.grid.nbytes() if self.grid is not None else 0
+        the obstacles' SDFs, the fluid neighbour grid and the records' device array)."""
+        total = (self.grid.nbytes() if self.grid is not None else 0) + self._records.nbytes
         arrays = [*self._bufs.values(), *self._geo.values()] + [a for live in self._live for a in live.values()]
         for a in arrays:
             vec = a.n * a.m if isinstance(a, ti.lang.matrix.MatrixNdarray) else (
@@ -762,11 +762,9 @@ class FoamGenerator:
         else:
             live = self._live[self._cur]
             radius_bits = int(np.float32(self.p.radius * self.r).view(np.uint32))
-            # on a GPU through a device array made once, at the capacity (from the budget), as the live arrays are
-            most = min(self._records.words_for(self.capacity or 0), WORDS_MAX)
+            # (on a GPU through a device array made at the capacity, from the budget, as the live arrays are)
             frame, pending = self._records.read(
-                n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits),
-                lambda words: self._buffer("records", words, ti.u32, zeroed=False, limit=WORDS_MAX, start=most),
+                n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits), self.capacity or n,
                 later)
             if pending is not None:
                 self.pending = pending

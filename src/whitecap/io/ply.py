@@ -253,6 +253,11 @@ def _packed(frame: ParticleFrame, groups: list, dtype: np.dtype) -> np.ndarray |
     return rec
 
 
+def _header(ply) -> bytes:
+    """The bytes of plyfile's header for the PlyData ``ply``, as its write puts them before the rows."""
+    return (ply.header + "\n").encode("ascii")
+
+
 def write_ply(path: Path, frame: ParticleFrame) -> None:
     from plyfile import PlyData, PlyElement
 
@@ -270,7 +275,7 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
             ply.write(str(tmp))
             return
         # plyfile's own header, then each part's rows at its offset: the bytes plyfile writes from the whole array
-        head = (ply.header + "\n").encode("ascii")
+        head = _header(ply)
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC)
         try:
             _pwrite_all(fd, head, 0)
@@ -368,7 +373,7 @@ def written_as_read(path: Path, frame: ParticleFrame, up: str = "z", require_vel
 
     dtype = _record_dtype(_groups(frame))
     rows = np.broadcast_to(np.zeros(1, dtype), (len(frame),))  # the header needs the count, not the rows
-    head = (PlyData([PlyElement.describe(rows, "vertex")], byte_order="<").header + "\n").encode("ascii")
+    head = _header(PlyData([PlyElement.describe(rows, "vertex")], byte_order="<"))
     try:
         if path.stat().st_size != len(head) + len(frame) * dtype.itemsize:
             return False

@@ -42,7 +42,7 @@ from ..io.array_pool import ArrayPool
 from ..io.ply import record_dtype
 from ..resources import MEMORY_HEADROOM, available_memory
 from ..timing import timer
-from . import records as sim_records, runtime
+from . import runtime
 from .grid import F1, F3, I1, I2, U1, NeighborGrid, gather_i32, gather_vec3, grid_spec, vec3
 from .launch import TEMPLATE, KernelGraph, permuted, run_direct
 from .records import RecordReader
@@ -532,9 +532,8 @@ class PBFSolver:
         pin, unpin = runtime.host_pinning()  # page-locked for the GPU's copies, where that is on
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "rho": (np.float32, ()),
                                   "ids": (np.uint32, ())}, pin=pin, unpin=unpin)
-        # a frame's fluid file's records, made on the device (arrays(records=True)), through _record_words
+        # a frame's fluid file's records, made on the device (arrays(records=True))
         self._records = RecordReader(FLUID_RECORD, FLUID_RECORD_SOURCES, pin=pin, unpin=unpin)
-        self._record_words: Any = None
         st = self.state
         ids = np.arange(n, dtype=np.int32) if ids is None else np.asarray(ids, np.int32)
         self._upload(positions, velocities, ids)
@@ -558,7 +557,7 @@ class PBFSolver:
         return self.scene.solver
 
     def memory_bytes(self) -> int:
-        return self.capacity * 4 * STATE_WORDS + self.grid.nbytes()
+        return self.capacity * 4 * STATE_WORDS + self.grid.nbytes() + self._records.nbytes
 
     def _upload(self, x, v, ids) -> None:
         """The live particles' state, padded with zeros up to the capacity."""
@@ -801,15 +800,7 @@ class PBFSolver:
         if with_density:
             self.update_density()
         if records and with_density and self._records.fits(n):
-            def device(words: int):
-                if self._record_words is None or self._record_words.shape[0] < words:
-                    self._record_words = None  # the old array goes before the new one is made
-                    # made at the capacity (within one Taichi array's elements)
-                    most = max(words, min(self._records.words_for(self.capacity), sim_records.WORDS_MAX))
-                    self._record_words = runtime.empty_ndarray(ti.u32, most)
-                return self._record_words
-
-            frame, _ = self._records.read(n, (st.x, st.v, st.rho, st.ids, st.ids, 0), device)
+            frame, _ = self._records.read(n, (st.x, st.v, st.rho, st.ids, st.ids, 0), self.capacity)
             return {"positions": frame.positions, "velocities": frame.velocities, "density": frame.density,
                     "ids": frame.ids, "records": frame.records}
         h = self._frames.take(n)

@@ -116,35 +116,47 @@ def record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tupl
 
 class RecordReader:
     """A frame's records made by one :func:`record_packer` kernel and read back into host blocks of an
-    io.array_pool pool (used again once no frame handed out holds them; page-locked where the pool's ``pin`` does),
-    through a device array of ``rows`` records made once (on a GPU; on the CPU the kernel writes the host block in
-    place). ``buffer(words)`` makes or finds that device array (the caller's keeper of Taichi arrays)."""
+    io.array_pool pool (used again once no frame handed out holds them; page-locked where the pool's ``pin`` does).
+    On a GPU the kernel writes a device array, made once at the capacity the caller gives (within
+    :data:`WORDS_MAX`) and grown only if a frame needs more, then one copy brings the block back; on the CPU the
+    kernel writes the host block in place."""
 
     def __init__(self, record: np.dtype, sources: dict[str, tuple[str, int]], pin=None, unpin=None) -> None:
         self.record = record
         self.pack, self.per, self.words = record_packer(record, sources)
         self.pool = ArrayPool({"records": (np.uint32, (self.words,))}, pin=pin, unpin=unpin)
+        self.device: Any = None  # the device array (a GPU's), once made
+
+    def words_for(self, n: int) -> int:
+        """32-bit words of n records."""
+        return -(-n // self.per) * self.words
 
     def fits(self, n: int) -> bool:
         """Whether n records fit in one Taichi array (:data:`WORDS_MAX`)."""
-        return -(-n // self.per) * self.words <= WORDS_MAX
+        return self.words_for(n) <= WORDS_MAX
 
-    def words_for(self, n: int) -> int:
-        return -(-n // self.per) * self.words
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the device array."""
+        return 0 if self.device is None else 4 * int(self.device.shape[0])
 
-    def read(self, n: int, args: tuple, device: Callable[[int], Any], later: bool = False):
+    def read(self, n: int, args: tuple, capacity: int, later: bool = False):
         """(the frame of records 0..n, made from ``args`` (a, b, c, d, e, const_bits), the pending copy's Future
-        where ``later`` left it running on CUDA (runtime.rows_to_host_later), else None)."""
+        where ``later`` left it running on CUDA (runtime.rows_to_host_later), else None). ``capacity``: the most
+        records the caller's frames hold, which the device array is made for."""
         block = self.pool.take(-(-n // self.per))["records"].reshape(-1)
         pending = None
         if n:
             if runtime.copies_rows():  # made on the device, then one copy (runtime.rows_to_host)
-                dev = device(len(block))
-                self.pack(n, *args, dev)
+                if self.device is None or self.device.shape[0] < len(block):
+                    self.device = None  # the old array goes before the new one is made
+                    self.device = runtime.empty_ndarray(
+                        ti.u32, max(len(block), min(self.words_for(capacity), WORDS_MAX)))
+                self.pack(n, *args, self.device)
                 if later:
-                    pending = runtime.rows_to_host_later((block, dev))
-                if pending is None and not runtime.rows_to_host((block, dev)):
-                    block[:] = dev.to_numpy()[:len(block)]
+                    pending = runtime.rows_to_host_later((block, self.device))
+                if pending is None and not runtime.rows_to_host((block, self.device)):
+                    block[:] = self.device.to_numpy()[:len(block)]
             else:  # a host array: on the CPU the kernel writes it in place
                 self.pack(n, *args, block)
         return ParticleFrame.from_records(block.view(np.uint8)[:n * self.record.itemsize].view(self.record)), pending
