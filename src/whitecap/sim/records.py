@@ -8,13 +8,14 @@ where the writer's threads took 35-40 ms of a 16-core machine for a 1 M fluid fi
 its diffuse one beside the simulation loop (benchmarks/RESULTS.md, issue 31).
 
 - :func:`record_packer`: the kernel for a record layout, a whole number of 32-bit words a thread;
-- :func:`read_back_records`: a frame's records through it, into a host block of an io.array_pool pool, on any arch.
+- :class:`RecordReader`: a frame's records through it, into a host block of an io.array_pool pool, on any arch.
 
 :data:`WORDS_MAX` caps the words one frame's records may take (a Taichi array's elements are counted in int32):
 callers read a larger frame back array by array instead, and the writer packs it, as before.
 """
 
 
+import functools
 import math
 from typing import Any, Callable
 
@@ -41,6 +42,19 @@ N1: Any = ti.types.ndarray(ndim=1)  # a 32-bit integer column of either signedne
 
 
 def record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tuple[Callable, int, int]:
+    """:func:`make_record_packer`'s kernel for this layout, made once a process: every reader of one layout (a run's
+    solver and foam stage, a benchmark's warm-up and timed runs, each test's) shares it. A kernel made anew is
+    compiled anew: 210 ms on 2 cores for the diffuse record, each time a FoamGenerator or PBFSolver was made
+    (Taichi's offline cache did not keep it), which a benchmark's timed run paid after its warm-up."""
+    return _packer_for(np.dtype(record), tuple(sorted(sources.items())))
+
+
+@functools.lru_cache(maxsize=None)
+def _packer_for(record: np.dtype, sources: tuple[tuple[str, tuple[str, int]], ...]) -> tuple[Callable, int, int]:
+    return make_record_packer(record, dict(sources))
+
+
+def make_record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tuple[Callable, int, int]:
     """(kernel, records a thread, 32-bit words a thread) making records of the numpy dtype ``record`` (a PLY
     vertex record: io.ply.record_dtype; little-endian fields of 1 or 4 bytes at their offsets, no gaps), each field
     from ``sources[name]`` = (source, component) (:data:`SOURCES`): the bytes the PLY writer would pack from the
@@ -59,7 +73,7 @@ def record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tupl
                     key=lambda t: t[1])
     if (sum(sz for _, _, sz in fields) != size or any(sz not in (1, 4) or name not in sources for name, _, sz in fields)
             or any(src not in SOURCES for src, _ in sources.values())):
-        raise ValueError(f"record_packer: a record of {record} is not one it can make from {sources}")
+        raise ValueError(f"make_record_packer: a record of {record} is not one it can make from {sources}")
     per = 4 // math.gcd(size, 4)  # records a thread: a whole number of words
     words = per * size // 4
     plan: list[list[tuple[int, str, int, int, int]]] = []  # a word's parts: (record, source, component, bytes, shift)
