@@ -12,12 +12,11 @@ and the ratio to issue 31's reference figures on 2 CPU cores (diffuse 356 ms a f
 
 Each configuration runs in its own process (one Taichi runtime per process). ``--against`` runs the
 foam-on case once more with another checkout's package (e.g. ``git archive 80c2fce | tar -x -C OLD``)
-and prints the diffuse share of both, measured in the same run, and their ratio. ``--write-threads N``
-runs it once more with the PLY writer's threads cut to N (io/ply.py WRITE_THREADS: every core by default,
-16 on an H100 machine), to tell whether the writer's threads packing files beside the loop slow its steps;
-``--pin`` once more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell
-whether the diffuse particles' copy into pageable memory does; ``--arrays`` once more with the fluid and diffuse frames
-read back array by array and packed by the writer, as before they were made as their files' records (c268cca, 68bb59a).
+and prints the diffuse share of both, measured in the same run, and their ratio. ``--pin`` runs it once
+more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell whether the
+diffuse particles' copy into pageable memory slows the loop; ``--arrays`` once more with the fluid and
+diffuse frames read back array by array and packed by the writer, as before they were made as their
+files' records (c268cca, 68bb59a).
 """
 
 from __future__ import annotations
@@ -55,10 +54,8 @@ def _scene(radius: float, frames: int):
     )
 
 
-def run_one(radius: float, frames: int, arch: str, foam: bool, write_threads: int | None = None,
-            pin: bool = False, arrays: bool = False) -> dict:
+def run_one(radius: float, frames: int, arch: str, foam: bool, pin: bool = False, arrays: bool = False) -> dict:
     from whitecap import timing
-    from whitecap.io import ply
     from whitecap.pipeline import simulate
     from whitecap.sim import runtime
 
@@ -67,8 +64,6 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, write_threads: in
         from whitecap.sim import records
 
         records.WORDS_MAX = 0
-    if write_threads:
-        ply.WRITE_THREADS = write_threads  # before the first file: its pool is made with this many threads
 
     sc = _scene(radius, frames)
     with tempfile.TemporaryDirectory() as tmp:
@@ -104,26 +99,22 @@ def main() -> None:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--foam-only", action="store_true", help="skip the run with foam off")
     ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
-    ap.add_argument("--write-threads", type=int, help="one more foam-on run, the PLY writer's threads cut to this many")
     ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned")
     ap.add_argument("--arrays", action="store_true", help="one more foam-on run, the fluid and diffuse frames read "
                     "back array by array and packed by the writer (not made as their files' records on the device)")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
-    ap.add_argument("--threads", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--pinned", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--by-array", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
-        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.threads, a.pinned, a.by_array)
+        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.pinned, a.by_array)
         print("RESULT " + json.dumps(r))
         return
     results = {}
     runs = [(m, m, None, []) for m in (("on",) if a.foam_only else ("on", "off"))]
     if a.against:
         runs.append(("on, against", "on", os.path.abspath(a.against), []))
-    if a.write_threads:
-        runs.append((f"on, {a.write_threads} write threads", "on", None, ["--threads", str(a.write_threads)]))
     if a.pin:
         runs.append(("on, pinned read-back", "on", None, ["--pinned"]))
     if a.arrays:

@@ -49,12 +49,13 @@ step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py 
 # 2026-11-28's records made on the device), alternating
 step 90  "foam post-processing, CUDA, 1 M particles, 10 frames (and read back array by array)" \
     "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile --arrays
-# foam on against off (target >= 0.8x), then foam on three times more: the PLY writer's threads cut to 4, the
-# read-back's host arrays pinned, and the frames read back array by array; whether the writer's threads
-# packing files beside the loop, or the diffuse particles' copy into pageable memory, slow the solver's steps (they
-# took 15-18 ms a frame longer with foam on at the last lease), and what the records made on the device gave
-step 280 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on: 4 write threads; pinned read-back; read back array by array)" \
-    "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.002 --frames 40 --write-threads 4 --pin --arrays
+# foam on against off (target >= 0.8x), then foam on twice more: the read-back's host arrays pinned, and the frames
+# read back array by array and packed by the writer (as before the records made on the device); whether the diffuse
+# particles' copy into pageable memory slows the solver's steps (they took 15-18 ms a frame longer with foam on at the
+# last lease), and what the records gave. (The writer's threads no longer pack either file, and write records in one
+# piece: the run with them cut to 4 is gone.)
+step 230 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on: pinned read-back; read back array by array)" \
+    "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.002 --frames 40 --pin --arrays
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
 step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, bytes packed beforehand" \
     "$PY" benchmarks/bench_writer.py --fluid 1000000 --diffuse 1600000 --frames 10 --pairs 3

@@ -306,8 +306,9 @@ def test_ply_packing_writes_the_same_bytes_for_every_layout(tmp_path, monkeypatc
 def test_a_frame_of_records_is_written_as_its_records_and_packed_once_an_array_is_replaced(tmp_path, monkeypatch,
                                                                                            threads):
     """ParticleFrame.from_records: the frame's arrays are views of the records (nothing copied) and write_ply writes
-    the records as they are, without packing, the bytes of the same frame made of arrays, in one piece or in
-    parts; a value written through an array since is in the file (the same memory). An array put in a field's
+    the records as they are, without packing, the bytes of the same frame made of arrays, in one write where
+    arrays go in parts (parts are for packing in parallel); a value written through an array since is in the file
+    (the same memory). An array put in a field's
     place is written, packed, not the records it no longer is; so are records of another layout, and a frame
     made from a records frame (dataclasses.replace) does not carry them."""
     import dataclasses
@@ -339,8 +340,15 @@ def test_a_frame_of_records_is_written_as_its_records_and_packed_once_an_array_i
     write_ply(tmp_path / "arrays.ply", arrays)
     assert packed
     packed.clear()
+    pwrites = []
+    pwrite = ply.os.pwrite
+    monkeypatch.setattr(ply.os, "pwrite", lambda *a: (pwrites.append(a[2]), pwrite(*a))[1])
     write_ply(tmp_path / "records.ply", frame)
     assert not packed and (tmp_path / "records.ply").read_bytes() == (tmp_path / "arrays.ply").read_bytes()
+    assert not pwrites  # one write, not parts
+    write_ply(tmp_path / "arrays_again.ply", arrays)
+    assert bool(pwrites) == (threads > 1)  # the arrays: packed and written in parts where threads may share them
+    packed.clear()
     frame.positions[7] = (1.0, 2.0, 3.0)  # through the view: in the records
     write_ply(tmp_path / "through.ply", frame)
     assert not packed and np.array_equal(io.read(tmp_path / "through.ply").positions[7], [1.0, 2.0, 3.0])
