@@ -226,7 +226,7 @@ def _record_dtype(groups: list[tuple[tuple[str, ...], np.ndarray]]) -> np.dtype:
 
 def record_dtype(frame: ParticleFrame) -> np.dtype:
     """The vertex record :func:`write_ply` writes for a frame with these arrays (packed, little-endian): a
-    producer that makes its frames' records itself (the foam stage, on the device: FoamGenerator._download)
+    producer that makes its frames' records itself (the solver and the foam stage, on the device: sim.records)
     builds them to this layout, and ParticleFrame.from_records hands them over."""
     return _record_dtype(_groups(frame))
 
@@ -279,7 +279,8 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
                 _pack(data, groups, 0, n)
             ply.write(str(tmp))
             return
-        # plyfile's own header, then each part's rows at its offset: the bytes plyfile writes from the whole array
+        # (arrays only: records made elsewhere are written whole above) plyfile's own header, then each part's rows,
+        # packed, at its offset: the bytes plyfile writes from the whole array
         head = _header(ply)
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC)
         try:
@@ -287,8 +288,7 @@ def write_ply(path: Path, frame: ParticleFrame) -> None:
 
             def part(ab: tuple[int, int]) -> None:
                 a, b = ab
-                if packed is None:
-                    _pack(data, groups, a, b)
+                _pack(data, groups, a, b)
                 _pwrite_all(fd, data[a:b].view(np.uint8), len(head) + a * data.dtype.itemsize)
 
             pool = process_pool("whitecap-ply", WRITE_THREADS)

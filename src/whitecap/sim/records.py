@@ -42,19 +42,6 @@ N1: Any = ti.types.ndarray(ndim=1)  # a 32-bit integer column of either signedne
 
 
 def record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tuple[Callable, int, int]:
-    """:func:`make_record_packer`'s kernel for this layout, made once a process: every reader of one layout (a run's
-    solver and foam stage, a benchmark's warm-up and timed runs, each test's) shares it. A kernel made anew is
-    compiled anew: 210 ms on 2 cores for the diffuse record, each time a FoamGenerator or PBFSolver was made
-    (Taichi's offline cache did not keep it), which a benchmark's timed run paid after its warm-up."""
-    return _packer_for(np.dtype(record), tuple(sorted(sources.items())))
-
-
-@functools.lru_cache(maxsize=None)
-def _packer_for(record: np.dtype, sources: tuple[tuple[str, tuple[str, int]], ...]) -> tuple[Callable, int, int]:
-    return make_record_packer(record, dict(sources))
-
-
-def make_record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) -> tuple[Callable, int, int]:
     """(kernel, records a thread, 32-bit words a thread) making records of the numpy dtype ``record`` (a PLY
     vertex record: io.ply.record_dtype; little-endian fields of 1 or 4 bytes at their offsets, no gaps), each field
     from ``sources[name]`` = (source, component) (:data:`SOURCES`): the bytes the PLY writer would pack from the
@@ -67,13 +54,25 @@ def make_record_packer(record: np.dtype, sources: dict[str, tuple[str, int]]) ->
     rows read. The make-up of every word is fixed when the kernel is compiled, so a word is a few shifts and ors of
     values the thread loaded: a quarter of the stores of writing a 37-byte record a byte at a time (1.6 against
     3.5 ms for 273k records on 2 cores), and whole words on a GPU. Sources a layout does not use may be any array
-    of their type (they are not read)."""
+    of their type (they are not read).
+
+    The kernel is made once a process for a layout: every reader of it (a run's solver and foam stage, a
+    benchmark's warm-up and timed runs, each test's) shares it. A kernel made anew is compiled anew: 210 ms on 2
+    cores for the diffuse record, each time a FoamGenerator or PBFSolver was made (Taichi's offline cache did not
+    keep it), which a benchmark's timed run paid after its warm-up."""
+    return _made_packer(np.dtype(record), tuple(sorted(sources.items())))
+
+
+@functools.lru_cache(maxsize=None)
+def _made_packer(record: np.dtype, source_items: tuple[tuple[str, tuple[str, int]], ...]) -> tuple[Callable, int, int]:
+    """:func:`record_packer`'s kernel, made for the layout (its sources as sorted items: hashable)."""
+    sources = dict(source_items)
     size = int(record.itemsize)
     fields = sorted(((name, int(f[1]), int(f[0].itemsize)) for name, f in (record.fields or {}).items()),
                     key=lambda t: t[1])
     if (sum(sz for _, _, sz in fields) != size or any(sz not in (1, 4) or name not in sources for name, _, sz in fields)
             or any(src not in SOURCES for src, _ in sources.values())):
-        raise ValueError(f"make_record_packer: a record of {record} is not one it can make from {sources}")
+        raise ValueError(f"record_packer: a record of {record} is not one it can make from {sources}")
     per = 4 // math.gcd(size, 4)  # records a thread: a whole number of words
     words = per * size // 4
     plan: list[list[tuple[int, str, int, int, int]]] = []  # a word's parts: (record, source, component, bytes, shift)
