@@ -26,13 +26,25 @@
 # On a GPU machine that reaches no package registry (Python 3.12 there): build .whl and .gl with
 # benchmarks/gpu_bundle.sh where pip reaches one, carry them over, then
 #   source benchmarks/gpu_env.sh && BUDGET=480 bash benchmarks/gpu_targets.sh
+# Before a lease, on any machine: DRY=1 runs every step on the CPU at a few thousand particles (about a minute on 2
+# cores; its figures mean nothing), so that a step broken since the last lease shows here ("!! ... stopped"), not
+# on the GPU's clock.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || { echo "no NVIDIA GPU here" >&2; exit 1; }
+DRY=${DRY:-0}
+if [[ $DRY == 1 ]]; then
+    ARCH=cpu
+    echo "DRY=1: every step on the CPU at small sizes, to check that it runs (the figures mean nothing)"
+else
+    ARCH=cuda
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || { echo "no NVIDIA GPU here" >&2; exit 1; }
+fi
+n() { if [[ $DRY == 1 ]]; then echo "$2"; else echo "$1"; fi; }  # n REAL DRY: a step's size, the lease's or the dry run's
 
 END=$(( $(date +%s) + ${BUDGET:-100000} ))
+STOPPED=0
 step() {  # step SECONDS TITLE COMMAND...: run with a time limit; a failure is reported and the script goes on
     local limit=$1 title=$2 left=$(( END - $(date +%s) ))
     shift 2
@@ -40,38 +52,41 @@ step() {  # step SECONDS TITLE COMMAND...: run with a time limit; a failure is r
     (( limit > left )) && limit=$left
     echo "== $title"
     local t0=$SECONDS
-    timeout "$limit" "$@" || echo "!! $title: stopped (exit $?)"
+    timeout "$limit" "$@" || { echo "!! $title: stopped (exit $?)"; STOPPED=$(( STOPPED + 1 )); }
     echo "   ($(( SECONDS - t0 )) s)"
 }
 
-step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py --arch cuda --sizes 1000000 --steps 100
+step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py --arch $ARCH --sizes "$(n 1000000 20000)" --steps "$(n 100 3)"
 # foam post-processing, and the same with its frames read back array by array and packed by the writer (as before
 # 2026-11-28's records made on the device), alternating
 step 90  "foam post-processing, CUDA, 1 M particles, 10 frames (and read back array by array)" \
-    "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile --arrays
+    "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" --profile --arrays
 # foam on against off (target >= 0.8x), then foam on twice more: the read-back's host arrays pinned, and the frames
 # read back array by array and packed by the writer (as before the records made on the device); whether the diffuse
 # particles' copy into pageable memory slows the solver's steps (they took 15-18 ms a frame longer with foam on at the
 # last lease), and what the records gave. (The writer's threads no longer pack either file, and write records in one
 # piece: the run with them cut to 4 is gone.)
 step 230 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on: pinned read-back; read back array by array)" \
-    "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.002 --frames 40 --pin --arrays
+    "$PY" benchmarks/bench_simulate_foam.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 40 3)" --pin --arrays
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
 step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, bytes packed beforehand" \
-    "$PY" benchmarks/bench_writer.py --fluid 1000000 --diffuse 1600000 --frames 10 --pairs 3
+    "$PY" benchmarks/bench_writer.py --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"
 step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU layout" \
-    "$PY" benchmarks/bench_scan.py --arch cuda --sizes 1000000,2700000,33554432 --repeats 50
+    "$PY" benchmarks/bench_scan.py --arch $ARCH --sizes "$(n 1000000,2700000,33554432 10000)" --repeats "$(n 50 3)"
 # the foam pass with the sequence and the files written on a RAM disk: what the machine's disk takes of the rate
 [ -d /dev/shm ] && step 60 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk" \
-    env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch cuda --particles 1000000 --frames 10 --profile
-step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch cuda --sizes 10000000,50000000 --steps 10
+    env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" --profile
+step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch $ARCH --sizes "$(n 10000000,50000000 20000,40000)" --steps "$(n 10 2)"
 step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
-    "$PY" benchmarks/bench_simulate_foam.py --arch cuda --radius 0.0008 --frames 4
+    "$PY" benchmarks/bench_simulate_foam.py --arch $ARCH --radius "$(n 0.0008 0.012)" --frames "$(n 4 2)"
 step 120 "memory over 60 frames with foam on and off, CUDA, r = 2 mm (flat once the budget is reached)" \
-    "$PY" benchmarks/bench_memory.py --arch cuda --radius 0.002 --frames 60
+    "$PY" benchmarks/bench_memory.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 60 4)"
 step 60  "live view, CUDA, ~200k particles, one step per redraw, 1280x720 headless" \
-    "$PY" benchmarks/bench_view.py --arch cuda --n 200000 --live 200000 --steps-per-draw 1 --size 1280 720
+    "$PY" benchmarks/bench_view.py --arch $ARCH --n "$(n 200000 5000)" --live "$(n 200000 5000)" --steps-per-draw 1 --size 1280 720
 step 90  "neighbour grid, CUDA, dense vs hashed cell table, 1 M and 10 M" \
-    "$PY" benchmarks/bench_grid.py --arch cuda --sizes 1000000,10000000 --repeats 5
+    "$PY" benchmarks/bench_grid.py --arch $ARCH --sizes "$(n 1000000,10000000 20000)" --repeats "$(n 5 1)"
 step 60  "background writer against in the loop, CUDA, r = 2 mm" \
-    "$PY" benchmarks/bench_output.py --arch cuda --radius 0.002 --frames 20
+    "$PY" benchmarks/bench_output.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 20 3)"
+# the exit status says whether every step that ran finished (what DRY=1 is for)
+echo "== $STOPPED step(s) stopped"
+(( STOPPED == 0 ))
