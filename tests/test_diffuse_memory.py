@@ -307,3 +307,33 @@ def test_the_record_packer_makes_the_writers_bytes_for_any_count(layout):
         assert (out[-(-n // per) * words:] == 0xDEADBEEF).all(), n  # nothing written past its words
     with pytest.raises(ValueError, match="not one it can make"):
         record_packer(np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("density", "<f4")]), RECORD_SOURCES)
+
+
+def test_an_inflow_makes_the_arrays_sized_by_the_fluid_again_only_as_it_grows_by_a_quarter(monkeypatch):
+    """A fluid that grows every frame (an inflow: emitters, a foreign sequence's inlet) under 'auto', whose capacity
+    follows the fluid's count frame by frame: what is sized by that count (the live particles' arrays at the
+    capacity, the fluid grid, the kept buffers) is made again in a few frames as the fluid grows by a third, not in
+    every frame (Taichi keeps the memory of every array that goes, so an array made per frame is a leak of its size
+    every frame)."""
+    frames = [_splash(i, n=16) for i in range(CYCLE)]
+    gen = _generator("ihmsen2012", frames)
+    gen.p = replace(gen.p, auto=True, budget=2.0)  # the capacity from the budget: it rises with the fluid
+    gen.looked_ahead, gen.state.tau = True, gen.base_thresholds()
+
+    def fluid(i: int, share: float) -> io.ParticleFrame:
+        f = frames[i % CYCLE]
+        m = int(share * len(f))
+        return io.ParticleFrame(positions=f.positions[:m], velocities=f.velocities[:m], ids=f.ids[:m], time=f.time)
+
+    for i in range(2 * CYCLE):  # warm-up at the first count: the splash's births at their largest
+        gen.step(fluid(i, 0.7), i, DT)
+    counter = _ArrayCounter(monkeypatch)
+    made, capacity = [], []
+    for k in range(25):
+        before = counter.made
+        gen.step(fluid(2 * CYCLE + k, 0.7 + 0.012 * (k + 1)), 2 * CYCLE + k, DT)
+        made.append(counter.made - before)
+        capacity.append(gen.capacity)
+    assert all(b > a for a, b in zip(capacity, capacity[1:])), "the capacity did not follow the fluid"
+    assert capacity[-1] > 1.3 * capacity[0] and len(gen.step(fluid(0, 1.0), 99, DT)) > 1000
+    assert sum(1 for m in made if m) <= 4, f"arrays made in these frames of 25: {made}"

@@ -15,11 +15,11 @@ are compacted in a fixed order (survivors first, then the new ones in fluid
 order), so no global counter is needed. 'auto' thresholds and multipliers: :mod:`.budget`.
 
 The live particles stay on the device (issue 31): positions, velocities, lifetimes, ids and types
-live in Taichi arrays made once at the capacity (budget.capacity_for), two sets that compaction
-writes one from the other. Advection, expiry, foam aging and dissipation, the obstacles, the keep
-rule, lifetimes and compaction (exclusive prefix sums of keep flags, sim/scan.py)
-all run in kernels; the host reads back counts only, and the live particles once a frame, for the
-frame's output (they are also ``state``'s host view, for checkpoints; a state set on the host, as a
+live in Taichi arrays made once at the capacity (budget.capacity_for; again, INFLOW_GROWTH times larger,
+only when an inflow outgrows them), two sets that compaction writes one from the other. Advection, expiry,
+foam aging and dissipation, the obstacles, the keep rule, lifetimes and compaction (exclusive prefix sums of
+keep flags, sim/scan.py) all run in kernels; the host reads back counts only, and the live particles once a
+frame, for the frame's output (they are also ``state``'s host view, for checkpoints; a state set on the host, as a
 resume does, is uploaded at the next step, see FoamGenerator._sync_in). A frame's candidates are
 generated, classified and placed CANDIDATE_CHUNK at a time, in arrays made once: no Taichi array is
 made per frame once the largest frame was seen, and the candidates' memory does not grow with the fluid.
@@ -79,9 +79,11 @@ SURFACE_FRACTION = 0.25  # |Σ x̂ W̃| / Σ W̃ above which a particle counts a
 # Neighbour-list length per fluid particle: a lattice of spacing 2r has 4/3·π·(h/2r)³ ≈ 34
 # neighbours within h = 4r; 96 leaves ~3× room for water compressed in a splash.
 MAX_FLUID_NEIGHBOURS = 96
-# The fluid neighbour grid, when the fluid outgrows it (inflow), is rebuilt this many times larger
-# (not at the new count exactly, which would allocate a grid every frame of a steady inflow).
-GRID_GROWTH = 1.25
+# What is sized by the fluid's count (the fluid neighbour grid; the live particles' arrays, at the capacity the
+# budget gives that count), when the fluid outgrows it (inflow), is made again this many times larger: not at the
+# new count exactly, which would make it anew every frame of a steady inflow, and Taichi keeps the memory of every
+# array that goes (an inflow of 1.5 % a frame made the live particles' twelve arrays every frame).
+INFLOW_GROWTH = 1.25
 # A frame's candidates are generated, classified and placed this many at a time, in arrays of this size
 # made once (45 bytes a candidate: 190 MB at most): a splash makes up to ~86 a fluid particle (2.4M
 # from the r = 4 mm dam break's 125k), which stored whole would grow with the fluid (3.9 kB a fluid
@@ -480,7 +482,7 @@ class FoamGenerator:
     # ------------------------------------------------------------------ one frame
     def _fluid_grid(self, n: int) -> NeighborGrid:
         if self.grid is None or self.grid.capacity < n:
-            rows = max(n, 1, int(GRID_GROWTH * self.grid.capacity) if self.grid is not None else 0)
+            rows = max(n, 1, int(INFLOW_GROWTH * self.grid.capacity) if self.grid is not None else 0)
             self.grid = None  # the old grid's arrays go before the new ones are made
             self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), rows, MAX_FLUID_NEIGHBOURS, self.h)
         return self.grid
@@ -687,7 +689,8 @@ class FoamGenerator:
 
     def _size(self, n: int) -> None:
         """Capacity from the budget (unless set); warn when a set capacity is below the budget. The live
-        particles' arrays are made at the capacity, once (again only if the fluid grows past it)."""
+        particles' arrays are made at the capacity, once (again, by INFLOW_GROWTH at least, only when the fluid
+        outgrows it)."""
         p = self.p
         self.capacity = B.capacity_for(p, n)
         self._sized_for = n
@@ -704,11 +707,13 @@ class FoamGenerator:
     # ------------------------------------------------------------------ the live particles, on the device
     def _allocate_live(self, rows: int) -> None:
         """The live particles' two sets of arrays (positions, velocities, lifetimes, ids, types; compaction
-        writes one from the other) and their keep flags and places, ``rows`` each; the live ones copied
-        over when they are made again larger."""
+        writes one from the other) and their keep flags and places, ``rows`` each; made again larger (by
+        INFLOW_GROWTH at least) only when more rows are asked for, the live ones copied over."""
         rows = max(int(rows), 1)
         if self._live and self._live[0]["x"].shape[0] >= rows:
             return
+        if self._live:  # outgrown (an inflow): made larger than asked, so that it is not made again next frame
+            rows = max(rows, int(INFLOW_GROWTH * self._live[0]["x"].shape[0]))
         self.settle()
         keep = self._download() if self._live and self._nd else None
         self._live = []  # the old arrays go before the new ones are made
@@ -762,9 +767,9 @@ class FoamGenerator:
         else:
             live = self._live[self._cur]
             radius_bits = int(np.float32(self.p.radius * self.r).view(np.uint32))
-            # (on a GPU through a device array made at the capacity, from the budget, as the live arrays are)
+            # (on a GPU through a device array made for as many as the live arrays hold, as they are made)
             frame, pending = self._records.read(
-                n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits), self.capacity or n,
+                n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits), live["x"].shape[0],
                 later)
             if pending is not None:
                 self.pending = pending
