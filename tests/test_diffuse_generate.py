@@ -122,18 +122,30 @@ def test_compaction_keeps_each_kept_candidate_once_in_candidate_order():
     np.testing.assert_array_equal(c["offset"], np.concatenate([[0], np.cumsum(c["counts"])[:-1]]))
 
 
-def test_new_particles_beyond_the_capacity_are_dropped_in_candidate_order():
-    """With room for 50 new particles, the first 50 kept candidates (in candidate order) are born."""
+@pytest.mark.parametrize("chunk", [None, 700])
+def test_new_particles_beyond_the_capacity_are_dropped_in_candidate_order(monkeypatch, chunk):
+    """With room for 50 new particles, the first 50 kept candidates (in candidate order) are born; with room for
+    half of them and the candidates taken 700 at a time, the room is the frame's, not each chunk's: the room runs
+    out in a later chunk than the first, and no more are born than fit."""
+    from whitecap.diffuse import generator as G
+
     full = _generator((30.0, 1.0, 1.0))
     frame = _splash()
     everything = full.step(frame, 0, DT)
+    kept = full.candidates()["kept"]  # the kept candidates' indices, in candidate order (one chunk held them)
+    if chunk is not None:
+        monkeypatch.setattr(G, "CANDIDATE_CHUNK", chunk)
+    room = 50 if chunk is None else len(everything) // 2
     gen = _generator((30.0, 1.0, 1.0))
     gen._size(len(frame))
-    gen.capacity = 50
+    gen.capacity = room
     d = gen.step(frame, 0, DT)
-    assert len(everything) > 1000 and len(d) == 50 and gen.state.next_id == 50
-    assert d.positions.tobytes() == everything.positions[:50].tobytes()
-    assert d.ids.tobytes() == everything.ids[:50].tobytes()
+    assert len(everything) > 1000 and len(d) == room and gen.state.next_id == room
+    if chunk is not None:  # several chunks, and the first one's kept candidates leave room for later ones
+        assert gen._candidates["total"] > 3 * chunk and gen._bufs["cand_kind"].shape[0] == chunk
+        assert 0 < np.count_nonzero(kept < chunk) < room < len(kept)
+    assert d.positions.tobytes() == everything.positions[:room].tobytes()
+    assert d.ids.tobytes() == everything.ids[:room].tobytes()
 
 
 def test_the_candidate_buffers_are_reused_from_frame_to_frame():
