@@ -389,6 +389,17 @@ MUTATIONS: list[Mutation] = [
       "                        if self._error is None:  # else skipped",
       "                        if True:  # else skipped",
       ["tests/test_background_writer.py"], "a run.json listing a file whose write failed"),
+    M("no-checkpoint-at-the-last-frame", "sim/driver.py",
+      "            if index % interval == 0 or index == nframes:", "            if index % interval == 0:",
+      ["tests/test_background_writer.py", "tests/test_frame_hooks.py"],
+      "a run whose frames are not a multiple of the checkpoint interval ends without a checkpoint of its last frame"),
+    M("dense-table-for-any-domain", "sim/grid.py",
+      "    if nc <= max(DENSE_CELLS_PER_PARTICLE * int(capacity), DENSE_ALWAYS_CELLS) and nc < 2**31 - 1:",
+      "    if nc < 2**31 - 1:",
+      ["tests/test_grid.py", "tests/test_coast_scene.py"], "a dense cell table for a domain 1000 times the fluid"),
+    M("list-slots-past-int32", "sim/grid.py",
+      "    fit = MAX_NDARRAY_ELEMENTS // max(int(capacity), 1)", "    fit = 2**40 // max(int(capacity), 1)",
+      ["tests/test_grid.py", "tests/test_solver.py"], "neighbour lists of 50 M particles past Taichi's 32-bit index"),
 ]
 
 

@@ -513,3 +513,19 @@ def test_frames_made_as_their_files_records_are_the_files_and_checkpoints_of_fra
     assert "checkpoint.npz" in a and any(k.startswith("fluid/") and k.endswith(".npz") for k in a)
     assert max(len(v) for k, v in a.items() if k.startswith("diffuse/")) > 400 + 37 * 5  # diffuse particles written
     assert a == b
+
+
+def test_a_finished_run_extended_steps_on_from_its_last_frame(tmp_path, monkeypatch):
+    """Checkpoints every 2 frames, a run of 5: its last frame is checkpointed too (not only the multiples of the
+    interval), so that the run extended to 7 frames steps on from frame 5 and writes frames 6 and 7 alone, not
+    frame 5 again from the checkpoint of frame 4."""
+    import whitecap.sim.driver as driver
+
+    run = tmp_path / "R"
+    simulate(scene_from_dict(SCENE), out=run, show_progress=False, foam=False)
+    assert int(np.load(run / "checkpoint.npz")["frame"]) == 5
+    written, real = [], driver.write
+    monkeypatch.setattr(driver, "write", lambda path, *a, **kw: written.append(Path(path).name) or real(path, *a, **kw))
+    simulate(scene_from_dict(SCENE), out=run, resume=True, frames=7, show_progress=False, foam=False)
+    assert sorted(set(written)) == ["fluid_00006.ply", "fluid_00007.ply"]
+    assert sorted(set(_listed(run).values())) == list(range(8))
