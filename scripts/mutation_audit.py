@@ -379,7 +379,7 @@ MUTATIONS: list[Mutation] = [
       "            rows = max(size, start, 1)",
       ["tests/test_diffuse_memory.py"], "kept arrays grown to each frame's size (a new array every growing frame)"),
     M("live-arrays-grow-exactly", "diffuse/generator.py",
-      '            rows = max(rows, int(INFLOW_GROWTH * self._live[0]["x"].shape[0]))', "            rows = rows",
+      "        rows = _outgrown(rows, held)", "        rows = _outgrown(rows, 0)",
       ["tests/test_diffuse_memory.py"], "the live particles' arrays made anew every frame of an inflow"),
     M("writer-listing-before-files", "io/writer.py",
       "                    self._join_lanes()  # what lists a frame's files comes after every one of them\n",

@@ -308,9 +308,8 @@ def test_a_frame_of_records_is_written_as_its_records_and_packed_once_an_array_i
     """ParticleFrame.from_records: the frame's arrays are views of the records (nothing copied) and write_ply writes
     the records as they are, without packing, the bytes of the same frame made of arrays, in one write where
     arrays go in parts (parts are for packing in parallel); a value written through an array since is in the file
-    (the same memory). An array put in a field's
-    place is written, packed, not the records it no longer is; so are records of another layout, and a frame
-    made from a records frame (dataclasses.replace) does not carry them."""
+    (the same memory). An array put in a field's place is written, packed, not the records it no longer is; so are
+    records of another layout, and a frame made from a records frame (dataclasses.replace) does not carry them."""
     import dataclasses
 
     from whitecap.io import ply

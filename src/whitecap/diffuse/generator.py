@@ -84,6 +84,12 @@ MAX_FLUID_NEIGHBOURS = 96
 # new count exactly, which would make it anew every frame of a steady inflow, and Taichi keeps the memory of every
 # array that goes (an inflow of 1.5 % a frame made the live particles' twelve arrays every frame).
 INFLOW_GROWTH = 1.25
+
+
+def _outgrown(asked: int, held: int) -> int:
+    """Rows to make for ``asked`` where ``held`` rows (0: none yet) are too few: ``asked`` the first time, and at
+    least INFLOW_GROWTH times ``held`` after it."""
+    return max(int(asked), 1, int(INFLOW_GROWTH * held))
 # A frame's candidates are generated, classified and placed this many at a time, in arrays of this size
 # made once (45 bytes a candidate: 190 MB at most): a splash makes up to ~86 a fluid particle (2.4M
 # from the r = 4 mm dam break's 125k), which stored whole would grow with the fluid (3.9 kB a fluid
@@ -482,7 +488,7 @@ class FoamGenerator:
     # ------------------------------------------------------------------ one frame
     def _fluid_grid(self, n: int) -> NeighborGrid:
         if self.grid is None or self.grid.capacity < n:
-            rows = max(n, 1, int(INFLOW_GROWTH * self.grid.capacity) if self.grid is not None else 0)
+            rows = _outgrown(n, self.grid.capacity if self.grid is not None else 0)
             self.grid = None  # the old grid's arrays go before the new ones are made
             self.grid = NeighborGrid(grid_spec(self.lo, self.hi, self.h / 2), rows, MAX_FLUID_NEIGHBOURS, self.h)
         return self.grid
@@ -709,11 +715,10 @@ class FoamGenerator:
         """The live particles' two sets of arrays (positions, velocities, lifetimes, ids, types; compaction
         writes one from the other) and their keep flags and places, ``rows`` each; made again larger (by
         INFLOW_GROWTH at least) only when more rows are asked for, the live ones copied over."""
-        rows = max(int(rows), 1)
-        if self._live and self._live[0]["x"].shape[0] >= rows:
+        held = self._live[0]["x"].shape[0] if self._live else 0
+        if held >= max(int(rows), 1):
             return
-        if self._live:  # outgrown (an inflow): made larger than asked, so that it is not made again next frame
-            rows = max(rows, int(INFLOW_GROWTH * self._live[0]["x"].shape[0]))
+        rows = _outgrown(rows, held)  # outgrown (an inflow): larger than asked, not to be made again next frame
         self.settle()
         keep = self._download() if self._live and self._nd else None
         self._live = []  # the old arrays go before the new ones are made
