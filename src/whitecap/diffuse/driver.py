@@ -40,6 +40,7 @@ from ..io.run import COUNTS_CSV, FOAM_RESUME, RUN_JSON, RunInfo, claim_run_dir, 
 from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
+from ..timing import timer
 from .generator import DiffuseState, FoamGenerator
 from .params import FoamParams, IniFile, read_ini, resolve
 
@@ -159,7 +160,8 @@ class FoamStage(FrameHook):
         rel = frame_name("diffuse", index)
         self._unwritten = (out, rel, d, self.generator.pending)
         if self.verbose:
-            console.print(f"frame {index}: {self.status()}")
+            with timer("foam.say"):
+                console.print(f"frame {index}: {self.status()}")
         return rel
 
     def write(self, writer=None) -> None:
@@ -460,34 +462,37 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
     info = RunInfo.load(src)  # read again under the lock: what is current cannot change from here on
     files = [(i, src / rel) for i, rel in info.files("fluid")] if fluid is None else fluid[0]
     reader = _Reader(files, {} if fluid is None else fluid[1])
-    first = reader.first()
-    # Results go into the run; into another folder, the fluid frames are copied along so the
-    # output is a complete run directory, which records itself before any file lands in it. Frames
-    # read from a foreign sequence (``fluid``) are written into the run alike.
-    convert = fluid is not None or out.resolve() != src.resolve()
-    if convert and fluid is None:
-        info = _start_copy(info, src, out)
-    if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
-        p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
-    for d in (out, out / "diffuse", out / "fluid"):  # temporary files of a writer killed mid-file (kill -9)
-        sweep_temps(d)
-    stage = FoamStage(p, seed, verbose=True, obstacles=grids, arch=arch)
-    stage.names = names
-    stage.last_frame = files[-1][0] if files else None
-    stage.start(info)
-    identity = pass_identity(info, p, seed, frame_dt, look_ahead, files)
-    done = _resume_point(out, info, identity, files, convert)
+    with timer("foam.setup"):  # (--profile: what a pass costs before its frames, as foam.look_ahead)
+        first = reader.first()
+        # Results go into the run; into another folder, the fluid frames are copied along so the
+        # output is a complete run directory, which records itself before any file lands in it. Frames
+        # read from a foreign sequence (``fluid``) are written into the run alike.
+        convert = fluid is not None or out.resolve() != src.resolve()
+        if convert and fluid is None:
+            info = _start_copy(info, src, out)
+        if p.model == "foamgenerator":  # FoamGenerator's count per particle and frame reaches 2 foamscale Δt
+            p = replace(p, max_particles=max(p.max_particles or 0, FOAMGENERATOR_CAPACITY * len(first)))
+        for d in (out, out / "diffuse", out / "fluid"):  # temporary files of a writer killed mid-file (kill -9)
+            sweep_temps(d)
+        stage = FoamStage(p, seed, verbose=True, obstacles=grids, arch=arch)
+        stage.names = names
+        stage.last_frame = files[-1][0] if files else None
+        stage.start(info)
+        identity = pass_identity(info, p, seed, frame_dt, look_ahead, files)
+        done = _resume_point(out, info, identity, files, convert)
     if done is not None and done[0] == len(files):
         console.print(f"foam: {out}: the {len(files)} diffuse frames of this pass (seed {seed}) are complete; "
                       "nothing to do", soft_wrap=True)
         info.extra["out"], info.extra["made"] = str(out), 0
         return info
     if p.model == "foamgenerator":
-        tau = _foamgenerator_limits(stage.generator, reader, show_progress)
+        with timer("foam.look_ahead"):
+            tau = _foamgenerator_limits(stage.generator, reader, show_progress)
         stage.generator.state.tau = tau
         info.extra["foam_limits"] = [float(t) for t in tau]  # ta, wc, ke [J], vo: min/max pairs
     elif p.auto and look_ahead:
-        _calibrate(stage, reader, info, frame_dt)
+        with timer("foam.look_ahead"):
+            _calibrate(stage, reader, info, frame_dt)
     start = 0
     if done is not None:  # after the look-ahead, which sets the plan the record's corrections go into
         start, record = done
@@ -701,9 +706,11 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
         task = bar.add_task("foam", total=len(reader.files), completed=start, info="")
         for k in range(start, len(reader.files)):
             index = reader.files[k][0]
-            fr = reader.read(k)
+            with timer("foam.read"):  # what is left of reading the frame once the last one is computed
+                fr = reader.read(k)
             reader.read_next(k + 1)  # on the reader's thread while this frame is processed
-            fr.check_finite()
+            with timer("foam.check"):
+                fr.check_finite()
             fr.time = info.frame(index).time
             rel = stage.on_frame(fr, index, frame_dt, out, info)
             if convert:  # after the step: a frame that fails there leaves no file of its own behind
@@ -713,11 +720,12 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
                 info.set_file(index, "fluid", fluid, fr.time)
             stage.write(writer)
             info.set_file(index, "diffuse", rel, fr.time)
-            writer.submit(functools.partial(write_text, out / RUN_JSON, info.dumps()), "run.json")
-            writer.submit(functools.partial(write_arrays, out / FOAM_RESUME, _resume_record(stage, index, identity)),
-                          "resume")
-            c = stage.generator.state.counts[-1]
-            bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
+            with timer("foam.records"):  # run.json's text, the resume record, the progress bar
+                text, record = info.dumps(), _resume_record(stage, index, identity)
+                c = stage.generator.state.counts[-1]
+                bar.update(task, advance=1, info=f"{len(fr):,} fluid  spray {c[2]:,}  foam {c[3]:,}  bubbles {c[4]:,}")
+            writer.submit(functools.partial(write_text, out / RUN_JSON, text), "run.json")
+            writer.submit(functools.partial(write_arrays, out / FOAM_RESUME, record), "resume")
 
 
 def _report(stage: FoamStage) -> None:

@@ -668,7 +668,8 @@ class FoamGenerator:
         device when step returns, by a thread of its own (runtime.rows_to_host_later): the caller waits for
         :attr:`pending` before it reads them (or calls :meth:`settle`); the next step, a checkpoint's state and
         anything else here that reads them waits first. Elsewhere, or without ``defer``, the frame is whole."""
-        self.settle()
+        with timer("foam.settle"):  # the last frame's read-back (defer), where it is still coming
+            self.settle()
         st = self.state
         _velocities(fluid)  # a frame without velocities stops here, before anything is sized
         n = len(fluid)
