@@ -13,10 +13,14 @@ and the ratio to issue 31's reference figures on 2 CPU cores (diffuse 356 ms a f
 Each configuration runs in its own process (one Taichi runtime per process). ``--against`` runs the
 foam-on case once more with another checkout's package (e.g. ``git archive 80c2fce | tar -x -C OLD``)
 and prints the diffuse share of both, measured in the same run, and their ratio. ``--pin`` runs it once
-more with the read-back's host arrays page-locked (sim/runtime.py PIN_READBACK), to tell whether the
-diffuse particles' copy into pageable memory slows the loop; ``--arrays`` once more with the fluid and
+more with the read-back's host arrays page-locked or not, whichever sim/runtime.py PIN_READBACK does not
+(on since 2026-11-28), to tell what the diffuse particles' copy into pageable memory costs the loop;
+``--arrays`` once more with the fluid and
 diffuse frames read back array by array and packed by the writer, as before they were made as their
-files' records (c268cca, 68bb59a).
+files' records (c268cca, 68bb59a). ``--repeat N`` runs the whole list N times, one configuration after the
+other, and prints each round's foam-on / foam-off ratios and their medians (a GPU's figures drift from run to
+run). ``--kernels`` runs foam on and off once more each with Taichi's kernel profiler on, and prints each kernel's
+device time a frame: where foam-on's frames go on the device, which the host's timers (waits included) cannot say.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -54,12 +60,50 @@ def _scene(radius: float, frames: int):
     )
 
 
-def run_one(radius: float, frames: int, arch: str, foam: bool, pin: bool = False, arrays: bool = False) -> dict:
+def _kernel_name(name: str) -> str:
+    """A Taichi kernel's Python name, from its compiled name (``birth_counts_c80_0_kernel_3_range_for``)."""
+    return re.split(r"_c\d+_\d+", name, maxsplit=1)[0]
+
+
+def _kernel_times() -> tuple[float, list]:
+    """Device time [ms] of every kernel launched since the profiler was cleared, summed by Python name, most first.
+    (Taichi's public API only prints its table; its profiler's records are read here instead.)"""
+    import taichi as ti
+
+    prof = ti.profiler.kernel_profiler.get_default_kernel_profiler()
+    prof._update_records()
+    by: dict[str, list] = {}
+    for rec in prof._traced_records:
+        t = by.setdefault(_kernel_name(rec.name), [0.0, 0])
+        t[0] += rec.kernel_time
+        t[1] += 1
+    rows = sorted(([k, v[0], v[1]] for k, v in by.items()), key=lambda r: -r[1])
+    return sum(r[1] for r in rows), rows
+
+
+def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool = False, arrays: bool = False,
+            kernels: bool = False) -> dict:
     from whitecap import timing
     from whitecap.pipeline import simulate
     from whitecap.sim import runtime
 
-    runtime.PIN_READBACK = pin
+    if other_pin:
+        runtime.PIN_READBACK = not runtime.PIN_READBACK
+    if kernels:  # Taichi's kernel profiler: runtime.init's ti.init with kernel_profiler=True
+        import taichi as ti
+
+        from whitecap.sim import pbf
+
+        init = ti.init
+        ti.init = lambda *args, **kw: init(*args, kernel_profiler=True, **kw)
+        # the solver's phases kernel by kernel: the profiler sees no kernel launched inside a compute graph
+        made = pbf.PBFSolver.__init__
+
+        def without_graphs(self, *args, **kw):
+            made(self, *args, **kw)
+            self.use_graph = False
+
+        pbf.PBFSolver.__init__ = without_graphs
     if arrays:  # every frame read back array by array and packed by the writer, as before c268cca
         from whitecap.sim import records
 
@@ -73,12 +117,19 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, pin: bool = False
         warm = min(frames, WARM_FRAMES)
         simulate(_scene(2 * radius, warm), out=tmp + "/warm", frames=warm, arch=arch, foam=foam, show_progress=False)
         timing.reset()
+        if kernels:
+            import taichi as ti
+
+            ti.profiler.clear_kernel_profiler_info()
         t0 = time.perf_counter()
         info = simulate(sc, out=tmp + "/run", frames=frames, arch=arch, foam=foam, profile=True, show_progress=False)
         wall = time.perf_counter() - t0
         n = int(info.extra.get("n_particles", 0) or 0) if hasattr(info, "extra") else 0
     t = {k: v[0] for k, v in timing.TIMERS.items()}
-    return {"timers": t, "n": n, "wall": wall}
+    out = {"timers": t, "n": n, "wall": wall}
+    if kernels:
+        out["kernel_ms"], out["kernels"] = _kernel_times()
+    return out
 
 
 def _top(t: dict) -> dict:
@@ -99,16 +150,21 @@ def main() -> None:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--foam-only", action="store_true", help="skip the run with foam off")
     ap.add_argument("--against", help="another checkout's src folder: its foam-on run, for the before/after ratio")
-    ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned")
+    ap.add_argument("--pin", action="store_true", help="one more foam-on run, the read-back's host arrays pinned "
+                    "where sim/runtime.py PIN_READBACK leaves them pageable, and the other way round")
     ap.add_argument("--arrays", action="store_true", help="one more foam-on run, the fluid and diffuse frames read "
                     "back array by array and packed by the writer (not made as their files' records on the device)")
+    ap.add_argument("--repeat", type=int, default=1, help="run the list this many times, one after the other")
+    ap.add_argument("--kernels", action="store_true", help="foam on and off once more each, with each kernel's "
+                    "device time (Taichi's kernel profiler)")
     ap.add_argument("--one", choices=["on", "off"], help=argparse.SUPPRESS)
-    ap.add_argument("--pinned", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--other-pin", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--by-array", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--profiled", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     os.environ.setdefault("WHITECAP_PROGRESS", "0")
     if a.one:
-        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.pinned, a.by_array)
+        r = run_one(a.radius, a.frames, a.arch, a.one == "on", a.other_pin, a.by_array, a.profiled)
         print("RESULT " + json.dumps(r))
         return
     results = {}
@@ -116,10 +172,15 @@ def main() -> None:
     if a.against:
         runs.append(("on, against", "on", os.path.abspath(a.against), []))
     if a.pin:
-        runs.append(("on, pinned read-back", "on", None, ["--pinned"]))
+        from whitecap.sim import runtime
+
+        runs.append((f"on, {'pageable' if runtime.PIN_READBACK else 'pinned'} read-back", "on", None, ["--other-pin"]))
     if a.arrays:
         runs.append(("on, read back array by array", "on", None, ["--by-array"]))
-    for name, mode, src, extra in runs:
+    rounds: list[dict] = []
+    for name, mode, src, extra in runs * a.repeat + ([("on, kernels", "on", None, ["--profiled"]),
+                                                       ("off, kernels", "off", None, ["--profiled"])]
+                                                      if a.kernels else []):
         cmd = [
             sys.executable, __file__, "--radius", str(a.radius), "--frames", str(a.frames), "--arch", a.arch,
             "--one", mode, *extra,
@@ -129,7 +190,13 @@ def main() -> None:
             if src else None
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
         results[name] = json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
+        if name == runs[0][0]:
+            rounds.append({})
+        if "kernels" not in name:
+            rounds[-1][name] = _loop(results[name]["timers"])
     for mode, r in results.items():
+        if "kernels" in mode:
+            continue
         t = r["timers"]
         top = _top(t)
         total = _loop(t)
@@ -158,10 +225,36 @@ def main() -> None:
               f"({share['on'] / share['on, against']:.2f}x); diffuse phase {phase:.2f}x its time")
     if "off" in results:
         off = _loop(results["off"]["timers"])
-        for name in (k for k in results if k.startswith("on") and "against" not in k):
+        for name in (k for k in results if k.startswith("on") and "against" not in k and "kernels" not in k):
             on = _loop(results[name]["timers"])
             print(f"foam {name} / foam off wall time: {on / off:.2f}x  (frame rate with foam: {off / on:.2f}x of "
                   "without)")
+    if len(rounds) > 1 and all("off" in r for r in rounds):
+        for name in (k for k in rounds[0] if k.startswith("on") and "against" not in k):
+            rates = [r["off"] / r[name] for r in rounds]
+            ms = [1e3 * r[name] / a.frames for r in rounds]
+            print(f"foam {name}: frame rate with foam over without, round by round "
+                  f"{', '.join(f'{x:.2f}' for x in rates)}x, median {statistics.median(rates):.2f}x "
+                  f"({', '.join(f'{x:.0f}' for x in ms)} ms a frame)")
+        offs = [1e3 * r["off"] / a.frames for r in rounds]
+        print(f"foam off: {', '.join(f'{x:.0f}' for x in offs)} ms a frame")
+    for mode in ("on, kernels", "off, kernels"):
+        if mode in results:
+            r = results[mode]
+            f = a.frames
+            print(f"== foam {mode.split(',')[0]}, each kernel's device time (Taichi's kernel profiler; its timing "
+                  f"slows the run): {r['kernel_ms'] / f:.1f} ms a frame on the device in all, the loop "
+                  f"{1e3 * _loop(r['timers']) / f:.0f} ms a frame; the solver's phases kernel by kernel, not as "
+                  "graphs)")
+            for k, ms, count in r["kernels"][:24]:
+                print(f"  {k:40s} {ms / f:8.2f} ms/frame {count / f:7.1f} launches/frame")
+    if "on, kernels" in results and "off, kernels" in results:
+        on, off = results["on, kernels"], results["off, kernels"]
+        f = a.frames
+        dev = (on["kernel_ms"] - off["kernel_ms"]) / f
+        loop = 1e3 * (_loop(on["timers"]) - _loop(off["timers"])) / f
+        print(f"foam on adds {dev:.1f} ms a frame of kernels on the device and {loop:.1f} ms a frame to the loop: what "
+              f"the loop adds beyond its kernels ({loop - dev:.1f} ms) is the host's work and the device left idle")
 
 
 if __name__ == "__main__":

@@ -61,13 +61,13 @@ step 90  "solver, CUDA, 1 M, 100 steps"        "$PY" benchmarks/bench_solver.py 
 # 2026-11-28's records made on the device), alternating
 step 90  "foam post-processing, CUDA, 1 M particles, 10 frames (and read back array by array)" \
     "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" --profile --arrays
-# foam on against off (target >= 0.8x), then foam on twice more: the read-back's host arrays pinned, and the frames
-# read back array by array and packed by the writer (as before the records made on the device); whether the diffuse
-# particles' copy into pageable memory slows the solver's steps (they took 15-18 ms a frame longer with foam on at the
-# last lease), and what the records gave. (The writer's threads no longer pack either file, and write records in one
-# piece: the run with them cut to 4 is gone.)
-step 230 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames (and foam on: pinned read-back; read back array by array)" \
-    "$PY" benchmarks/bench_simulate_foam.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 40 3)" --pin --arrays
+# foam on against off (target >= 0.8x), twice, each time with foam on once more with the read-back's host arrays
+# pageable (pinned by default since the H200 lease of 2026-11-28: 133 ms a frame against 155 pageable, measured once);
+# then foam on and off once more each with Taichi's kernel profiler: each kernel's device time a frame, where
+# foam-on's extra time goes on the device (the host's timers hold the device's waits wherever a value is read back)
+step 230 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames, twice (and foam on: pageable read-back; kernels)" \
+    "$PY" benchmarks/bench_simulate_foam.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 40 3)" --pin \
+    --repeat 2 --kernels
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
 step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, bytes packed beforehand" \
     "$PY" benchmarks/bench_writer.py --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"

@@ -187,11 +187,12 @@ def device_idle() -> bool:
 
 
 #: Page-lock the host arrays frames are read back into (io.array_pool's blocks, cuMemHostRegister), so that the
-#: driver copies into them by DMA instead of through its own staging buffer. Off until measured on a GPU: the
-#: solver's steps took 15-18 ms a frame longer with foam on at 1 M particles on an H100, and the read-back of the
-#: diffuse particles into pageable memory, made while they run, is the likeliest cause (benchmarks/RESULTS.md);
-#: ``bench_simulate_foam.py --pin`` runs foam on once more with it on.
-PIN_READBACK = False
+#: driver copies into them by DMA instead of through its own staging buffer (a block the driver will not take stays
+#: pageable). Measured on an H200 (2026-11-28, benchmarks/RESULTS.md): `simulate` with foam at 1 M particles took
+#: 133 ms a frame pinned against 155 and 138 pageable (the solver's steps 77 ms against 85 and 81, the loop's output
+#: 17 against 26 and 24); frames byte-identical either way (tests/test_gpu.py). ``bench_simulate_foam.py --pin``
+#: runs foam on once more with the other setting.
+PIN_READBACK = True
 
 
 def host_pinning() -> tuple[Callable[[int, int], bool] | None, Callable[[int], None] | None]:
