@@ -400,6 +400,17 @@ MUTATIONS: list[Mutation] = [
     M("list-slots-past-int32", "sim/grid.py",
       "    fit = MAX_NDARRAY_ELEMENTS // max(int(capacity), 1)", "    fit = 2**40 // max(int(capacity), 1)",
       ["tests/test_grid.py", "tests/test_solver.py"], "neighbour lists of 50 M particles past Taichi's 32-bit index"),
+    M("checkpoint-live-from-another-array", "diffuse/driver.py",
+      '    return {"positions": last.positions, "velocities": last.velocities,',
+      '    return {"positions": last.velocities, "velocities": last.velocities,',
+      ["tests/test_diffuse.py"], "a resume's live diffuse particles read back from the wrong field of their file"),
+    M("checkpoint-live-count-unchecked", "diffuse/driver.py",
+      '    if len(last) != live or "lifetime" not in last.arrays or last.velocities is None or last.ids is None:',
+      '    if False:',
+      ["tests/test_diffuse.py"], "a resume takes another frame's diffuse particles from a changed file"),
+    M("checkpoint-live-lost-with-a-pass", "diffuse/driver.py",
+      "        _keep_live_in_checkpoint(out, {rel for _, rel in old})\n", "        pass\n",
+      ["tests/test_diffuse.py"], "a foam pass removes the diffuse file simulate's checkpoint takes its particles from"),
 ]
 
 

@@ -358,7 +358,11 @@ def test_simulate_going_on_after_a_foam_pass_never_lists_frames_of_both(tmp_path
     d = tiny_scene_dict(output={"frames": 5}, foam=FOAM)
     run = tmp_path / "run"
     simulate(scene_from_dict(d), out=run, show_progress=False)
+    assert "diffuse/live_file" in _checkpoint(run)
     postprocess(run, seed=9, show_progress=False)
+    # simulate's own diffuse frames left with the pass: the checkpoint now holds the live particles itself
+    ck = _checkpoint(run)
+    assert "diffuse/live_file" not in ck and len(ck["diffuse/positions"]) == int(ck["diffuse/counts"][-1][2:].sum())
     info = RunInfo.load(run)
     post = {i: (run / rel).read_bytes() for i, rel in info.files("diffuse")}
     assert sorted(post) == list(range(6)) and info.extra["foam_pass"]["seed"] == 9
@@ -385,6 +389,80 @@ def test_simulate_going_on_after_a_foam_pass_never_lists_frames_of_both(tmp_path
     d["output"]["frames"] = 9
     simulate(scene_from_dict(d), out=run, resume=True, show_progress=False)  # resumed again: the same rule
     assert counted() == [6, 7, 8, 9]
+
+
+def _checkpoint(run: Path) -> dict:
+    with np.load(run / "checkpoint.npz") as z:
+        return {k: z[k] for k in z.files}
+
+
+def _stopped_after(frame: int, monkeypatch):
+    """simulate's solver raises KeyboardInterrupt (Ctrl-C) when it starts the frame after ``frame``."""
+    from whitecap.sim import driver
+
+    build = driver.build_solver
+
+    def stopping(*a, **kw):
+        solver = build(*a, **kw)
+        advance = solver.advance_frame
+
+        def advance_frame(index, *b, **kb):
+            if index > frame:
+                raise KeyboardInterrupt
+            return advance(index, *b, **kb)
+
+        solver.advance_frame = advance_frame
+        return solver
+
+    monkeypatch.setattr(driver, "build_solver", stopping)
+
+
+def test_a_checkpoint_takes_its_live_particles_from_its_frames_diffuse_file_and_resumes_the_same_bytes(
+        tmp_path, monkeypatch):
+    """simulate's checkpoint holds the foam's state without the live diffuse particles, and names the frame's
+    diffuse file, which holds them exactly, instead; resumed from it, the frames after it are the bytes of the
+    uninterrupted run."""
+    d = tiny_scene_dict(output={"frames": 9}, foam=FOAM)
+    full, part = tmp_path / "full", tmp_path / "part"
+    simulate(scene_from_dict(d), out=full, show_progress=False)
+    with monkeypatch.context() as m:
+        _stopped_after(6, m)
+        with pytest.raises(KeyboardInterrupt):
+            simulate(scene_from_dict(d), out=part, show_progress=False)
+    ck = _checkpoint(part)
+    assert int(ck["frame"]) == 6 and str(ck["diffuse/live_file"]) == "diffuse/diffuse_00006.ply"
+    assert not {"diffuse/positions", "diffuse/velocities", "diffuse/lifetime", "diffuse/ids"} & ck.keys()
+    assert int(ck["diffuse/counts"][-1][2:].sum()) == len(diffuse(part, 6)) > 100  # particles alive to restore
+    simulate(scene_from_dict(d), out=part, resume=True, show_progress=False)
+    for i in range(7, 10):
+        for kind in ("fluid", "diffuse"):
+            rel = f"{kind}/{kind}_{i:05d}.ply"
+            assert (part / rel).read_bytes() == (full / rel).read_bytes(), rel
+
+
+@pytest.mark.parametrize("change", ["gone", "other particles"])
+def test_a_resume_whose_checkpoints_diffuse_file_is_gone_or_changed_is_one_line_naming_it(tmp_path, capsys, change):
+    """The checkpoint's live particles come from the diffuse file it names: where that file is gone or holds
+    other particles, `simulate --resume` stops with one line naming it and changes nothing in the run."""
+    from whitecap.io.lock import LOCK_FILE
+
+    d = tiny_scene_dict(output={"frames": 6}, foam=FOAM)
+    run, toml = tmp_path / "run", tmp_path / "s.toml"
+    simulate(scene_from_dict(d), out=run, frames=4, show_progress=False)
+    assert len(diffuse(run, 4)) != len(diffuse(run, 3))
+    toml.write_text(scene_from_dict(d).to_toml())
+    f = run / "diffuse" / "diffuse_00004.ply"
+    if change == "gone":
+        f.unlink()
+    else:
+        io.write(f, diffuse(run, 3))  # another frame's particles
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE}
+    capsys.readouterr()
+    code = main(["simulate", str(toml), "--out", str(run), "--resume"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error")]
+    assert code != 0 and len(err) == 1 and err[0].startswith(f"error: {f}: "), err
+    assert "start over with `whitecap simulate --force`" in err[0]
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE} == before
 
 
 def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run, tmp_path, monkeypatch):
