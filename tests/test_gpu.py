@@ -335,6 +335,10 @@ from whitecap.pipeline import simulate
 from tests.conftest import tiny_scene_dict
 scene = scene_from_dict(tiny_scene_dict(output={"frames": 6}, foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0}))
 simulate(scene, out=sys.argv[2], arch="cuda", show_progress=False)
+from whitecap.diffuse import postprocess
+from whitecap.diffuse.params import resolve
+postprocess(sys.argv[2], out=sys.argv[2] + "/pass", params=resolve(preset="auto"), seed=11, arch="cuda",
+            show_progress=False)  # a foam pass too
 pin, unpin = runtime.host_pinning()
 pool = ArrayPool({"x": (np.float32, (3,))}, pin=pin, unpin=unpin)
 pool.take(1000)
@@ -343,8 +347,9 @@ print("PINNED", pool.pinned)
 
 
 def test_a_pinned_read_back_writes_the_same_frames(tmp_path):
-    """runtime.PIN_READBACK: the host arrays frames are read back into are page-locked (cuMemHostRegister) and the
-    driver copies into them by DMA; simulate with foam writes the same fluid and diffuse files as without."""
+    """runtime.PIN_READBACK (on by default since 2026-11-28): the host arrays frames are read back into are
+    page-locked (cuMemHostRegister) and the driver copies into them by DMA; simulate with foam, and a foam pass over
+    its frames, write the same fluid and diffuse files as without."""
     from pathlib import Path
 
     root = Path(__file__).parents[1]
@@ -357,7 +362,9 @@ def test_a_pinned_read_back_writes_the_same_frames(tmp_path):
         out = tmp_path / mode
         files[mode] = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.ply"))}
     assert pinned == {"off": 0, "on": 1}
-    assert any(k.startswith("diffuse/") for k in files["on"]) and files["on"] == files["off"]
+    made = {d: sum(len(b) for k, b in files["on"].items() if k.startswith(d)) for d in ("diffuse/", "pass/diffuse/")}
+    assert min(made.values()) > 50_000, made  # each writes thousands of diffuse particles (37 B each)
+    assert files["on"] == files["off"]
 
 
 RECORDS_SCRIPT = """
