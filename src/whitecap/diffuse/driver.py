@@ -745,13 +745,9 @@ def _resume_point(out: Path, info: RunInfo, identity: str, files: list[tuple[int
         if pos < 0 or any(k not in listed.get(i, {}) or not (out / listed[i][k]).is_file()
                           for i in order[:pos + 1] for k in kinds):
             return None
-        last = read(out / listed[index]["diffuse"])
-        live = int(np.asarray(data["counts"])[-1][2:].sum())
-        if len(last) != live or "lifetime" not in last.arrays or last.velocities is None:
-            return None
+        data.update(_live_particles(out / listed[index]["diffuse"], data["counts"]))
     except (OSError, ValueError, KeyError, IndexError, InputError):
-        return None  # an unreadable or partial record: the pass starts over
-    data.update(positions=last.positions, velocities=last.velocities, lifetime=last.arrays["lifetime"], ids=last.ids)
+        return None  # an unreadable or partial record, or a file of other particles: the pass starts over
     return pos + 1, data
 
 
