@@ -465,6 +465,33 @@ def test_a_resume_whose_checkpoints_diffuse_file_is_gone_or_changed_is_one_line_
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE} == before
 
 
+def test_a_profile_totals_the_top_phases_once_whether_named_plainly_or_with_dots():
+    """timing.top_level: simulate's phases are plain names (pbf.* and foam.* nested in them); a foam pass's are all
+    dotted, and there a phase is top-level unless another is its parent; the writer's thread never counts."""
+    from whitecap.timing import top_level
+
+    sim = ["step", "diffuse", "output", "pbf.constraints", "foam.generate", "output.wait", "writer.fluid"]
+    assert top_level(sim) == ["step", "diffuse", "output"]
+    foam = ["foam.generate", "foam.generate.auto", "foam.generate.classify", "foam.advect", "output.wait",
+            "writer.diffuse", "writer.run.json", "foam.look_ahead"]
+    assert top_level(foam) == ["foam.generate", "foam.advect", "output.wait", "foam.look_ahead"]
+
+
+def test_foam_profile_prints_the_passs_phases_whose_top_level_shares_make_the_whole(foam_run, tmp_path, capsys):
+    """`whitecap foam --profile`: the pass's named phases, each once; the top-level ones (set-up, look-ahead, the
+    frames' steps, the waits for the writer) add up to 100 % of their total, the nested and the writer's thread
+    beside them."""
+    capsys.readouterr()
+    assert main(["foam", str(foam_run), "--out", str(tmp_path / "p"), "--seed", "4", "--profile"]) == 0
+    out = capsys.readouterr().out
+    rows = {ln.split()[0]: float(ln.split()[-1].rstrip("%")) for ln in out[out.index("foam profile:"):].splitlines()[2:]
+            if ln.strip().endswith("%")}
+    top = {"foam.setup", "foam.look_ahead", "foam.read", "foam.check", "foam.potentials", "foam.advect",
+           "foam.generate", "foam.compact", "foam.say", "foam.records", "foam.settle"}
+    assert top <= rows.keys() and {"foam.generate.counts", "writer.diffuse"} <= rows.keys(), sorted(rows)
+    assert sum(v for k, v in rows.items() if k in top or k == "output.wait") == pytest.approx(100, abs=0.5)
+
+
 def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run, tmp_path, monkeypatch):
     """Inside simulate the foam stage copies the solver's arrays on the device (K.copy_fluid) instead of uploading
     the frame it was handed: the same particles in the same order, so the same diffuse bytes as the upload."""

@@ -105,6 +105,7 @@ def _add_foam(sub) -> None:
     p.add_argument("--seed", type=int, help="random seed (default: the run's)")
     p.add_argument("--force", action="store_true", help="replace a run of another simulation at --out (whole)")
     p.add_argument("--arch", default=DEFAULT_ARCH, choices=ARCHES, help=f"Taichi backend (default {DEFAULT_ARCH})")
+    p.add_argument("--profile", action="store_true", help="print time spent per phase")
     p.set_defaults(func=_cmd_foam)
 
 

@@ -244,7 +244,7 @@ def foam(
     """Diffuse particles over any particle sequence (see :func:`whitecap.diffuse.postprocess`).
 
     ``job`` is a :class:`whitecap.diffuse.FoamJob` (its fields and defaults are the options:
-    preset, up, dt, radius, seed, show_progress, force, arch); ``options`` build one, or replace
+    preset, up, dt, radius, seed, show_progress, force, arch, profile); ``options`` build one, or replace
     those fields of ``job``. With ``ini`` (a parameter file), ``input`` may be left out when the
     file names the job (a VisualSPHysics foam .ini: [PATHS], [TIMESTEPS], [DOMAIN]); see
     :func:`whitecap.diffuse.postprocess_params_file`.
@@ -253,15 +253,19 @@ def foam(
     from .errors import InputError
 
     job = with_options(FoamJob, job, options)
-    if ini is not None:
-        from .diffuse import postprocess_params_file
-
-        return postprocess_params_file(ini, src=input, out=out, case=case, job=job)
-    if input is None:
+    if ini is None and input is None:
         raise InputError("foam: give the INPUT sequence, or --params FILE naming it ([PATHS] InputDataPath)")
-    from .diffuse import postprocess
+    from .diffuse import postprocess, postprocess_params_file
 
-    return postprocess(input, out=out, case=case, job=job)
+    timing.reset()
+    if ini is not None:
+        info = postprocess_params_file(ini, src=input, out=out, case=case, job=job)
+    else:
+        assert input is not None  # (refused above)
+        info = postprocess(input, out=out, case=case, job=job)
+    if job.profile:
+        print(timing.report("foam profile"))
+    return info
 
 
 # ============================================================================ import a foreign case

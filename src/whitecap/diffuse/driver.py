@@ -338,7 +338,7 @@ class FoamJob:
     ``preset`` replaces the run's [foam] preset; ``up`` is the input's up axis; ``dt`` [s] and
     ``radius`` [m] the time between frames and the particle radius where the input does not say
     them; ``seed`` replaces the run's; ``force`` replaces a run of another simulation at the
-    output, whole; ``arch`` the Taichi backend (cpu, cuda, auto).
+    output, whole; ``arch`` the Taichi backend (cpu, cuda, auto); ``profile`` prints the time per phase.
     """
 
     preset: str | None = None
@@ -349,6 +349,7 @@ class FoamJob:
     show_progress: bool = True
     force: bool = False
     arch: str = DEFAULT_ARCH
+    profile: bool = False
 
 
 def postprocess(
