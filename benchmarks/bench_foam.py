@@ -174,7 +174,7 @@ def main() -> None:
         from whitecap.timing import top_level
 
         rest = got["this"][-1]["wall"] - sum(ph[k] for k in top_level(ph))
-        print(f"  {'(loop, unnamed)':20s} {1e3 * rest:8.1f} ms/frame: hand-offs, counts (the run.json list, the pool)")
+        print(f"  {'(loop, unnamed)':20s} {1e3 * rest:8.1f} ms/frame: hand-offs to the writer, run.json's entries")
     print(f"vs target {TARGET_FPS} frames/s: {fps / TARGET_FPS:.2f}x;  vs SPlisHSPlasH FoamGenerator at 100k "
           f"(~{REFERENCE_FPS_100K} frames/s): {fps / REFERENCE_FPS_100K:.2f}x")
     if a.arrays:
