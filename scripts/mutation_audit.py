@@ -411,6 +411,12 @@ MUTATIONS: list[Mutation] = [
     M("checkpoint-live-lost-with-a-pass", "diffuse/driver.py",
       "        _keep_live_in_checkpoint(out, {rel for _, rel in old})\n", "        pass\n",
       ["tests/test_diffuse.py"], "a foam pass removes the diffuse file simulate's checkpoint takes its particles from"),
+    M("readback-waited-before-the-next-frame", "diffuse/generator.py",
+      "        if self._pending_reads_live:\n", "        if True:\n",
+      ["tests/test_background_writer.py"], "the next frame's kernels wait for the last frame's records to come back"),
+    M("records-packed-over-their-copy", "diffuse/generator.py",
+      "            self.settle()  # array is packed again below", "            pass  # array is packed again below",
+      ["tests/test_background_writer.py"], "a frame's records packed into the array the last frame's copy reads"),
 ]
 
 

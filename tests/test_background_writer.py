@@ -440,6 +440,70 @@ def test_a_diffuse_frame_still_coming_back_from_the_device_is_written_and_checkp
     assert later == now
 
 
+def test_the_next_frames_kernels_run_while_the_last_frames_records_come_back_never_packing_over_them(
+        tmp_path, monkeypatch):
+    """On CUDA a frame's diffuse records come back on a thread of their own while the next frame is computed: the
+    next step's advection runs before that copy is done (the loop waits for it only where the records' device array
+    is packed again, FoamGenerator._download), and no records array is packed while a copy of it is in flight.
+    Here a stand-in copy (as in the test above) finishes only once the next frame's advection has started, or after
+    a second without it (the next frame waited for the copy first, as before 2026-11-28), and then stays in flight
+    0.3 s more: a pack of its records that does not wait for it finds it in flight, which stops the run.
+    The files are those of copies made at once."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.sim import records, runtime
+
+    scene = scene_from_dict(tiny_scene_dict(output={"frames": 6}, foam={"enabled": True}))
+    simulate(scene, out=tmp_path / "now", show_progress=False)
+    pool, advected, packing = ThreadPoolExecutor(max_workers=1), threading.Event(), threading.Event()
+    in_flight: set[int] = set()  # the device arrays a copy still reads
+    overlapped: list[bool] = []  # per copy: the next frame's advection started before it was done
+
+    advect = K.advect_diffuse
+    monkeypatch.setattr(K, "advect_diffuse", lambda *a: advected.set() or advect(*a))
+    made = records.RecordReader.__init__
+
+    def guarded_reader(self, *a, **kw):
+        made(self, *a, **kw)
+        pack = self.pack
+
+        def guarded(n, *args):
+            if id(args[-1]) in in_flight:  # (the fluid's records, packed every frame too, are never in flight)
+                packing.set()
+                raise AssertionError("records packed over while their copy is in flight")
+            return pack(n, *args)
+
+        self.pack = guarded
+
+    def rows_to_host_later(*pairs, then=None):
+        rows = [(host, nd.to_numpy()[: len(host)]) for host, nd in pairs]  # the device's rows as they are now
+        keys = {id(nd) for _, nd in pairs}
+        in_flight.update(keys)
+        advected.clear()
+        packing.clear()
+
+        def copy() -> bool:
+            overlapped.append(advected.wait(1.0))
+            packing.wait(0.3)
+            for host, r in rows:
+                host[...] = r
+            in_flight.difference_update(keys)
+            if then is not None:
+                then()
+            return True
+
+        return pool.submit(copy)
+
+    monkeypatch.setattr(records.RecordReader, "__init__", guarded_reader)
+    monkeypatch.setattr(runtime, "rows_to_host_later", rows_to_host_later)
+    monkeypatch.setattr(runtime, "copies_rows", lambda: True)  # the records packed into a device array, as on CUDA
+    simulate(scene, out=tmp_path / "late", show_progress=False)
+    pool.shutdown()
+    assert len(overlapped) >= 3 and all(overlapped[:-1]), overlapped  # the last frame has no next one
+    assert _snapshot(tmp_path / "late") == _snapshot(tmp_path / "now")
+
+
 def test_a_collection_on_another_thread_makes_taichis_context_current_there_first(monkeypatch):
     """runtime._context_for_collection (CUDA only; here with a stand-in for libcuda): a cyclic collection that
     starts on a thread without Taichi's context (the writer's, which may free a Taichi ndarray there) makes it

@@ -266,6 +266,7 @@ class FoamGenerator:
         self._nd = 0
         self._mirror: tuple | None = None
         self.pending: Future | None = None  # the last frame's read-back while it runs (step's ``defer``; settle)
+        self._pending_reads_live = False  # whether it copies from the live arrays (array by array), not the records
         # the host arrays frames are read back into (_download), used again once no frame handed out holds them
         pin, unpin = runtime.host_pinning()  # page-locked for the GPU's copies, where that is on
         self._frames = ArrayPool({"x": (np.float32, (3,)), "v": (np.float32, (3,)), "life": (np.float32, ()),
@@ -666,10 +667,16 @@ class FoamGenerator:
         """The diffuse particles after frame ``index`` of the fluid (``dt`` since the last frame). With ``defer``,
         on CUDA, the returned frame's arrays (and the state's host view) are still being read back from the
         device when step returns, by a thread of its own (runtime.rows_to_host_later): the caller waits for
-        :attr:`pending` before it reads them (or calls :meth:`settle`); the next step, a checkpoint's state and
-        anything else here that reads them waits first. Elsewhere, or without ``defer``, the frame is whole."""
-        with timer("foam.settle"):  # the last frame's read-back (defer), where it is still coming
-            self.settle()
+        :attr:`pending` before it reads them (or calls :meth:`settle`); anything here that reads them, or writes
+        what the copy reads, waits first. The copy reads the records' device array, which only the next frame's
+        _download packs again, so the next step's potentials, advection and generation run on the device while
+        it comes (a `foam` pass has little else to overlap it with; `simulate` has the solver's frame). A frame read
+        back array by array (too many particles for one records array) is copied from the live arrays, which
+        advection changes in place: the next step waits for it first. Elsewhere, or without ``defer``, the frame
+        is whole."""
+        if self._pending_reads_live:
+            with timer("foam.settle"):  # the last frame's read-back, from the live arrays (defer)
+                self.settle()
         st = self.state
         _velocities(fluid)  # a frame without velocities stops here, before anything is sized
         n = len(fluid)
@@ -739,12 +746,13 @@ class FoamGenerator:
 
     def _sync_in(self) -> None:
         """The host's state into the live arrays where it is not the one this generator last handed out
-        (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home. Its callers
-        have waited for a deferred read-back first (step, _allocate_live)."""
+        (a resumed checkpoint, a state set by hand): the device is otherwise the state's only home. A deferred
+        read-back still running is waited for first."""
         st = self.state
         host = (st.positions, st.velocities, st.lifetime, st.ids)
         if self._mirror is not None and all(a is b for a, b in zip(host, self._mirror)):
             return
+        self.settle()  # (a state set from outside while a read-back runs: the copy is done before it is replaced)
         n = len(st.positions)
         if not self._live or self._live[0]["x"].shape[0] < n:
             self._allocate_live(max(n, self.capacity or 0))
@@ -768,6 +776,8 @@ class FoamGenerator:
         ``later``: on CUDA the copy is left running (:attr:`pending`; see :meth:`step`). A frame of more records
         than one Taichi array holds (sim.records.WORDS_MAX) comes back array by array (_download_arrays)."""
         st, n = self.state, self._nd
+        with timer("foam.compact.settle"):  # the last frame's read-back, where it is still coming: its records
+            self.settle()  # array is packed again below (step: the frame's kernels ran meanwhile)
         if not self._records.fits(n):
             frame = self._download_arrays(later)
         else:
@@ -778,7 +788,7 @@ class FoamGenerator:
                 n, (live["x"], live["v"], live["life"], live["ids"], live["kind"], radius_bits), live["x"].shape[0],
                 later)
             if pending is not None:
-                self.pending = pending
+                self.pending, self._pending_reads_live = pending, False
         assert frame.velocities is not None, "a diffuse frame has velocities"
         st.positions, st.velocities, st.lifetime, st.ids = (frame.positions, frame.velocities, frame.arrays["lifetime"],
                                                             frame.ids)
@@ -801,7 +811,7 @@ class FoamGenerator:
                 radius.fill(self.p.radius * self.r)
 
             if later and (pending := runtime.rows_to_host_later(*rows, then=narrow)) is not None:
-                self.pending = pending
+                self.pending, self._pending_reads_live = pending, True
             elif runtime.rows_to_host(*rows):
                 narrow()
             else:
