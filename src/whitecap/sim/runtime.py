@@ -178,12 +178,21 @@ def device_idle() -> bool:
 
     Taichi's own waits (``ti.sync()``, ``to_numpy``, a kernel's return value) keep the GIL while the GPU works,
     so the background writer's thread stood still for as long as the solver's frame took on an H100 (its
-    files were then written between the loop's calls, in 5 ms turns). The driver's cuCtxSynchronize, called
-    through ctypes (which lets go of the GIL for a foreign call), waits on the same context (the one Taichi
-    made current on this thread); the wait that follows it finds the device idle and returns at once. Where
-    libcuda or a current context cannot be had, nothing is waited for and Taichi's own waits hold as before."""
+    files were then written between the loop's calls, in 5 ms turns). The driver's wait (_kernels_done), called
+    through ctypes (which lets go of the GIL for a foreign call), waits for the same kernels (in the context Taichi
+    made current on this thread); the wait that follows it finds them done and returns at once. Where libcuda or
+    a current context cannot be had, nothing is waited for and Taichi's own waits hold as before."""
     lib = _cuda_driver()
-    return lib is not None and lib.cuCtxSynchronize() == 0  # type: ignore[attr-defined]
+    return lib is not None and _kernels_done(lib) == 0
+
+
+def _kernels_done(lib) -> int:
+    """Wait for every kernel Taichi launched so far (0, or the CUDA error). Taichi 1.7 launches each kernel on the
+    context's legacy default stream (cuLaunchKernel with a null stream), so cuStreamSynchronize on that stream waits
+    for them alone: not for a read-back still running on its non-blocking stream (rows_to_host_later), which
+    cuCtxSynchronize, used before 2026-11-28, waited for too, so that the next frame's first wait held up for the
+    last frame's diffuse copy (FoamGenerator.step)."""
+    return lib.cuStreamSynchronize(None)  # type: ignore[no-any-return]
 
 
 #: Page-lock the host arrays frames are read back into (io.array_pool's blocks, cuMemHostRegister), so that the
@@ -297,8 +306,8 @@ def _copy_later(lib, ctx, jobs, then) -> bool:
 
 def _device_rows(lib, pairs) -> list[tuple]:
     """(host array, device pointer, ndarray) for each (host array, ndarray) pair with bytes to copy, once the
-    device's work so far is done (cuCtxSynchronize on any stream, the GIL let go)."""
-    lib.cuCtxSynchronize()  # type: ignore[attr-defined]
+    kernels launched so far are done (_kernels_done, the GIL let go)."""
+    _kernels_done(lib)
     from taichi.lang import impl
 
     prog = impl.get_runtime().prog
