@@ -7,7 +7,9 @@
 #      hashed cell table at 1 M and 10 M, and in a domain 1000x the fluid's volume, and the dense table
 #      with its cell counts' block sums walked by one thread, as before 2026-11-28 (dense*; bench_grid.py);
 #   2. `simulate --profile` of the H = 2a dam break with foam on and off, at r = 2 mm and r = 0.8 mm
-#      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8);
+#      (the diffuse phase's share, target <= 20 %, and foam-on over foam-off, target >= 0.8); at r = 2 mm twice,
+#      with the read-back pageable once more each time, and once more each with Taichi's kernel profiler (each
+#      kernel's device time a frame: what foam adds on the device against what it adds to the loop);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
 #      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
 #   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s), and its
