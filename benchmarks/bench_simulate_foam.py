@@ -134,7 +134,9 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
 
 def _top(t: dict) -> dict:
     """The simulation loop's top-level phases (not the nested ``x.y``, nor the writer thread's)."""
-    return {k: v for k, v in t.items() if "." not in k and not k.startswith("writer")}
+    from whitecap.timing import top_level
+
+    return {k: t[k] for k in top_level(t)}
 
 
 def _loop(t: dict) -> float:

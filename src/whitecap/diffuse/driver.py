@@ -215,19 +215,18 @@ class FoamStage(FrameHook):
         and 10 of the writer's thread (every 20th frame), and the loop waited for the frame's read-back first."""
         if self._last_file is None:  # (no frame made yet: nothing alive; every array as it stands)
             return self.state_arrays()
-        data = {k: v for k, v in self.state_arrays(live=False).items() if k not in _IN_FRAME_FILE}
-        data["live_file"] = np.asarray(self._last_file)
-        return data
+        return {**self.state_arrays(live=False), "live_file": np.asarray(self._last_file)}
 
     def state_arrays(self, live: bool = True) -> dict[str, np.ndarray]:
         """The diffuse state, what else the next frame depends on (FoamGenerator.resume_arrays) and what the
-        end-of-run warning reads. ``live``: the live particles' arrays are read (so their read-back is waited
-        for); without, they must be left out by the caller."""
+        end-of-run warning reads. ``live``: with the live particles' arrays (their read-back waited for); without,
+        without them (_IN_FRAME_FILE: the frame's diffuse file holds them), and nothing waited for."""
         if self.gen is None:
             return {}
         if live:
             self.gen.settle()
-        return {**self.gen.state.to_arrays(), **self.gen.resume_arrays(),
+        state = {k: v for k, v in self.gen.state.to_arrays().items() if live or k not in _IN_FRAME_FILE}
+        return {**state, **self.gen.resume_arrays(),
                 "max_speed": np.asarray(self.max_speed, np.float64), "made_any": np.asarray(self.made_any)}
 
     def restore(self, data: dict[str, np.ndarray]) -> None:
@@ -718,7 +717,7 @@ def _keep_live_in_checkpoint(out: Path, removing: set[str]) -> None:
 def _resume_record(stage: "FoamStage", index: int, identity: str) -> dict[str, np.ndarray]:
     """The pass's state after frame ``index`` without the live particles (their frame's file holds them):
     owned copies, for the writer's thread."""
-    data = {k: np.array(v, copy=True) for k, v in stage.state_arrays(live=False).items() if k not in _IN_FRAME_FILE}
+    data = {k: np.array(v, copy=True) for k, v in stage.state_arrays(live=False).items()}
     data.update(frame=np.asarray(index, np.int64), identity=np.asarray(identity))
     return data
 

@@ -217,6 +217,6 @@ class FrameWriter:
         finally:
             if timing.ENABLED:
                 with self._lock:
-                    rec = timing.TIMERS[f"writer.{label}"]
+                    rec = timing.TIMERS[timing.BACKGROUND_PREFIX + label]
                     rec[0] += time.perf_counter() - t0
                     rec[1] += 1
