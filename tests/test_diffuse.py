@@ -440,10 +440,12 @@ def test_a_checkpoint_takes_its_live_particles_from_its_frames_diffuse_file_and_
             assert (part / rel).read_bytes() == (full / rel).read_bytes(), rel
 
 
-@pytest.mark.parametrize("change", ["gone", "other particles"])
+@pytest.mark.parametrize("change", ["gone", "other particles", "outside the run"])
 def test_a_resume_whose_checkpoints_diffuse_file_is_gone_or_changed_is_one_line_naming_it(tmp_path, capsys, change):
     """The checkpoint's live particles come from the diffuse file it names: where that file is gone or holds
-    other particles, `simulate --resume` stops with one line naming it and changes nothing in the run."""
+    other particles, `simulate --resume` stops with one line naming it and changes nothing in the run; a
+    checkpoint naming a file outside the run is refused with one line naming the checkpoint and its field, the
+    file never read."""
     from whitecap.io.lock import LOCK_FILE
 
     d = tiny_scene_dict(output={"frames": 6}, foam=FOAM)
@@ -454,14 +456,21 @@ def test_a_resume_whose_checkpoints_diffuse_file_is_gone_or_changed_is_one_line_
     f = run / "diffuse" / "diffuse_00004.ply"
     if change == "gone":
         f.unlink()
-    else:
+    elif change == "other particles":
         io.write(f, diffuse(run, 3))  # another frame's particles
+    else:  # the checkpoint names a file outside the run (the right particles there): never read
+        shutil.copy(f, tmp_path / "elsewhere.ply")
+        ck = _checkpoint(run)
+        ck["diffuse/live_file"] = np.asarray("../elsewhere.ply")
+        np.savez(run / "checkpoint.npz", **ck)
+        f = run / "checkpoint.npz"
     before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE}
     capsys.readouterr()
     code = main(["simulate", str(toml), "--out", str(run), "--resume"])
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error")]
     assert code != 0 and len(err) == 1 and err[0].startswith(f"error: {f}: "), err
     assert "start over with `whitecap simulate --force`" in err[0]
+    assert change != "outside the run" or "field 'diffuse/live_file': '../elsewhere.ply' is not" in err[0], err
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE} == before
 
 

@@ -683,8 +683,13 @@ def _live_particles(path: Path, counts) -> dict[str, np.ndarray]:
 
 def _with_live_particles(out: Path, data: dict) -> dict:
     """simulate's checkpoint of the stage (FoamStage.checkpoint) with the live particles read back from the
-    diffuse file it names."""
-    path = out / str(data["live_file"])
+    diffuse file it names (a path inside the run: never read from anywhere else)."""
+    rel = str(data["live_file"])
+    problem = relpath_problem(rel)
+    if problem is not None:
+        raise InputError(f"{out / CHECKPOINT}: field '{FoamStage.name}/live_file': {problem}; start over with "
+                         "`whitecap simulate --force`")
+    path = out / rel
     try:
         live = _live_particles(path, data["counts"])
     except InputError as exc:
