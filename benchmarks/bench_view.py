@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -110,7 +111,6 @@ def _web(n: int, frames: int, seconds: float, size=WEB_VIEWPORT, shape: str = "c
          points: str = "browser") -> dict:
     """Browser playback: a dam-break-like block of n particles moving frame by frame."""
     import io
-    import shutil
 
     import numpy as np
     from PIL import Image
@@ -232,6 +232,7 @@ def _headless(n: int, size, repeats: int) -> dict:
         if k:  # the first frame compiles and allocates
             t_draw.append(t1 - t0)
             t_png.append(t2 - t1)
+    shutil.rmtree(out, ignore_errors=True)
     return {"n": n, "size": list(size), "draw_s": float(np.median(t_draw)), "draw_png_s": float(np.median(t_png))}
 
 

@@ -421,6 +421,13 @@ MUTATIONS: list[Mutation] = [
     M("records-packed-over-their-copy", "diffuse/generator.py",
       "            self.settle()  # array is packed again below", "            pass  # array is packed again below",
       ["tests/test_background_writer.py"], "a frame's records packed into the array the last frame's copy reads"),
+    M("blender-session-dir-left", "workers.py",
+      "    remove_blender_session_dir()\n    os._exit(code)", "    os._exit(code)",
+      ["tests/test_errors.py"], "a Blender worker leaves its temporary folder behind (os._exit skips bpy's teardown)"),
+    M("blender-session-dir-any-name", "workers.py",
+      "        if BLENDER_SESSION_DIR.fullmatch(os.path.basename(path)) and os.path.isdir(path):",
+      "        if os.path.isdir(path):",
+      ["tests/test_errors.py"], "a worker removes whatever folder bpy.app.tempdir names, a user's included"),
 ]
 
 

@@ -7,6 +7,7 @@ import errno
 import os
 import shutil
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -359,3 +360,46 @@ def test_a_worker_ends_with_its_own_status_whatever_the_teardown_does(how, code,
     if how == "disk":
         err = worker_os_error(res.stderr)
         assert err is not None and err.errno == 28 and err.filename == "/out/render/frame_00003.png"
+
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+SESSION_DIR = r"""
+import os, sys, types
+import whitecap.workers as w
+if sys.argv[1] == "bpy":
+    import bpy
+else:  # a stand-in bpy whose temporary folder is the one given
+    sys.modules["bpy"] = types.SimpleNamespace(app=types.SimpleNamespace(tempdir=sys.argv[1] + os.sep))
+print(sys.modules["bpy"].app.tempdir, flush=True)
+w.run_then_end(lambda: None)
+"""
+
+
+@pytest.mark.parametrize("name, removed", [("blender_a1B2c3", True), ("renders", False), ("blender_a1B2c3x", False)])
+def test_a_worker_removes_blenders_own_temporary_folder_and_nothing_else(tmp_path, name, removed):
+    """workers.end_process skips bpy's teardown (os._exit), and with it Blender's removal of the temporary folder
+    it made when it started: each render worker left one behind. The worker removes it itself, but only a folder
+    with the name Blender gives its own (blender_XXXXXX), never one a user's settings point Blender at."""
+    import subprocess
+
+    folder = tmp_path / name
+    (folder / "inside").mkdir(parents=True)
+    (folder / "inside" / "keep.txt").write_text("a user's file")
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    res = subprocess.run([sys.executable, "-c", SESSION_DIR, str(folder)], capture_output=True, text=True, env=env,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert folder.exists() is not removed and (folder / "inside" / "keep.txt").exists() is not removed
+
+
+def test_a_blender_worker_leaves_no_temporary_folder_behind():
+    """The same with bpy itself: the folder bpy.app.tempdir names exists while the worker runs and is gone after."""
+    pytest.importorskip("bpy")
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    res = subprocess.run([sys.executable, "-c", SESSION_DIR, "bpy"], capture_output=True, text=True, env=env,
+                         timeout=120)
+    assert res.returncode == 0, res.stderr
+    made = res.stdout.splitlines()[-1]
+    assert os.path.basename(os.path.normpath(made)).startswith("blender_") and not os.path.exists(made)
