@@ -44,16 +44,16 @@ def test_the_history_is_bounded_and_its_thresholds_are_the_pooled_percentiles():
     for frame in _frames():
         pool.append(frame)
         h = _add(h, frame)
-        assert len(h[1]) <= B.HISTORY_ROWS and h[0].nbytes <= B.HISTORY_ROWS * B.HISTORY_SAMPLE * 5 * 4
+        assert len(h[1]) <= B.HISTORY_ROWS and h[0].shape == (5, len(h[1]), B.HISTORY_SAMPLE)
     rows, frames, stride = h
     assert frames.sum() == FRAMES and stride > 1 and (frames[:-1] == stride).all()
     pool = np.concatenate(pool)
-    kept = B.history_samples(*h)
-    assert len(kept) < len(pool) / 4
+    kept = B.history_columns(*h)
+    assert kept.shape[1] < len(pool) / 4
     base = np.full(8, 1e-6, np.float32)
     exact = B.percentile_thresholds({k: pool[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))},
                                     pool[:, 4] > 0, base)
-    got = B.percentile_thresholds({k: kept[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, kept[:, 4] > 0, base)
+    got = B.percentile_thresholds({k: kept[c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, kept[4] > 0, base)
     for c, name in enumerate(("ta", "wc", "ke", "vo")):
         vals = pool[:, c][(pool[:, 4] > 0) & (pool[:, c] > 0)]
         for j, (q, tol) in enumerate(zip(B.AUTO_PERCENTILES, (0.1, 0.05))):
@@ -114,6 +114,33 @@ def test_a_resumed_history_is_byte_identical():
     for f in frames[130:]:
         h = _add(h, f)
     assert h[2] == full[2] and np.array_equal(h[1], full[1]) and h[0].tobytes() == full[0].tobytes()
+
+
+def test_the_history_keeps_each_frames_samples_column_by_column_in_order():
+    """The pooled columns are the frames' own samples, in order (the part-filled last row as far as it is filled),
+    before the rows first merge; a checkpoint's rows in the layout written before 2026-11-28 (a row's samples side
+    by side: (rows, HISTORY_SAMPLE, 5)) are read as the same history, and go on to the same bytes."""
+    from whitecap.diffuse.generator import DiffuseState
+
+    frames = list(_frames(B.HISTORY_ROWS + 7))  # (on past the rows' first merge)
+    h = B.history_empty()
+    for f in frames[:25]:
+        h = _add(h, f)
+    assert np.array_equal(B.history_columns(*h), np.concatenate(frames[:25]).T)
+    d = DiffuseState.empty().to_arrays()
+    d["history"], d["history_frames"], d["history_stride"] = h[0].transpose(1, 2, 0).copy(), h[1], h[2]
+    st = DiffuseState.from_arrays(d)
+    assert st.history.shape == h[0].shape and st.history.tobytes() == h[0].tobytes()
+    a, b = h, (st.history, st.history_frames, st.history_stride)
+    for f in frames[25:]:
+        a, b = _add(a, f), _add(b, f)
+    assert a[0].tobytes() == b[0].tobytes() and np.array_equal(a[1], b[1]) and a[2] == b[2]
+    rows, counts, stride = a
+    assert stride == 2 and counts[-1] == 1  # the last row half filled: its other half is left out
+    cols = B.history_columns(*a)
+    assert cols.shape == (5, (len(counts) - 0.5) * B.HISTORY_SAMPLE) and cols[4].max() == 1
+    half = np.linspace(0, B.HISTORY_SAMPLE - 1, B.HISTORY_SAMPLE // 2).astype(np.int64)  # the frame's picks (_add)
+    assert np.array_equal(cols[:, -B.HISTORY_SAMPLE // 2:], frames[-1][half].T)
 
 
 def test_a_checkpoint_from_before_the_bound_is_bounded_on_resume():

@@ -291,16 +291,20 @@ def running_peak(rates: np.ndarray, p, dt: float, frames: int | None = None, cou
     return float(mean.max() * span)
 
 
-# The simulation's history of sampled potentials (rows of HISTORY_SAMPLE samples × (ta, wc, ke,
-# vo, moving)). Each row holds ``stride`` consecutive frames, HISTORY_SAMPLE / stride samples
-# of each, so every sample stands for the same share of a frame's fluid and pooled percentiles
-# need no weights; the last row fills up one frame at a time. When HISTORY_ROWS rows are full,
-# neighbouring rows merge in pairs (every other sample of each: still an even spread over the
-# fluid of each frame) and the stride doubles. Memory and the work per frame stay bounded; the
-# time resolution of old frames coarsens to stride = 2^k ≤ 2 frames / HISTORY_ROWS.
+# The simulation's history of sampled potentials: rows of HISTORY_SAMPLE samples, held as one (5, rows,
+# HISTORY_SAMPLE) array: the samples' ta, wc, ke, vo and moving flag, each column's rows one after the other. Each row
+# holds ``stride`` consecutive
+# frames, HISTORY_SAMPLE / stride samples of each, so every sample stands for the same share of a frame's fluid
+# and pooled percentiles need no weights; the last row fills up one frame at a time. When HISTORY_ROWS rows are
+# full, neighbouring rows merge in pairs (every other sample of each: still an even spread over the fluid of
+# each frame) and the stride doubles. Memory and the work per frame stay bounded; the time resolution of old
+# frames coarsens to stride = 2^k ≤ 2 frames / HISTORY_ROWS.
+# Column by column, because every frame pools each column over the whole history for its percentiles (a view:
+# history_columns) and sums each row's births (history_rates): with the samples' five values side by side (rows of
+# (HISTORY_SAMPLE, 5), before 2026-11-28) each of those passes read every fifth value, and the pool was a copy.
 def history_empty() -> tuple[np.ndarray, np.ndarray, int]:
     """(rows, frames per row, stride): no frame yet."""
-    return np.zeros((0, HISTORY_SAMPLE, 5), np.float32), np.zeros(0, np.int64), 1
+    return np.zeros((5, 0, HISTORY_SAMPLE), np.float32), np.zeros(0, np.int64), 1
 
 
 def history_per_frame(stride: int) -> int:
@@ -309,28 +313,30 @@ def history_per_frame(stride: int) -> int:
 
 
 def history_add(rows: np.ndarray, frames: np.ndarray, stride: int, frame_sample) -> tuple[np.ndarray, np.ndarray, int]:
-    """The history with one frame more; ``frame_sample(m)``: that frame's (m, 5) samples, evenly spread."""
+    """The history with one frame more (new arrays: a checkpoint may still hold the old ones);
+    ``frame_sample(m)``: that frame's (m, 5) samples (ta, wc, ke, vo, moving), evenly spread."""
     per = history_per_frame(stride)
     if not len(frames) or frames[-1] >= stride:
-        rows = np.concatenate([rows, np.zeros((1, HISTORY_SAMPLE, 5), np.float32)])
+        rows = np.concatenate([rows, np.zeros((5, 1, HISTORY_SAMPLE), np.float32)], axis=1)
         frames = np.concatenate([frames, [0]]).astype(np.int64)
     else:
         rows, frames = rows.copy(), frames.copy()
     k = int(frames[-1])
-    rows[-1, k * per:(k + 1) * per] = frame_sample(per)
+    rows[:, -1, k * per:(k + 1) * per] = np.asarray(frame_sample(per)).T
     frames[-1] += 1
     if len(frames) == HISTORY_ROWS and frames[-1] == stride:
-        rows = np.concatenate([rows[0::2, 0::2], rows[1::2, 0::2]], axis=1)
+        rows = np.concatenate([rows[:, 0::2, 0::2], rows[:, 1::2, 0::2]], axis=2)
         frames, stride = frames[0::2] + frames[1::2], 2 * stride
     return rows, frames, stride
 
 
-def history_samples(rows: np.ndarray, frames: np.ndarray, stride: int) -> np.ndarray:
-    """All samples kept, each standing for the same share of a frame: (samples, 5)."""
+def history_columns(rows: np.ndarray, frames: np.ndarray, stride: int) -> np.ndarray:
+    """All samples kept, each standing for the same share of a frame, column by column: (5, samples) (ta, wc, ke,
+    vo, moving), the rows' samples in order, the last row's as far as it is filled; a view of ``rows``."""
     if not len(frames):
-        return np.zeros((0, 5), np.float32)
-    per = history_per_frame(stride)
-    return np.concatenate([rows[:-1].reshape(-1, 5), rows[-1, : int(frames[-1]) * per]])
+        return np.zeros((5, 0), np.float32)
+    filled = (len(frames) - 1) * HISTORY_SAMPLE + int(frames[-1]) * history_per_frame(stride)
+    return np.ascontiguousarray(rows).reshape(5, -1)[:, :filled]
 
 
 def history_rates(
@@ -340,9 +346,18 @@ def history_rates(
     if not len(frames):
         return np.zeros(0)
     per = history_per_frame(stride)
-    pots = {"ta": rows[:, :, 0], "wc": rows[:, :, 1], "ke": rows[:, :, 2], "vo": rows[:, :, 3]}  # (rows, samples)
+    pots = {"ta": rows[0], "wc": rows[1], "ke": rows[2], "vo": rows[3]}  # (rows, samples)
     # the last row's unfilled tail holds zero potentials, which make no births (φ(0, τmin, τmax) = 0 for τ ≥ 0)
     return births(pots, tau, k, dt).sum(axis=1).astype(np.float64) / (frames * per)
+
+
+def history_from_rows(rows: np.ndarray) -> np.ndarray:
+    """A checkpoint's history rows in this layout, (5, rows, HISTORY_SAMPLE): those written before 2026-11-28 are
+    (rows, HISTORY_SAMPLE, 5)."""
+    rows = np.asarray(rows, np.float32)
+    if rows.ndim == 3 and rows.shape[1:] == (HISTORY_SAMPLE, 5):
+        return np.ascontiguousarray(rows.transpose(2, 0, 1))
+    return rows
 
 
 # Capacity of the explicit presets, whose count no budget bounds (as before budgets).

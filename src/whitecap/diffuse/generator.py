@@ -116,7 +116,8 @@ class DiffuseState:
     # 'auto' in the simulation: the potentials (ta, wc, ke, vo) and whether it moves of sampled fluid
     # particles of the frames so far, for thresholds pooled over them and so the rates of past
     # frames can be recomputed whenever the thresholds rise: at most budget.HISTORY_ROWS rows,
-    # each holding history_frames[j] frames, history_stride per full row (budget.history_add)
+    # (5, rows, HISTORY_SAMPLE), column by column, row j holding history_frames[j] frames, history_stride per
+    # full row (budget.history_add)
     history: np.ndarray = field(default_factory=lambda: B.history_empty()[0])
     history_frames: np.ndarray = field(default_factory=lambda: B.history_empty()[1])
     history_stride: int = 1
@@ -173,9 +174,9 @@ def _history(d: dict) -> tuple[np.ndarray, np.ndarray, int]:
     """The history from a checkpoint; one from before it was bounded has a row per frame (stride 1)
     and is bounded from here on."""
     if "history_frames" in d:
-        return np.asarray(d["history"], np.float32), np.asarray(d["history_frames"], np.int64), int(d["history_stride"])
+        return B.history_from_rows(d["history"]), np.asarray(d["history_frames"], np.int64), int(d["history_stride"])
     h = B.history_empty()
-    for row in np.asarray(d.get("history", h[0]), np.float32):  # replayed a frame at a time
+    for row in np.asarray(d.get("history", np.zeros((0, 0, 5))), np.float32):  # replayed a frame at a time
         h = B.history_add(*h, lambda m, row=row: row[np.linspace(0, len(row) - 1, m).astype(np.int64)])
     return h
 
@@ -444,8 +445,8 @@ class FoamGenerator:
         st.history, st.history_frames, st.history_stride = B.history_add(
             st.history, st.history_frames, st.history_stride, sample)
         # τ from the moving particles of the frames so far, pooled, as post-processing does with its samples.
-        h = B.history_samples(st.history, st.history_frames, st.history_stride)
-        tau = self._auto_tau({k: h[:, c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, h[:, 4] > 0)
+        h = B.history_columns(st.history, st.history_frames, st.history_stride)
+        tau = self._auto_tau({k: h[c] for c, k in enumerate(("ta", "wc", "ke", "vo"))}, h[4] > 0)
         first = st.tau is None
         st.tau = tau if st.tau is None else np.maximum(st.tau, tau)
         if self._scaled():
