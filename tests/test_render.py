@@ -178,10 +178,12 @@ def test_render_workers_die_with_a_killed_parent(meshed_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(meshed_run, run)
     # A final-quality frame takes minutes, so within the test the worker writes nothing to the
-    # stdout pipe of its dead parent (which would end it by SIGPIPE anyway).
+    # stdout pipe of its dead parent (which would end it by SIGPIPE anyway). Killed, the processes cannot remove
+    # the temporary folders Blender made for them: TMPDIR puts those in the test's own folder.
     parent = subprocess.Popen([sys.executable, "-m", "whitecap.cli", "render", str(run), "--force", "--no-movie",
                                "--quality", "final"],
-                              env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL,
+                              env={**os.environ, "PYTHONPATH": str(SRC), "TMPDIR": str(tmp_path)},
+                              stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     workers: list[int] = []
     try:
