@@ -21,6 +21,9 @@ files' records (c268cca, 68bb59a). ``--repeat N`` runs the whole list N times, o
 other, and prints each round's foam-on / foam-off ratios and their medians (a GPU's figures drift from run to
 run). ``--kernels`` runs foam on and off once more each with Taichi's kernel profiler on, and prints each kernel's
 device time a frame: where foam-on's frames go on the device, which the host's timers (waits included) cannot say.
+Where the run has a background writer (on a GPU), each configuration also lists the loop's waits for it over 1 ms,
+by what was being handed over (a checkpoint that holds the writer up shows as the next frame's waits; the run's last
+files as the flush).
 """
 
 from __future__ import annotations
@@ -109,6 +112,7 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
 
         records.WORDS_MAX = 0
 
+    waits = _record_waits()
     sc = _scene(radius, frames)
     with tempfile.TemporaryDirectory() as tmp:
         # Warm-up: the same run at twice the radius (an eighth of the particles, the same kernels), so that the
@@ -117,6 +121,7 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
         warm = min(frames, WARM_FRAMES)
         simulate(_scene(2 * radius, warm), out=tmp + "/warm", frames=warm, arch=arch, foam=foam, show_progress=False)
         timing.reset()
+        waits.clear()  # (the warm-up's)
         if kernels:
             import taichi as ti
 
@@ -126,10 +131,54 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
         wall = time.perf_counter() - t0
         n = int(info.extra.get("n_particles", 0) or 0) if hasattr(info, "extra") else 0
     t = {k: v[0] for k, v in timing.TIMERS.items()}
-    out = {"timers": t, "n": n, "wall": wall}
+    out = {"timers": t, "n": n, "wall": wall, "waits": [w for w in waits if w[1] >= WAIT_SHOWN]}
     if kernels:
         out["kernel_ms"], out["kernels"] = _kernel_times()
     return out
+
+
+WAIT_SHOWN = 1e-3  # [s] the loop's waits for the background writer listed one by one (shorter ones: handing over)
+
+
+def _record_waits() -> list:
+    """[(what was being handed over, or 'flush'; seconds)] for each of the timed run's calls into the background
+    writer (io.writer.FrameWriter; on a GPU), appended as they return: where ``output.wait`` goes (a checkpoint
+    that holds the writer up shows as the waits of the frame after it; the run's last files as the flush)."""
+    from whitecap.io import writer as W
+
+    waits: list = []
+    submit, flush = W.FrameWriter.submit, W.FrameWriter.flush
+
+    def timed_submit(self, job, label="output", lane=None):
+        t0 = time.perf_counter()
+        try:
+            return submit(self, job, label, lane)
+        finally:
+            waits.append((label, time.perf_counter() - t0))
+
+    def timed_flush(self):
+        t0 = time.perf_counter()
+        try:
+            return flush(self)
+        finally:
+            waits.append(("flush", time.perf_counter() - t0))
+
+    W.FrameWriter.submit, W.FrameWriter.flush = timed_submit, timed_flush
+    return waits
+
+
+def _say_waits(waits: list, frames: int) -> None:
+    """One line on the loop's waits for the writer (_record_waits): how many, by what was handed over, the longest."""
+    if not waits:
+        return
+    by: dict = {}
+    for label, sec in waits:
+        by[label] = by.get(label, 0.0) + sec
+    longest = sorted(waits, key=lambda w: -w[1])[:5]
+    print(f"    the loop's waits for the writer over {1e3 * WAIT_SHOWN:.0f} ms: {len(waits)}, "
+          f"{1e3 * sum(by.values()) / frames:.1f} ms a frame; by what was handed over "
+          + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in sorted(by.items(), key=lambda kv: -kv[1]))
+          + " ms; longest " + ", ".join(f"{1e3 * s:.0f} ({k})" for k, s in longest) + " ms")
 
 
 def _top(t: dict) -> dict:
@@ -210,6 +259,7 @@ def main() -> None:
         for k, v in sorted(t.items()):
             if k.startswith(("foam.", "output.", "writer.")):
                 print(f"    {k:24s} {1e3 * v / f:8.1f} ms/frame")
+        _say_waits(r.get("waits", []), f)
         if PHASE in top:
             share = top[PHASE] / total
             ms = 1e3 * top[PHASE] / f
