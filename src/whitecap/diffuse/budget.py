@@ -292,13 +292,12 @@ def running_peak(rates: np.ndarray, p, dt: float, frames: int | None = None, cou
 
 
 # The simulation's history of sampled potentials: rows of HISTORY_SAMPLE samples, held as one (5, rows,
-# HISTORY_SAMPLE) array: the samples' ta, wc, ke, vo and moving flag, each column's rows one after the other. Each row
-# holds ``stride`` consecutive
-# frames, HISTORY_SAMPLE / stride samples of each, so every sample stands for the same share of a frame's fluid
-# and pooled percentiles need no weights; the last row fills up one frame at a time. When HISTORY_ROWS rows are
-# full, neighbouring rows merge in pairs (every other sample of each: still an even spread over the fluid of
-# each frame) and the stride doubles. Memory and the work per frame stay bounded; the time resolution of old
-# frames coarsens to stride = 2^k ≤ 2 frames / HISTORY_ROWS.
+# HISTORY_SAMPLE) array: the samples' ta, wc, ke, vo and moving flag, each column's rows one after the other.
+# Each row holds ``stride`` consecutive frames, HISTORY_SAMPLE / stride samples of each, so every sample stands
+# for the same share of a frame's fluid and pooled percentiles need no weights; the last row fills up one frame
+# at a time. When HISTORY_ROWS rows are full, neighbouring rows merge in pairs (every other sample of each: still
+# an even spread over the fluid of each frame) and the stride doubles. Memory and the work per frame stay
+# bounded; the time resolution of old frames coarsens to stride = 2^k ≤ 2 frames / HISTORY_ROWS.
 # Column by column, because every frame pools each column over the whole history for its percentiles (a view:
 # history_columns) and sums each row's births (history_rates): with the samples' five values side by side (rows of
 # (HISTORY_SAMPLE, 5), before 2026-11-28) each of those passes read every fifth value, and the pool was a copy.
