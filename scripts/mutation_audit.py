@@ -433,9 +433,12 @@ MUTATIONS: list[Mutation] = [
       "    remove_blender_session_dir()\n    os._exit(code)", "    os._exit(code)",
       ["tests/test_errors.py"], "a Blender worker leaves its temporary folder behind (os._exit skips bpy's teardown)"),
     M("blender-session-dir-any-name", "workers.py",
-      "        if BLENDER_SESSION_DIR.fullmatch(os.path.basename(path)) and os.path.isdir(path):",
-      "        if os.path.isdir(path):",
+      "        if (BLENDER_SESSION_DIR.fullmatch(os.path.basename(path)) and path not in _temp_bases(bpy)",
+      "        if (path not in _temp_bases(bpy)",
       ["tests/test_errors.py"], "a worker removes whatever folder bpy.app.tempdir names, a user's included"),
+    M("blender-session-dir-base-too", "workers.py",
+      " and path not in _temp_bases(bpy)\n", "\n",
+      ["tests/test_errors.py"], "a worker removes the base folder Blender fell back to (a user's TMPDIR)"),
 ]
 
 

@@ -375,17 +375,19 @@ w.run_then_end(lambda: None)
 """
 
 
-@pytest.mark.parametrize("name, removed", [("blender_a1B2c3", True), ("renders", False), ("blender_a1B2c3x", False)])
-def test_a_worker_removes_blenders_own_temporary_folder_and_nothing_else(tmp_path, name, removed):
+@pytest.mark.parametrize("name, removed, base", [("blender_a1B2c3", True, False), ("renders", False, False),
+                                                 ("blender_a1B2c3x", False, False), ("blender_a1B2c3", False, True)])
+def test_a_worker_removes_blenders_own_temporary_folder_and_nothing_else(tmp_path, name, removed, base):
     """workers.end_process skips bpy's teardown (os._exit), and with it Blender's removal of the temporary folder
     it made when it started: each render worker left one behind. The worker removes it itself, but only a folder
-    with the name Blender gives its own (blender_XXXXXX), never one a user's settings point Blender at."""
+    with the name Blender gives its own (blender_XXXXXX), never one a user's settings point Blender at, nor the
+    base folder Blender falls back to when it cannot make its own there (here TMPDIR, named like one of Blender's)."""
     import subprocess
 
     folder = tmp_path / name
     (folder / "inside").mkdir(parents=True)
     (folder / "inside" / "keep.txt").write_text("a user's file")
-    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    env = {**os.environ, "PYTHONPATH": str(SRC), **({"TMPDIR": str(folder)} if base else {})}
     res = subprocess.run([sys.executable, "-c", SESSION_DIR, str(folder)], capture_output=True, text=True, env=env,
                          timeout=60)
     assert res.returncode == 0, res.stderr

@@ -86,14 +86,26 @@ def remove_blender_session_dir() -> None:
     """Remove the temporary folder bpy made for this process when it was imported (``bpy.app.tempdir``), as
     Blender's own teardown does, which :func:`end_process` skips: each Blender worker left an empty
     ``/tmp/blender_XXXXXX`` behind (2,448 on the development machine after a day of test runs). Only a folder
-    with the name Blender gives its own is removed; nothing where bpy was never imported."""
+    with the name Blender gives its own is removed, and never a base folder it makes them in (where Blender cannot
+    make its own, bpy.app.tempdir names the base itself: a user's folder); nothing where bpy was never imported."""
     bpy = sys.modules.get("bpy")
     if bpy is None:
         return
     with contextlib.suppress(Exception):  # (a bpy without app.tempdir, a folder already gone: nothing to do)
         path = os.path.normpath(bpy.app.tempdir)
-        if BLENDER_SESSION_DIR.fullmatch(os.path.basename(path)) and os.path.isdir(path):
+        if (BLENDER_SESSION_DIR.fullmatch(os.path.basename(path)) and path not in _temp_bases(bpy)
+                and os.path.isdir(path)):
             shutil.rmtree(path, ignore_errors=True)
+
+
+def _temp_bases(bpy) -> set[str]:
+    """The folders Blender may make its session folder in (its preference, the environment's, the system's)."""
+    import tempfile
+
+    prefs = getattr(getattr(getattr(bpy, "context", None), "preferences", None), "filepaths", None)
+    named = [getattr(prefs, "temporary_directory", ""), *(os.environ.get(v) for v in ("TMPDIR", "TMP", "TEMP")),
+             tempfile.gettempdir(), "/tmp"]
+    return {os.path.normpath(os.path.abspath(b)) for b in named if b}
 
 
 def run_then_end(work: Callable[[], object], on_os_error: Callable[[OSError], NoReturn] | None = None) -> NoReturn:
