@@ -116,6 +116,12 @@ def main() -> None:
                 g = [t[1] for t in s if t[1] is not None]
                 grow = f", from {g[0] / 2**20:.0f} MiB after frame 1 to {g[-1] / 2**20:.0f} MiB" if g else ""
                 print(f"    GPU memory in use (nvidia-smi, the whole GPU): {x['gpu'] / n:.0f} B/particle{grow}")
+                if len(g) >= 4:  # flat once the largest frame has been seen: where it last rose, and by how much after
+                    mid = len(g) // 2
+                    rose = max((k for k in range(1, len(g)) if g[k] > g[k - 1]), default=0)
+                    print(f"    GPU memory from frame {mid + 1} to {len(g)}: "
+                          f"{(g[-1] - g[mid]) / 2**20 / (len(g) - 1 - mid):+.1f} MiB a frame; last rose at frame "
+                          f"{rose + 1} (by {(g[rose] - g[rose - 1]) / 2**20 if rose else 0:.0f} MiB)")
         d = res["on"]["rss"] - res["off"]["rss"]
         print(f"  foam on - off: {d / n:+.0f} B/particle of VmRSS")
 
