@@ -439,6 +439,9 @@ MUTATIONS: list[Mutation] = [
     M("blender-session-dir-base-too", "workers.py",
       " and path not in _temp_bases(bpy)\n", "\n",
       ["tests/test_errors.py"], "a worker removes the base folder Blender fell back to (a user's TMPDIR)"),
+    M("birth-sums-run-short", "diffuse/kernels.py",
+      "        for j in range(BIRTH_RUN):", "        for j in range(BIRTH_RUN - 1):",
+      ["tests/test_diffuse_generate.py"], "birth_sums leaves the last particle of each thread's run out"),
 ]
 
 

@@ -462,3 +462,53 @@ def test_the_birth_rate_summed_on_the_device_is_the_hosts():
     # The rows of a history sample, read back alone, are those of the whole read-back.
     rows = np.array([0, 7, len(f) - 1])
     np.testing.assert_array_equal(gen._potentials_at(rows), np.stack([pots[k][rows] for k in ("ta", "wc", "ke", "vo")]))
+
+
+@pytest.mark.parametrize("n", [5, 2 * 256, 100_003])
+def test_the_birth_sums_count_each_particle_once_to_the_same_bits_in_either_layout(n):
+    """K.birth_sums counts each f32 term in units of 1/birth_unit as a 64-bit integer, summed without rounding: the
+    CPU's layout (runs of consecutive particles a thread) and a GPU's (interleaved) give the same bits. Where every φ
+    is exactly 0 or 1 (thresholds a power of two apart), each term is Δt or 0, so each sum is a count of particles
+    times Δt's units, exactly: no particle is left out or counted twice. With potentials of every size, the sums are
+    math.fsum's of the f32 terms NumPy makes (the kernel's own f32 arithmetic may differ in the last bit)."""
+    import math
+
+    import taichi as ti
+
+    from whitecap.diffuse import kernels as K
+    from whitecap.diffuse.generator import _nd
+
+    _generator((1.0, 1.0, 1.0))  # (Taichi initialised as the other tests have it)
+    rng = np.random.default_rng(n)
+    dt = np.float32(DT)
+    unit = K.birth_unit(n, float(DT))
+    assert n * float(DT) * unit < 2.0**K.BIRTH_BITS <= 2 * n * float(DT) * unit  # the largest power of two that fits
+    total = ti.ndarray(ti.i64, 3)
+
+    def sums(pots, tau) -> list[int]:
+        arrays = [_nd(a.astype(np.float32), ti.f32) for a in pots] + [_nd(np.asarray(tau, np.float32), ti.f32)]
+        got = [[int(x) for x in K.birth_sums(n, *arrays, dt, unit, interleaved, total)]
+               for interleaved in (False, True)]  # the CPU's layout, a GPU's
+        assert got[0] == got[1]
+        return got[0]
+
+    on = [rng.random(n) < 0.6 for _ in range(4)]  # ta, wc, ke, vo: above τmax (φ = 1) or 0 (φ = 0)
+    on[2][:2] = True
+    pots = [np.where(m, np.float32(100.0), np.float32(0.0)) for m in on]
+    pots[2][0] = np.inf  # E_k infinite: φ = 1 as well
+    tau01 = [1.0, 3.0, 1.0, 3.0, 1.0, 3.0, 1.0, 3.0]
+    per = int(np.floor(float(dt) * unit + 0.5))
+    assert sums(pots, tau01) == [int(np.count_nonzero(on[2] & on[c])) * per for c in (0, 1, 3)]
+
+    pots = [rng.exponential(s, n).astype(np.float32) * (rng.random(n) < 0.7) for s in (2.0, 1.0, 30.0, 8.0)]
+    pots[2][:2] = np.float32(1e-30), np.float32(3e4)  # a tiny E_k, a large one
+    tau = np.array([0.5, 4.0, 0.2, 2.0, 5.0, 60.0, 1.0, 12.0], np.float32)
+
+    def phi(i, lo, hi):  # kernels.clamp_phi in f32
+        return (np.minimum(i, hi) - np.minimum(i, lo)) / (hi - lo)
+
+    w = phi(pots[2], tau[4], tau[5]) * dt
+    terms = [w * phi(pots[0], tau[0], tau[1]), w * phi(pots[1], tau[2], tau[3]), w * phi(pots[3], tau[6], tau[7])]
+    for s, t in zip(sums(pots, tau), terms):
+        exact = math.fsum(t.astype(np.float64))
+        assert exact > 0 and s / unit == pytest.approx(exact, rel=1e-6)

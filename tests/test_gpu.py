@@ -324,6 +324,43 @@ print("ok")
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
 
 
+
+def test_the_birth_sums_on_cuda_count_each_particle_once_in_either_layout(tmp_path):
+    """K.birth_sums on CUDA, interleaved (a GPU's layout, as the generator launches it there) and in runs: the same
+    bits, and where every φ is 0 or 1, each sum is the count of particles times Δt's units (none left out or counted
+    twice, many threads' sums added atomically)."""
+    script = """
+import numpy as np, taichi as ti
+from whitecap.sim import runtime
+runtime.init("cuda")
+from whitecap.diffuse import kernels as K
+for n in (5, 3_000_001):
+    rng = np.random.default_rng(n)
+    dt, unit = np.float32(1 / 120), K.birth_unit(n, 1 / 120)
+    total = ti.ndarray(ti.i64, 3)
+    def sums(pots, tau):
+        arrays = []
+        for a in list(pots) + [np.asarray(tau, np.float32)]:
+            nd = ti.ndarray(ti.f32, len(a))
+            nd.from_numpy(a.astype(np.float32))
+            arrays.append(nd)
+        got = [[int(x) for x in K.birth_sums(n, *arrays, dt, unit, gpu, total)] for gpu in (True, False)]
+        assert got[0] == got[1], (n, got)
+        return got[0]
+    on = [rng.random(n) < 0.6 for _ in range(4)]
+    pots = [np.where(m, 100.0, 0.0) for m in on]
+    per = int(np.floor(float(dt) * unit + 0.5))
+    assert sums(pots, [1, 3] * 4) == [int(np.count_nonzero(on[2] & on[c])) * per for c in (0, 1, 3)], n
+    pots = [rng.exponential(s, n) * (rng.random(n) < 0.7) for s in (2.0, 1.0, 30.0, 8.0)]
+    assert min(sums(pots, [0.5, 4.0, 0.2, 2.0, 5.0, 60.0, 1.0, 12.0])) > 0
+print("ok")
+"""
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    done = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
+
 PINNED_SCRIPT = """
 import sys
 import numpy as np

@@ -611,10 +611,11 @@ class FoamGenerator:
         n = self._pot_n
         if n <= 0:
             return 0.0
-        part = self._buffer("birth_part", -(-n // K.BIRTH_BLOCK) + 1, ti.f64, cols=3, zeroed=False)
+        unit = K.birth_unit(n, dt)
         s = K.birth_sums(n, *self._pot_arrays, self._upload("tau_rate", np.asarray(tau), ti.f32, unless_same=True),
-                         dt, part)
-        return float(k0[0] * s[0] + k0[1] * s[1] + k0[2] * s[2])
+                         dt, unit, runtime.on_gpu(), self._buffer("birth_total", 3, ti.i64))
+        s_ta, s_wc, s_vo = (float(x) / unit for x in s)  # each exact to f64 rounding
+        return float(k0[0] * s_ta + k0[1] * s_wc + k0[2] * s_vo)
 
     def _foamgenerator_potentials(self, fx, fv, n: int, normal, v_diff, crest, e_k) -> None:
         """SP.frame_potentials into this generator's kept arrays (v_diff, κ, E; ``normal`` as scratch)."""

@@ -915,33 +915,61 @@ def pack_potentials(m: ti.i32, picked: ti.i32, rows: I1, v_diff: F1, crest: F1, 
         out[0, j], out[1, j], out[2, j], out[3, j] = v_diff[i], crest[i], e_k[i], vort[i]
 
 
-#: Fluid particles per block of birth_sums (the last block may be shorter): a few thousand blocks at 1 M.
-BIRTH_BLOCK = 256
-D2: Any = ti.types.ndarray(dtype=ti.f64, ndim=2)
-SUMS3: Any = ti.types.vector(3, ti.f64)
+#: Fluid particles each thread of birth_sums adds up (the last thread's may be fewer): a few thousand threads at 1 M.
+BIRTH_RUN = 256
+#: birth_sums counts in units of 2^-s, s set by the caller (birth_unit) so that the most the sums can reach, n·Δt
+#: (each term is at most Δt), stays below 2^BIRTH_BITS: one bit short of the 64-bit integers they are kept in.
+BIRTH_BITS = 62
+I64: Any = ti.types.ndarray(dtype=ti.i64, ndim=1)
+SUMS3: Any = ti.types.vector(3, ti.i64)
+
+
+def birth_unit(n: int, dt: float) -> float:
+    """birth_sums' unit for n fluid particles and a frame of dt: the largest power of two u with n·Δt·u < 2^BIRTH_BITS.
+    A term of births is an f32, so it is a whole number of units, exactly, down to 2^24 units (at 1 M particles and
+    Δt = 1/120 s, terms above 1e-8 of a particle: the rest are rounded to the unit)."""
+    return math.ldexp(1.0, BIRTH_BITS - math.frexp(max(n * dt, 1e-30))[1])
 
 
 @ti.kernel
-def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, part: D2) -> SUMS3:
+def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, unit: ti.f64,
+               interleaved: TEMPLATE, total: I64) -> SUMS3:
     """The frame's births per unit multiplier (Ihmsen et al. 2012, eq. 8 summed over the fluid): Σ_i I_k·φ_ta·Δt,
     Σ_i I_k·φ_wc·Δt and Σ_i I_k·φ_vo·Δt, so that G = k_ta·S_ta + k_wc·S_wc + k_vo·S_vo for any multipliers (the
-    'auto' budget's birth rate, budget.birth_rate). Each term in f32, as the births are drawn; summed in f64 by
-    blocks of BIRTH_BLOCK particles, one thread a block, then the blocks in order by one thread: the same sum
-    whatever the thread count, and nothing of the frame's potentials read back to the host."""
-    nb = (n + BIRTH_BLOCK - 1) // BIRTH_BLOCK
-    for b in range(nb):
-        s = ti.Vector([0.0, 0.0, 0.0], ti.f64)
-        for i in range(b * BIRTH_BLOCK, ti.min(n, (b + 1) * BIRTH_BLOCK)):
-            w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
-            s += ti.cast(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
-                                    w * clamp_phi(vort[i], tau[6], tau[7])]), ti.f64)
-        part[b, 0], part[b, 1], part[b, 2] = s[0], s[1], s[2]
-    for _ in range(1):
-        t = ti.Vector([0.0, 0.0, 0.0], ti.f64)
-        for b in range(nb):
-            t += ti.Vector([part[b, 0], part[b, 1], part[b, 2]])
-        part[nb, 0], part[nb, 1], part[nb, 2] = t[0], t[1], t[2]
-    return ti.Vector([part[nb, 0], part[nb, 1], part[nb, 2]])
+    'auto' budget's birth rate, budget.birth_rate), in units of 1/``unit`` (birth_unit): each term in f32, as the
+    births are drawn, then counted as a 64-bit integer. Integers add up to the same bits in any order, so the sum is
+    the same for any thread count and layout (on any arch whose f32 terms are the same), and needs no pass by one
+    thread: each thread adds BIRTH_RUN particles in
+    the layout its arch reads fastest (``interleaved``, a GPU's: thread t particles t + j·threads, so that
+    neighbouring threads read neighbouring particles; else the CPU's, runs of consecutive ones), and its sums go into
+    ``total`` atomically. (Summed as f64, block by block and then the blocks in order by one thread, the last pass
+    was a loop over n/256 values on one GPU thread.) Nothing of the frame's potentials is
+    read back to the host."""
+    for c in range(3):
+        total[c] = ti.i64(0)
+    runs = (n + BIRTH_RUN - 1) // BIRTH_RUN
+    for t in range(runs):
+        s = ti.Vector([0, 0, 0], ti.i64)
+        if ti.static(interleaved):
+            for j in range(BIRTH_RUN):
+                i = t + j * runs
+                if i < n:
+                    s += _birth_units(i, v_diff, crest, e_k, vort, tau, dt, unit)
+        else:
+            for i in range(t * BIRTH_RUN, ti.min(n, (t + 1) * BIRTH_RUN)):
+                s += _birth_units(i, v_diff, crest, e_k, vort, tau, dt, unit)
+        for c in ti.static(range(3)):
+            ti.atomic_add(total[c], s[c])
+    return ti.Vector([total[0], total[1], total[2]])
+
+
+@ti.func
+def _birth_units(i, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, unit: ti.f64):
+    """Fluid particle i's three terms of birth_sums (f32, as the births are drawn), each to its nearest unit."""
+    w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
+    term = ti.max(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
+                             w * clamp_phi(vort[i], tau[6], tau[7])]), 0.0)  # (≥ 0; a NaN: 0)
+    return ti.cast(ti.cast(term, ti.f64) * unit + 0.5, ti.i64)
 
 
 # ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)
