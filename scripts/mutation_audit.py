@@ -442,6 +442,9 @@ MUTATIONS: list[Mutation] = [
     M("birth-sums-run-short", "diffuse/kernels.py",
       "        for j in range(BIRTH_RUN):", "        for j in range(BIRTH_RUN - 1):",
       ["tests/test_diffuse_generate.py"], "birth_sums leaves the last particle of each thread's run out"),
+    M("speed-squared-other-order", "diffuse/generator.py",
+      "    return x * x + y * y + z * z", "    return z * z + y * y + x * x",
+      ["tests/test_diffuse_generate.py"], "|v|² summed in another order than einsum's: other bits, other flags"),
 ]
 
 

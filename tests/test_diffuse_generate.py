@@ -512,3 +512,24 @@ def test_the_birth_sums_count_each_particle_once_to_the_same_bits_in_either_layo
     for s, t in zip(sums(pots, tau), terms):
         exact = math.fsum(t.astype(np.float64))
         assert exact > 0 and s / unit == pytest.approx(exact, rel=1e-6)
+
+
+def test_speed_squared_is_einsums_bits_on_a_frames_records():
+    """generator.speed_squared, component by component, gives the bits of np.einsum("ij,ij->i", v, v) (the
+    'moving' flags of the running 'auto' and the files it shapes stay the same), on a frame's velocities as they
+    come: a strided view of its records, every 15th row as the running 'auto' samples them, and a contiguous copy."""
+    from whitecap.diffuse.generator import speed_squared
+
+    rng = np.random.default_rng(3)
+    n = 200_000
+    fields = ("x", "y", "z", "vx", "vy", "vz", "density")
+    records = np.zeros(n, np.dtype({"names": [*fields, "id"], "formats": ["<f4"] * 7 + ["<u4"]}))
+    scale = 10.0 ** rng.uniform(-3, 2, n)
+    for k in fields:
+        records[k] = rng.standard_normal(n) * (scale if k.startswith("v") else 1.0)
+    strided = io.ParticleFrame.from_records(records).velocities
+    assert strided is not None and not strided.flags.c_contiguous
+    for a in (strided, strided[::15], np.ascontiguousarray(strided)):
+        got, ref = speed_squared(a), np.einsum("ij,ij->i", a, a)
+        assert got.dtype == np.float32 and len(got) == len(a)
+        assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))

@@ -51,7 +51,7 @@ from ..io.writer import FrameWriter
 from ..progress import console, progress
 from ..sim.driver import FrameHook
 from ..timing import timer
-from .generator import DiffuseState, FoamGenerator
+from .generator import DiffuseState, FoamGenerator, speed_squared
 from .params import FoamParams, IniFile, read_ini, resolve
 
 __all__ = ["FoamJob", "simulation_hook", "postprocess", "postprocess_params_file", "FoamGenerator", "FoamParams",
@@ -165,7 +165,7 @@ class FoamStage(FrameHook):
                        None if first else info.body_pose(index - 1, g.index))
         if not self.made_any and frame.velocities is not None and len(frame):
             v = frame.velocities  # only while nothing was made: once something is, no warning needs it
-            self.max_speed = max(self.max_speed, float(np.sqrt(np.einsum("ij,ij->i", v, v).max())))
+            self.max_speed = max(self.max_speed, float(np.sqrt(speed_squared(v).max())))
         # deferred: on CUDA the frame comes back from the device while the next one is computed (its file is
         # written once it is whole: write's ``ready``)
         d = self.generator.step(frame, index, dt, defer=True)
