@@ -445,6 +445,10 @@ MUTATIONS: list[Mutation] = [
     M("speed-squared-other-order", "diffuse/generator.py",
       "    return x * x + y * y + z * z", "    return z * z + y * y + x * x",
       ["tests/test_diffuse_generate.py"], "|v|² summed in another order than einsum's: other bits, other flags"),
+    M("foam-pass-no-finite-check", "diffuse/driver.py",
+      "            raise InputError(f\"{path}: missing array 'velocity'\")\n        fr.check_finite()\n",
+      "            raise InputError(f\"{path}: missing array 'velocity'\")\n",
+      ["tests/test_errors.py"], "a foam pass takes a frame with an infinite velocity without a word"),
 ]
 
 

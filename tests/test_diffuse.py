@@ -495,7 +495,7 @@ def test_foam_profile_prints_the_passs_phases_whose_top_level_shares_make_the_wh
     out = capsys.readouterr().out
     rows = {ln.split()[0]: float(ln.split()[-1].rstrip("%")) for ln in out[out.index("foam profile:"):].splitlines()[2:]
             if ln.strip().endswith("%")}
-    top = {"foam.setup", "foam.look_ahead", "foam.read", "foam.check", "foam.potentials", "foam.advect",
+    top = {"foam.setup", "foam.look_ahead", "foam.read", "foam.potentials", "foam.advect",
            "foam.generate", "foam.compact", "foam.say", "foam.records"}
     assert top <= rows.keys() and {"foam.generate.counts", "writer.diffuse"} <= rows.keys(), sorted(rows)
     assert sum(v for k, v in rows.items() if k in top or k == "output.wait") == pytest.approx(100, abs=0.5)

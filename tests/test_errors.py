@@ -192,6 +192,24 @@ def test_nan_positions_are_refused_by_view_and_export(tiny_run, tmp_path, capsys
     assert err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or infinite"
 
 
+def test_a_foam_pass_refuses_a_frame_with_infinite_velocities_naming_it(tiny_run, tmp_path, capsys):
+    """`whitecap foam` over a run whose third frame holds an infinite velocity (a foreign sequence is checked whole
+    before the pass; a run's frames are checked as the pass reads them): one line naming the file and the field,
+    exit 2, and no diffuse file for that frame."""
+    from whitecap.io import read, write
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    f = read(run / "fluid" / "fluid_00002.ply")
+    f.velocities[3, 1] = float("inf")
+    write(run / "fluid" / "fluid_00002.ply", f)
+    code = main(["foam", str(run), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err == f"error: {run / 'fluid' / 'fluid_00002.ply'}: velocities: 1 particles are NaN or " \
+        "infinite"
+    assert not (tmp_path / "out" / "diffuse" / "diffuse_00002.ply").exists()
+
+
 def test_mesh_no_velocity_reads_files_without_one(tmp_path, capsys):
     import meshio
     import numpy as np

@@ -550,11 +550,14 @@ class _Reader:
         self._next: tuple[int, Future] | None = None
 
     def load(self, k: int) -> ParticleFrame:
-        """Frame k read from its file (not kept)."""
+        """Frame k read from its file (not kept), its positions and velocities checked to be finite: on the reader's
+        thread where it is read ahead (the check's 2 ms a frame at 1 M particles on 2 cores off the loop's thread;
+        NumPy lets go of the GIL for it), its error raised where the frame is taken (:meth:`read`)."""
         path = self.files[k][1]
         fr = read(path, **self.options)
         if fr.velocities is None:
             raise InputError(f"{path}: missing array 'velocity'")
+        fr.check_finite()
         return fr
 
     def read(self, k: int, keep: bool = False) -> ParticleFrame:
@@ -787,8 +790,6 @@ def _run_frames(stage: FoamStage, reader: _Reader, info: RunInfo, out: Path, fra
             with timer("foam.read"):  # what is left of reading the frame once the last one is computed
                 fr = reader.read(k)
             reader.read_next(k + 1)  # on the reader's thread while this frame is processed
-            with timer("foam.check"):
-                fr.check_finite()
             fr.time = info.frame(index).time
             rel = stage.on_frame(fr, index, frame_dt, out, info)
             if convert:  # after the step: a frame that fails there leaves no file of its own behind
