@@ -931,6 +931,15 @@ def birth_unit(n: int, dt: float) -> float:
     return math.ldexp(1.0, BIRTH_BITS - math.frexp(max(n * dt, 1e-30))[1])
 
 
+@ti.func
+def _birth_units(i, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, unit: ti.f64):
+    """Fluid particle i's three terms of birth_sums (f32, as the births are drawn), each to its nearest unit."""
+    w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
+    term = ti.max(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
+                             w * clamp_phi(vort[i], tau[6], tau[7])]), 0.0)  # (≥ 0 already)
+    return ti.cast(ti.cast(term, ti.f64) * unit + 0.5, ti.i64)
+
+
 @ti.kernel
 def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, unit: ti.f64,
                interleaved: TEMPLATE, total: I64) -> SUMS3:
@@ -938,13 +947,12 @@ def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt:
     Σ_i I_k·φ_wc·Δt and Σ_i I_k·φ_vo·Δt, so that G = k_ta·S_ta + k_wc·S_wc + k_vo·S_vo for any multipliers (the
     'auto' budget's birth rate, budget.birth_rate), in units of 1/``unit`` (birth_unit): each term in f32, as the
     births are drawn, then counted as a 64-bit integer. Integers add up to the same bits in any order, so the sum is
-    the same for any thread count and layout (on any arch whose f32 terms are the same), and needs no pass by one
-    thread: each thread adds BIRTH_RUN particles in
-    the layout its arch reads fastest (``interleaved``, a GPU's: thread t particles t + j·threads, so that
-    neighbouring threads read neighbouring particles; else the CPU's, runs of consecutive ones), and its sums go into
-    ``total`` atomically. (Summed as f64, block by block and then the blocks in order by one thread, the last pass
-    was a loop over n/256 values on one GPU thread.) Nothing of the frame's potentials is
-    read back to the host."""
+    the same for any thread count and layout (on any arch whose f32 terms are the same), and no thread has to walk
+    the others' sums: each adds BIRTH_RUN particles, in the layout its arch reads fastest (``interleaved``, a GPU's:
+    thread t takes particles t + j·threads, so that neighbouring threads read neighbouring particles; else the
+    CPU's, runs of consecutive ones), and adds its sums into ``total`` atomically. (Summed in f64 by blocks and then
+    the blocks' sums in order by one thread, that last pass was a loop over n/256 values on one GPU thread.) Nothing
+    of the frame's potentials is read back to the host."""
     for c in range(3):
         total[c] = ti.i64(0)
     runs = (n + BIRTH_RUN - 1) // BIRTH_RUN
@@ -961,15 +969,6 @@ def birth_sums(n: ti.i32, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt:
         for c in ti.static(range(3)):
             ti.atomic_add(total[c], s[c])
     return ti.Vector([total[0], total[1], total[2]])
-
-
-@ti.func
-def _birth_units(i, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f32, unit: ti.f64):
-    """Fluid particle i's three terms of birth_sums (f32, as the births are drawn), each to its nearest unit."""
-    w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
-    term = ti.max(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
-                             w * clamp_phi(vort[i], tau[6], tau[7])]), 0.0)  # (≥ 0; a NaN: 0)
-    return ti.cast(ti.cast(term, ti.f64) * unit + 0.5, ti.i64)
 
 
 # ---------------------------------------------------------------- obstacles (sim.obstacles' SDFs)
