@@ -538,8 +538,8 @@ def _postprocess(src: Path, out: Path, p: FoamParams, seed: int, frame_dt: float
 
 
 class _Reader:
-    """The run's fluid frames, each checked for velocities; the first and the sampled ones are kept. With
-    :meth:`ahead`, frame k + 1 is read on a thread while frame k is processed (on a GPU the kernels run
+    """The run's fluid frames, each checked for velocities and finite values; the first and the sampled ones are
+    kept. With :meth:`ahead`, frame k + 1 is read on a thread while frame k is processed (on a GPU the kernels run
     meanwhile; on the CPU the file's bytes come in while Taichi's kernels hold the GIL)."""
 
     def __init__(self, files: list[tuple[int, Path]], options: dict | None = None):
