@@ -936,7 +936,7 @@ def _birth_units(i, v_diff: F1, crest: F1, e_k: F1, vort: F1, tau: F1, dt: ti.f3
     """Fluid particle i's three terms of birth_sums (f32, as the births are drawn), each to its nearest unit."""
     w = clamp_phi(e_k[i], tau[4], tau[5]) * dt
     term = ti.max(ti.Vector([w * clamp_phi(v_diff[i], tau[0], tau[1]), w * clamp_phi(crest[i], tau[2], tau[3]),
-                             w * clamp_phi(vort[i], tau[6], tau[7])]), 0.0)  # (≥ 0 already)
+                             w * clamp_phi(vort[i], tau[6], tau[7])]), 0.0)  # (≥ 0; NaN, never cast: 0)
     return ti.cast(ti.cast(term, ti.f64) * unit + 0.5, ti.i64)
 
 
