@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .io.atomic import atomic_path
+from .resources import cache_dir
 
 TERRAIN_CACHE_VERSION = 1
 #: The material name that marks an obstacle made from ``[terrain]``.
@@ -44,11 +45,6 @@ TERRAIN_MATERIAL = "terrain"
 MAX_RENDER_VERTICES = 4_000_000
 #: Most grid points a terrain mesh is sampled on into a heightfield.
 MAX_RAYS = 1_000_000
-
-
-def cache_dir() -> Path:
-    """Where terrain meshes are kept: beside the SDF cache (sim/obstacles.cache_dir)."""
-    return Path(os.environ.get("WHITECAP_CACHE", Path.home() / ".cache" / "whitecap")) / "terrain"
 
 
 # ============================================================================ heightmaps
@@ -209,10 +205,8 @@ def closed_solid(V: np.ndarray, F: np.ndarray, shape: tuple[int, int], base: flo
 def _save(path: Path, V: np.ndarray, F: np.ndarray) -> None:
     import trimesh
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    trimesh.Trimesh(V, F, process=False).export(str(tmp), file_type="ply")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(V, F, process=False).export(str(tmp), file_type="ply")
 
 
 # ============================================================================ the scene
@@ -280,7 +274,7 @@ def meshes(scene, source: str = "scene") -> tuple[Path, Path]:
     key = hashlib.sha256(path.read_bytes() + json.dumps(
         [geometry, field, scene.domain.lower, scene.domain.upper, r, scene.solver.kernel_support,
          TERRAIN_CACHE_VERSION]).encode()).hexdigest()[:32]
-    col, ren = cache_dir() / f"{key}_collision.ply", cache_dir() / f"{key}_render.ply"
+    col, ren = cache_dir("terrain") / f"{key}_collision.ply", cache_dir("terrain") / f"{key}_render.ply"
     if col.is_file() and ren.is_file():
         return col, ren
     hf = heightfield(scene, source)

@@ -46,7 +46,6 @@ momentum (projection, penalty, velocity response) the body takes back.
 import contextlib
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,6 +58,7 @@ from ..errors import InputError
 from ..geometry import obstacle_transform, pose_matrix, pose_record
 from ..io.atomic import write_arrays
 from ..io.record import Pose
+from ..resources import cache_dir
 from ..timing import timer
 from .grid import F1, F3, I1, ivec3, vec3
 from .launch import TEMPLATE
@@ -122,10 +122,6 @@ def load_mesh(path: Path, repair: bool = False):
     return m
 
 
-def cache_dir() -> Path:
-    return Path(os.environ.get("WHITECAP_CACHE", Path.home() / ".cache" / "whitecap")) / "sdf"
-
-
 def compute_sdf(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Signed distances (negative inside) of points to a watertight mesh, with libigl.
 
@@ -178,7 +174,7 @@ def build_sdf(o: Obstacle, path: Path, r: float, pad: float) -> SDFGrid:
     key = hashlib.sha256(
         raw + json.dumps([M.round(12).tolist(), dx, pad, o.repair, SDF_CACHE_VERSION]).encode()
     ).hexdigest()[:32]
-    cached = cache_dir() / f"{key}.npz"
+    cached = cache_dir("sdf") / f"{key}.npz"
     if cached.is_file():
         try:
             z = np.load(cached)
