@@ -166,7 +166,7 @@ MUTATIONS: list[Mutation] = [
       "return (np.minimum(i, tmax) - tmin) / (tmax - tmin)",
       [DIFFA, "tests/test_budget.py", "tests/test_diffuse.py"], "φ negative below τmin"),
     M("budget-top-sample-strided", "diffuse/budget.py",
-      "at_random = np.random.default_rng(TOP_SAMPLE_SEED).integers(0, len(values), TOP_SAMPLE)",
+      "at_random = _sample_places(len(values))",
       "at_random = slice(None, None, max(1, len(values) // TOP_SAMPLE))",
       ["tests/test_budget.py"], "the percentiles' bound from every k-th value (aliased with a lattice's period)"),
     M("budget-running-window-off-by-one", "diffuse/budget.py",

@@ -28,6 +28,7 @@ the highest such estimate so far as the peak (running_peak).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -112,6 +113,15 @@ TOP_MARGIN = 0.01
 TOP_MIN = 32768
 
 
+@functools.lru_cache(maxsize=8)
+def _sample_places(n: int) -> np.ndarray:
+    """TOP_SAMPLE places among n at random, the same for the same n (made once: a generator's seeding costs 65 µs,
+    and the running 'auto' asks for the same history's size four times a frame)."""
+    places = np.random.default_rng(TOP_SAMPLE_SEED).integers(0, n, TOP_SAMPLE)
+    places.flags.writeable = False
+    return places
+
+
 def top_percentiles(values: np.ndarray, keep: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
     """``np.percentile(values[keep], q)`` (its 'linear' method), the same bits, for percentiles near the top; the
     kept values are numbers (NaN fails every comparison with the bound: percentile_thresholds keeps only v > 0).
@@ -136,7 +146,7 @@ def top_percentiles(values: np.ndarray, keep: np.ndarray, q: tuple[float, ...]) 
     gamma = virtual - prev
     ranks = np.concatenate([prev, nxt]).astype(np.intp) % n
     k_min = int(ranks.min())
-    at_random = np.random.default_rng(TOP_SAMPLE_SEED).integers(0, len(values), TOP_SAMPLE)
+    at_random = _sample_places(len(values))
     sample = values[at_random][keep[at_random]]
     cut = int((k_min / n - TOP_MARGIN) * len(sample))
     if cut > 0:
