@@ -229,13 +229,13 @@ def test_the_top_percentiles_are_np_percentile_bit_for_bit(dtype):
     assert cases == 5 * 4 * 5 and halves > 4000  # numpy's two ways of interpolating, both checked
 
 
-def test_the_top_percentiles_partition_only_the_values_above_their_bound(monkeypatch):
-    """The bound is what makes them cheaper: at 262k values and (95, 99.9) about 6 % of them are partitioned, and a
-    bound drawn too high falls back to all of them (still the same bits)."""
-    rng = np.random.default_rng(3)
-    values = rng.lognormal(0, 1, 262_144).astype(np.float32)
-    keep = values > 0
-    sizes = []
+_PERCENTILE = np.percentile  # NumPy's own, for the expected values (the tests below spy on budget's calls of it)
+
+
+def _spy_on_partitions(monkeypatch, values: np.ndarray) -> tuple[list, np.ndarray]:
+    """(sizes, spied): ``spied`` is ``values`` as an array whose partitions append their sizes to ``sizes``, and
+    budget's calls of np.percentile append ("all", size)."""
+    sizes: list = []
     real = np.ndarray.partition
 
     class Spy(np.ndarray):
@@ -243,17 +243,25 @@ def test_the_top_percentiles_partition_only_the_values_above_their_bound(monkeyp
             sizes.append(self.size)
             return real(self, kth, *a, **k)
 
-    orig_percentile = np.percentile
-    monkeypatch.setattr(B.np, "percentile", lambda a, q: (sizes.append(("all", np.size(a))), orig_percentile(a, q))[1])
-    values_spy = values.view(Spy)
-    got = B.top_percentiles(values_spy, keep, B.AUTO_PERCENTILES)
-    assert got.tobytes() == orig_percentile(values[keep], B.AUTO_PERCENTILES).tobytes()
+    monkeypatch.setattr(B.np, "percentile", lambda a, q: (sizes.append(("all", np.size(a))), _PERCENTILE(a, q))[1])
+    return sizes, values.view(Spy)
+
+
+def test_the_top_percentiles_partition_only_the_values_above_their_bound(monkeypatch):
+    """The bound is what makes them cheaper: at 262k values and (95, 99.9) about 6 % of them are partitioned, and a
+    bound drawn too high falls back to all of them (still the same bits)."""
+    rng = np.random.default_rng(3)
+    values = rng.lognormal(0, 1, 262_144).astype(np.float32)
+    keep = values > 0
+    sizes, spied = _spy_on_partitions(monkeypatch, values)
+    got = B.top_percentiles(spied, keep, B.AUTO_PERCENTILES)
+    assert got.tobytes() == _PERCENTILE(values[keep], B.AUTO_PERCENTILES).tobytes()
     sample, parted = sizes  # the even sample for the bound, then the values above it; np.percentile not called
     assert sample <= 2 * B.TOP_SAMPLE and 0.05 * len(values) < parted < 0.08 * len(values), sizes
     sizes.clear()
     monkeypatch.setattr(B, "TOP_MARGIN", -0.02)  # a bound above the 95th percentile's rank
     got = B.top_percentiles(values, keep, B.AUTO_PERCENTILES)
-    assert got.tobytes() == orig_percentile(values[keep], B.AUTO_PERCENTILES).tobytes()
+    assert got.tobytes() == _PERCENTILE(values[keep], B.AUTO_PERCENTILES).tobytes()
     assert sizes == [("all", len(values))]
 
 
@@ -267,18 +275,9 @@ def test_the_top_percentiles_bound_holds_for_values_in_lattice_order(monkeypatch
     row = np.linspace(0.0, 4.0, period) ** 2  # a shear flow: E_k rising across each row of the lattice
     values = (np.tile(row[::-1], n // period) * rng.uniform(0.99, 1.01, n)).astype(np.float32)
     keep = values > 0
-    sizes = []
-    real = np.ndarray.partition
-
-    class Spy(np.ndarray):
-        def partition(self, kth, *a, **k):
-            sizes.append(self.size)
-            return real(self, kth, *a, **k)
-
-    orig_percentile = np.percentile
-    monkeypatch.setattr(B.np, "percentile", lambda a, q: (sizes.append(("all", np.size(a))), orig_percentile(a, q))[1])
-    got = B.top_percentiles(values.view(Spy), keep, B.AUTO_PERCENTILES)
-    assert got.tobytes() == orig_percentile(values[keep], B.AUTO_PERCENTILES).tobytes()
+    sizes, spied = _spy_on_partitions(monkeypatch, values)
+    got = B.top_percentiles(spied, keep, B.AUTO_PERCENTILES)
+    assert got.tobytes() == _PERCENTILE(values[keep], B.AUTO_PERCENTILES).tobytes()
     assert ("all", n) not in sizes, "the bound fell above a rank read: every value was partitioned"
     sample, parted = sizes
     assert sample <= B.TOP_SAMPLE and 0.05 * n < parted < 0.08 * n, sizes

@@ -334,16 +334,13 @@ import numpy as np, taichi as ti
 from whitecap.sim import runtime
 runtime.init("cuda")
 from whitecap.diffuse import kernels as K
+from whitecap.diffuse.generator import _nd
 for n in (5, 3_000_001):
     rng = np.random.default_rng(n)
     dt, unit = np.float32(1 / 120), K.birth_unit(n, 1 / 120)
     total = ti.ndarray(ti.i64, 3)
     def sums(pots, tau):
-        arrays = []
-        for a in list(pots) + [np.asarray(tau, np.float32)]:
-            nd = ti.ndarray(ti.f32, len(a))
-            nd.from_numpy(a.astype(np.float32))
-            arrays.append(nd)
+        arrays = [_nd(np.asarray(a, np.float32), ti.f32) for a in [*pots, tau]]
         got = [[int(x) for x in K.birth_sums(n, *arrays, dt, unit, gpu, total)] for gpu in (True, False)]
         assert got[0] == got[1], (n, got)
         return got[0]

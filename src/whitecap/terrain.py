@@ -274,7 +274,8 @@ def meshes(scene, source: str = "scene") -> tuple[Path, Path]:
     key = hashlib.sha256(path.read_bytes() + json.dumps(
         [geometry, field, scene.domain.lower, scene.domain.upper, r, scene.solver.kernel_support,
          TERRAIN_CACHE_VERSION]).encode()).hexdigest()[:32]
-    col, ren = cache_dir("terrain") / f"{key}_collision.ply", cache_dir("terrain") / f"{key}_render.ply"
+    folder = cache_dir("terrain")
+    col, ren = folder / f"{key}_collision.ply", folder / f"{key}_render.ply"
     if col.is_file() and ren.is_file():
         return col, ren
     hf = heightfield(scene, source)
