@@ -1,4 +1,4 @@
-"""A frame's files through the background writer: one after the other on its thread, or side by side on lanes.
+"""A frame's files through the background writer: one after the other, side by side on lanes, frames side by side.
 
 Each frame is a fluid PLY of ``--fluid`` particles (positions, velocities, density, ids: 32 B each) and a
 diffuse PLY of ``--diffuse`` particles (positions, velocities, lifetime, type, radius, ids), then a small
@@ -7,14 +7,17 @@ theirs. Three ways, in rounds (``--pairs`` of them) in one process, each run's f
 (files written over others wait for the old ones' pages still being written back: 42-47 ms a 59 MB file here
 against 13 ms new), removed after the run and the disk synced, untimed; which goes first rotates:
 
-- ``one thread``: every job on the writer's own thread (whitecap before lanes);
-- ``lanes``: the fluid and the diffuse file on lanes of their own, run.json after both;
-- ``bytes``: as ``lanes``, but each file's bytes made once beforehand and only written (io.atomic.write_bytes):
+- ``one thread``: every job one after the other (whitecap before lanes);
+- ``lanes``: the fluid and the diffuse file on lanes of their own, run.json after both, and the next frame's
+  files after that run.json (lanes of depth 1, each frame waited for: whitecap before frames side by side);
+- ``frames``: as whitecap writes now: lanes of depth 2 (io.writer.LANE_DEPTH), the next frame's files beside
+  the last frame's and its run.json;
+- ``bytes``: as ``frames``, but each file's bytes made once beforehand and only written (io.atomic.write_bytes):
   what a frame's files would cost were their records packed elsewhere (on the device, say), the floor that
   packing on the host is measured against.
 
-Printed: ms a frame for each, round by round (the three in a rotating order), the ratio one thread / lanes
-(above 1: lanes faster) and lanes / bytes (what packing the records on the host adds). The
+Printed: ms a frame for each, round by round (the four in a rotating order), the ratios one thread / lanes,
+lanes / frames (above 1: the later way faster) and frames / bytes (what packing the records on the host adds). The
 defaults are `whitecap foam` at 1 M fluid particles with 1.6 diffuse particles each (about 32 + 58 MB a frame).
 ``--dir`` picks the file system (a RAM disk: /dev/shm); the default is a temporary folder.
 
@@ -36,7 +39,7 @@ import numpy as np
 from whitecap.io import write
 from whitecap.io.atomic import write_bytes, write_text
 from whitecap.io.frame import ParticleFrame
-from whitecap.io.writer import FrameWriter
+from whitecap.io.writer import LANE_DEPTH, FrameWriter
 
 
 def frames(n_fluid: int, n_diffuse: int) -> tuple[ParticleFrame, ParticleFrame]:
@@ -51,15 +54,16 @@ def frames(n_fluid: int, n_diffuse: int) -> tuple[ParticleFrame, ParticleFrame]:
     return fluid, diffuse
 
 
-MODES = ("one thread", "lanes", "bytes")
+MODES = ("one thread", "lanes", "frames", "bytes")
 
 
 def run(folder: Path, files: dict, n: int, mode: str) -> float:
     """ms a frame for ``n`` frames written through one FrameWriter, the last flushed. ``files``: the fluid and
     the diffuse frame, and (``bytes``) their files' bytes."""
     lanes = mode != "one thread"
+    one_frame = mode in ("one thread", "lanes")  # each frame's files and run.json done before the next frame's
     t0 = time.perf_counter()
-    with FrameWriter(name="bench-writer") as w:
+    with FrameWriter(name="bench-writer", depth=1 if one_frame else LANE_DEPTH) as w:
         for k in range(n):
             for kind in ("fluid", "diffuse"):
                 path = folder / f"{kind}_{k:05d}.ply"
@@ -67,6 +71,8 @@ def run(folder: Path, files: dict, n: int, mode: str) -> float:
                        else functools.partial(write, path, files[kind]))
                 w.submit(job, kind, lane=kind if lanes else None)
             w.submit(functools.partial(write_text, folder / "run.json", f'{{"frame": {k}}}'), "run.json")
+            if one_frame:
+                w.flush()
         w.flush()
     ms = 1e3 * (time.perf_counter() - t0) / n
     for f in folder.glob("*.ply"):
@@ -97,17 +103,22 @@ def main() -> None:
         print(f"{a.fluid:,} fluid + {a.diffuse:,} diffuse particles a frame ({mb:.0f} MB), {a.frames} frames a run, "
               f"into {folder}")
         got: dict[str, list[float]] = {m: [] for m in MODES}
-        for i in range(a.pairs):  # the order rotates: each mode goes first, second and last in turn
-            for mode in MODES[i % 3:] + MODES[:i % 3]:
+        k = len(MODES)
+        for i in range(a.pairs):  # the order rotates: each mode goes first, second, ... and last in turn
+            for mode in MODES[i % k:] + MODES[:i % k]:
                 got[mode].append(run(folder, files, a.frames, mode))
-            one, lanes, raw = (got[m][-1] for m in MODES)
-            print(f"  round {i + 1}: one thread {one:7.1f}, lanes {lanes:7.1f}, bytes {raw:7.1f} ms a frame: "
-                  f"one thread / lanes {one / lanes:.2f}x, lanes / bytes {lanes / raw:.2f}x")
+            one, lanes, side, raw = (got[m][-1] for m in MODES)
+            print(f"  round {i + 1}: one thread {one:7.1f}, lanes {lanes:7.1f}, frames {side:7.1f}, bytes {raw:7.1f} "
+                  f"ms a frame: one thread / lanes {one / lanes:.2f}x, lanes / frames {lanes / side:.2f}x, "
+                  f"frames / bytes {side / raw:.2f}x")
         med = {m: statistics.median(v) for m, v in got.items()}
         rounds = list(zip(*(got[m] for m in MODES)))
+
+        def ratio(a_: int, b_: int) -> str:
+            return f"{statistics.median(r[a_] / r[b_] for r in rounds):.2f}x"
         print("median: " + ", ".join(f"{m} {med[m]:.1f} ms a frame ({1e3 / med[m]:.1f} frames/s)" for m in MODES)
-              + f"; rounds' ratio medians: one thread / lanes {statistics.median(o / la for o, la, _ in rounds):.2f}x, "
-              f"lanes / bytes (packing on the host) {statistics.median(la / b for _, la, b in rounds):.2f}x")
+              + f"; rounds' ratio medians: one thread / lanes {ratio(0, 1)}, lanes / frames (frames side by side) "
+              f"{ratio(1, 2)}, frames / bytes (packing on the host) {ratio(2, 3)}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from whitecap.cli import main
 from whitecap.config import scene_from_dict
 from whitecap.io.lock import LOCK_FILE
 from whitecap.io.run import RunInfo
-from whitecap.io.writer import FrameWriter
+from whitecap.io.writer import LANE_DEPTH, ORDERED_AHEAD, FrameWriter
 from whitecap.pipeline import simulate
 
 from .conftest import ROOT, kill_when, tiny_scene_dict
@@ -110,8 +110,9 @@ def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
     while w._queue.qsize() < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     t.join(0.3)
-    # One job being written and two waiting: the eleven others wait in the caller, not in memory.
-    assert t.is_alive() and w._queue.qsize() == 2 and len(handed) <= 3
+    # One job being written, ORDERED_AHEAD - 1 waiting for it on the ordered thread, one the writer holds and two
+    # in the queue: the others wait in the caller, not in memory.
+    assert t.is_alive() and w._queue.qsize() == 2 and len(handed) <= ORDERED_AHEAD + 1 + 2 < 11
     gate.set()
     t.join(30)
     w.flush()
@@ -121,14 +122,14 @@ def test_the_queue_is_bounded_a_slow_disk_blocks_the_caller():
 
 def test_a_frames_files_on_lanes_are_written_side_by_side_and_what_lists_them_after_all():
     """Jobs on two lanes run at once (each waits for the other at a barrier: one after the other would never
-    pass it); a job without a lane (the frame's run.json) starts only once both are done; a lane runs its own
-    jobs one at a time, in order; flush waits for the lanes."""
-    meet = threading.Barrier(2, timeout=30)
+    pass it); a job without a lane (the frame's run.json) starts only once both are done, on a thread of its
+    own, the run.jsons in order; flush waits for the lanes."""
+    meet = [threading.Barrier(2, timeout=30) for _ in range(3)]  # a frame's two files meet each other
     log, lock = [], threading.Lock()
 
     def file(name):
         def job():
-            meet.wait()  # BrokenBarrierError after 30 s if the other lane's job is not running meanwhile
+            meet[int(name[-1])].wait()  # BrokenBarrierError after 30 s if the other lane's job is not running
             time.sleep(0.05 if name.startswith("fluid") else 0)
             with lock:
                 log.append((name, threading.current_thread().name))
@@ -141,17 +142,74 @@ def test_a_frames_files_on_lanes_are_written_side_by_side_and_what_lists_them_af
             w.submit(lambda k=k: log.append((f"run.json{k}", threading.current_thread().name)), "run.json")
         w.flush()
         assert len(log) == 9
-    names = [n for n, _ in log]
+    at = {n: i for i, (n, _) in enumerate(log)}
     for k in range(3):  # the diffuse file (no sleep) finished first: the two ran at once; run.json after both
-        assert names[3 * k: 3 * k + 3] == [f"diffuse{k}", f"fluid{k}", f"run.json{k}"]
+        assert at[f"diffuse{k}"] < at[f"fluid{k}"] < at[f"run.json{k}"]
+    assert at["run.json0"] < at["run.json1"] < at["run.json2"]
     threads = {n.rstrip("0123456789"): t for n, t in log}
-    assert threads["run.json"] == "w" and threads["fluid"].startswith("w-fluid")
+    assert threads["run.json"].startswith("w-ordered") and threads["fluid"].startswith("w-fluid")
     assert threads["diffuse"].startswith("w-diffuse")
 
 
-def test_an_error_on_a_lane_skips_what_would_list_its_file_and_reaches_the_caller():
+def test_the_next_frames_files_are_written_while_the_last_frames_run_json_waits():
+    """Frame k + 1's files go on while a job without a lane handed over before them (frame k's run.json, its
+    checkpoint) is still being written: the lanes never wait for what lists the files before theirs."""
+    gate, listing = threading.Event(), threading.Event()
     done = []
-    w = FrameWriter(maxsize=4)
+
+    def slow_run_json():
+        listing.set()
+        gate.wait(60)
+        done.append("run.json0")
+
+    w = FrameWriter(maxsize=2)
+    w.submit(lambda: done.append("fluid0"), "fluid", lane="fluid")
+    w.submit(slow_run_json, "run.json")
+    assert listing.wait(30)
+    next_file = threading.Event()
+    w.submit(lambda: (done.append("fluid1"), next_file.set()), "fluid", lane="fluid")
+    assert next_file.wait(30)  # written while run.json0 still runs
+    w.submit(lambda: done.append("run.json1"), "run.json")
+    assert done == ["fluid0", "fluid1"]
+    gate.set()
+    w.flush()
+    w.close()
+    assert done == ["fluid0", "fluid1", "run.json0", "run.json1"]
+
+
+def test_a_lane_writes_depth_files_side_by_side_and_holds_the_next_back():
+    """A lane runs ``depth`` of its jobs at once (frame k's diffuse file and frame k + 1's meet at a barrier: one
+    after the other would never pass it); the next waits until one of them is done."""
+    meet = threading.Barrier(2, timeout=30)
+    gate = threading.Event()
+    log = []
+
+    def file(k):
+        def job():
+            meet.wait()
+            gate.wait(60)
+            log.append(k)
+        return job
+
+    w = FrameWriter(maxsize=2, depth=2)
+    w.submit(file(0), "diffuse", lane="diffuse")
+    w.submit(file(1), "diffuse", lane="diffuse")
+    third = threading.Event()
+    w.submit(third.set, "diffuse", lane="diffuse")
+    assert not third.wait(0.3) and log == []  # held back: both threads of the lane are busy
+    gate.set()
+    assert third.wait(30)
+    w.flush()
+    w.close()
+    assert sorted(log) == [0, 1]
+
+
+def test_an_error_on_a_lane_skips_what_would_list_its_file_and_reaches_the_caller():
+    """A failed file: the file beside it is written, what would list it is skipped, and so is a job that starts
+    after the failure (on the failed lane, of depth 1 here, the next job starts only once the failed one is
+    done)."""
+    done = []
+    w = FrameWriter(maxsize=4, depth=1)
     beside = threading.Event()
 
     def full():
@@ -165,7 +223,7 @@ def test_an_error_on_a_lane_skips_what_would_list_its_file_and_reaches_the_calle
     w.submit(full, "diffuse", lane="diffuse")
     w.submit(fluid, "fluid", lane="fluid")  # beside it: written
     w.submit(lambda: done.append("run.json"), "run.json")  # would list the diffuse file: skipped
-    w.submit(lambda: done.append("next fluid"), "fluid", lane="fluid")  # after the failure: skipped
+    w.submit(lambda: done.append("next diffuse"), "diffuse", lane="diffuse")  # after the failure: skipped
     with pytest.raises(OSError) as err:
         w.flush()
     assert err.value.filename == "/run/diffuse/diffuse_00003.ply"
@@ -173,12 +231,12 @@ def test_an_error_on_a_lane_skips_what_would_list_its_file_and_reaches_the_calle
     assert done == ["fluid"]
 
 
-def test_a_lane_holds_one_job_and_flush_waits_for_it():
+def test_a_lane_of_depth_one_holds_one_job_and_flush_waits_for_it():
     """A lane's next job waits in the writer's bounded queue, not in the lane: a slow disk still blocks the
     caller, with at most the lane's job, the one the writer holds and ``maxsize`` queued in memory."""
     gate, started = threading.Event(), threading.Event()
     finished = []
-    w = FrameWriter(maxsize=1)
+    w = FrameWriter(maxsize=1, depth=1)
 
     def slow():
         started.set()
@@ -231,15 +289,15 @@ def test_a_lane_without_a_thread_fails_as_a_write_would_and_flush_does_not_hang(
 # ----------------------------------------------------------------------------- simulate
 def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_frames(tmp_path, monkeypatch):
     """A slow writer: each run.json saved lists only files already on disk, the foam stage's too, which
-    the writer's thread writes (not the loop's), and the checkpoint of frame k is written once run.json
-    lists every frame up to k."""
+    the writer's thread writes (not the loop's), as does each counts.csv, and the checkpoint of frame k is
+    written once run.json lists every frame up to k."""
     import whitecap.diffuse.driver as foam_driver
     import whitecap.sim.driver as driver
 
     run = tmp_path / "R"
     bad, threads = [], set()
     real_save, real_text, real_write, real_arrays = RunInfo.save, driver.write_text, driver.write, driver.write_arrays
-    real_foam_write = foam_driver.write
+    real_foam_write, real_foam_text = foam_driver.write, foam_driver.write_text
 
     def unwritten(run_dir, frames) -> list:
         return [rel for f in frames for rel in f["files"].values() if not (Path(run_dir) / rel).is_file()]
@@ -262,6 +320,12 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
         time.sleep(0.05)
         real_foam_write(path, frame)
 
+    def save_counts(path, text):  # counts.csv: its rows' frames' diffuse files are on disk
+        rows = [int(line.split(",")[0]) for line in text.splitlines()[1:]]
+        bad.extend(f"counts.csv row {k}" for k in rows
+                   if not (Path(path).parent / f"diffuse_{k:05d}.ply").is_file())
+        real_foam_text(path, text)
+
     def checkpoint(path, data):
         k = int(data["frame"])
         listed = sorted({i for i in _listed(run).values()})
@@ -273,6 +337,7 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
     monkeypatch.setattr(driver, "write_text", save_text)
     monkeypatch.setattr(driver, "write", slow_write)
     monkeypatch.setattr(foam_driver, "write", slow_foam_write)
+    monkeypatch.setattr(foam_driver, "write_text", save_counts)
     monkeypatch.setattr(driver, "write_arrays", checkpoint)
     scene = tiny_scene_dict(output={"frames": 5, "checkpoint_interval": 2},
                             foam={"preset": "auto", "k_ta": 400.0, "k_wc": 5000.0})
@@ -280,9 +345,9 @@ def test_run_json_never_lists_an_incomplete_file_and_checkpoints_follow_their_fr
     assert bad == []
     listed = _listed(run)
     assert sorted(set(listed.values())) == [0, 1, 2, 3, 4, 5]
-    # on the writer's diffuse lane, beside the frame's fluid file
-    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and len(threads) == 1
-    assert threads.pop().startswith("whitecap-writer-diffuse")
+    # on the writer's diffuse lane, beside the frame's fluid file (and the next frame's)
+    assert sum(rel.startswith("diffuse/") for rel in listed) == 6 and 1 <= len(threads) <= LANE_DEPTH
+    assert all(t.startswith("whitecap-writer-diffuse") for t in threads)
 
 
 def test_output_is_byte_identical_with_the_writer_on_and_off(tmp_path, monkeypatch):

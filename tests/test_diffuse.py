@@ -532,16 +532,27 @@ def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run
 
 
 KILLED_MID_FILE = """
-import sys, time
+import json, sys, time
 sys.path.insert(0, sys.argv[1])
 import whitecap.diffuse.driver as driver
 from whitecap.io.atomic import atomic_path
 real = driver.write
 
+def listed(run, index):
+    try:
+        return any(f["index"] == index and "diffuse" in f["files"] for f in json.load(open(run))["frames"])
+    except (OSError, ValueError):  # (not there yet)
+        return False
+
 def write(path, frame):
     if path.name == "diffuse_00006.ply":  # half a file in its temporary name, then wait for SIGKILL
         with atomic_path(path) as tmp:
             tmp.write_bytes(b"ply\\nformat binary_little_endian 1.0\\n")
+            # frame 5's run.json does not wait for frame 6's file: killed once it is written (or after 30 s)
+            for _ in range(3000):
+                if listed(path.parents[1] / "run.json", 5):
+                    break
+                time.sleep(0.01)
             open(sys.argv[4], "w").close()
             time.sleep(600)
     return real(path, frame)
@@ -552,8 +563,9 @@ driver.postprocess(sys.argv[2], out=sys.argv[3], show_progress=False)
 
 
 def test_a_pass_killed_while_writing_a_frame_resumes_into_the_same_bytes(foam_run, tmp_path):
-    """kill -9 while frame 6's diffuse file is half-written: the pass run again sweeps the temporary file,
-    continues after frame 5 and makes the bytes of a pass never stopped."""
+    """kill -9 while frame 6's diffuse file is half-written, frame 5 listed (the writer lists it meanwhile): the
+    pass run again sweeps the temporary file, continues after frame 5 and makes the bytes of a pass never
+    stopped."""
     whole, out, sig = tmp_path / "whole", tmp_path / "killed", tmp_path / "writing"
     postprocess(foam_run, out=whole, show_progress=False)
     src = Path(__file__).resolve().parents[1] / "src"

@@ -66,13 +66,13 @@ def counts_line(row) -> str:
     return f"{int(row[0])},{row[1]:.6f},{int(row[2])},{int(row[3])},{int(row[4])}"
 
 
-def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, counts_csv: str, ready: Future | None = None) -> None:
-    """One frame's diffuse particles, then counts.csv up to it (so it never lists a frame whose file is
-    not written); once ``ready`` (the frame's read-back from the GPU, FoamGenerator.pending) is done."""
+def _write_diffuse(out: Path, rel: str, frame: ParticleFrame, ready: Future | None = None) -> None:
+    """One frame's diffuse particles, once ``ready`` (the frame's read-back from the GPU, FoamGenerator.pending)
+    is done. counts.csv up to the frame is written after it (:meth:`FoamStage.write`), so that it never lists a
+    frame whose file is not written."""
     if ready is not None:
         ready.result()
     write(out / rel, frame)
-    write_text(out / COUNTS_CSV, counts_csv)
 
 
 class FoamStage(FrameHook):
@@ -187,9 +187,11 @@ class FoamStage(FrameHook):
             self._unwritten = None
             csv = self._counts_csv()
             if writer is None:
-                _write_diffuse(out, rel, d, csv, ready)
-            else:
-                writer.submit(functools.partial(_write_diffuse, out, rel, d, csv, ready), "diffuse", lane="diffuse")
+                _write_diffuse(out, rel, d, ready)
+                write_text(out / COUNTS_CSV, csv)
+            else:  # the frame's file beside the next frame's (a lane); counts.csv, one file rewritten, after it
+                writer.submit(functools.partial(_write_diffuse, out, rel, d, ready), "diffuse", lane="diffuse")
+                writer.submit(functools.partial(write_text, out / COUNTS_CSV, csv), "counts")
 
     def _counts_csv(self) -> str:
         """counts.csv's text: the generator's rows so far from frame ``_counts_from`` on, each formatted once (a

@@ -31,10 +31,10 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-#: Blocks kept by default: the frame just made (the state's host view), the one the writer's thread is writing
-#: and one waiting in its queue (io.writer.DEFAULT_QUEUE jobs, of which a frame's other files take some). A
-#: fourth frame in flight gets a block of its own, as every frame did before.
-KEEP = 3
+#: Blocks kept by default: the frame just made (the state's host view), the two the writer's lane is writing
+#: (io.writer.LANE_DEPTH: frame k's file beside frame k-1's) and one waiting for the lane. A fifth frame in flight
+#: gets a block of its own, as every frame did before.
+KEEP = 4
 #: Rows a block is made with, per row asked for: a count that grows (a splash's diffuse particles) would
 #: otherwise need a new block every frame until it stops growing; more would hold more memory at the peak.
 GROWTH = 1.125
