@@ -57,7 +57,8 @@ from typing import Callable, Sequence
 
 from .. import timing
 
-#: Jobs waiting at most (besides the one being written): each may hold a copy of a frame or of the state.
+#: Jobs waiting in the queue at most (besides those handed out to the lanes and the ordered thread, and the one the
+#: writer's thread holds while a lane is full): each may hold a copy of a frame or of the state.
 DEFAULT_QUEUE = 2
 #: Jobs a lane runs at once, each on a thread of its own (see the module's docstring).
 LANE_DEPTH = 2
