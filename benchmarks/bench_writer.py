@@ -3,7 +3,7 @@
 Each frame is a fluid PLY of ``--fluid`` particles (positions, velocities, density, ids: 32 B each) and a
 diffuse PLY of ``--diffuse`` particles (positions, velocities, lifetime, type, radius, ids), then a small
 run.json, handed to one :class:`whitecap.io.writer.FrameWriter` as ``simulate`` and ``whitecap foam`` hand
-theirs. Three ways, in rounds (``--pairs`` of them) in one process, each run's frames new files, as a run's are
+theirs. Four ways, in rounds (``--pairs`` of them) in one process, each run's frames new files, as a run's are
 (files written over others wait for the old ones' pages still being written back: 42-47 ms a 59 MB file here
 against 13 ms new), removed after the run and the disk synced, untimed; which goes first rotates:
 

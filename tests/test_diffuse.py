@@ -532,17 +532,12 @@ def test_simulate_hands_the_foam_its_frame_on_the_device_the_same_bytes(foam_run
 
 
 KILLED_MID_FILE = """
-import json, sys, time
+import sys, time
 sys.path.insert(0, sys.argv[1])
 import whitecap.diffuse.driver as driver
 from whitecap.io.atomic import atomic_path
+from whitecap.io.run import RunInfo
 real = driver.write
-
-def listed(run, index):
-    try:
-        return any(f["index"] == index and "diffuse" in f["files"] for f in json.load(open(run))["frames"])
-    except (OSError, ValueError):  # (not there yet)
-        return False
 
 def write(path, frame):
     if path.name == "diffuse_00006.ply":  # half a file in its temporary name, then wait for SIGKILL
@@ -550,7 +545,7 @@ def write(path, frame):
             tmp.write_bytes(b"ply\\nformat binary_little_endian 1.0\\n")
             # frame 5's run.json does not wait for frame 6's file: killed once it is written (or after 30 s)
             for _ in range(3000):
-                if listed(path.parents[1] / "run.json", 5):
+                if 5 in dict(RunInfo.load(path.parents[1]).files("diffuse")):
                     break
                 time.sleep(0.01)
             open(sys.argv[4], "w").close()

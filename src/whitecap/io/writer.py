@@ -206,8 +206,7 @@ class FrameWriter:
     def _submit_to_lane(self, box: list, label: str, lane: str) -> Future:
         """The job on one of ``lane``'s threads, once the lane has fewer than ``depth`` jobs running."""
         pool, jobs = self._lanes.get(lane) or (None, deque())
-        while jobs and (jobs[0].done() or len(jobs) >= self._depth):
-            jobs.popleft().exception()  # waits for the oldest when the lane is full
+        _make_room(jobs, self._depth)
         if pool is None:
             pool = ThreadPoolExecutor(self._depth, thread_name_prefix=f"{self._name}-{lane}")
             self._lanes[lane] = (pool, jobs)
@@ -218,14 +217,12 @@ class FrameWriter:
     def _submit_ordered(self, box: list, label: str) -> Future:
         """The job on the ordered thread, after every job handed out before it, once fewer than ORDERED_AHEAD
         such jobs are handed out (they hold what they write, a checkpoint's state say: the bound on memory)."""
-        jobs = self._ordered_jobs
-        while jobs and (jobs[0].done() or len(jobs) >= ORDERED_AHEAD):
-            jobs.popleft().exception()
+        _make_room(self._ordered_jobs, ORDERED_AHEAD)
         before = self._in_flight()
         if self._ordered is None:
             self._ordered = ThreadPoolExecutor(1, thread_name_prefix=f"{self._name}-ordered")
         fut = self._ordered.submit(self._job, box, label, before)
-        jobs.append(fut)
+        self._ordered_jobs.append(fut)
         return fut
 
     def _job(self, box: list, label: str, after: Sequence[Future]) -> None:
@@ -258,3 +255,10 @@ class FrameWriter:
                     rec = timing.TIMERS[timing.BACKGROUND_PREFIX + label]
                     rec[0] += time.perf_counter() - t0
                     rec[1] += 1
+
+
+def _make_room(jobs: deque[Future], most: int) -> None:
+    """Drop the jobs at the front that are done, and wait for the oldest while ``most`` or more are not: after it,
+    fewer than ``most`` jobs of ``jobs`` are handed out (a lane's threads, the ordered thread's backlog)."""
+    while jobs and (jobs[0].done() or len(jobs) >= most):
+        jobs.popleft().exception()
