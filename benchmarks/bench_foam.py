@@ -5,7 +5,7 @@ and splashes, so all potentials fire), then times `whitecap foam` over it, readi
 and writing included, beside the cost of only reading the frames.
 
     python benchmarks/bench_foam.py [--frames 10] [--particles 100000] [--budget 2] [--against OLD/src]
-                                     [--repeat 1] [--profile] [--arrays]
+                                     [--repeat 1] [--profile] [--arrays] [--kernels]
 
 Each timing runs in its own process (one Taichi runtime each), warmed up first on the first four frames
 (the advection's kernels compile only once there are diffuse particles, and the potentials of the
@@ -16,7 +16,10 @@ their compilation was timed). ``--against`` times another checkout's package on 
 each and their ratios, then the median and range of the ratios of each back-to-back pair: on a shared,
 loaded machine the CPU time (both threads) and the pairs' median are the steadier figures. ``--arrays`` times this
 package a second way in the same alternation: its fluid and diffuse frames read back array by array and packed by
-the writer, as before they were made as their files' records (c268cca, 68bb59a).
+the writer, as before they were made as their files' records (c268cca, 68bb59a). ``--kernels`` makes one more pass of
+this package with Taichi's kernel profiler on and prints each kernel's device time a frame over the pass's frames
+(after its set-up and look-ahead) against the frames' wall time: what the loop spends beyond the device's work is
+the host's (reading, launching, handing over, waiting for the writer) and the device left idle.
 
 The time grows with the number of diffuse particles alive (each is advected
 through the fluid's neighbour grid), so compare runs at the same counts.
@@ -40,18 +43,39 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import kernel_profile  # noqa: E402
+
 REFERENCE_FPS_100K = 2.7
 TARGET_FPS = 5.0
 WARM_FRAMES = 4  # see the docstring
 
 
-def time_foam(run: Path, r: float, budget: float | None, arch: str, domain: tuple | None = None) -> dict:
+def time_foam(run: Path, r: float, budget: float | None, arch: str, domain: tuple | None = None,
+              kernels: bool = False) -> dict:
     """`whitecap foam` over the run's fluid frames, after a warm-up on its first four: wall and CPU time a frame.
     ``domain`` ((lower, upper) [m]) is the foreign sequence's domain, given so that every package removes
     diffuse particles at the same box (its default rule changed at 7c12cf0: 8b5132d's box was the flow's
-    own plus 4 r, so its spray left it sooner and it advected a fifth fewer particles by the last frame)."""
+    own plus 4 r, so its spray left it sooner and it advected a fifth fewer particles by the last frame).
+    ``kernels``: with Taichi's kernel profiler on, each kernel's device time over the pass's frames (kernel_profile)
+    and the frames' wall time (the pass less its set-up and look-ahead)."""
     from whitecap.config import Foam
-    from whitecap.diffuse import postprocess, resolve
+    from whitecap.diffuse import driver, postprocess, resolve
+
+    frames_wall = [0.0]
+    if kernels:
+        kernel_profile.enable()
+        run_frames = driver._run_frames
+
+        def profiled_frames(*args, **kw):  # the frames alone: the profiler cleared after set-up and look-ahead
+            kernel_profile.clear()
+            t = time.perf_counter()
+            try:
+                return run_frames(*args, **kw)
+            finally:
+                frames_wall[0] += time.perf_counter() - t
+
+        driver._run_frames = profiled_frames
 
     params = resolve(Foam(preset="auto", **({"budget": budget} if budget else {})))
     on = {} if arch == "cpu" else {"arch": arch}  # the CPU is the default: older checkouts have no arch option
@@ -67,13 +91,18 @@ def time_foam(run: Path, r: float, budget: float | None, arch: str, domain: tupl
         from whitecap import timing
 
         timing.reset()  # the timed pass's named phases only (``--profile``)
+        frames_wall[0] = 0.0
         t0, c0 = time.perf_counter(), time.process_time()
         postprocess(run / "fluid", out=Path(tmp) / "foam", params=params, dt=1 / 30, radius=r, show_progress=False,
                     **on)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         counts = open(Path(tmp) / "foam" / "diffuse" / "counts.csv").read().strip().splitlines()[-1]
     phases = {k: v[0] / len(files) for k, v in timing.TIMERS.items()}
-    return {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts, "phases": phases}
+    out = {"wall": wall / len(files), "cpu": cpu / len(files), "counts": counts, "phases": phases}
+    if kernels:
+        out["kernel_ms"], out["kernels"] = kernel_profile.times()
+        out["frames_wall"] = frames_wall[0] / len(files)
+    return out
 
 
 BEFORE_FRAMES = ("foam.setup", "foam.look_ahead")  # the pass's timers before its first frame (diffuse/driver.py)
@@ -90,7 +119,10 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="print the named phases of this package's last pass")
     ap.add_argument("--arrays", action="store_true", help="time this package a second way too, its diffuse frames "
                     "read back array by array and packed by the writer (as before c268cca), alternating with the rest")
+    ap.add_argument("--kernels", action="store_true", help="one more pass of this package with each kernel's device "
+                    "time (Taichi's kernel profiler) against the frames' wall time")
     ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--profiled", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--by-array", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--radius", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--domain", help=argparse.SUPPRESS)
@@ -102,7 +134,7 @@ def main() -> None:
 
             records.WORDS_MAX = 0
         box = json.loads(a.domain) if a.domain else None
-        print("RESULT " + json.dumps(time_foam(Path(a.one), a.radius, a.budget, a.arch, box)))
+        print("RESULT " + json.dumps(time_foam(Path(a.one), a.radius, a.budget, a.arch, box, a.profiled)))
         return
     from whitecap import io
     from whitecap.io.run import flow_domain, sequence_bounds
@@ -142,17 +174,22 @@ def main() -> None:
         srcs = {"this": here} | ({"against": os.path.abspath(a.against)} if a.against else {}) | (
             {"arrays": here} if a.arrays else {})
         got: dict[str, list] = {k: [] for k in srcs}
+
+        def one(name: str, src: str, extra: list) -> dict:
+            cmd = [sys.executable, __file__, "--one", str(run), "--radius", repr(r), "--arch", a.arch,
+                   "--domain", domain, *extra] + (["--by-array"] if name == "arrays" else [])
+            if a.budget:
+                cmd += ["--budget", str(a.budget)]
+            # the package timed first on the path, before what the caller's path holds (its dependencies)
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")])))
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
+            return json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:])
+
         for i in range(a.repeat):
             # the order alternates: the second of a pair runs with the first's pages and heat behind it
             for name, src in (list(srcs.items()) if i % 2 == 0 else list(srcs.items())[::-1]):
-                cmd = [sys.executable, __file__, "--one", str(run), "--radius", repr(r), "--arch", a.arch,
-                       "--domain", domain] + (["--by-array"] if name == "arrays" else [])
-                if a.budget:
-                    cmd += ["--budget", str(a.budget)]
-                # the package timed first on the path, before what the caller's path holds (its dependencies)
-                env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")])))
-                out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
-                got[name].append(json.loads([ln for ln in out.splitlines() if ln.startswith("RESULT ")][-1][7:]))
+                got[name].append(one(name, src, []))
+        profiled = one("this", here, ["--profiled"]) if a.kernels else None
     load = open("/proc/loadavg").read().split()[0] if os.path.exists("/proc/loadavg") else "?"
     best = {k: {m: min(x[m] for x in v) for m in ("wall", "cpu")} for k, v in got.items()}
     t_foam = best["this"]["wall"]
@@ -194,6 +231,13 @@ def main() -> None:
             for m, what in (("wall", "wall time"), ("cpu", "CPU time")):
                 q = sorted(b[m] / t[m] for t, b in zip(got["this"], got["against"]))
                 print(f"  pair by pair ({len(q)}), {what}: median {np.median(q):.2f}x, {q[0]:.2f}-{q[-1]:.2f}x")
+    if profiled is not None:
+        f = a.frames
+        dev, wall = profiled["kernel_ms"] / f, 1e3 * profiled["frames_wall"]
+        print(f"each kernel's device time over the pass's frames (Taichi's kernel profiler, one more pass; its timing "
+              f"slows the run): {dev:.1f} ms a frame on the device in all, the frames {wall:.1f} ms a frame: "
+              f"{wall - dev:.1f} ms a frame beyond the device's work (the host's work and the device left idle)")
+        kernel_profile.show(profiled["kernels"], f)
 
 
 if __name__ == "__main__":

@@ -31,12 +31,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import kernel_profile  # noqa: E402
 
 REFERENCE_DIFFUSE_MS = 356.0  # issue 31, 2 CPU cores, foam phase per frame
 REFERENCE_SOLVER_MS = 578.0  # issue 31, solver per frame
@@ -63,27 +65,6 @@ def _scene(radius: float, frames: int):
     )
 
 
-def _kernel_name(name: str) -> str:
-    """A Taichi kernel's Python name, from its compiled name (``birth_counts_c80_0_kernel_3_range_for``)."""
-    return re.split(r"_c\d+_\d+", name, maxsplit=1)[0]
-
-
-def _kernel_times() -> tuple[float, list]:
-    """Device time [ms] of every kernel launched since the profiler was cleared, summed by Python name, most first.
-    (Taichi's public API only prints its table; its profiler's records are read here instead.)"""
-    import taichi as ti
-
-    prof = ti.profiler.kernel_profiler.get_default_kernel_profiler()
-    prof._update_records()
-    by: dict[str, list] = {}
-    for rec in prof._traced_records:
-        t = by.setdefault(_kernel_name(rec.name), [0.0, 0])
-        t[0] += rec.kernel_time
-        t[1] += 1
-    rows = sorted(([k, v[0], v[1]] for k, v in by.items()), key=lambda r: -r[1])
-    return sum(r[1] for r in rows), rows
-
-
 def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool = False, arrays: bool = False,
             kernels: bool = False) -> dict:
     from whitecap import timing
@@ -92,21 +73,8 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
 
     if other_pin:
         runtime.PIN_READBACK = not runtime.PIN_READBACK
-    if kernels:  # Taichi's kernel profiler: runtime.init's ti.init with kernel_profiler=True
-        import taichi as ti
-
-        from whitecap.sim import pbf
-
-        init = ti.init
-        ti.init = lambda *args, **kw: init(*args, kernel_profiler=True, **kw)
-        # the solver's phases kernel by kernel: the profiler sees no kernel launched inside a compute graph
-        made = pbf.PBFSolver.__init__
-
-        def without_graphs(self, *args, **kw):
-            made(self, *args, **kw)
-            self.use_graph = False
-
-        pbf.PBFSolver.__init__ = without_graphs
+    if kernels:  # Taichi's kernel profiler, the solver's phases kernel by kernel (not as graphs)
+        kernel_profile.enable()
     if arrays:  # every frame read back array by array and packed by the writer, as before c268cca
         from whitecap.sim import records
 
@@ -123,9 +91,7 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
         timing.reset()
         waits.clear()  # (the warm-up's)
         if kernels:
-            import taichi as ti
-
-            ti.profiler.clear_kernel_profiler_info()
+            kernel_profile.clear()
         t0 = time.perf_counter()
         info = simulate(sc, out=tmp + "/run", frames=frames, arch=arch, foam=foam, profile=True, show_progress=False)
         wall = time.perf_counter() - t0
@@ -133,7 +99,7 @@ def run_one(radius: float, frames: int, arch: str, foam: bool, other_pin: bool =
     t = {k: v[0] for k, v in timing.TIMERS.items()}
     out = {"timers": t, "n": n, "wall": wall, "waits": [w for w in waits if w[1] >= WAIT_SHOWN]}
     if kernels:
-        out["kernel_ms"], out["kernels"] = _kernel_times()
+        out["kernel_ms"], out["kernels"] = kernel_profile.times()
     return out
 
 
@@ -298,8 +264,7 @@ def main() -> None:
                   f"slows the run): {r['kernel_ms'] / f:.1f} ms a frame on the device in all, the loop "
                   f"{1e3 * _loop(r['timers']) / f:.0f} ms a frame; the solver's phases kernel by kernel, not as "
                   "graphs)")
-            for k, ms, count in r["kernels"][:24]:
-                print(f"  {k:40s} {ms / f:8.2f} ms/frame {count / f:7.1f} launches/frame")
+            kernel_profile.show(r["kernels"], f)
     if "on, kernels" in results and "off, kernels" in results:
         on, off = results["on, kernels"], results["off, kernels"]
         f = a.frames

@@ -12,7 +12,8 @@
 #      kernel's device time a frame: what foam adds on the device against what it adds to the loop);
 #   3. frames, run.json and checkpoints written by the background writer against in the loop;
 #      resident host memory and GPU memory in use over 60 frames with foam on and off (bench_memory.py);
-#   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s), and its
+#   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s; on a RAM disk
+#      once more with each kernel's device time against the frames' wall time), and its
 #      files alone through the background writer, one after the other, side by side, with the next frame's beside
 #      them (as whitecap writes them since 2026-11-28's fifteenth session), and their bytes packed beforehand (what
 #      packing the records on the host costs; bench_writer.py), on the machine's disk and on a RAM disk,
@@ -76,9 +77,12 @@ step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thr
     "$PY" benchmarks/bench_writer.py --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"
 step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU layout" \
     "$PY" benchmarks/bench_scan.py --arch $ARCH --sizes "$(n 1000000,2700000,33554432 10000)" --repeats "$(n 50 3)"
-# the foam pass with the sequence and the files written on a RAM disk: what the machine's disk takes of the rate
-[ -d /dev/shm ] && step 60 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk" \
-    env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" --profile
+# the foam pass with the sequence and the files written on a RAM disk: what the machine's disk takes of the rate;
+# then one more pass with Taichi's kernel profiler: the frames' device time against their wall time (the loop's
+# own work beyond the device's: at 1 M on the H200, 85 ms a frame, most of it unnamed by the host's timers)
+[ -d /dev/shm ] && step 75 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk (and kernels)" \
+    env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" \
+    --profile --kernels
 [ -d /dev/shm ] && step 40 "a frame's files through the writer on a RAM disk: one thread, lanes, frames side by side, bytes" \
     "$PY" benchmarks/bench_writer.py --dir /dev/shm --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch $ARCH --sizes "$(n 10000000,50000000 20000,40000)" --steps "$(n 10 2)"

@@ -241,8 +241,13 @@ def _rows(a: np.ndarray, dtype) -> np.ndarray:
 
 
 def _tally(n: int, kd) -> np.ndarray:
-    """How many of kd[0..n) are spray, foam and bubbles (K.tally_kinds; nothing launched for none)."""
-    return np.array(K.tally_kinds(n, kd), np.float64) if n > 0 else np.zeros(3)
+    """How many of kd[0..n) are spray, foam and bubbles (K.tally_kinds; nothing launched for none). On a GPU the
+    kernels launched before it (a chunk's classification, the compaction) are waited for first with the GIL let go
+    (runtime.device_idle): the count's own wait, in Taichi, holds the GIL, and the writer's threads with it."""
+    if n <= 0:
+        return np.zeros(3)
+    runtime.device_idle()
+    return np.array(K.tally_kinds(n, kd), np.float64)
 
 
 def history_picks(n: int, m: int) -> np.ndarray:
@@ -588,9 +593,11 @@ class FoamGenerator:
         else:
             pots = (SURFACE_FRACTION, normal, surface, v_diff, e_k, vort, mark)
             K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.ENERGETIC)
-            if subset and K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
-                g.build_marked(n, mark, K.CREST_NEIGHBOUR)
-                K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
+            if subset:
+                runtime.device_idle()  # the lists and potentials so far, waited for with the GIL let go (the count)
+                if K.mark_crest_neighbours(n, fv, normal, surface, g.nb_count, g.nb, mark):
+                    g.build_marked(n, mark, K.CREST_NEIGHBOUR)
+                    K.fluid_potentials(n, fx, fv, *lists, self.h, *pots, K.CREST_NEIGHBOUR)
             K.wave_crest(n, fx, fv, *lists, normal, surface, self.h, crest, mark, K.ENERGETIC)
         runtime.device_idle()  # the potentials run on a GPU while the writer's thread writes (the GIL let go)
         self._pots, self._pot_arrays, self._pot_n = None, (v_diff, crest, e_k, vort), n  # read back only if asked
@@ -1049,6 +1056,7 @@ class FoamGenerator:
         frame = index & 0xFFFFFFFF
         half_up = int(p.model == "foamgenerator")  # FoamGenerator rounds half up
         with timer("foam.generate.counts"):
+            runtime.device_idle()  # the advection, waited for with the GIL let go (birth_counts' return waits too)
             lost = int(K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame,
                                       cap, cnt, rate, half_up))
             off = self._buffer("offset", m)
