@@ -658,3 +658,51 @@ def test_a_finished_run_extended_steps_on_from_its_last_frame(tmp_path, monkeypa
     simulate(scene_from_dict(SCENE), out=run, resume=True, frames=7, show_progress=False, foam=False)
     assert sorted(set(written)) == ["fluid_00006.ply", "fluid_00007.ply"]
     assert sorted(set(_listed(run).values())) == list(range(8))
+
+
+def test_the_foam_stage_waits_for_its_heavy_kernels_with_the_gil_let_go(monkeypatch):
+    """On a GPU, Taichi's own waits (a kernel's return value, a read into NumPy) hold the GIL while the device works,
+    so the writer's and the reader's threads stand still meanwhile. After each of the foam stage's heavy kernels
+    (the potentials, the advection, a chunk's classification) runtime.device_idle waits first, with the GIL let
+    go. Here, with every launch recorded in order over a splash that makes thousands of candidates, no read-back
+    follows a heavy kernel without a device_idle between them."""
+    from tests.test_diffuse_generate import DT, _generator, _splash
+    from whitecap.diffuse import kernels as K
+    from whitecap.sim import runtime, scan
+
+    runtime.init("cpu")
+    events: list[str] = []
+
+    def spy(module, name, kind):
+        real = getattr(module, name)
+
+        def call(*args, **kw):
+            out = real(*args, **kw)
+            events.append(f"{kind} {name}")
+            return out
+
+        monkeypatch.setattr(module, name, call)
+
+    for name in ("fluid_potentials", "advect_diffuse", "classify_candidates"):
+        spy(K, name, "heavy")
+    for name in ("mark_crest_neighbours", "pack_potentials", "birth_sums", "birth_counts", "tally_kinds"):
+        spy(K, name, "read")
+    spy(scan, "prefix_sum", "read")
+    idle = runtime.device_idle
+    monkeypatch.setattr(runtime, "device_idle", lambda: events.append("idle") or idle())
+    gen = _generator((30.0, 1.0, 1.0))
+    made = 0
+    for k in range(4):
+        f = _splash()
+        f.positions = f.positions + k * DT * f.velocities
+        made += len(gen.step(f, k, DT))
+    waiting = None
+    for e in events:
+        if e.startswith("heavy"):
+            waiting = e
+        elif e == "idle":
+            waiting = None
+        else:
+            assert waiting is None, f"{e} after {waiting} without device_idle"
+    ran = {e for e in events if e != "idle"}
+    assert made and {"heavy advect_diffuse", "heavy classify_candidates", "read mark_crest_neighbours"} <= ran, ran

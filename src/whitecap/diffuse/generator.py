@@ -885,6 +885,10 @@ class FoamGenerator:
             K.obstacles_diffuse(nd, dst["x"], src["x"], src["v"], src["kind"], keep, *self._geometry(geo),
                                 geo["rot0"], geo["trans0"], geo["rot1"], geo["trans1"], geo["carry_a"], geo["carry_b"],
                                 geo["vel_a"], geo["vel_b"], geo["moved"], self.r)
+        # On a GPU, waited for here with the GIL let go: generation's first read-back (the running 'auto''s sample,
+        # the look-ahead's birth rate, the births' count) would wait for it holding the GIL, and the foam.advect
+        # timer then holds the advection's own time, not generation's.
+        runtime.device_idle()
 
     # ------------------------------------------------------------------ obstacles
     def _obstacle_arrays(self) -> dict:
@@ -1056,7 +1060,6 @@ class FoamGenerator:
         frame = index & 0xFFFFFFFF
         half_up = int(p.model == "foamgenerator")  # FoamGenerator rounds half up
         with timer("foam.generate.counts"):
-            runtime.device_idle()  # the advection, waited for with the GIL let go (birth_counts' return waits too)
             lost = int(K.birth_counts(n, fid, v_diff, crest, e_k, vort, tau, k[0], k[1], k[2], dt, self.seed, frame,
                                       cap, cnt, rate, half_up))
             off = self._buffer("offset", m)
