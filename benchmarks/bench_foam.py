@@ -105,6 +105,31 @@ def time_foam(run: Path, r: float, budget: float | None, arch: str, domain: tupl
     return out
 
 
+def write_sloshing(folder: Path, particles: int, frames: int) -> tuple[float, list[Path]]:
+    """A synthetic sloshing sequence of about ``particles`` particles into ``folder`` (fluid_NNNNN.ply): a lattice
+    block whose upper part swirls and splashes (a rotating velocity field plus a jet), advected frame to frame
+    (1/30 s a frame, at a fifth of the speed). Returns (particle radius, the files)."""
+    from whitecap import io
+
+    side = 0.5
+    r = side / (2 * (2 * particles) ** (1 / 3))  # column side/2 × side × side on a lattice of spacing 2r
+    folder.mkdir(parents=True)
+    ax = [np.arange(r, side / 2, 2 * r), np.arange(r, side, 2 * r), np.arange(r, side, 2 * r)]
+    x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    rng = np.random.default_rng(0)
+    c = np.array([side / 4, side / 2, side / 2])
+    files = []
+    for k in range(frames):
+        d = x - c
+        v = np.stack([-d[:, 2], np.zeros(len(x)), d[:, 0]], 1) * 8.0 + [2.5, 0, 0] * (x[:, 2:3] > 0.7 * side)
+        v = (v + rng.normal(0, 0.2, v.shape)).astype(np.float32)
+        f = folder / f"fluid_{k:05d}.ply"
+        io.write(f, io.ParticleFrame(x, v))
+        files.append(f)
+        x = x + v / 30 * 0.2
+    return r, files
+
+
 BEFORE_FRAMES = ("foam.setup", "foam.look_ahead")  # the pass's timers before its first frame (diffuse/driver.py)
 
 
@@ -139,27 +164,10 @@ def main() -> None:
     from whitecap import io
     from whitecap.io.run import flow_domain, sequence_bounds
 
-    side = 0.5
-    r = side / (2 * (2 * a.particles) ** (1 / 3))  # column side/2 × side × side on a lattice of spacing 2r
     with tempfile.TemporaryDirectory() as tmp:
-        # A synthetic sloshing sequence: a lattice block whose upper part swirls and
-        # splashes (a rotating velocity field plus a jet), advected frame to frame.
         run = Path(tmp) / "run"
-        (run / "fluid").mkdir(parents=True)
-        ax = [np.arange(r, side / 2, 2 * r), np.arange(r, side, 2 * r), np.arange(r, side, 2 * r)]
-        x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-        rng = np.random.default_rng(0)
-        c = np.array([side / 4, side / 2, side / 2])
-        files = []
-        for k in range(a.frames):
-            d = x - c
-            v = np.stack([-d[:, 2], np.zeros(len(x)), d[:, 0]], 1) * 8.0 + [2.5, 0, 0] * (x[:, 2:3] > 0.7 * side)
-            v = (v + rng.normal(0, 0.2, v.shape)).astype(np.float32)
-            f = run / "fluid" / f"fluid_{k:05d}.ply"
-            io.write(f, io.ParticleFrame(x, v))
-            files.append(f)
-            x = x + v / 30 * 0.2
-        n = len(x)
+        r, files = write_sloshing(run / "fluid", a.particles, a.frames)
+        n = len(io.read(files[0]))
         print(f"sequence: {n:,} particles, {len(files)} frames")
         # this package's rule for a foreign sequence's domain, given to every package timed
         box = flow_domain(sequence_bounds(files), r)

@@ -18,7 +18,8 @@
 #      them (as whitecap writes them since 2026-11-28's fifteenth session), and their bytes packed beforehand (what
 #      packing the records on the host costs; bench_writer.py), on the machine's disk and on a RAM disk,
 #      and the foam stage's prefix sum in the CPU's layout against the GPU's (bench_scan.py);
-#   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s).
+#   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s);
+#   6. an experiment: the diffuse particles' advection with the particles sorted by cell (bench_advect_order.py).
 # A windowed figure needs a display; run bench_view.py there by hand with the same arguments.
 #
 # Steps run the targets the last lease left unmet first (foam on over off at 1 M, `whitecap foam` at 1 M); with
@@ -96,6 +97,10 @@ step 90  "neighbour grid, CUDA, dense vs hashed cell table, 1 M and 10 M" \
     "$PY" benchmarks/bench_grid.py --arch $ARCH --sizes "$(n 1000000,10000000 20000)" --repeats "$(n 5 1)"
 step 60  "background writer against in the loop, CUDA, r = 2 mm" \
     "$PY" benchmarks/bench_output.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 20 3)"
+# an experiment, last (skipped first when the budget runs out): the diffuse particles' advection in the fluid grid's
+# cell order against their stored, nearly random one (on 2 CPU cores the same time; a GPU's warps may differ)
+step 60  "experiment: advect_diffuse on the live diffuse particles as stored and sorted by cell, CUDA, 1 M" \
+    "$PY" benchmarks/bench_advect_order.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 8 5)"
 # the exit status says whether every step that ran finished (what DRY=1 is for)
 echo "== $STOPPED step(s) stopped"
 (( STOPPED == 0 ))
