@@ -38,13 +38,17 @@ def _time_both(gen, args, dt: float, repeats: int) -> dict:
     import taichi as ti
 
     from whitecap.diffuse import kernels as K
+    from whitecap.sim.grid import grid_spec
 
     p, nd = gen.p, gen._nd
     live = gen._live[gen._cur]
     x, v = live["x"].to_numpy()[:nd], live["v"].to_numpy()[:nd]
     life, kind = live["life"].to_numpy()[:nd], live["kind"].to_numpy()[:nd]
-    cell = np.floor((x - np.asarray(gen.lo, np.float32)) / (gen.h / 2)).astype(np.int64)
-    dims = cell.max(0) + 1
+    # the cells of the foam stage's fluid grid (FoamGenerator._fluid_grid's spec), numbered as grid.cell_key numbers
+    # them: the order its queries meet the fluid in
+    spec = grid_spec(gen.lo, gen.hi, gen.h / 2)
+    dims = np.asarray(spec.dims, np.int64)
+    cell = np.clip(np.floor((x - np.asarray(spec.lower)) / spec.cell), 0, dims - 1).astype(np.int64)
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     order = np.argsort(key, kind="stable")
 
