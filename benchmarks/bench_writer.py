@@ -12,12 +12,16 @@ against 13 ms new), removed after the run and the disk synced, untimed; which go
   files after that run.json (lanes of depth 1, each frame waited for: whitecap before frames side by side);
 - ``frames``: as whitecap writes now: lanes of depth 2 (io.writer.LANE_DEPTH), the next frame's files beside
   the last frame's and its run.json;
+- ``deeper``: as ``frames``, with lanes of depth :data:`DEEPER` (four frames' files side by side): whether a
+  machine with many cores writes more a second with more threads on a lane, where one lane thread could not keep
+  up with a frame at 30 frames/s (an H200's RAM disk: 34 ms a diffuse file; its own disk: 68 ms);
 - ``bytes``: as ``frames``, but each file's bytes made once beforehand and only written (io.atomic.write_bytes):
   what a frame's files would cost were their records packed elsewhere (on the device, say), the floor that
   packing on the host is measured against.
 
-Printed: ms a frame for each, round by round (the four in a rotating order), the ratios one thread / lanes,
-lanes / frames (above 1: the later way faster) and frames / bytes (what packing the records on the host adds). The
+Printed: ms a frame for each, round by round (the five in a rotating order), the ratios one thread / lanes,
+lanes / frames, frames / deeper (above 1: the later way faster) and frames / bytes (what packing the records on the
+host adds). The
 defaults are `whitecap foam` at 1 M fluid particles with 1.6 diffuse particles each (about 32 + 58 MB a frame).
 ``--dir`` picks the file system (a RAM disk: /dev/shm); the default is a temporary folder.
 
@@ -54,7 +58,9 @@ def frames(n_fluid: int, n_diffuse: int) -> tuple[ParticleFrame, ParticleFrame]:
     return fluid, diffuse
 
 
-MODES = ("one thread", "lanes", "frames", "bytes")
+MODES = ("one thread", "lanes", "frames", "deeper", "bytes")
+#: The lanes' depth of ``deeper``: twice whitecap's own.
+DEEPER = 2 * LANE_DEPTH
 
 
 def run(folder: Path, files: dict, n: int, mode: str) -> float:
@@ -63,7 +69,8 @@ def run(folder: Path, files: dict, n: int, mode: str) -> float:
     lanes = mode != "one thread"
     one_frame = mode in ("one thread", "lanes")  # each frame's files and run.json done before the next frame's
     t0 = time.perf_counter()
-    with FrameWriter(name="bench-writer", depth=1 if one_frame else LANE_DEPTH) as w:
+    depth = 1 if one_frame else DEEPER if mode == "deeper" else LANE_DEPTH
+    with FrameWriter(name="bench-writer", depth=depth) as w:
         for k in range(n):
             for kind in ("fluid", "diffuse"):
                 path = folder / f"{kind}_{k:05d}.ply"
@@ -86,7 +93,7 @@ def main() -> None:
     ap.add_argument("--fluid", type=int, default=1_000_000)
     ap.add_argument("--diffuse", type=int, default=1_600_000)
     ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--pairs", type=int, default=3, help="rounds of the three ways")
+    ap.add_argument("--pairs", type=int, default=3, help="rounds of the five ways")
     ap.add_argument("--dir", help="folder to write into (default: a temporary one)")
     a = ap.parse_args()
     fluid, diffuse = frames(a.fluid, a.diffuse)
@@ -107,9 +114,10 @@ def main() -> None:
         for i in range(a.pairs):  # the order rotates: each mode goes first, second, ... and last in turn
             for mode in MODES[i % k:] + MODES[:i % k]:
                 got[mode].append(run(folder, files, a.frames, mode))
-            one, lanes, side, raw = (got[m][-1] for m in MODES)
-            print(f"  round {i + 1}: one thread {one:7.1f}, lanes {lanes:7.1f}, frames {side:7.1f}, bytes {raw:7.1f} "
-                  f"ms a frame: one thread / lanes {one / lanes:.2f}x, lanes / frames {lanes / side:.2f}x, "
+            one, lanes, side, deep, raw = (got[m][-1] for m in MODES)
+            print(f"  round {i + 1}: one thread {one:7.1f}, lanes {lanes:7.1f}, frames {side:7.1f}, "
+                  f"deeper {deep:7.1f}, bytes {raw:7.1f} ms a frame: one thread / lanes {one / lanes:.2f}x, "
+                  f"lanes / frames {lanes / side:.2f}x, frames / deeper {side / deep:.2f}x, "
                   f"frames / bytes {side / raw:.2f}x")
         med = {m: statistics.median(v) for m, v in got.items()}
         rounds = list(zip(*(got[m] for m in MODES)))
@@ -118,7 +126,8 @@ def main() -> None:
             return f"{statistics.median(r[a_] / r[b_] for r in rounds):.2f}x"
         print("median: " + ", ".join(f"{m} {med[m]:.1f} ms a frame ({1e3 / med[m]:.1f} frames/s)" for m in MODES)
               + f"; rounds' ratio medians: one thread / lanes {ratio(0, 1)}, lanes / frames (frames side by side) "
-              f"{ratio(1, 2)}, frames / bytes (packing on the host) {ratio(2, 3)}")
+              f"{ratio(1, 2)}, frames / deeper (lanes of depth {DEEPER}) {ratio(2, 3)}, frames / bytes (packing on "
+              f"the host) {ratio(2, 4)}")
 
 
 if __name__ == "__main__":

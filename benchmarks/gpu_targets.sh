@@ -15,8 +15,10 @@
 #   4. `whitecap foam --arch cuda` post-processing of a 1 M-particle sequence (target >= 30 frames/s; on a RAM disk
 #      once more with each kernel's device time against the frames' wall time), and its
 #      files alone through the background writer, one after the other, side by side, with the next frame's beside
-#      them (as whitecap writes them since 2026-11-28's fifteenth session), and their bytes packed beforehand (what
-#      packing the records on the host costs; bench_writer.py), on the machine's disk and on a RAM disk,
+#      them (as whitecap writes them since 2026-11-28's fifteenth session), with four frames' beside each other (lanes
+#      twice as deep: whether more threads a lane write more a second on a machine of many cores), and their bytes
+#      packed beforehand (what packing the records on the host costs; bench_writer.py), on the machine's disk and on
+#      a RAM disk,
 #      and the foam stage's prefix sum in the CPU's layout against the GPU's (bench_scan.py);
 #   5. the live GGUI view of a ~200k dam break, one solver step per redraw, headless (target >= 30 frames/s);
 #   6. an experiment: the diffuse particles' advection with the particles sorted by cell (bench_advect_order.py).
@@ -74,7 +76,7 @@ step 230 "simulate with foam on and off, CUDA, r = 2 mm, 40 frames, twice (and f
     "$PY" benchmarks/bench_simulate_foam.py --arch $ARCH --radius "$(n 0.002 0.012)" --frames "$(n 40 3)" --pin \
     --repeat 2 --kernels
 # what the foam pass's files cost the writer: one after the other on its thread, or fluid and diffuse side by side
-step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, frames side by side, bytes packed beforehand" \
+step 60  "a frame's files through the writer, 1 M fluid + 1.6 M diffuse: one thread, lanes, frames side by side, deeper lanes, bytes packed beforehand" \
     "$PY" benchmarks/bench_writer.py --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"
 step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU layout" \
     "$PY" benchmarks/bench_scan.py --arch $ARCH --sizes "$(n 1000000,2700000,33554432 10000)" --repeats "$(n 50 3)"
@@ -84,7 +86,7 @@ step 30  "the foam stage's prefix sum on CUDA, its CPU layout against its GPU la
 [ -d /dev/shm ] && step 75 "foam post-processing, CUDA, 1 M particles, 10 frames, on a RAM disk (and kernels)" \
     env TMPDIR=/dev/shm "$PY" benchmarks/bench_foam.py --arch $ARCH --particles "$(n 1000000 20000)" --frames "$(n 10 5)" \
     --profile --kernels
-[ -d /dev/shm ] && step 40 "a frame's files through the writer on a RAM disk: one thread, lanes, frames side by side, bytes" \
+[ -d /dev/shm ] && step 40 "a frame's files through the writer on a RAM disk: one thread, lanes, frames side by side, deeper lanes, bytes" \
     "$PY" benchmarks/bench_writer.py --dir /dev/shm --fluid "$(n 1000000 20000)" --diffuse "$(n 1600000 30000)" --frames "$(n 10 3)" --pairs "$(n 3 1)"
 step 180 "solver, CUDA, 10 M and 50 M, 10 steps" "$PY" benchmarks/bench_solver.py --arch $ARCH --sizes "$(n 10000000,50000000 20000,40000)" --steps "$(n 10 2)"
 step 150 "simulate with foam on and off, CUDA, r = 0.8 mm, 4 frames" \
