@@ -21,9 +21,8 @@ against 13 ms new), removed after the run and the disk synced, untimed; which go
 
 Printed: ms a frame for each, round by round (the five in a rotating order), the ratios one thread / lanes,
 lanes / frames, frames / deeper (above 1: the later way faster) and frames / bytes (what packing the records on the
-host adds). The
-defaults are `whitecap foam` at 1 M fluid particles with 1.6 diffuse particles each (about 32 + 58 MB a frame).
-``--dir`` picks the file system (a RAM disk: /dev/shm); the default is a temporary folder.
+host adds). The defaults are `whitecap foam` at 1 M fluid particles with 1.6 diffuse particles each (about 32 + 58
+MB a frame). ``--dir`` picks the file system (a RAM disk: /dev/shm); the default is a temporary folder.
 
     python benchmarks/bench_writer.py [--fluid 1000000] [--diffuse 1600000] [--frames 10] [--pairs 3]
 """
